@@ -1,0 +1,19 @@
+"""adalio: adaptive LiDAR-inertial odometry (AdaLIO on a Faster-LIO core), ROS-free.
+
+Public API (see README "Python API"):
+
+* :func:`load_config`, :class:`Config` and its sections: configuration and presets.
+* :class:`Odometry`: the streaming estimator (``add_imu`` / ``add_scan`` / ``map_points``).
+* Bag reading and the IMU/LiDAR sequencer from :mod:`adalio.io`.
+"""
+
+from adalio.config import Config, config_from_dict, load_config
+from adalio.errors import AdalioError, BagError, ConfigError, InputError
+from adalio.types import Estimate, ImuBatch, Scan, ScanStats
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "AdalioError", "BagError", "Config", "ConfigError", "Estimate", "ImuBatch", "InputError",
+    "Scan", "ScanStats", "config_from_dict", "load_config", "__version__",
+]

@@ -1,0 +1,438 @@
+"""Configuration: one dataclass per section, YAML presets, strict loading.
+
+Conventions (written once, here and in the README):
+
+* Time is int64 nanoseconds at every interface (``t_ns``).
+* Extrinsic ``T_imu_lidar`` is a 4x4 homogeneous matrix (row-major nested list in YAML) that maps
+  LiDAR-frame points into the IMU frame: ``p_imu = R @ p_lidar + t`` (lio-design.md §1,
+  Faster-LIO's ``extrinsic_R`` / ``extrinsic_T``). On the command line it is given as
+  ``"tx ty tz qx qy qz qw"`` (quaternion in x y z w order).
+* The world frame is the IMU frame at the end of initialization (lio-design.md §1), unless
+  ``imu.gravity_align_world`` is set, in which case its z axis points up (against gravity).
+
+Each section receives only its own dataclass. Unknown keys are rejected with the nearest valid key
+suggested. Presets live in ``adalio/presets/*.yaml`` and are partial: they override defaults.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from adalio.errors import ConfigError
+
+MODES = ("fixed", "adaptive", "adaptive+")
+
+
+def _identity4() -> list[list[float]]:
+    return [[1.0 if i == j else 0.0 for j in range(4)] for i in range(4)]
+
+
+@dataclass
+class SensorConfig:
+    """Topics, extrinsic and time handling of the LiDAR + IMU rig."""
+
+    lidar_topic: str = ""
+    """PointCloud2 topic; empty = auto-detect (the only PointCloud2 topic of the bag)."""
+    imu_topic: str = ""
+    """sensor_msgs/Imu topic; empty = auto-detect (the only Imu topic of the bag)."""
+    T_imu_lidar: list[list[float]] = field(default_factory=_identity4)
+    """4x4 row-major, maps LiDAR points into the IMU frame: p_imu = R p_lidar + t (metres)."""
+    extrinsic_source: str = "auto"
+    """'config' (use T_imu_lidar), 'tf_static' (require /tf_static), 'auto' (tf_static if the bag
+    has a transform between the two sensors' frame ids, else T_imu_lidar)."""
+    imu_rate_hz: float = 400.0
+    """Nominal IMU rate (Hz); used for diagnostics and the simulator, never to invent stamps."""
+    lidar_rate_hz: float = 10.0
+    """Nominal sweep rate (Hz); used to reconstruct per-point times from azimuth when absent."""
+    accel_unit: str = "auto"
+    """'auto' (g if the static mean norm is near 1), 'm_s2' or 'g'."""
+    point_time_field: str = "auto"
+    """Per-point time field name, or 'auto' (t, time, timestamp, timestamps, offset_time, ...),
+    or 'none' to reconstruct times from azimuth."""
+    point_time_unit: str = "auto"
+    """'auto', 's', 'ms', 'us' or 'ns'."""
+    point_time_reference: str = "auto"
+    """'auto', 'absolute' (epoch time) or 'relative' (offset from the header stamp)."""
+
+
+@dataclass
+class PreprocessConfig:
+    """Per-scan range gates and decimation (lio-design.md §6.1)."""
+
+    blind_m: float = 0.5
+    """Points closer than this to the LiDAR (operator, rig) are dropped (metres)."""
+    max_range_m: float = 100.0
+    """Points farther than this are dropped (metres)."""
+    point_filter_num: int = 1
+    """Keep every n-th point of the message (1 = all)."""
+
+
+@dataclass
+class ImuConfig:
+    """IMU noise, initialization and gravity (lio-design.md §3-4)."""
+
+    gyro_cov: float = 0.1
+    """sigma_g^2 of the gyro white noise, used as-is (Faster-LIO ``gyr_cov``)."""
+    accel_cov: float = 0.1
+    """sigma_a^2 of the accelerometer white noise (Faster-LIO ``acc_cov``)."""
+    gyro_bias_cov: float = 1e-4
+    """sigma_bg^2 of the gyro bias random walk (Faster-LIO ``b_gyr_cov``)."""
+    accel_bias_cov: float = 1e-4
+    """sigma_ba^2 of the accel bias random walk (Faster-LIO ``b_acc_cov``)."""
+    noise_discretization: str = "dt2"
+    """'dt2' (Faster-LIO parity: G carries dt, so Q dt^2 is injected) or 'dt' (Q dt)."""
+    gravity_m_s2: float = 9.81
+    """Magnitude of gravity (m/s^2)."""
+    init_samples: int = 20
+    """Minimum number of static IMU samples averaged for gravity and gyro bias (MAX_INI_COUNT)."""
+    init_window_s: float = 0.5
+    """Length of the window the stillness check looks at (seconds)."""
+    still_gyro_rad_s: float = 0.05
+    """Stillness: max gyro norm deviation from the window mean (rad/s)."""
+    still_accel_m_s2: float = 0.15
+    """Stillness: max accel norm deviation from the window mean (m/s^2)."""
+    gravity_align_world: bool = False
+    """Rotate the world frame so that its z axis points up (default: world = IMU at init)."""
+
+
+@dataclass
+class MapConfig:
+    """iVox local map (lio-design.md §7)."""
+
+    ivox_resolution_m: float = 0.5
+    """iVox voxel edge (metres); fixed for the whole run."""
+    nearby_type: int = 18
+    """Neighbourhood searched around the query voxel: 0 (centre), 6, 18 or 26."""
+    capacity_voxels: int = 1_000_000
+    """Voxels kept; the least recently inserted are evicted beyond this."""
+    max_points_per_voxel: int = 64
+    """Per-voxel cap (numba deviation from upstream's unbounded lists); oldest replaced."""
+    map_leaf_m: float = 0.2
+    """Insertion-rule cell (Faster-LIO ``filter_size_map``): ~one point per cell (metres)."""
+
+
+@dataclass
+class FilterConfig:
+    """Iterated error-state Kalman filter and point-to-plane update (lio-design.md §6)."""
+
+    max_iterations: int = 3
+    """N_max of the iterated update (up to N_max + 1 evaluations)."""
+    knn_k: int = 5
+    """Neighbours per point for the plane fit."""
+    min_neighbors: int = 3
+    """Fewer neighbours than this: no correspondence."""
+    laser_point_cov: float = 0.001
+    """Point-to-plane residual variance R (m^2)."""
+    convergence_eps: float = 0.001
+    """Per-component convergence threshold of the error-state step."""
+    estimate_extrinsic: bool = False
+    """Estimate the LiDAR-IMU extrinsic online (off for calibrated rigs)."""
+    plane_fit: str = "ls"
+    """'ls' (a^T x = -1 least squares, Faster-LIO parity) or 'pca'."""
+    refit_every_iteration: bool = False
+    """Re-search and refit planes at every iteration (FAST-LIO2) instead of on convergence only."""
+
+
+@dataclass
+class ParamSet:
+    """The three data-association parameters AdaLIO switches (paper Table I, lio-design.md §9)."""
+
+    voxel_size_m: float = 0.2
+    """Leaf of the scan voxel-grid downsampling (metres)."""
+    search_radius_m: float = 3.0
+    """Gate on the farthest of the k neighbours (metres, lio-design.md §9.4)."""
+    plane_margin_m: float = 0.05
+    """Max |n^T q + d| of every neighbour for a valid plane (metres)."""
+
+
+def _degenerate_set() -> ParamSet:
+    return ParamSet(voxel_size_m=0.1, search_radius_m=2.0, plane_margin_m=0.025)
+
+
+@dataclass
+class AdaptiveConfig:
+    """Degeneracy detection and parameter switching (lio-design.md §9)."""
+
+    mode: str = "adaptive"
+    """'fixed' (Faster-LIO, general set always), 'adaptive' (AdaLIO), 'adaptive+' (localizability)."""
+    general: ParamSet = field(default_factory=ParamSet)
+    """Parameters in the general (open) case."""
+    degenerate: ParamSet = field(default_factory=_degenerate_set)
+    """Parameters in the degenerate (narrow) case."""
+    detector: str = "count"
+    """'count' (public code: N_down < tau_n or N_near < tau_near), 'near_ratio' (paper: N_down <
+    tau_n and N_near / N_down > near_ratio)."""
+    tau_n: int = 800
+    """Threshold on the number of downsampled points (general leaf)."""
+    tau_near: int = 500
+    """Threshold on the number of downsampled points with |x|, |y| < d_xy."""
+    d_xy_m: float = 5.0
+    """Half-width of the 'near' box around the sensor (metres, z ignored)."""
+    near_ratio: float = 0.8
+    """Fraction of near points for the paper's reading."""
+    hold_scans: int = 3
+    """The degenerate set stays active for this many scans after the last trigger (incl. it)."""
+    use_localizability_trigger: bool = True
+    """Also trigger on a weak information direction (modes adaptive and adaptive+)."""
+    min_eigen_ratio: float = 0.02
+    """Trigger when the smallest translational eigenvalue / largest is below this."""
+    min_voxel_size_m: float = 0.05
+    """adaptive+: smallest leaf tried while refining."""
+    point_budget: int = 8000
+    """adaptive+: max downsampled points per scan while refining."""
+    observable_eigen_ratio: float = 0.01
+    """adaptive+: directions with eigenvalue ratio below this are left at the IMU prediction."""
+
+
+@dataclass
+class OutputConfig:
+    """What `adalio run` writes."""
+
+    map_format: str = "ply"
+    """'ply' (binary little-endian) or 'pcd' (binary)."""
+    map_voxel_m: float = 0.05
+    """Leaf of the voxel filter applied to the exported map (0 = no filter)."""
+
+
+@dataclass
+class Config:
+    """The effective configuration of a run."""
+
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
+    imu: ImuConfig = field(default_factory=ImuConfig)
+    map: MapConfig = field(default_factory=MapConfig)
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    adaptive: AdaptiveConfig = field(default_factory=AdaptiveConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+
+    # ------------------------------------------------------------------ helpers
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=None)
+
+    def T_imu_lidar(self) -> np.ndarray:
+        """The extrinsic as a validated 4x4 float64 array."""
+        return validate_transform(self.sensor.T_imu_lidar, "sensor.T_imu_lidar")
+
+    def validate(self) -> Config:
+        """Check enumerations, ranges and the extrinsic; raise ConfigError naming the key."""
+        _choice(self.adaptive.mode, MODES, "adaptive.mode")
+        _choice(self.adaptive.detector, ("count", "near_ratio"), "adaptive.detector")
+        _choice(self.sensor.extrinsic_source, ("auto", "config", "tf_static"),
+                "sensor.extrinsic_source")
+        _choice(self.sensor.accel_unit, ("auto", "m_s2", "g"), "sensor.accel_unit")
+        _choice(self.sensor.point_time_unit, ("auto", "s", "ms", "us", "ns"),
+                "sensor.point_time_unit")
+        _choice(self.sensor.point_time_reference, ("auto", "absolute", "relative"),
+                "sensor.point_time_reference")
+        _choice(self.imu.noise_discretization, ("dt2", "dt"), "imu.noise_discretization")
+        _choice(self.map.nearby_type, (0, 6, 18, 26), "map.nearby_type")
+        _choice(self.filter.plane_fit, ("ls", "pca"), "filter.plane_fit")
+        _choice(self.output.map_format, ("ply", "pcd"), "output.map_format")
+        for name, ps in (("general", self.adaptive.general),
+                         ("degenerate", self.adaptive.degenerate)):
+            for f in dataclasses.fields(ps):
+                if not getattr(ps, f.name) > 0:
+                    raise ConfigError(f"adaptive.{name}.{f.name} must be > 0 "
+                                      f"(got {getattr(ps, f.name)})")
+        for key, value in (("preprocess.blind_m", self.preprocess.blind_m),):
+            if value < 0:
+                raise ConfigError(f"{key} must be >= 0 (got {value})")
+        for key, value in (("preprocess.max_range_m", self.preprocess.max_range_m),
+                           ("map.ivox_resolution_m", self.map.ivox_resolution_m),
+                           ("map.map_leaf_m", self.map.map_leaf_m),
+                           ("imu.gravity_m_s2", self.imu.gravity_m_s2),
+                           ("filter.laser_point_cov", self.filter.laser_point_cov)):
+            if not value > 0:
+                raise ConfigError(f"{key} must be > 0 (got {value})")
+        for key, value in (("preprocess.point_filter_num", self.preprocess.point_filter_num),
+                           ("imu.init_samples", self.imu.init_samples),
+                           ("filter.max_iterations", self.filter.max_iterations),
+                           ("filter.knn_k", self.filter.knn_k),
+                           ("map.capacity_voxels", self.map.capacity_voxels),
+                           ("map.max_points_per_voxel", self.map.max_points_per_voxel)):
+            if int(value) < 1:
+                raise ConfigError(f"{key} must be >= 1 (got {value})")
+        self.T_imu_lidar()
+        return self
+
+
+def _choice(value: Any, allowed: tuple, key: str) -> None:
+    if value not in allowed:
+        raise ConfigError(f"{key} must be one of {', '.join(map(str, allowed))} (got {value!r})")
+
+
+def validate_transform(T: Any, where: str) -> np.ndarray:
+    """Return ``T`` as a 4x4 float64 rigid transform or raise ConfigError naming ``where``."""
+    try:
+        M = np.asarray(T, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where} must be a 4x4 matrix of numbers") from None
+    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+        raise ConfigError(f"{where} must be a finite 4x4 matrix (got shape {M.shape})")
+    R = M[:3, :3]
+    if (np.abs(R.T @ R - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(R) - 1.0) > 1e-3
+            or np.abs(M[3] - [0, 0, 0, 1]).max() > 1e-9):
+        raise ConfigError(f"{where} is not a rigid transform: its 3x3 block must be a rotation "
+                          "(orthonormal, det +1) and its last row 0 0 0 1")
+    # re-orthonormalize small rounding errors of hand-typed matrices
+    U, _, Vt = np.linalg.svd(R)
+    M = M.copy()
+    M[:3, :3] = U @ Vt
+    return M
+
+
+def transform_from_xyz_quat(text: str, where: str = "--extrinsic") -> list[list[float]]:
+    """Parse ``"tx ty tz qx qy qz qw"`` into a 4x4 nested list (rotation must be a unit quat)."""
+    try:
+        vals = [float(v) for v in text.replace(",", " ").split()]
+    except ValueError:
+        raise ConfigError(f"{where} must be 7 numbers 'tx ty tz qx qy qz qw' (got {text!r})") \
+            from None
+    if len(vals) != 7 or not np.all(np.isfinite(vals)):
+        raise ConfigError(f"{where} must be 7 numbers 'tx ty tz qx qy qz qw' (got {text!r})")
+    q = np.array(vals[3:])
+    norm = np.linalg.norm(q)
+    if abs(norm - 1.0) > 1e-3:
+        raise ConfigError(f"{where}: quaternion (qx qy qz qw) has norm {norm:.4f}, not 1: "
+                          "it is not a rotation")
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(q / norm).as_matrix()
+    T[:3, 3] = vals[:3]
+    return T.tolist()
+
+
+# ---------------------------------------------------------------------- loading
+def _merge_into(obj: Any, data: dict[str, Any], prefix: str) -> None:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{prefix or 'config'} must be a mapping of keys to values")
+    names = {f.name: f for f in dataclasses.fields(obj)}
+    for key, value in data.items():
+        if key not in names:
+            where = f"{prefix}.{key}" if prefix else str(key)
+            close = difflib.get_close_matches(str(key), list(names), n=1, cutoff=0.5)
+            hint = f"; did you mean '{close[0]}'?" if close else \
+                f"; valid keys: {', '.join(names)}"
+            raise ConfigError(f"unknown config key '{where}'{hint}")
+        current = getattr(obj, key)
+        path = f"{prefix}.{key}" if prefix else key
+        if dataclasses.is_dataclass(current):
+            _merge_into(current, value, path)
+            continue
+        setattr(obj, key, _coerce(current, value, path))
+
+
+def _coerce(current: Any, value: Any, path: str) -> Any:
+    try:
+        if isinstance(current, bool):
+            if isinstance(value, bool):
+                return value
+            if isinstance(value, str) and value.lower() in ("true", "false", "yes", "no", "1", "0"):
+                return value.lower() in ("true", "yes", "1")
+            raise ValueError
+        if isinstance(current, int):
+            if isinstance(value, bool) or float(value) != int(float(value)):
+                raise ValueError
+            return int(float(value))
+        if isinstance(current, float):
+            if isinstance(value, bool):
+                raise ValueError
+            return float(value)
+        if isinstance(current, str):
+            if not isinstance(value, (str, int, float)):
+                raise ValueError
+            return str(value)
+        if isinstance(current, list):
+            if not isinstance(value, list):
+                raise ValueError
+            return value
+    except (TypeError, ValueError):
+        pass
+    else:
+        return value
+    raise ConfigError(f"config key '{path}' expects a {type(current).__name__} (got {value!r})")
+
+
+def available_presets() -> list[str]:
+    root = resources.files("adalio") / "presets"
+    return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".yaml"))
+
+
+def _read_yaml(text: str, where: str) -> dict[str, Any]:
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        line = getattr(getattr(exc, "problem_mark", None), "line", None)
+        at = f" (line {line + 1})" if line is not None else ""
+        raise ConfigError(f"{where} is not valid YAML{at}: fix the syntax") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where} must contain a mapping of sections (sensor, map, ...)")
+    return data
+
+
+def preset_dict(name: str) -> dict[str, Any]:
+    """The raw override mapping of a shipped preset."""
+    names = available_presets()
+    if name not in names:
+        close = difflib.get_close_matches(name, names, n=1)
+        hint = f"did you mean '{close[0]}'? " if close else ""
+        raise ConfigError(f"unknown preset '{name}': {hint}available: {', '.join(names)}")
+    text = (resources.files("adalio") / "presets" / f"{name}.yaml").read_text()
+    return _read_yaml(text, f"preset {name}")
+
+
+def load_config(preset: str | None = None, config_file: str | Path | None = None,
+                overrides: dict[str, Any] | None = None) -> Config:
+    """Build the effective config: defaults < preset < config file < overrides.
+
+    ``overrides`` uses dotted keys (``{"adaptive.mode": "fixed"}``) or nested mappings.
+    A config file may name a preset itself with a top-level ``preset:`` key.
+    """
+    cfg = Config()
+    file_data: dict[str, Any] = {}
+    if config_file is not None:
+        path = Path(config_file)
+        if not path.is_file():
+            raise ConfigError(f"config file {path} does not exist: check the path")
+        file_data = _read_yaml(path.read_text(), f"config file {path}")
+        file_preset = file_data.pop("preset", None)
+        if preset is None and file_preset is not None:
+            preset = str(file_preset)
+    if preset:
+        _merge_into(cfg, preset_dict(preset), "")
+    if file_data:
+        _merge_into(cfg, file_data, "")
+    if overrides:
+        nested: dict[str, Any] = {}
+        for key, value in overrides.items():
+            if value is None:
+                continue
+            parts = key.split(".")
+            node = nested
+            for part in parts[:-1]:
+                node = node.setdefault(part, {})
+            node[parts[-1]] = value
+        _merge_into(cfg, nested, "")
+    return cfg.validate()
+
+
+def config_from_dict(data: dict[str, Any]) -> Config:
+    """A validated Config from a nested mapping (e.g. a saved ``config.yaml``)."""
+    cfg = Config()
+    _merge_into(cfg, dict(data), "")
+    return cfg.validate()

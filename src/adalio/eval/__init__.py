@@ -1,0 +1,1 @@
+"""adalio.eval"""

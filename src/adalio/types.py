@@ -1,0 +1,106 @@
+"""Data passed between the bag reader, the estimator and the writers.
+
+Frames: ``lidar`` = LiDAR sensor frame, ``imu`` = IMU/body frame, ``world`` = IMU frame at the
+end of initialization (or its gravity-aligned version). Units are in the names. Time is int64
+nanoseconds since the epoch of the bag's clock.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class ImuBatch:
+    """IMU samples in time order: body angular rate and specific force in the IMU frame."""
+
+    t_ns: np.ndarray
+    """(N,) int64."""
+    gyro_rad_s: np.ndarray
+    """(N, 3) float64."""
+    accel_m_s2: np.ndarray
+    """(N, 3) float64 (already converted from g if the sensor reports in g)."""
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+
+@dataclass
+class Scan:
+    """One LiDAR sweep with per-point absolute times."""
+
+    points_lidar: np.ndarray
+    """(N, 3) float64, metres, LiDAR frame. NaN/inf points already removed."""
+    t_ns: np.ndarray
+    """(N,) int64 absolute time of each point."""
+    stamp_ns: int
+    """Header stamp of the message (int64 ns)."""
+    intensity: np.ndarray | None = None
+    """(N,) float32 or None."""
+    ring: np.ndarray | None = None
+    """(N,) uint16 or None."""
+
+    @property
+    def t_start_ns(self) -> int:
+        return int(self.t_ns.min()) if self.t_ns.size else int(self.stamp_ns)
+
+    @property
+    def t_end_ns(self) -> int:
+        return int(self.t_ns.max()) if self.t_ns.size else int(self.stamp_ns)
+
+    def __len__(self) -> int:
+        return int(self.points_lidar.shape[0])
+
+
+@dataclass
+class ScanStats:
+    """Per-scan diagnostics; one row of ``scans.csv``."""
+
+    t_ns: int = 0
+    n_raw: int = 0
+    """Points in the message after NaN removal."""
+    n_down: int = 0
+    """Points after voxel downsampling with the leaf actually used."""
+    n_down_general: int = 0
+    """Points after downsampling with the general leaf (the detector's N_down)."""
+    n_near: int = 0
+    """Downsampled points (general leaf) with |x|,|y| < d_xy in the LiDAR frame."""
+    degenerate: bool = False
+    trigger: str = ""
+    """Why the degenerate set is active: '', 'count', 'near', 'near_ratio', 'eigen', 'hold'."""
+    voxel_size_m: float = 0.0
+    search_radius_m: float = 0.0
+    plane_margin_m: float = 0.0
+    n_matched: int = 0
+    """Points with an accepted point-to-plane residual at the last iteration."""
+    iterations: int = 0
+    wall_ms: float = 0.0
+    eigenvalues: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    """Ascending eigenvalues of the 6x6 (rotation, translation) information matrix H^T H / R."""
+    weakest_direction: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    """Unit eigenvector of the smallest eigenvalue (rotation xyz, translation xyz)."""
+    degeneracy_score: float = 0.0
+    """0 (well constrained) .. 1 (an unobservable direction); see lio/degeneracy.py."""
+    stage_ms: dict[str, float] = field(default_factory=dict)
+    """Wall time per pipeline stage (undistort, downsample, degeneracy, update, map)."""
+
+
+@dataclass
+class Estimate:
+    """The filter state at the end of one scan."""
+
+    t_ns: int
+    """Scan end time (int64 ns)."""
+    T_world_imu: np.ndarray
+    """(4, 4) float64 pose of the IMU in the world frame."""
+    velocity_world_m_s: np.ndarray
+    gyro_bias_rad_s: np.ndarray
+    accel_bias_m_s2: np.ndarray
+    gravity_world_m_s2: np.ndarray
+    cov_diag: np.ndarray
+    """(23,) diagonal of the error-state covariance (lio-design.md §2 ordering)."""
+    stats: ScanStats = field(default_factory=ScanStats)
+    points_world: np.ndarray | None = None
+    """(M, 3) the downsampled scan registered into the world (for visualisation)."""
