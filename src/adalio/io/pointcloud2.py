@@ -2,15 +2,41 @@
 
 Datatype codes are those of sensor_msgs/PointField: 1 INT8, 2 UINT8, 3 INT16, 4 UINT16,
 5 INT32, 6 UINT32, 7 FLOAT32, 8 FLOAT64.
+
+Decoding reads x, y, z (metres, LiDAR frame = the cloud's ``header.frame_id``), an optional
+intensity and ring, and a per-point time field whose name, unit (s/ms/us/ns) and reference
+(absolute epoch time or offset from the header stamp) are detected from the first cloud unless
+configured (``sensor.point_time_*``). Output times are int64 absolute nanoseconds. Points with a
+non-finite coordinate or time are dropped together with their time. A cloud without a time field
+gets times reconstructed from the azimuth of a spinning LiDAR (clockwise seen from above, one
+sweep = ``1 / sensor.lidar_rate_hz``), starting at the header stamp.
 """
 
 from __future__ import annotations
 
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
 import numpy as np
+
+from adalio.config import SensorConfig
+from adalio.errors import BagError
+from adalio.types import Scan
 
 POINTFIELD_DTYPES: dict[int, str] = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4",
                                      7: "f4", 8: "f8"}
 DTYPE_TO_POINTFIELD: dict[str, int] = {v: k for k, v in POINTFIELD_DTYPES.items()}
+
+TIME_FIELD_CANDIDATES: tuple[str, ...] = (
+    "t", "time", "timestamp", "timestamps", "offset_time", "time_offset", "time_stamp",
+    "timeoffset", "stamp", "t_ns", "point_time",
+)
+"""Field names tried, in order, when ``sensor.point_time_field`` is 'auto'."""
+
+UNIT_TO_NS: dict[str, int] = {"s": 1_000_000_000, "ms": 1_000_000, "us": 1_000, "ns": 1}
+INTENSITY_FIELDS: tuple[str, ...] = ("intensity", "reflectivity", "i")
+RING_FIELDS: tuple[str, ...] = ("ring", "channel", "line", "laser_id")
 
 
 def encode_pointcloud2(columns: dict[str, np.ndarray], layout: list[tuple[str, int, str]],
@@ -33,3 +59,301 @@ def encode_pointcloud2(columns: dict[str, np.ndarray], layout: list[tuple[str, i
         arr[name] = columns[name]
     fields = [(name, off, DTYPE_TO_POINTFIELD[kind], 1) for name, off, kind in layout]
     return arr.tobytes(), fields
+
+
+# ----------------------------------------------------------------------------- raw decoding
+@dataclass(frozen=True)
+class CloudLayout:
+    """The binary layout of a PointCloud2 message (everything except the data)."""
+
+    fields: tuple[tuple[str, int, int, int], ...]
+    """(name, offset, datatype, count) as in sensor_msgs/PointField."""
+    point_step: int
+    width: int
+    height: int
+    row_step: int
+    is_bigendian: bool
+
+    @classmethod
+    def from_msg(cls, msg: Any) -> CloudLayout:
+        fields = tuple((str(f.name), int(f.offset), int(f.datatype), int(f.count))
+                       for f in msg.fields)
+        return cls(fields, int(msg.point_step), int(msg.width), int(msg.height),
+                   int(msg.row_step), bool(msg.is_bigendian))
+
+    def field_names(self) -> list[str]:
+        return [f[0] for f in self.fields]
+
+    def find(self, name: str) -> tuple[str, int, int, int] | None:
+        for f in self.fields:
+            if f[0] == name:
+                return f
+        return None
+
+
+def decode_fields(data: Any, layout: CloudLayout, names: list[str],
+                  topic: str = "") -> dict[str, np.ndarray]:
+    """Decode the named fields of every point (organized clouds are flattened row by row).
+
+    Returns native-endian 1-D arrays. Raises BagError for a field that is absent, has count != 1,
+    an unknown datatype, lies outside ``point_step``, or for data shorter than the layout says.
+    """
+    where = f"PointCloud2 on {topic or '?'}"
+    step = layout.point_step
+    n_rows, width = layout.height, layout.width
+    if step <= 0 or width < 0 or n_rows < 0:
+        raise BagError(f"{where}: invalid layout (point_step={step}, width={width}, "
+                       f"height={n_rows}); the message is corrupted")
+    order = ">" if layout.is_bigendian else "<"
+    fmts, offs = [], []
+    for name in names:
+        f = layout.find(name)
+        if f is None:
+            raise BagError(f"{where} has no field '{name}' (fields: "
+                           f"{', '.join(layout.field_names()) or 'none'})")
+        _, off, dt, count = f
+        if dt not in POINTFIELD_DTYPES:
+            raise BagError(f"{where}: field '{name}' has unknown datatype {dt}")
+        if count != 1:
+            raise BagError(f"{where}: field '{name}' has count {count}; only count 1 is "
+                           "supported for coordinates and times")
+        size = np.dtype(POINTFIELD_DTYPES[dt]).itemsize
+        if off < 0 or off + size > step:
+            raise BagError(f"{where}: field '{name}' (offset {off}, {size} bytes) lies outside "
+                           f"point_step {step}; the message is corrupted")
+        fmts.append(order + POINTFIELD_DTYPES[dt])
+        offs.append(off)
+    n_points = n_rows * width
+    if n_points == 0:
+        return {name: np.zeros(0, dtype=np.dtype(fmt).newbyteorder("=")) for name, fmt in
+                zip(names, fmts)}
+    buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) \
+        else data.reshape(-1).view(np.uint8)
+    row_bytes = width * step
+    row_step = layout.row_step if layout.row_step >= row_bytes else row_bytes
+    if n_rows > 1 and layout.row_step < row_bytes:
+        raise BagError(f"{where}: row_step {layout.row_step} < width*point_step {row_bytes}; "
+                       "the message is corrupted")
+    need = (n_rows - 1) * row_step + row_bytes
+    if buf.size < need:
+        raise BagError(f"{where}: data has {buf.size} bytes but the layout needs {need} "
+                       f"({n_rows}x{width} points of {step} bytes); the message is truncated")
+    if row_step == row_bytes:
+        block = buf[: n_points * step]
+    else:
+        block = np.ascontiguousarray(
+            buf[: n_rows * row_step].reshape(n_rows, row_step)[:, :row_bytes]).reshape(-1)
+    out: dict[str, np.ndarray] = {}
+    for name, fmt, off in zip(names, fmts, offs):
+        dtype = np.dtype({"names": ["v"], "formats": [fmt], "offsets": [off], "itemsize": step})
+        col = block.view(dtype)["v"]
+        out[name] = col.astype(np.dtype(fmt).newbyteorder("="), copy=True)
+    return out
+
+
+# ----------------------------------------------------------------------------- time handling
+@dataclass(frozen=True)
+class TimeSpec:
+    """How per-point times are read: field (None = azimuth reconstruction), unit, reference."""
+
+    field: str | None
+    unit: str = "s"
+    reference: str = "relative"
+    detected: bool = True
+    """False when every part came from the config."""
+
+    def describe(self) -> str:
+        if self.field is None:
+            return "none (reconstructed from azimuth)"
+        return f"'{self.field}' in {self.unit}, {self.reference}"
+
+
+def _is_float(dt: int) -> bool:
+    return dt in (7, 8)
+
+
+def pick_time_field(layout: CloudLayout, sensor: SensorConfig, topic: str = "") -> str | None:
+    """The configured or detected time field name, or None (no time field)."""
+    want = sensor.point_time_field
+    names = layout.field_names()
+    if want == "none":
+        return None
+    if want != "auto":
+        if want not in names:
+            raise BagError(f"PointCloud2 on {topic or '?'} has no field '{want}' "
+                           f"(sensor.point_time_field); fields: {', '.join(names)}")
+        return want
+    lower = {n.lower(): n for n in names}
+    for cand in TIME_FIELD_CANDIDATES:
+        if cand in lower:
+            return lower[cand]
+    return None
+
+
+def detect_time_spec(values: np.ndarray, datatype: int, field: str, stamp_ns: int,
+                     sensor: SensorConfig, topic: str = "") -> TimeSpec:
+    """Choose unit and reference of raw time ``values`` (one cloud) against the header stamp.
+
+    Hypotheses (unit, reference) are kept when the implied offsets from the header stamp lie
+    within two sweeps (sweep = 1/lidar_rate_hz) and their span is at most 2.5 sweeps; the one
+    whose span is closest to one sweep (log ratio) wins, floats preferring s and integers ns on
+    ties.
+    """
+    units = [sensor.point_time_unit] if sensor.point_time_unit != "auto" else list(UNIT_TO_NS)
+    refs = [sensor.point_time_reference] if sensor.point_time_reference != "auto" \
+        else ["relative", "absolute"]
+    if len(units) == 1 and len(refs) == 1:
+        return TimeSpec(field, units[0], refs[0], detected=False)
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    where = f"PointCloud2 on {topic or '?'}: time field '{field}'"
+    if v.size == 0:
+        unit = units[0] if len(units) == 1 else ("s" if _is_float(datatype) else "ns")
+        return TimeSpec(field, unit, refs[0])
+    sweep_s = 1.0 / max(sensor.lidar_rate_hz, 1e-3)
+    stamp_s = stamp_ns * 1e-9
+    vmin, vmax = float(v.min()), float(v.max())
+    preferred = "s" if _is_float(datatype) else "ns"
+    best: tuple[float, str, str] | None = None
+    for unit in units:
+        scale = UNIT_TO_NS[unit] * 1e-9
+        span_s = (vmax - vmin) * scale
+        if span_s > 2.5 * sweep_s:
+            continue
+        for ref in refs:
+            base = stamp_s if ref == "absolute" else 0.0
+            lo, hi = vmin * scale - base, vmax * scale - base
+            if lo < -2.0 * sweep_s or hi > 2.0 * sweep_s:
+                continue
+            score = abs(np.log(max(span_s, 1e-12) / sweep_s))
+            score += 0.0 if unit == preferred else 1e-3
+            score += 0.0 if ref == "relative" else 1e-4
+            if best is None or score < best[0]:
+                best = (score, unit, ref)
+    if best is None:
+        raise BagError(f"{where}: cannot tell its unit/reference (values {vmin:.6g}..{vmax:.6g}, "
+                       f"header stamp {stamp_s:.9f} s); set sensor.point_time_unit and "
+                       "sensor.point_time_reference")
+    return TimeSpec(field, best[1], best[2])
+
+
+def times_to_ns(values: np.ndarray, spec: TimeSpec, stamp_ns: int) -> np.ndarray:
+    """Absolute int64 ns from raw time values (non-finite values become int64 min)."""
+    scale = UNIT_TO_NS[spec.unit]
+    base = 0 if spec.reference == "absolute" else int(stamp_ns)
+    if values.dtype.kind in "iu":
+        return values.astype(np.int64) * np.int64(scale) + np.int64(base)
+    v = values.astype(np.float64)
+    bad = ~np.isfinite(v)
+    limit = 9.2e18 / scale
+    bad |= np.abs(v) > limit
+    v = np.where(bad, 0.0, v)
+    whole = np.floor(v)
+    frac = v - whole
+    out = whole.astype(np.int64) * np.int64(scale) + np.rint(frac * scale).astype(np.int64)
+    out = out + np.int64(base)
+    out[bad] = np.iinfo(np.int64).min
+    return out
+
+
+def azimuth_times_ns(points: np.ndarray, stamp_ns: int, lidar_rate_hz: float) -> np.ndarray:
+    """Per-point times of a clockwise spinning LiDAR from the azimuth atan2(y, x).
+
+    The first point is at the header stamp; time grows with the clockwise angle swept from it,
+    one full turn = 1 / lidar_rate_hz.
+    """
+    if points.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    az = np.arctan2(points[:, 1], points[:, 0])
+    swept = np.mod(az[0] - az, 2.0 * np.pi)
+    sweep_ns = 1e9 / max(lidar_rate_hz, 1e-3)
+    return np.int64(stamp_ns) + np.rint(swept / (2.0 * np.pi) * sweep_ns).astype(np.int64)
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    """int64 ns of a builtin_interfaces/Time or ROS1 time (``sec``, ``nanosec``)."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+# ----------------------------------------------------------------------------- decoder
+class CloudDecoder:
+    """Decode PointCloud2 messages of one topic into :class:`Scan` objects.
+
+    The time spec is detected on the first non-empty cloud and reused (``self.time_spec``).
+    """
+
+    def __init__(self, sensor: SensorConfig | None = None, topic: str = "") -> None:
+        self.sensor = sensor or SensorConfig()
+        self.topic = topic
+        self.time_spec: TimeSpec | None = None
+        self._warned_azimuth = False
+
+    def decode(self, msg: Any) -> Scan:
+        """One message → Scan (may have 0 points). Raises BagError on unusable layouts."""
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        layout = CloudLayout.from_msg(msg)
+        return self.decode_raw(msg.data, layout, stamp_ns)
+
+    def decode_raw(self, data: Any, layout: CloudLayout, stamp_ns: int) -> Scan:
+        names = layout.field_names()
+        missing = [c for c in ("x", "y", "z") if c not in names]
+        if missing:
+            raise BagError(f"PointCloud2 on {self.topic or '?'} has no {'/'.join(missing)} field "
+                           f"(fields: {', '.join(names) or 'none'}); pick the right lidar topic "
+                           "(--lidar-topic)")
+        tfield = pick_time_field(layout, self.sensor, self.topic)
+        want = ["x", "y", "z"] + ([tfield] if tfield else [])
+        extras = {}
+        for group, key in ((INTENSITY_FIELDS, "intensity"), (RING_FIELDS, "ring")):
+            for name in group:
+                f = layout.find(name)
+                if f is not None and f[3] == 1 and f[2] in POINTFIELD_DTYPES \
+                        and 0 <= f[1] and f[1] + np.dtype(POINTFIELD_DTYPES[f[2]]).itemsize \
+                        <= layout.point_step and name not in want:
+                    extras[key] = name
+                    break
+        cols = decode_fields(data, layout, want + list(extras.values()), self.topic)
+        pts = np.stack([cols["x"], cols["y"], cols["z"]], axis=1).astype(np.float64)
+        ok = np.isfinite(pts).all(axis=1)
+        if tfield is not None:
+            raw_t = cols[tfield]
+            if self.time_spec is None or self.time_spec.field != tfield:
+                tf = layout.find(tfield)
+                finite = raw_t[ok] if raw_t.dtype.kind == "f" else raw_t
+                if finite.size:
+                    self.time_spec = detect_time_spec(finite, tf[2], tfield, stamp_ns,
+                                                      self.sensor, self.topic)
+            spec = self.time_spec
+            if spec is None:
+                t_ns = np.zeros(pts.shape[0], dtype=np.int64)
+            else:
+                t_ns = times_to_ns(raw_t, spec, stamp_ns)
+                ok &= t_ns != np.iinfo(np.int64).min
+        else:
+            if self.time_spec is None:
+                self.time_spec = TimeSpec(None, "ns", "relative",
+                                          detected=self.sensor.point_time_field == "auto")
+            if not self._warned_azimuth:
+                self._warned_azimuth = True
+                warnings.warn(f"PointCloud2 on {self.topic or '?'} has no per-point time field; "
+                              f"times reconstructed from azimuth at {self.sensor.lidar_rate_hz} "
+                              "Hz (set sensor.point_time_field if it has one)", stacklevel=2)
+            t_ns = None
+        pts = pts[ok]
+        if t_ns is None:
+            t_ns = azimuth_times_ns(pts, stamp_ns, self.sensor.lidar_rate_hz)
+        else:
+            t_ns = t_ns[ok]
+        intensity = cols[extras["intensity"]][ok].astype(np.float32) if "intensity" in extras \
+            else None
+        ring = None
+        if "ring" in extras:
+            r = cols[extras["ring"]][ok]
+            ring = np.clip(r, 0, 65535).astype(np.uint16) if r.dtype.kind in "iu" else None
+        return Scan(points_lidar=pts, t_ns=t_ns, stamp_ns=int(stamp_ns), intensity=intensity,
+                    ring=ring)
+
+
+def decode_pointcloud2(msg: Any, sensor: SensorConfig | None = None, topic: str = "") -> Scan:
+    """Decode one PointCloud2 message (time spec detected on this message alone)."""
+    return CloudDecoder(sensor, topic).decode(msg)

@@ -1,0 +1,289 @@
+"""Opening ROS bags with rosbags (no ROS install): ROS1 ``.bag`` (or a folder of split ``.bag``
+files), ROS2 bag folders (sqlite3 or mcap storage) and bare ``.mcap`` / ``.db3`` files.
+
+Topic discovery (the LiDAR ``sensor_msgs/PointCloud2`` and ``sensor_msgs/Imu`` topics), message
+iteration in bag (receive-time) order, and the static transforms of ``/tf_static``. Times are
+int64 nanoseconds; ``T_a_b`` maps points of frame ``b`` into frame ``a``. Every failure of the
+underlying reader becomes a one-line :class:`~adalio.errors.BagError`.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from adalio.config import SensorConfig
+from adalio.errors import BagError
+
+POINTCLOUD2_TYPES = ("sensor_msgs/msg/PointCloud2", "sensor_msgs/PointCloud2")
+IMU_TYPES = ("sensor_msgs/msg/Imu", "sensor_msgs/Imu")
+TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf2_msgs/TFMessage", "tf/msg/tfMessage")
+
+TFMESSAGE_MSGDEF = "geometry_msgs/TransformStamped[] transforms\n"
+
+
+def _normtype(msgtype: str) -> str:
+    parts = msgtype.split("/")
+    return f"{parts[0]}/msg/{parts[-1]}" if len(parts) == 2 else msgtype
+
+
+def ros1_typestore() -> Any:
+    """ROS1 Noetic typestore with ``tf2_msgs/msg/TFMessage`` registered (missing upstream)."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    if "tf2_msgs/msg/TFMessage" not in store.types:
+        store.register(get_types_from_msg(TFMESSAGE_MSGDEF, "tf2_msgs/msg/TFMessage"))
+    return store
+
+
+def ros2_typestore() -> Any:
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_HUMBLE)
+
+
+@dataclass
+class TopicInfo:
+    """One topic of a bag."""
+
+    name: str
+    msgtype: str
+    count: int
+    rate_hz: float
+
+
+def resolve_bag_paths(path: str | Path) -> tuple[list[Path], bool]:
+    """The file list rosbags should open and whether it is ROS2, or BagError."""
+    p = Path(path)
+    if not p.exists():
+        raise BagError(f"bag {p} does not exist: check the path")
+    if p.is_dir():
+        if (p / "metadata.yaml").is_file():
+            return [p], True
+        bags = sorted(p.glob("*.bag"))
+        if bags:
+            return bags, False
+        mcaps = sorted(p.glob("*.mcap"))
+        if len(mcaps) == 1:
+            return mcaps, True
+        raise BagError(f"{p} is a folder but neither a ROS2 bag (no metadata.yaml) nor a folder "
+                       "of ROS1 .bag files: point to the bag itself")
+    suffix = p.suffix.lower()
+    if suffix == ".bag":
+        return [p], False
+    if suffix in (".mcap", ".db3"):
+        return [p], True
+    raise BagError(f"{p} is not a bag (expected a .bag, .mcap or .db3 file or a ROS2 bag folder)")
+
+
+def _sniff(paths: list[Path], is2: bool) -> None:
+    for p in paths:
+        if p.is_dir():
+            continue
+        with open(p, "rb") as fh:
+            head = fh.read(16)
+        if p.suffix == ".bag" and not head.startswith(b"#ROSBAG V2.0"):
+            raise BagError(f"{p} is not a ROS1 bag (bad header); is it the right file?")
+        if p.suffix == ".mcap" and not head.startswith(b"\x89MCAP"):
+            raise BagError(f"{p} is not an MCAP file (bad magic); is it the right file?")
+        if p.suffix == ".db3" and not head.startswith(b"SQLite format 3"):
+            raise BagError(f"{p} is not a ROS2 sqlite3 bag (bad header); is it the right file?")
+
+
+def _reason(exc: BaseException) -> str:
+    text = " ".join(str(a) for a in getattr(exc, "args", ()) if a) or type(exc).__name__
+    return text.splitlines()[0][:200] if text else type(exc).__name__
+
+
+class Bag:
+    """A bag opened for reading. Use as a context manager.
+
+    >>> with Bag("run.bag") as bag:
+    ...     lidar, imu = bag.select_topics(config.sensor)
+    ...     for topic, t_recv_ns, msg in bag.messages([lidar, imu]): ...
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.paths, self.is_ros2 = resolve_bag_paths(self.path)
+        _sniff(self.paths, self.is_ros2)
+        self._reader: Any = None
+
+    # -------------------------------------------------------------- lifecycle
+    def open(self) -> Bag:
+        from rosbags.highlevel import AnyReader
+
+        store = ros2_typestore() if self.is_ros2 else ros1_typestore()
+        try:
+            reader = AnyReader(self.paths, default_typestore=store)
+            reader.open()
+        except Exception as exc:  # rosbags raises many types for damaged files
+            raise BagError(f"cannot read bag {self.path}: {_reason(exc)}; it may be truncated "
+                           "or corrupted (re-copy it, or reindex a ROS1 bag)") from None
+        self._reader = reader
+        return self
+
+    def close(self) -> None:
+        if self._reader is not None:
+            try:
+                self._reader.close()
+            except Exception:
+                pass
+            self._reader = None
+
+    def __enter__(self) -> Bag:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def reader(self) -> Any:
+        if self._reader is None:
+            self.open()
+        return self._reader
+
+    # -------------------------------------------------------------- topics
+    @property
+    def start_ns(self) -> int:
+        return int(self.reader.start_time)
+
+    @property
+    def end_ns(self) -> int:
+        return int(self.reader.end_time)
+
+    @property
+    def duration_s(self) -> float:
+        d = self.end_ns - self.start_ns
+        return max(d, 0) * 1e-9
+
+    def topics(self) -> list[TopicInfo]:
+        counts: dict[str, list[Any]] = {}
+        for c in self.reader.connections:
+            entry = counts.setdefault(c.topic, [_normtype(c.msgtype), 0])
+            entry[1] += int(c.msgcount)
+        dur = self.duration_s
+        return [TopicInfo(name, t, n, (n - 1) / dur if dur > 0 and n > 1 else 0.0)
+                for name, (t, n) in sorted(counts.items())]
+
+    def topics_of_type(self, types: tuple[str, ...]) -> list[str]:
+        norm = {_normtype(t) for t in types}
+        return [t.name for t in self.topics() if t.msgtype in norm]
+
+    def _select(self, want: str, types: tuple[str, ...], what: str, flag: str) -> str:
+        found = self.topics_of_type(types)
+        if want:
+            names = {t.name: t for t in self.topics()}
+            if want not in names:
+                hint = f"; {what} topics in the bag: {', '.join(found)}" if found else \
+                    f"; the bag has no {what} topic"
+                raise BagError(f"topic {want} is not in {self.path}{hint} ({flag})")
+            if want not in found:
+                raise BagError(f"topic {want} in {self.path} is {names[want].msgtype}, not "
+                               f"{what} ({flag})")
+            return want
+        if not found:
+            raise BagError(f"{self.path} has no {what} topic; record one or pick a bag "
+                           f"that has it")
+        if len(found) > 1:
+            raise BagError(f"{self.path} has several {what} topics ({', '.join(found)}): "
+                           f"choose one with {flag}")
+        return found[0]
+
+    def select_topics(self, sensor: SensorConfig) -> tuple[str, str]:
+        """(lidar_topic, imu_topic) from the config or auto-detected; BagError if missing or
+        ambiguous."""
+        lidar = self._select(sensor.lidar_topic, POINTCLOUD2_TYPES, "sensor_msgs/PointCloud2",
+                             "--lidar-topic / sensor.lidar_topic")
+        imu = self._select(sensor.imu_topic, IMU_TYPES, "sensor_msgs/Imu",
+                           "--imu-topic / sensor.imu_topic")
+        return lidar, imu
+
+    # -------------------------------------------------------------- messages
+    def messages(self, topics: list[str], limit: int | None = None
+                 ) -> Iterator[tuple[str, int, Any]]:
+        """Deserialized ``(topic, receive_time_ns, msg)`` in bag order (``limit`` per topic)."""
+        reader = self.reader
+        conns = [c for c in reader.connections if c.topic in topics]
+        left = {t: limit for t in topics} if limit is not None else None
+        it = reader.messages(connections=conns)
+        while True:
+            try:
+                conn, t_ns, raw = next(it)
+                if left is not None:
+                    if left[conn.topic] <= 0:
+                        if all(v <= 0 for v in left.values()):
+                            return
+                        continue
+                    left[conn.topic] -= 1
+                msg = reader.deserialize(raw, conn.msgtype)
+            except StopIteration:
+                return
+            except Exception as exc:
+                raise BagError(f"cannot read bag {self.path} past "
+                               f"{getattr(self, '_last_t', self.start_ns) * 1e-9:.3f} s: "
+                               f"{_reason(exc)}; it is truncated or corrupted (rows written so "
+                               "far are kept)") from None
+            self._last_t = int(t_ns)
+            yield conn.topic, int(t_ns), msg
+
+    def first_message(self, topic: str) -> Any | None:
+        for _, _, msg in self.messages([topic], limit=1):
+            return msg
+        return None
+
+    # -------------------------------------------------------------- tf
+    def static_transforms(self, topic: str = "/tf_static") -> list[tuple[str, str, np.ndarray]]:
+        """(parent, child, T_parent_child) of every transform on ``topic`` (empty if absent)."""
+        names = {t.name for t in self.topics()}
+        if topic not in names:
+            return []
+        out = []
+        for _, _, msg in self.messages([topic]):
+            for tr in getattr(msg, "transforms", []):
+                out.append((tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/"),
+                            transform_to_matrix(tr.transform)))
+        return out
+
+
+def transform_to_matrix(tr: Any) -> np.ndarray:
+    """geometry_msgs/Transform → 4x4 (rotation from the normalized quaternion)."""
+    from scipy.spatial.transform import Rotation
+
+    q = np.array([tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w], dtype=float)
+    n = np.linalg.norm(q)
+    if not np.isfinite(n) or n < 1e-9:
+        raise BagError("a /tf_static transform has a zero or non-finite quaternion")
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(q / n).as_matrix()
+    T[:3, 3] = [tr.translation.x, tr.translation.y, tr.translation.z]
+    return T
+
+
+def chain_transform(edges: list[tuple[str, str, np.ndarray]], target: str,
+                    source: str) -> np.ndarray | None:
+    """``T_target_source`` composed along the static tf tree (either direction), or None."""
+    target, source = target.lstrip("/"), source.lstrip("/")
+    if target == source:
+        return np.eye(4)
+    adj: dict[str, list[tuple[str, np.ndarray]]] = {}
+    for parent, child, T in edges:
+        adj.setdefault(parent, []).append((child, T))
+        adj.setdefault(child, []).append((parent, np.linalg.inv(T)))
+    best: dict[str, np.ndarray] = {target: np.eye(4)}
+    queue = deque([target])
+    while queue:
+        frame = queue.popleft()
+        for nxt, T in adj.get(frame, []):
+            if nxt not in best:
+                best[nxt] = best[frame] @ T
+                if nxt == source:
+                    return best[nxt]
+                queue.append(nxt)
+    return None
