@@ -1,0 +1,292 @@
+"""Time-ordered merge of IMU samples and LiDAR scans read from a bag.
+
+Bags are ordered by receive time: a sweep's message arrives after the IMU samples stamped during
+the sweep. The sequencer yields :class:`ImuBatch` chunks and :class:`Scan` objects such that
+every scan comes after all IMU samples with ``t_ns <= scan.t_end_ns`` (scans are keyed by their
+end time) and IMU batches never go back in time. IMU samples are held for a lookahead window to
+absorb small reordering. Stamp problems are counted in :class:`SequencerStats`; IMU stamps going
+backwards beyond the window, scans whose end times go backwards, or IMU that covers none of the
+scans raise :class:`~adalio.errors.InputError`. Times are int64 ns; IMU in rad/s and m/s^2.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from adalio.config import SensorConfig
+from adalio.errors import BagError, InputError
+from adalio.io.bag import Bag
+from adalio.io.pointcloud2 import CloudDecoder, stamp_to_ns
+from adalio.types import ImuBatch, Scan
+
+IMU_LOOKAHEAD_NS = 10_000_000
+"""A scan is released once an IMU sample this much later than its end has been read."""
+IMU_WINDOW_NS = 500_000_000
+"""IMU samples older than the newest one by more than this are released even without a scan."""
+ACCEL_UNIT_SAMPLES = 50
+"""IMU samples averaged to decide whether the accelerometer reports in g."""
+G_TO_M_S2 = 9.80665
+
+
+@dataclass
+class SequencerStats:
+    """What the sequencer saw and dropped."""
+
+    imu_samples: int = 0
+    imu_duplicates: int = 0
+    imu_reordered: int = 0
+    scans_in: int = 0
+    scans_out: int = 0
+    scans_empty: int = 0
+    scans_before_imu: int = 0
+    scans_after_imu: int = 0
+    scans_late: int = 0
+    imu_first_ns: int | None = None
+    imu_last_ns: int | None = None
+    scan_first_end_ns: int | None = None
+    scan_last_end_ns: int | None = None
+    accel_in_g: bool = False
+    messages: list[str] = field(default_factory=list)
+
+    def warn(self, text: str) -> None:
+        self.messages.append(text)
+        warnings.warn(text, stacklevel=3)
+
+
+def _fmt_s(t_ns: int | None) -> str:
+    return "?" if t_ns is None else f"{t_ns * 1e-9:.3f}"
+
+
+def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None, *,
+          imu_topic: str = "imu", lidar_topic: str = "lidar",
+          lookahead_ns: int = IMU_LOOKAHEAD_NS,
+          window_ns: int = IMU_WINDOW_NS) -> Iterator[ImuBatch | Scan]:
+    """Merge IMU batches and scans given in receive order into processing order."""
+    st = stats if stats is not None else SequencerStats()
+    imu_t: list[np.ndarray] = []
+    imu_g: list[np.ndarray] = []
+    imu_a: list[np.ndarray] = []
+    pending: list[Scan] = []
+    released_imu_t: int | None = None
+    released_scan_end: int | None = None
+    max_imu_t: int | None = None
+
+    def take_imu(upto_ns: int) -> ImuBatch | None:
+        nonlocal imu_t, imu_g, imu_a, released_imu_t
+        if not imu_t:
+            return None
+        t = np.concatenate(imu_t)
+        g = np.concatenate(imu_g)
+        a = np.concatenate(imu_a)
+        if t.size > 1 and np.any(np.diff(t) < 0):
+            order = np.argsort(t, kind="stable")
+            st.imu_reordered += int(np.count_nonzero(np.diff(t) < 0))
+            t, g, a = t[order], g[order], a[order]
+        if t.size > 1:
+            keep = np.r_[True, np.diff(t) > 0]
+            st.imu_duplicates += int(np.count_nonzero(~keep))
+            t, g, a = t[keep], g[keep], a[keep]
+        k = int(np.searchsorted(t, upto_ns, side="right"))
+        imu_t, imu_g, imu_a = [t[k:]], [g[k:]], [a[k:]]
+        if k == 0:
+            return None
+        released_imu_t = int(t[k - 1])
+        return ImuBatch(t[:k].copy(), g[:k].copy(), a[:k].copy())
+
+    def release(final: bool) -> Iterator[ImuBatch | Scan]:
+        nonlocal released_scan_end
+        pending.sort(key=lambda s: s.t_end_ns)
+        while pending and max_imu_t is not None and (
+                max_imu_t >= pending[0].t_end_ns + lookahead_ns
+                or (final and max_imu_t >= pending[0].t_end_ns)):
+            scan = pending.pop(0)
+            batch = take_imu(scan.t_end_ns)
+            if batch is not None:
+                yield batch
+            if st.imu_first_ns is None or scan.t_start_ns < st.imu_first_ns:
+                st.scans_before_imu += 1
+                continue
+            released_scan_end = scan.t_end_ns
+            st.scans_out += 1
+            yield scan
+        if max_imu_t is not None and (not pending or final):
+            batch = take_imu(max_imu_t if final and not pending else max_imu_t - window_ns)
+            if batch is not None:
+                yield batch
+
+    for item in items:
+        if isinstance(item, ImuBatch):
+            if len(item) == 0:
+                continue
+            t = np.asarray(item.t_ns, dtype=np.int64)
+            if released_imu_t is not None and int(t.min()) < released_imu_t:
+                bad = int(t[t < released_imu_t][0])
+                raise InputError(f"IMU stamps on {imu_topic} go backwards: {bad * 1e-9:.6f} s "
+                                 f"after {released_imu_t * 1e-9:.6f} s; the bag is not "
+                                 "time-consistent (re-stamp or sort the IMU topic)")
+            if released_imu_t is not None:
+                dup = t == released_imu_t
+                if dup.any():
+                    st.imu_duplicates += int(dup.sum())
+                    t = t[~dup]
+                    item = ImuBatch(t, item.gyro_rad_s[~dup], item.accel_m_s2[~dup])
+                    if t.size == 0:
+                        continue
+            st.imu_samples += int(t.size)
+            tmin, tmax = int(t.min()), int(t.max())
+            st.imu_first_ns = tmin if st.imu_first_ns is None else min(st.imu_first_ns, tmin)
+            st.imu_last_ns = tmax if st.imu_last_ns is None else max(st.imu_last_ns, tmax)
+            max_imu_t = st.imu_last_ns
+            imu_t.append(t)
+            imu_g.append(np.asarray(item.gyro_rad_s, dtype=np.float64).reshape(-1, 3))
+            imu_a.append(np.asarray(item.accel_m_s2, dtype=np.float64).reshape(-1, 3))
+        else:
+            st.scans_in += 1
+            if len(item) == 0:
+                st.scans_empty += 1
+                if st.scans_empty == 1:
+                    st.warn(f"empty scan on {lidar_topic} at {item.stamp_ns * 1e-9:.3f} s "
+                            "skipped (no finite points); further ones are counted")
+                continue
+            end = item.t_end_ns
+            st.scan_first_end_ns = end if st.scan_first_end_ns is None else st.scan_first_end_ns
+            if released_scan_end is not None and end <= released_scan_end:
+                raise InputError(f"scan end times on {lidar_topic} go backwards: "
+                                 f"{end * 1e-9:.6f} s after {released_scan_end * 1e-9:.6f} s; "
+                                 "check sensor.point_time_* (unit/reference) or re-stamp the "
+                                 "bag")
+            if released_imu_t is not None and end < released_imu_t:
+                st.scans_late += 1
+                continue
+            st.scan_last_end_ns = end if st.scan_last_end_ns is None \
+                else max(st.scan_last_end_ns, end)
+            pending.append(item)
+        yield from release(final=False)
+    yield from release(final=True)
+    if pending:
+        st.scans_after_imu += len(pending)
+        pending.clear()
+    batch = take_imu(max_imu_t) if max_imu_t is not None else None
+    if batch is not None:
+        yield batch
+    usable = st.scans_in - st.scans_empty
+    if st.scans_in and usable == 0:
+        raise InputError(f"all {st.scans_in} scans on {lidar_topic} are empty (no finite "
+                         "points); check the lidar topic")
+    if usable and st.scans_out == 0:
+        raise InputError(f"IMU on {imu_topic} ({_fmt_s(st.imu_first_ns)}..{_fmt_s(st.imu_last_ns)}"
+                         f" s, {st.imu_samples} samples) does not cover any scan on {lidar_topic} "
+                         f"({_fmt_s(st.scan_first_end_ns)}..{_fmt_s(st.scan_last_end_ns)} s); "
+                         "check the topics and the bag's time ranges")
+    for n, what in ((st.scans_empty, "empty scans"),
+                    (st.scans_before_imu, "scans before the first IMU sample"),
+                    (st.scans_after_imu, "scans after the last IMU sample"),
+                    (st.scans_late, "scans arriving later than the IMU window")):
+        if n:
+            st.messages.append(f"skipped {n} {what}")
+
+
+def imu_msg_arrays(msgs: list[Any]) -> ImuBatch:
+    """sensor_msgs/Imu messages → ImuBatch (accel as recorded)."""
+    t = np.array([stamp_to_ns(m.header.stamp) for m in msgs], dtype=np.int64)
+    g = np.array([[m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z]
+                  for m in msgs], dtype=np.float64).reshape(-1, 3)
+    a = np.array([[m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z]
+                  for m in msgs], dtype=np.float64).reshape(-1, 3)
+    return ImuBatch(t, g, a)
+
+
+def accel_is_in_g(accel: np.ndarray) -> bool:
+    """True if the mean accelerometer norm of (static-ish) samples is near 1 (units of g)."""
+    if accel.shape[0] == 0:
+        return False
+    norm = float(np.linalg.norm(np.nanmean(accel, axis=0)))
+    return 0.5 < norm < 2.0
+
+
+class Sequencer:
+    """Decode and merge the LiDAR and IMU topics of an opened :class:`Bag`.
+
+    Iterating yields ``ImuBatch`` and ``Scan`` objects in processing order; ``stats`` and
+    ``decoder.time_spec`` describe what was seen.
+    """
+
+    def __init__(self, bag: Bag, lidar_topic: str, imu_topic: str,
+                 sensor: SensorConfig | None = None, *, imu_chunk: int = 64,
+                 lookahead_ns: int = IMU_LOOKAHEAD_NS) -> None:
+        self.bag = bag
+        self.lidar_topic = lidar_topic
+        self.imu_topic = imu_topic
+        self.sensor = sensor or SensorConfig()
+        self.decoder = CloudDecoder(self.sensor, lidar_topic)
+        self.stats = SequencerStats()
+        self.imu_chunk = imu_chunk
+        self.lookahead_ns = lookahead_ns
+        self._accel_scale: float | None = {"m_s2": 1.0, "g": G_TO_M_S2}.get(
+            self.sensor.accel_unit)
+
+    def _raw(self) -> Iterator[ImuBatch | Scan]:
+        imu_msgs: list[Any] = []
+        held: list[ImuBatch | Scan] = []
+
+        def flush_imu() -> ImuBatch | None:
+            if not imu_msgs:
+                return None
+            try:
+                batch = imu_msg_arrays(imu_msgs)
+            except (AttributeError, TypeError, ValueError):
+                raise BagError(f"messages on {self.imu_topic} are not sensor_msgs/Imu") from None
+            imu_msgs.clear()
+            return batch
+
+        def scaled(item: ImuBatch | Scan) -> ImuBatch | Scan:
+            if isinstance(item, ImuBatch) and self._accel_scale != 1.0:
+                item.accel_m_s2 = item.accel_m_s2 * self._accel_scale
+            return item
+
+        def decide(force: bool) -> Iterator[ImuBatch | Scan]:
+            n = sum(len(h) for h in held if isinstance(h, ImuBatch))
+            if self._accel_scale is None and (n >= ACCEL_UNIT_SAMPLES or force):
+                acc = [h.accel_m_s2 for h in held if isinstance(h, ImuBatch)]
+                in_g = accel_is_in_g(np.concatenate(acc)[:ACCEL_UNIT_SAMPLES]) if acc else False
+                self._accel_scale = G_TO_M_S2 if in_g else 1.0
+                self.stats.accel_in_g = in_g
+                if in_g:
+                    self.stats.warn(f"accelerometer on {self.imu_topic} reports in g (mean norm "
+                                    f"~1); converting to m/s^2 (set sensor.accel_unit to "
+                                    "silence)")
+            if self._accel_scale is not None:
+                for h in held:
+                    yield scaled(h)
+                held.clear()
+
+        for topic, _, msg in self.bag.messages([self.lidar_topic, self.imu_topic]):
+            if topic == self.imu_topic:
+                imu_msgs.append(msg)
+                if len(imu_msgs) >= self.imu_chunk:
+                    held.append(flush_imu())
+                    yield from decide(False)
+            else:
+                batch = flush_imu()
+                if batch is not None:
+                    held.append(batch)
+                try:
+                    scan = self.decoder.decode(msg)
+                except (AttributeError, TypeError):
+                    raise BagError(f"messages on {self.lidar_topic} are not "
+                                   "sensor_msgs/PointCloud2") from None
+                held.append(scan)
+                yield from decide(False)
+        batch = flush_imu()
+        if batch is not None:
+            held.append(batch)
+        yield from decide(True)
+
+    def __iter__(self) -> Iterator[ImuBatch | Scan]:
+        return merge(self._raw(), self.stats, imu_topic=self.imu_topic,
+                     lidar_topic=self.lidar_topic, lookahead_ns=self.lookahead_ns)

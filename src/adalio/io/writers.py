@@ -1,0 +1,175 @@
+"""Result writers: TUM trajectories, binary PLY / PCD point maps and the per-scan ``scans.csv``.
+
+TUM rows are ``t_s tx ty tz qx qy qz qw`` (seconds with 9 decimals, metres, unit quaternion
+x y z w) of ``T_world_imu``; every row is flushed as written so an interrupted run keeps them.
+Maps are float32 x y z in the world frame (metres).
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+
+from adalio.types import ScanStats
+
+SCANS_CSV_COLUMNS: tuple[str, ...] = (
+    "t_s", "n_raw", "n_down", "n_down_general", "n_near", "degenerate", "trigger",
+    "voxel_size_m", "search_radius_m", "plane_margin_m", "n_matched", "iterations", "wall_ms",
+    "eig0", "eig1", "eig2", "eig3", "eig4", "eig5", "weak_rx", "weak_ry", "weak_rz", "weak_tx",
+    "weak_ty", "weak_tz", "degeneracy_score",
+)
+
+
+def ns_to_s_str(t_ns: int) -> str:
+    """Exact decimal seconds with 9 decimals from int64 ns (no float rounding)."""
+    t_ns = int(t_ns)
+    sign = "-" if t_ns < 0 else ""
+    q, r = divmod(abs(t_ns), 1_000_000_000)
+    return f"{sign}{q}.{r:09d}"
+
+
+def matrix_to_tum_fields(T: np.ndarray) -> list[float]:
+    from scipy.spatial.transform import Rotation
+
+    T = np.asarray(T, dtype=np.float64)
+    q = Rotation.from_matrix(T[:3, :3]).as_quat()
+    if q[3] < 0:
+        q = -q
+    return [*T[:3, 3].tolist(), *q.tolist()]
+
+
+class TumWriter:
+    """Append-only TUM trajectory file, flushed per row."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._fh: IO[str] | None = open(self.path, "w", encoding="utf-8")
+        self.rows = 0
+
+    def write(self, t_ns: int, T_world_imu: np.ndarray) -> None:
+        vals = matrix_to_tum_fields(T_world_imu)
+        assert self._fh is not None
+        self._fh.write(ns_to_s_str(t_ns) + " " + " ".join(f"{v:.9f}" for v in vals) + "\n")
+        self._fh.flush()
+        self.rows += 1
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+
+    def __enter__(self) -> TumWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(t_ns (N,) int64, poses (N,7) tx ty tz qx qy qz qw) of a TUM file ('#' lines skipped)."""
+    t, vals = [], []
+    for line in Path(path).read_text().splitlines():
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.split()
+        sec, _, frac = parts[0].partition(".")
+        frac = (frac + "000000000")[:9]
+        sign = -1 if sec.startswith("-") else 1
+        t.append(sign * (abs(int(sec)) * 1_000_000_000 + int(frac)))
+        vals.append([float(v) for v in parts[1:8]])
+    return np.array(t, dtype=np.int64), np.array(vals, dtype=np.float64).reshape(-1, 7)
+
+
+class ScansCsvWriter:
+    """``scans.csv`` with :data:`SCANS_CSV_COLUMNS`, flushed per row."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._fh: IO[str] | None = open(self.path, "w", encoding="utf-8", newline="")
+        self._csv = csv.writer(self._fh)
+        self._csv.writerow(SCANS_CSV_COLUMNS)
+        self._fh.flush()
+        self.rows = 0
+
+    def write(self, stats: ScanStats) -> None:
+        eig = np.zeros(6) if stats.eigenvalues is None else np.asarray(stats.eigenvalues)
+        weak = np.zeros(6) if stats.weakest_direction is None \
+            else np.asarray(stats.weakest_direction)
+        eig = np.resize(eig.astype(float), 6)
+        weak = np.resize(weak.astype(float), 6)
+        row = [ns_to_s_str(stats.t_ns), stats.n_raw, stats.n_down, stats.n_down_general,
+               stats.n_near, int(bool(stats.degenerate)), stats.trigger,
+               f"{stats.voxel_size_m:.6g}", f"{stats.search_radius_m:.6g}",
+               f"{stats.plane_margin_m:.6g}", stats.n_matched, stats.iterations,
+               f"{stats.wall_ms:.3f}", *[f"{v:.6g}" for v in eig],
+               *[f"{v:.6g}" for v in weak], f"{stats.degeneracy_score:.6g}"]
+        assert self._fh is not None
+        self._csv.writerow(row)
+        self._fh.flush()
+        self.rows += 1
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+
+
+def _points_f4(points: np.ndarray) -> np.ndarray:
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    return np.ascontiguousarray(pts, dtype="<f4")
+
+
+def write_ply(path: str | Path, points: np.ndarray) -> Path:
+    """Binary little-endian PLY with float x y z vertices (Open3D / CloudCompare readable)."""
+    pts = _points_f4(points)
+    header = ("ply\nformat binary_little_endian 1.0\ncomment adalio map (world frame, metres)\n"
+              f"element vertex {pts.shape[0]}\nproperty float x\nproperty float y\n"
+              "property float z\nend_header\n")
+    path = Path(path)
+    with open(path, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(pts.tobytes())
+    return path
+
+
+def write_pcd(path: str | Path, points: np.ndarray) -> Path:
+    """Binary PCD v0.7 with float x y z."""
+    pts = _points_f4(points)
+    n = pts.shape[0]
+    header = ("# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\n"
+              "SIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+              f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n")
+    path = Path(path)
+    with open(path, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(pts.tobytes())
+    return path
+
+
+def read_ply_points(path: str | Path) -> np.ndarray:
+    """Points of a PLY written by :func:`write_ply` (binary little-endian float xyz)."""
+    raw = Path(path).read_bytes()
+    end = raw.index(b"end_header\n") + len(b"end_header\n")
+    header = raw[:end].decode("ascii").splitlines()
+    if header[0] != "ply" or "format binary_little_endian 1.0" not in header:
+        raise ValueError(f"{path} is not a binary little-endian PLY")
+    n = next(int(h.split()[2]) for h in header if h.startswith("element vertex"))
+    return np.frombuffer(raw[end:end + 12 * n], dtype="<f4").reshape(n, 3).astype(np.float64)
+
+
+def read_pcd_points(path: str | Path) -> np.ndarray:
+    """Points of a PCD written by :func:`write_pcd`."""
+    raw = Path(path).read_bytes()
+    end = raw.index(b"DATA binary\n") + len(b"DATA binary\n")
+    header = raw[:end].decode("ascii").splitlines()
+    n = next(int(h.split()[1]) for h in header if h.startswith("POINTS"))
+    return np.frombuffer(raw[end:end + 12 * n], dtype="<f4").reshape(n, 3).astype(np.float64)
+
+
+def write_map(path: str | Path, points: np.ndarray, fmt: str) -> Path:
+    return write_pcd(path, points) if fmt == "pcd" else write_ply(path, points)
