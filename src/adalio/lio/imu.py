@@ -1,0 +1,258 @@
+"""IMU processing: static initialization, discrete propagation and scan undistortion.
+
+lio-design.md §3 (process model, F and G), §4 (static init), §5 (forward propagation with pose
+records, backward compensation of each point to the scan end). Frames per ``state.py``; times inside
+a scan are float seconds relative to a reference ``t_ref_ns`` (int64 ns at the interface); gyro in
+rad/s, accel in m/s² after the init scale ``|g|/|ā_init|``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from adalio.config import ImuConfig
+from adalio.lio import so3
+from adalio.lio.state import DIM, State
+
+
+# --------------------------------------------------------------------------- initialization (§4)
+@dataclass
+class StaticInit:
+    """Result of the static initialization."""
+
+    gyro_bias_rad_s: np.ndarray
+    gravity_world_m_s2: np.ndarray
+    R_world_imu: np.ndarray
+    accel_scale: float
+    """Multiplier applied to raw accel samples (|g| / |ā_init|, §3.1)."""
+    n_samples: int
+
+
+def stillness_window(t_ns: np.ndarray, t_end_ns: int, window_s: float) -> slice | None:
+    """Index range of the samples in ``[t_end − window, t_end]`` if the buffer reaches back that far."""
+    start_ns = t_end_ns - int(round(window_s * 1e9))
+    if t_ns.size == 0 or t_ns[0] > start_ns:
+        return None
+    lo = int(np.searchsorted(t_ns, start_ns, side="left"))
+    hi = int(np.searchsorted(t_ns, t_end_ns, side="right"))
+    return slice(lo, hi)
+
+
+def is_still(gyro_rad_s: np.ndarray, accel: np.ndarray, cfg: ImuConfig) -> bool:
+    """Stillness check (§4): every gyro sample within ``still_gyro_rad_s`` of the window mean and
+    every accel norm (scaled to m/s²) within ``still_accel_m_s2`` of the mean norm."""
+    if gyro_rad_s.shape[0] < cfg.init_samples:
+        return False
+    gyro_dev = np.linalg.norm(gyro_rad_s - gyro_rad_s.mean(axis=0), axis=1).max()
+    acc_norm = np.linalg.norm(accel, axis=1)
+    mean_norm = acc_norm.mean()
+    if not mean_norm > 0:
+        return False
+    acc_norm = acc_norm * (cfg.gravity_m_s2 / mean_norm)
+    acc_dev = np.abs(acc_norm - cfg.gravity_m_s2).max()
+    return bool(gyro_dev <= cfg.still_gyro_rad_s and acc_dev <= cfg.still_accel_m_s2)
+
+
+def static_init(gyro_rad_s: np.ndarray, accel: np.ndarray, cfg: ImuConfig) -> StaticInit:
+    """Gravity and gyro bias from the static mean (§4): ``g = −|g| ā/|ā|``, ``b_g = ω̄``.
+
+    The world is the IMU frame at init (``R = I``) unless ``cfg.gravity_align_world``, in which
+    case ``R`` is the smallest rotation taking the measured up direction to +z.
+    """
+    acc_mean = accel.mean(axis=0)
+    norm = float(np.linalg.norm(acc_mean))
+    up_imu = acc_mean / norm
+    R = np.eye(3)
+    if cfg.gravity_align_world:
+        ez = np.array([0.0, 0.0, 1.0])
+        w = np.cross(up_imu, ez)
+        c = float(up_imu @ ez)
+        if c < -1.0 + 1e-9:
+            R = np.diag([1.0, -1.0, -1.0])
+        else:
+            W = so3.hat(w)
+            R = np.eye(3) + W + W @ W / (1.0 + c)
+    g_world = -cfg.gravity_m_s2 * (R @ up_imu)
+    return StaticInit(gyro_bias_rad_s=gyro_rad_s.mean(axis=0), gravity_world_m_s2=g_world,
+                      R_world_imu=R, accel_scale=cfg.gravity_m_s2 / norm,
+                      n_samples=int(gyro_rad_s.shape[0]))
+
+
+def process_noise(cfg: ImuConfig) -> np.ndarray:
+    """Diagonal of Q in noise order (n_g, n_a, n_bg, n_ba) (§3.2-3.3)."""
+    return np.repeat([cfg.gyro_cov, cfg.accel_cov, cfg.gyro_bias_cov, cfg.accel_bias_cov], 3)
+
+
+# --------------------------------------------------------------------------- propagation (§3)
+@njit(cache=True)
+def discrete_step(p, R, v, b_g, b_a, g, gyro_rad_s, accel_m_s2, dt):
+    """One explicit-Euler step on the manifold (§3.1): returns (p, R, v)."""
+    omega = gyro_rad_s - b_g
+    acc = accel_m_s2 - b_a
+    p_new = p + v * dt
+    R_new = R @ so3.exp(omega * dt)
+    v_new = v + (R @ acc + g) * dt
+    return p_new, R_new, v_new
+
+
+@njit(cache=True)
+def jacobians_fg(R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s2, dt):
+    """F (23×23) and G (23×12) of the discrete step (§3.2), noise order (n_g, n_a, n_bg, n_ba)."""
+    omega = gyro_rad_s - b_g
+    acc = accel_m_s2 - b_a
+    F = np.eye(DIM)
+    Gm = np.zeros((DIM, 12))
+    Jr = so3.jr(omega * dt)
+    F[3:6, 3:6] = so3.exp(-omega * dt)
+    F[3:6, 15:18] = -Jr * dt
+    for i in range(3):
+        F[i, 12 + i] = dt
+    F[12:15, 3:6] = -(R @ so3.hat(acc)) * dt
+    F[12:15, 18:21] = -R * dt
+    F[12:15, 21:23] = -(so3.hat(g) @ so3.s2_basis(g, g_anchor)) * dt
+    Gm[3:6, 0:3] = -Jr * dt
+    Gm[12:15, 3:6] = -R * dt
+    for i in range(3):
+        Gm[15 + i, 6 + i] = dt
+        Gm[18 + i, 9 + i] = dt
+    return F, Gm
+
+
+@njit(cache=True)
+def _sparse_left(A, B):
+    """A @ B skipping the zeros of A."""
+    n, k = A.shape
+    m = B.shape[1]
+    out = np.zeros((n, m))
+    for i in range(n):
+        for j in range(k):
+            a = A[i, j]
+            if a != 0.0:
+                for c in range(m):
+                    out[i, c] += a * B[j, c]
+    return out
+
+
+@njit(cache=True)
+def propagate_covariance(P, F, Gm, q_diag):
+    """``F P Fᵀ + G diag(q) Gᵀ`` exploiting the sparsity of F and G."""
+    FP = _sparse_left(F, P)
+    out = _sparse_left(F, FP.T).T
+    GQ = Gm * q_diag
+    out += _sparse_left(Gm, GQ.T).T
+    return out
+
+
+@njit(cache=True)
+def propagate_scan(p, R, v, b_g, b_a, g, g_anchor, P, imu_tau, gyro, accel, tau_start, tau_end,
+                   q_diag, noise_dt):
+    """Forward propagation over one scan with pose records (§5.2).
+
+    ``imu_tau`` (n,) sample times (s, relative), ``accel`` already scaled; the first sample is the
+    last one consumed by the previous scan (it may precede ``tau_start``). Mid-point inputs per
+    interval; the last input is held to ``tau_end``. Record k holds the state at ``rec_tau[k]``
+    and the body rate / world acceleration valid from it to the next record.
+    """
+    n = imu_tau.shape[0]
+    m_max = n + 1
+    rec_tau = np.empty(m_max)
+    rec_R = np.empty((m_max, 3, 3))
+    rec_p = np.empty((m_max, 3))
+    rec_v = np.empty((m_max, 3))
+    rec_w = np.empty((m_max, 3))
+    rec_a = np.empty((m_max, 3))
+    tau = tau_start
+    m = 0
+    gyro_in = gyro[n - 1].copy()
+    acc_in = accel[n - 1].copy()
+    for k in range(n - 1):
+        t1 = imu_tau[k + 1]
+        gyro_in = 0.5 * (gyro[k] + gyro[k + 1])
+        acc_in = 0.5 * (accel[k] + accel[k + 1])
+        if t1 <= tau:
+            continue
+        if t1 > tau_end:
+            break
+        dt = t1 - max(imu_tau[k], tau)
+        rec_tau[m] = tau
+        rec_R[m] = R
+        rec_p[m] = p
+        rec_v[m] = v
+        rec_w[m] = gyro_in - b_g
+        rec_a[m] = R @ (acc_in - b_a) + g
+        m += 1
+        F, Gm = jacobians_fg(R, b_g, b_a, g, g_anchor, gyro_in, acc_in, dt)
+        q = q_diag if not noise_dt else q_diag / dt
+        P = propagate_covariance(P, F, Gm, q)
+        p, R, v = discrete_step(p, R, v, b_g, b_a, g, gyro_in, acc_in, dt)
+        tau = t1
+    rec_tau[m] = tau
+    rec_R[m] = R
+    rec_p[m] = p
+    rec_v[m] = v
+    rec_w[m] = gyro_in - b_g
+    rec_a[m] = R @ (acc_in - b_a) + g
+    m += 1
+    dt = tau_end - tau
+    if dt > 0.0:
+        F, Gm = jacobians_fg(R, b_g, b_a, g, g_anchor, gyro_in, acc_in, dt)
+        q = q_diag if not noise_dt else q_diag / dt
+        P = propagate_covariance(P, F, Gm, q)
+        p, R, v = discrete_step(p, R, v, b_g, b_a, g, gyro_in, acc_in, dt)
+    return (p, R, v, P, rec_tau[:m].copy(), rec_R[:m].copy(), rec_p[:m].copy(),
+            rec_v[:m].copy(), rec_w[:m].copy(), rec_a[:m].copy())
+
+
+@dataclass
+class PoseRecords:
+    """IMU pose records of one scan (§5.2); times in s relative to the scan's reference."""
+
+    tau_s: np.ndarray
+    R: np.ndarray
+    p: np.ndarray
+    v: np.ndarray
+    omega: np.ndarray
+    acc_world: np.ndarray
+
+
+def propagate(state: State, P: np.ndarray, imu_tau_s: np.ndarray, gyro_rad_s: np.ndarray,
+              accel_m_s2: np.ndarray, tau_start_s: float, tau_end_s: float, q_diag: np.ndarray,
+              noise_discretization: str = "dt2") -> tuple[State, np.ndarray, PoseRecords]:
+    """Propagate ``state`` and ``P`` from ``tau_start_s`` to ``tau_end_s`` (§5.2)."""
+    out = propagate_scan(state.p, state.R, state.v, state.b_g, state.b_a, state.g,
+                         state.g_anchor, P, imu_tau_s, gyro_rad_s, accel_m_s2,
+                         float(tau_start_s), float(tau_end_s), q_diag,
+                         noise_discretization == "dt")
+    new = state.copy()
+    new.p, new.R, new.v = out[0], out[1], out[2]
+    return new, out[3], PoseRecords(*out[4:])
+
+
+# --------------------------------------------------------------------------- undistortion (§5.3)
+def undistort(points_lidar: np.ndarray, tau_s: np.ndarray, rec: PoseRecords, R_end: np.ndarray,
+              p_end: np.ndarray, R_LI: np.ndarray, t_LI: np.ndarray) -> np.ndarray:
+    """Backward compensation of every point to the scan end (§5.3), vectorized.
+
+    ``R_j = R_k Exp(ω_k Δ)``, ``p_j = p_k + v_k Δ + ½ a_k Δ²`` with k the last record at or before
+    the point time (the first record for earlier points); returns
+    ``R_LIᵀ(R_eᵀ(R_j p_I + p_j − p_e) − t_LI)`` in the LiDAR frame at scan end.
+    """
+    idx = np.searchsorted(rec.tau_s, tau_s, side="right") - 1
+    np.clip(idx, 0, rec.tau_s.shape[0] - 1, out=idx)
+    dt = tau_s - rec.tau_s[idx]
+    p_imu = points_lidar @ R_LI.T + t_LI
+    phi = rec.omega[idx] * dt[:, None]
+    theta2 = np.einsum("ij,ij->i", phi, phi)
+    small = theta2 < 1e-10
+    safe = np.where(small, 1.0, np.sqrt(theta2))
+    a = np.where(small, 1.0 - theta2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
+    c1 = np.cross(phi, p_imu)
+    rotated = p_imu + a[:, None] * c1 + b[:, None] * np.cross(phi, c1)
+    p_world = np.einsum("nij,nj->ni", rec.R[idx], rotated)
+    p_world += rec.p[idx] + rec.v[idx] * dt[:, None] + 0.5 * rec.acc_world[idx] * (dt * dt)[:, None]
+    p_end_imu = (p_world - p_end) @ R_end
+    return (p_end_imu - t_LI) @ R_LI

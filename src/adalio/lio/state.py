@@ -1,0 +1,91 @@
+"""Filter state on the manifold and its 23-dof error state (lio-design.md §2).
+
+Frames: ``W`` world, ``I`` IMU/body, ``L`` LiDAR. ``R``/``p`` = pose of I in W, ``R_LI``/``t_LI``
+map LiDAR points into the IMU frame (``p_I = R_LI p_L + t_LI``), ``v`` world velocity (m/s),
+``b_g`` (rad/s), ``b_a`` (m/s²), ``g`` world gravity (m/s², fixed norm, on S²).
+
+Error-state order (IKFoM / Faster-LIO): p 0–2, θ 3–5, θ_LI 6–8, t_LI 9–11, v 12–14, b_g 15–17,
+b_a 18–20, g 21–22.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from adalio.lio import so3
+
+DIM = 23
+P_ = slice(0, 3)
+TH = slice(3, 6)
+TH_LI = slice(6, 9)
+T_LI = slice(9, 12)
+V = slice(12, 15)
+BG = slice(15, 18)
+BA = slice(18, 21)
+G = slice(21, 23)
+
+
+@dataclass
+class State:
+    """The manifold state; ``g_anchor`` is the fixed frame of the S² tangent basis."""
+
+    p: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    R: np.ndarray = field(default_factory=lambda: np.eye(3))
+    R_LI: np.ndarray = field(default_factory=lambda: np.eye(3))
+    t_LI: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    v: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    b_g: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    b_a: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    g: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
+    g_anchor: np.ndarray = field(default_factory=lambda: so3.anchor_frame([0.0, 0.0, -1.0]))
+
+    def copy(self) -> State:
+        return State(self.p.copy(), self.R.copy(), self.R_LI.copy(), self.t_LI.copy(),
+                     self.v.copy(), self.b_g.copy(), self.b_a.copy(), self.g.copy(),
+                     self.g_anchor)
+
+    def boxplus(self, delta: np.ndarray) -> State:
+        """``x ⊞ δ`` for a (23,) error-state vector."""
+        d = np.asarray(delta, dtype=np.float64)
+        return State(
+            p=self.p + d[P_],
+            R=self.R @ so3.exp(d[TH].copy()),
+            R_LI=self.R_LI @ so3.exp(d[TH_LI].copy()),
+            t_LI=self.t_LI + d[T_LI],
+            v=self.v + d[V],
+            b_g=self.b_g + d[BG],
+            b_a=self.b_a + d[BA],
+            g=so3.s2_boxplus(self.g, d[G].copy(), self.g_anchor),
+            g_anchor=self.g_anchor,
+        )
+
+    def boxminus(self, other: State) -> np.ndarray:
+        """``self ⊟ other`` as a (23,) vector."""
+        out = np.empty(DIM)
+        out[P_] = self.p - other.p
+        out[TH] = so3.log(other.R.T @ self.R)
+        out[TH_LI] = so3.log(other.R_LI.T @ self.R_LI)
+        out[T_LI] = self.t_LI - other.t_LI
+        out[V] = self.v - other.v
+        out[BG] = self.b_g - other.b_g
+        out[BA] = self.b_a - other.b_a
+        out[G] = so3.s2_boxminus(self.g, other.g, self.g_anchor)
+        return out
+
+    def T_world_imu(self) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = self.R
+        T[:3, 3] = self.p
+        return T
+
+
+def initial_covariance(estimate_extrinsic: bool) -> np.ndarray:
+    """P₀ (§4): identity except extrinsic 1e-5 (1e-10 if not estimated), b_g 1e-4, b_a 1e-3, g 1e-5."""
+    P = np.eye(DIM)
+    ext = 1e-5 if estimate_extrinsic else 1e-10
+    for sl, val in ((TH_LI, ext), (T_LI, ext), (BG, 1e-4), (BA, 1e-3), (G, 1e-5)):
+        idx = np.arange(sl.start, sl.stop)
+        P[idx, idx] = val
+    return P
