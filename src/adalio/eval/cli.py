@@ -1,0 +1,178 @@
+"""``adalio eval``, ``adalio report``, ``adalio compare`` and ``adalio demo``."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from adalio.errors import InputError
+
+
+def _parse_floats(text: str, option: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.replace(" ", "").split(",") if v)
+    except ValueError:
+        raise InputError(f"{option} must be comma-separated numbers (got {text!r})") from None
+    if not values:
+        raise InputError(f"{option} is empty (e.g. {option} 1,5)")
+    return values
+
+
+def _overrides(items: list[str] | None) -> dict[str, str]:
+    from adalio.errors import ConfigError
+
+    out: dict[str, str] = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--set expects KEY=VALUE (got {item!r}), e.g. --set map.map_leaf_m=0.3")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def _f(value: float | None, digits: int = 3) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def eval_command(
+    est: Annotated[Path, typer.Argument(help="Estimated trajectory (TUM: t x y z qx qy qz qw).")],
+    gt: Annotated[Path, typer.Argument(help="Ground truth (TUM), or HILTI control points.")],
+    align: Annotated[str, typer.Option(help="se3 (Umeyama, no scale), first (first associated "
+                                            "pose) or none.")] = "se3",
+    json_out: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    hilti: Annotated[bool, typer.Option("--hilti", help="HILTI 2022 score against control "
+                                                        "points (IMU-frame estimate).")] = False,
+    max_diff: Annotated[float | None, typer.Option(
+        "--max-diff", help="Max time gap (s) to associate poses [default: 0.02, --hilti: 2]")
+    ] = None,
+    rpe_delta: Annotated[str, typer.Option(
+        "--rpe-delta", help="RPE segment lengths in metres, comma-separated.")] = "1,5",
+) -> None:
+    """Accuracy of a trajectory: ATE and RPE (evo), or the HILTI 2022 score."""
+    console = Console()
+    if hilti:
+        from adalio.eval.hilti import MAX_DIFF_S, hilti_score
+
+        res = hilti_score(est, gt, max_diff_s=max_diff if max_diff is not None else MAX_DIFF_S)
+        if json_out:
+            print(json.dumps(res))
+            return
+        table = Table(title=f"HILTI 2022 score: {res['score']:.1f} / 100 "
+                            f"({res['n_matched']}/{res['n_gt']} control points matched)")
+        for col in ("#", "t (s)", "dt to estimate (s)", "error (cm)", "points"):
+            table.add_column(col, justify="right")
+        for k, (t, dt, e, p) in enumerate(zip(res["t_s"], res["dt_s"], res["errors_m"],
+                                              res["points"], strict=True)):
+            table.add_row(str(k), f"{t:.3f}", _f(dt, 3), _f(None if e is None else 100 * e, 2),
+                          str(p))
+        console.print(table)
+        return
+    from adalio.eval.metrics import DEFAULT_MAX_DIFF_S, ate, rpe
+
+    diff = max_diff if max_diff is not None else DEFAULT_MAX_DIFF_S
+    a = ate(est, gt, align=align, max_diff_s=diff)
+    r = rpe(est, gt, _parse_floats(rpe_delta, "--rpe-delta"), max_diff_s=diff)
+    if json_out:
+        print(json.dumps({"est": str(est), "gt": str(gt), "ate": a, "rpe": r}))
+        return
+    table = Table(title=f"ATE (translation, align={align}, {a['n']} pairs within {diff} s, "
+                        f"{a['duration_s']:.1f} s)")
+    for col in ("RMSE [m]", "mean [m]", "median [m]", "std [m]", "max [m]"):
+        table.add_column(col, justify="right")
+    table.add_row(*(f"{a[k]:.4f}" for k in ("rmse_m", "mean_m", "median_m", "std_m", "max_m")))
+    console.print(table)
+    table = Table(title="RPE (translation per GT path segment; alignment-free)")
+    for col in ("segment [m]", "pairs", "RMSE [m]", "mean [m]", "max [m]", "drift [%]",
+                "rot RMSE [deg]"):
+        table.add_column(col, justify="right")
+    for row in r:
+        table.add_row(f"{row['delta_m']:g}", str(row["n"]), _f(row["rmse_m"], 4),
+                      _f(row["mean_m"], 4), _f(row["max_m"], 4), _f(row["drift_pct"], 2),
+                      _f(row["rot_rmse_deg"], 2))
+    console.print(table)
+
+
+def report_command(
+    run_dir: Annotated[Path, typer.Argument(help="Output folder of `adalio run`.")],
+    gt: Annotated[Path | None, typer.Option(help="Ground-truth TUM trajectory.")] = None,
+    hilti: Annotated[bool, typer.Option("--hilti", help="GT is HILTI 2022 control points.")
+                     ] = False,
+) -> None:
+    """Figures (trajectory, error, degeneracy timeline, map) and report.md for a run folder."""
+    from adalio.eval.report import make_report
+
+    path = make_report(run_dir, gt, hilti=hilti)
+    Console().print(f"report written to [bold]{path}[/]")
+
+
+def _print_compare(console: Console, result) -> None:
+    from adalio.eval.compare import TABLE_HEADER, table_rows
+
+    table = Table(title="adalio mode comparison")
+    for col in TABLE_HEADER:
+        table.add_column(col, justify="left" if col == "mode" else "right")
+    for cells in table_rows(result.rows):
+        table.add_row(*cells)
+    console.print(table)
+    for row in result.rows:
+        if row.aborted:
+            console.print(f"[yellow]{row.mode}[/] aborted: {row.aborted}")
+
+
+def compare_command(
+    bag: Annotated[Path, typer.Argument(help="ROS1 .bag file or ROS2 bag folder.")],
+    modes: Annotated[str, typer.Option(help="Comma-separated modes to run.")
+                     ] = "fixed,adaptive,adaptive+",
+    gt: Annotated[Path | None, typer.Option(help="Ground-truth TUM trajectory.")] = None,
+    preset: Annotated[str | None, typer.Option(help="Config preset (see `adalio config`).")
+                      ] = None,
+    config: Annotated[Path | None, typer.Option(help="Config YAML file.")] = None,
+    set_: Annotated[list[str] | None, typer.Option("--set", help="Config override KEY=VALUE "
+                                                                 "(repeatable).")] = None,
+    out: Annotated[Path, typer.Option(help="Output folder (one sub-folder per mode).")
+                   ] = Path("adalio_compare"),
+    max_scans: Annotated[int | None, typer.Option(help="Stop each run after this many scans.")
+                         ] = None,
+) -> None:
+    """Run several modes on the same bag and print one comparison table."""
+    from adalio.eval.compare import compare_modes, parse_modes
+
+    console = Console()
+    result = compare_modes(bag, parse_modes(modes), out, gt=gt, preset=preset,
+                           config_file=config, overrides=_overrides(set_), max_scans=max_scans,
+                           console=console)
+    _print_compare(console, result)
+    console.print(f"table and figures: [bold]{out / 'compare.md'}[/]")
+
+
+def demo_command(
+    out: Annotated[Path, typer.Option(help="Output folder.")] = Path("adalio_demo"),
+    short: Annotated[bool, typer.Option("--short", help="Much shorter sequence (CI).")] = False,
+) -> None:
+    """Simulate a spiral staircase descent and compare fixed vs adaptive (no data needed)."""
+    from adalio.eval.demo import run_demo
+
+    console = Console()
+    t0 = time.perf_counter()
+    res = run_demo(out, short=short, console=console)
+    _print_compare(console, res.compare)
+    console.print(f"simulated bag: {res.bag_path}  (ground truth {res.gt_path})")
+    for row in res.compare.rows:
+        if row.report:
+            console.print(f"report ({row.mode}): [bold]{row.report}[/]")
+    console.print(f"comparison: [bold]{Path(out) / 'compare.md'}[/]  "
+                  f"(total {time.perf_counter() - t0:.0f} s)")
+
+
+def register(app: typer.Typer) -> None:
+    """Add eval, report, compare and demo to the adalio CLI."""
+    app.command("eval")(eval_command)
+    app.command("report")(report_command)
+    app.command("compare")(compare_command)
+    app.command("demo")(demo_command)

@@ -1,0 +1,176 @@
+"""Trajectory accuracy: absolute (ATE) and relative (RPE) translation errors, via evo.
+
+Both trajectories are TUM files (or evo ``PoseTrajectory3D``) of the IMU pose in their own world
+frame, stamped in seconds on the same clock. Association is evo's
+``sync.associate_trajectories``: starting from the trajectory with fewer poses, every pose is
+paired with the nearest-in-time pose of the other one if they are within ``max_diff_s``; so with
+a denser ground truth each estimate gets its nearest GT pose, and vice versa.
+
+Alignment of the estimate onto the ground truth before the ATE:
+
+* ``se3``: evo ``align(correct_scale=False)``, the Umeyama least-squares rotation + translation
+  over all associated positions (no scale).
+* ``first``: evo ``align_origin``: the rigid transform ``T = T_world_gt(t0) T_world_est(t0)^-1``
+  that makes the first associated estimated pose coincide with its GT pose (full 6-DoF, so an
+  initial heading error shows up as a growing ATE).
+* ``none``: raw differences of positions in whatever frames the files are in.
+
+ATE = evo ``APE(translation_part)`` after alignment. RPE = evo ``RPE(translation_part)`` (and
+``rotation_angle_deg``) over consecutive pairs whose GT path length is ``delta_m`` (evo
+``delta_unit=meters``, ``pairs_from_reference=True``); it is alignment-free. Metres throughout.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+
+import numpy as np
+from evo.core import metrics as evo_metrics
+from evo.core import sync
+from evo.core.trajectory import PoseTrajectory3D
+from evo.core.units import Unit
+
+from adalio.errors import InputError
+from adalio.eval.files import TrajectoryLike, read_trajectory
+
+ALIGNMENTS = ("se3", "first", "none")
+DEFAULT_MAX_DIFF_S = 0.02
+DEFAULT_RPE_DELTAS_M = (1.0, 5.0)
+
+
+@dataclass
+class AlignedPair:
+    """Associated GT / estimate pair, the estimate already aligned onto the GT."""
+
+    gt: PoseTrajectory3D
+    est: PoseTrajectory3D
+    align: str
+    T_gt_est: np.ndarray
+    """(4, 4) transform applied to the estimate (identity for 'none')."""
+    errors_m: np.ndarray
+    """(n,) position error of each associated pair after alignment."""
+
+    @property
+    def t_s(self) -> np.ndarray:
+        return np.asarray(self.gt.timestamps, dtype=np.float64)
+
+
+def associate(est: TrajectoryLike, gt: TrajectoryLike,
+              max_diff_s: float = DEFAULT_MAX_DIFF_S) -> tuple[PoseTrajectory3D, PoseTrajectory3D]:
+    """Return ``(gt_sync, est_sync)`` with equal length, via evo's associate_trajectories."""
+    if not max_diff_s > 0:
+        raise InputError(f"--max-diff must be > 0 s (got {max_diff_s})")
+    est_t = read_trajectory(est, "estimate")
+    gt_t = read_trajectory(gt, "ground-truth")
+    try:
+        gt_s, est_s = sync.associate_trajectories(gt_t, est_t, max_diff=max_diff_s)
+    except sync.SyncException:
+        raise InputError(
+            f"no estimate/GT pose pairs within {max_diff_s} s: the estimate spans "
+            f"{_span(est_t)} and the GT {_span(gt_t)}; are both in seconds on the same clock?"
+        ) from None
+    return gt_s, est_s
+
+
+def _span(traj: PoseTrajectory3D) -> str:
+    t = traj.timestamps
+    return f"[{t[0]:.3f}, {t[-1]:.3f}] s"
+
+
+def align_pair(est: TrajectoryLike, gt: TrajectoryLike, align: str = "se3",
+               max_diff_s: float = DEFAULT_MAX_DIFF_S) -> AlignedPair:
+    """Associate, align the estimate onto the GT (see module docstring) and compute errors."""
+    if align not in ALIGNMENTS:
+        raise InputError(f"--align must be one of {', '.join(ALIGNMENTS)} (got {align!r})")
+    gt_s, est_s = associate(est, gt, max_diff_s)
+    est_a = copy.deepcopy(est_s)
+    T = np.eye(4)
+    if align == "se3":
+        if gt_s.num_poses < 3:
+            raise InputError(f"only {gt_s.num_poses} associated poses: se3 alignment needs >= 3 "
+                             "(use --align first or a larger --max-diff)")
+        try:
+            r, t, _ = est_a.align(gt_s, correct_scale=False)
+        except Exception as exc:  # noqa: BLE001 - evo GeometryException on degenerate input
+            raise InputError(f"se3 alignment failed ({exc}); the associated positions are "
+                             "degenerate (all on a line?): use --align first") from None
+        T[:3, :3] = r
+        T[:3, 3] = t
+    elif align == "first":
+        T = est_a.align_origin(gt_s)
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape.process_data((gt_s, est_a))
+    return AlignedPair(gt=gt_s, est=est_a, align=align, T_gt_est=np.asarray(T),
+                       errors_m=np.asarray(ape.error, dtype=np.float64))
+
+
+def ate(est_tum: TrajectoryLike, gt_tum: TrajectoryLike, align: str = "se3",
+        max_diff_s: float = DEFAULT_MAX_DIFF_S) -> dict:
+    """Absolute trajectory error (translation) after alignment.
+
+    Returns ``dict(rmse_m, mean_m, median_m, std_m, max_m, n, align, max_diff_s,
+    duration_s)`` where ``n`` is the number of associated pose pairs.
+    """
+    pair = align_pair(est_tum, gt_tum, align, max_diff_s)
+    return ate_from_pair(pair, max_diff_s)
+
+
+def ate_from_pair(pair: AlignedPair, max_diff_s: float = DEFAULT_MAX_DIFF_S) -> dict:
+    """The statistics of :func:`ate` for an already aligned pair."""
+    e = pair.errors_m
+    t = pair.t_s
+    return {
+        "rmse_m": float(np.sqrt(np.mean(e**2))),
+        "mean_m": float(np.mean(e)),
+        "median_m": float(np.median(e)),
+        "std_m": float(np.std(e)),
+        "max_m": float(np.max(e)),
+        "n": int(e.size),
+        "align": pair.align,
+        "max_diff_s": float(max_diff_s),
+        "duration_s": float(t[-1] - t[0]),
+    }
+
+
+def rpe(est_tum: TrajectoryLike, gt_tum: TrajectoryLike,
+        deltas_m: tuple[float, ...] | list[float] = DEFAULT_RPE_DELTAS_M,
+        max_diff_s: float = DEFAULT_MAX_DIFF_S) -> list[dict]:
+    """Relative pose error over GT path segments of each length in ``deltas_m``.
+
+    One dict per delta: ``delta_m, n, rmse_m, mean_m, median_m, max_m, drift_pct`` (mean / delta
+    x 100) and ``rot_rmse_deg``; the statistics are None when the GT path is shorter than delta.
+    """
+    gt_s, est_s = associate(est_tum, gt_tum, max_diff_s)
+    out = []
+    for delta in deltas_m:
+        if not delta > 0:
+            raise InputError(f"--rpe-delta values must be > 0 m (got {delta})")
+        row: dict = {"delta_m": float(delta), "n": 0, "rmse_m": None, "mean_m": None,
+                     "median_m": None, "max_m": None, "drift_pct": None, "rot_rmse_deg": None}
+        errors = {}
+        for rel in (evo_metrics.PoseRelation.translation_part,
+                    evo_metrics.PoseRelation.rotation_angle_deg):
+            metric = evo_metrics.RPE(rel, delta=float(delta), delta_unit=Unit.meters,
+                                     all_pairs=False, pairs_from_reference=True)
+            try:
+                metric.process_data((gt_s, est_s))
+            except Exception:  # noqa: BLE001 - evo raises when no pair spans delta
+                break
+            errors[rel] = np.asarray(metric.error, dtype=np.float64)
+        e = errors.get(evo_metrics.PoseRelation.translation_part)
+        if e is not None and e.size:
+            row.update(n=int(e.size), rmse_m=float(np.sqrt(np.mean(e**2))),
+                       mean_m=float(np.mean(e)), median_m=float(np.median(e)),
+                       max_m=float(np.max(e)), drift_pct=float(np.mean(e) / delta * 100.0))
+            r = errors.get(evo_metrics.PoseRelation.rotation_angle_deg)
+            if r is not None and r.size:
+                row["rot_rmse_deg"] = float(np.sqrt(np.mean(r**2)))
+        out.append(row)
+    return out
+
+
+def path_length_m(traj: TrajectoryLike) -> float:
+    """Total travelled distance of a trajectory (metres)."""
+    t = read_trajectory(traj)
+    return float(np.sum(np.linalg.norm(np.diff(t.positions_xyz, axis=0), axis=1)))

@@ -1,0 +1,193 @@
+"""Markdown report of one run directory (``adalio report RUN_DIR``, ``adalio run --gt``).
+
+Reads what ``adalio.pipeline.run_bag`` writes (``trajectory.tum``, ``scans.csv``,
+``map.ply|map.pcd``, ``config.yaml``), computes ATE / RPE against an optional ground truth
+(``adalio.eval.metrics``; the estimate is SE(3)-aligned to the GT for the figures) and writes
+PNG figures plus ``report.md`` and ``metrics.json`` next to them. Metres and seconds.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from adalio.errors import InputError
+from adalio.eval import plots
+from adalio.eval.files import read_map_points, read_scans_csv, read_trajectory
+from adalio.eval.metrics import (
+    DEFAULT_MAX_DIFF_S,
+    DEFAULT_RPE_DELTAS_M,
+    align_pair,
+    ate_from_pair,
+    rpe,
+)
+
+REPORT_NAME = "report.md"
+
+
+def _read_config(run_dir: Path) -> dict[str, Any]:
+    path = run_dir / "config.yaml"
+    if not path.is_file():
+        return {}
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError:
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _find_map(run_dir: Path) -> Path | None:
+    for name in ("map.ply", "map.pcd"):
+        if (run_dir / name).is_file():
+            return run_dir / name
+    return None
+
+
+def scan_summary(scans: dict[str, np.ndarray]) -> dict[str, float]:
+    """Scan count, share of degenerate scans (%) and median per-scan wall time (ms)."""
+    n = len(scans["t_s"])
+    degen = np.asarray(scans.get("degenerate", np.zeros(n, bool)), dtype=bool)
+    wall = np.asarray(scans.get("wall_ms", np.full(n, np.nan)), dtype=np.float64)
+    return {
+        "n_scans": n,
+        "degenerate_pct": float(100.0 * degen.mean()) if n else 0.0,
+        "ms_per_scan_median": float(np.nanmedian(wall)) if n and np.any(np.isfinite(wall))
+        else float("nan"),
+    }
+
+
+def full_aligned_xyz(est_path: Path, T_gt_est: np.ndarray) -> np.ndarray:
+    """All estimated positions mapped into the GT frame by the alignment transform."""
+    traj = read_trajectory(est_path, "estimate")
+    xyz = np.asarray(traj.positions_xyz, dtype=np.float64)
+    return xyz @ T_gt_est[:3, :3].T + T_gt_est[:3, 3]
+
+
+def _fmt(value: Any, digits: int = 3) -> str:
+    if value is None or (isinstance(value, float) and not np.isfinite(value)):
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def make_report(run_dir: str | Path, gt: str | Path | None = None, *, hilti: bool = False,
+                max_diff_s: float = DEFAULT_MAX_DIFF_S,
+                rpe_deltas_m: tuple[float, ...] = DEFAULT_RPE_DELTAS_M) -> Path:
+    """Write figures, ``metrics.json`` and ``report.md`` into ``run_dir``; return the report path.
+
+    ``hilti=True`` treats ``gt`` as HILTI 2022 control points and adds the HILTI score
+    (:func:`adalio.eval.hilti.hilti_score`) instead of the dense ATE/RPE.
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise InputError(f"run directory {run_dir} does not exist: give the --out of a run")
+    est_path = run_dir / "trajectory.tum"
+    if not est_path.is_file():
+        raise InputError(f"{run_dir} has no trajectory.tum: is it the output folder of a run?")
+    est = read_trajectory(est_path, "estimate")
+    est_xyz = np.asarray(est.positions_xyz, dtype=np.float64)
+    t0 = float(est.timestamps[0])
+    config = _read_config(run_dir)
+    mode = str(config.get("adaptive", {}).get("mode", "?")) if config else "?"
+    scans_path = run_dir / "scans.csv"
+    scans = read_scans_csv(scans_path) if scans_path.is_file() else None
+    if scans is not None and len(scans["t_s"]):
+        t0 = min(t0, float(scans["t_s"][0]))
+    metrics: dict[str, Any] = {"run_dir": str(run_dir), "mode": mode,
+                               "n_poses": int(est.num_poses)}
+    figures: list[tuple[str, Path]] = []
+    gt_xyz = None
+    aligned_xyz = est_xyz
+    pair = None
+    if gt is not None:
+        gt_traj = read_trajectory(gt, "ground-truth")
+        gt_xyz = np.asarray(gt_traj.positions_xyz, dtype=np.float64)
+        if hilti:
+            from adalio.eval.hilti import hilti_score
+
+            metrics["hilti"] = hilti_score(est_path, gt)
+            aligned_xyz = full_aligned_xyz(est_path, np.asarray(metrics["hilti"]["T_gt_est"]))
+        else:
+            pair = align_pair(est_path, gt, "se3", max_diff_s)
+            metrics["ate_se3"] = ate_from_pair(pair, max_diff_s)
+            metrics["ate_first"] = ate_from_pair(align_pair(est_path, gt, "first", max_diff_s),
+                                                 max_diff_s)
+            metrics["rpe"] = rpe(est_path, gt, rpe_deltas_m, max_diff_s)
+            aligned_xyz = full_aligned_xyz(est_path, pair.T_gt_est)
+    label = f"adalio ({mode})"
+    top, side = plots.plot_trajectories({label: aligned_xyz}, gt_xyz,
+                                        run_dir / "trajectory_top.png",
+                                        run_dir / "trajectory_side.png",
+                                        title="trajectory" + (" (SE(3)-aligned)" if gt else ""))
+    figures += [("Trajectory, top view", top), ("Trajectory, side view", side)]
+    degen_series = None
+    if scans is not None:
+        degen_series = (np.asarray(scans["t_s"]) - t0,
+                        np.asarray(scans.get("degenerate", np.zeros(len(scans["t_s"]), bool))))
+        metrics["scans"] = scan_summary(scans)
+    if pair is not None:
+        figures.append(("Position error over time", plots.plot_error_over_time(
+            {label: (pair.t_s - t0, pair.errors_m)}, run_dir / "error.png",
+            degenerate=degen_series)))
+    if scans is not None:
+        tau_n = config.get("adaptive", {}).get("tau_n") if config else None
+        figures.append(("Degeneracy timeline", plots.plot_degeneracy(
+            scans, run_dir / "degeneracy.png", t0_s=t0, tau_n=tau_n)))
+    map_path = _find_map(run_dir)
+    if map_path is not None:
+        pts = read_map_points(map_path)
+        metrics["map_points"] = len(pts)
+        figures.append(("Map, top view", plots.plot_map_top(pts, run_dir / "map_top.png",
+                                                             traj_xyz=est_xyz)))
+    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    report = run_dir / REPORT_NAME
+    report.write_text(_markdown(metrics, figures, gt))
+    return report
+
+
+def _markdown(metrics: dict[str, Any], figures: list[tuple[str, Path]],
+              gt: str | Path | None) -> str:
+    lines = [f"# adalio run report: `{Path(metrics['run_dir']).name}`", "",
+             f"- mode: `{metrics['mode']}`", f"- poses: {metrics['n_poses']}"]
+    if "scans" in metrics:
+        s = metrics["scans"]
+        lines += [(f"- scans: {s['n_scans']}, degenerate set active on "
+                  f"{s['degenerate_pct']:.1f} %"), (f"- median wall time per scan: "
+                  f"{_fmt(s['ms_per_scan_median'], 1)} ms")]
+    if "map_points" in metrics:
+        lines.append(f"- map points: {metrics['map_points']}")
+    lines.append(f"- ground truth: `{gt}`" if gt is not None else "- ground truth: none")
+    lines.append("")
+    if "ate_se3" in metrics:
+        lines += ["## Absolute trajectory error (translation, m)", "",
+                  "| alignment | RMSE | mean | median | max | pairs |",
+                  "|---|---|---|---|---|---|"]
+        for key in ("ate_se3", "ate_first"):
+            a = metrics[key]
+            lines.append(f"| {a['align']} | {_fmt(a['rmse_m'])} | {_fmt(a['mean_m'])} | "
+                         f"{_fmt(a['median_m'])} | {_fmt(a['max_m'])} | {a['n']} |")
+        lines += ["", "## Relative pose error", "",
+                  ("| segment (m) | RMSE (m) | mean (m) | max (m) | drift (%) | rot RMSE (deg) "
+                  "| pairs |"), "|---|---|---|---|---|---|---|"]
+        for r in metrics["rpe"]:
+            lines.append(f"| {r['delta_m']:g} | {_fmt(r['rmse_m'])} | {_fmt(r['mean_m'])} | "
+                         f"{_fmt(r['max_m'])} | {_fmt(r['drift_pct'], 2)} | "
+                         f"{_fmt(r['rot_rmse_deg'], 2)} | {r['n']} |")
+        lines.append("")
+    if "hilti" in metrics:
+        h = metrics["hilti"]
+        lines += ["## HILTI 2022 score", "",
+                  (f"**{h['score']:.1f} / 100** ({h['n_matched']} of {h['n_gt']} control points "
+                  "matched)"), "", "| # | t (s) | error (cm) | points |", "|---|---|---|---|"]
+        for k, (t, e, p) in enumerate(zip(h["t_s"], h["errors_m"], h["points"], strict=True)):
+            lines.append(f"| {k} | {t:.2f} | {_fmt(None if e is None else 100 * e, 1)} | {p} |")
+        lines.append("")
+    lines += ["## Figures", ""]
+    for caption, path in figures:
+        lines += [f"### {caption}", "", f"![{caption}]({Path(path).name})", ""]
+    return "\n".join(lines)
