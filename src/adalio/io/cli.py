@@ -1,0 +1,204 @@
+"""Commands ``adalio info``, ``adalio run`` and ``adalio config show``."""
+
+from __future__ import annotations
+
+import contextlib
+import statistics
+import sys
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from adalio.errors import AdalioError, BagError, ConfigError
+
+config_app = typer.Typer(help="Inspect the configuration.", no_args_is_help=True)
+
+
+@contextlib.contextmanager
+def _warnings_to(console: Console) -> Iterator[None]:
+    """Show Python warnings as one 'warning:' line each on the console."""
+    old = warnings.showwarning
+
+    def show(message: Any, category: Any, filename: str, lineno: int, file: Any = None,
+             line: Any = None) -> None:
+        console.print(f"[yellow]warning:[/] {message}", highlight=False, soft_wrap=True)
+
+    warnings.showwarning = show
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("always")
+            warnings.showwarning = show
+            yield
+    finally:
+        warnings.showwarning = old
+
+
+def _build_config(preset: str | None, config_file: Path | None, lidar_topic: str | None,
+                  imu_topic: str | None, extrinsic: str | None, mode: str | None,
+                  map_format: str | None) -> Any:
+    from adalio.config import load_config, transform_from_xyz_quat
+
+    overrides: dict[str, Any] = {"sensor.lidar_topic": lidar_topic,
+                                 "sensor.imu_topic": imu_topic, "adaptive.mode": mode,
+                                 "output.map_format": map_format}
+    if extrinsic is not None:
+        overrides["sensor.T_imu_lidar"] = transform_from_xyz_quat(extrinsic)
+        overrides["sensor.extrinsic_source"] = "config"
+    return load_config(preset, config_file, overrides)
+
+
+# ------------------------------------------------------------------------------------ info
+def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them), ROS2 bag "
+                                             "folder, or .mcap file.")],
+         preset: Annotated[str | None, typer.Option(help="Preset whose topics/time settings "
+                                                    "to apply.")] = None,
+         config: Annotated[Path | None, typer.Option("--config", help="YAML config file.")]
+         = None,
+         lidar_topic: Annotated[str | None, typer.Option(help="PointCloud2 topic.")] = None,
+         imu_topic: Annotated[str | None, typer.Option(help="sensor_msgs/Imu topic.")] = None,
+         sample: Annotated[int, typer.Option(help="Scans decoded for the statistics.")] = 5,
+         ) -> None:
+    """Show a bag's topics, duration, the topics a run would use and the per-point time format."""
+    from adalio.io.bag import Bag
+    from adalio.io.pointcloud2 import CloudDecoder
+    from adalio.io.sequencer import accel_is_in_g, imu_msg_arrays
+
+    cfg = _build_config(preset, config, lidar_topic, imu_topic, None, None, None)
+    out = Console()
+    err = Console(stderr=True)
+    with _warnings_to(err), Bag(bag) as b:
+        table = Table(title=f"{bag}  ({b.duration_s:.2f} s)")
+        for col in ("topic", "type", "count", "rate (Hz)"):
+            table.add_column(col, justify="right" if col in ("count", "rate (Hz)") else "left")
+        for t in b.topics():
+            table.add_row(t.name, t.msgtype, str(t.count), f"{t.rate_hz:.1f}")
+        out.print(table)
+        out.print(f"duration: {b.duration_s:.3f} s  "
+                  f"({b.start_ns * 1e-9:.3f} .. {b.end_ns * 1e-9:.3f})")
+        try:
+            lidar, imu = b.select_topics(cfg.sensor)
+        except BagError as exc:
+            out.print(f"[yellow]topics:[/] {exc}", highlight=False)
+            return
+        out.print(f"would use: lidar [bold]{lidar}[/], imu [bold]{imu}[/]")
+        dec = CloudDecoder(cfg.sensor, lidar)
+        counts = []
+        layout = ""
+        for _, _, msg in b.messages([lidar], limit=max(sample, 1)):
+            if not layout:
+                layout = ", ".join(f"{f.name}@{f.offset}:{f.datatype}" for f in msg.fields) + \
+                    f" (point_step {msg.point_step}, {msg.height}x{msg.width}, " \
+                    f"{'big' if msg.is_bigendian else 'little'}-endian)"
+                frame = msg.header.frame_id
+            counts.append(len(dec.decode(msg)))
+        out.print(f"cloud fields: {layout}  frame '{frame}'", highlight=False)
+        spec = dec.time_spec.describe() if dec.time_spec else "unknown"
+        out.print(f"per-point time: {spec}", highlight=False)
+        if counts:
+            out.print(f"points per scan (first {len(counts)}): min {min(counts)}, "
+                      f"median {statistics.median(counts):.0f}, max {max(counts)}")
+        imu_msgs = [m for _, _, m in b.messages([imu], limit=50)]
+        if imu_msgs:
+            batch = imu_msg_arrays(imu_msgs)
+            unit = "g (converted)" if accel_is_in_g(batch.accel_m_s2) else "m/s^2"
+            out.print(f"imu frame '{imu_msgs[0].header.frame_id}', accelerometer in {unit}")
+        tf = b.static_transforms()
+        out.print(f"/tf_static: {len(tf)} transforms" if tf else "/tf_static: none")
+
+
+# ------------------------------------------------------------------------------------ run
+def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them), ROS2 bag "
+                                            "folder, or .mcap file.")],
+        preset: Annotated[str | None, typer.Option(help="Preset name (adalio config show).")]
+        = None,
+        config: Annotated[Path | None, typer.Option("--config", help="YAML config file.")]
+        = None,
+        lidar_topic: Annotated[str | None, typer.Option(help="PointCloud2 topic.")] = None,
+        imu_topic: Annotated[str | None, typer.Option(help="sensor_msgs/Imu topic.")] = None,
+        extrinsic: Annotated[str | None, typer.Option(
+            help="T_imu_lidar as 'tx ty tz qx qy qz qw' (maps LiDAR points into the IMU "
+                 "frame).")] = None,
+        mode: Annotated[str | None, typer.Option(help="adaptive | fixed | adaptive+")] = None,
+        out: Annotated[Path | None, typer.Option(
+            help="Output folder (default: runs/BAGNAME, or runs/BAGNAME_K with the first free K).")]
+        = None,
+        map_format: Annotated[str | None, typer.Option(help="ply | pcd")] = None,
+        gt: Annotated[Path | None, typer.Option(help="Ground-truth TUM file: write an "
+                                                "evaluation report too.")] = None,
+        max_scans: Annotated[int | None, typer.Option(help="Stop after N scans.")] = None,
+        profile: Annotated[bool, typer.Option(help="Print per-stage timings per scan.")]
+        = False,
+        no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")]
+        = False,
+        ) -> None:
+    """Estimate the trajectory and map of a bag; write trajectory.tum, map, scans.csv, config."""
+    from adalio.pipeline import default_out_dir, run_bag
+
+    cfg = _build_config(preset, config, lidar_topic, imu_topic, extrinsic, mode, map_format)
+    out_dir = out if out is not None else default_out_dir(bag)
+    con = Console(stderr=True)
+    with _warnings_to(con):
+        res = run_bag(bag, cfg, out_dir, gt_path=gt, progress=not no_progress and con.is_terminal,
+                      max_scans=max_scans)
+    _summary(con, res, profile)
+    if res.interrupted:
+        raise typer.Exit(130)
+
+
+def _summary(con: Console, res: Any, profile: bool) -> None:
+    status = "[yellow]interrupted[/]" if res.interrupted else "[green]done[/]"
+    con.print(f"{status}: {res.n_scans} poses from {res.n_scans_in} scans in {res.wall_s:.1f} s "
+              f"({res.n_scans_in / max(res.wall_s, 1e-9):.1f} scans/s, median "
+              f"{res.ms_per_scan_median:.1f} ms/scan) → {res.out_dir}", highlight=False)
+    con.print(f"topics: {res.lidar_topic} + {res.imu_topic}; extrinsic from "
+              f"{res.extrinsic_source}; point time {res.time_spec}", highlight=False)
+    ranges = ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in res.degenerate_ranges_s[:8])
+    more = " ..." if len(res.degenerate_ranges_s) > 8 else ""
+    con.print(f"degenerate scans: {res.n_degenerate}/{res.n_scans}"
+              + (f" at {ranges}{more}" if ranges else ""), highlight=False)
+    if res.sequencer is not None:
+        for msg in res.sequencer.messages:
+            if msg.startswith("skipped"):
+                con.print(f"[yellow]note:[/] {msg}", highlight=False)
+    if res.stage_ms:
+        n = max(res.n_scans_in, 1)
+        total = sum(res.stage_ms.values())
+        table = Table(title="per-stage time")
+        for col in ("stage", "total s", "ms/scan", "share"):
+            table.add_column(col, justify="left" if col == "stage" else "right")
+        for stage, ms in res.stage_ms.items():
+            table.add_row(stage, f"{ms / 1e3:.2f}", f"{ms / n:.2f}",
+                          f"{100 * ms / max(total, 1e-9):.0f}%")
+        if profile:
+            con.print(table)
+        else:
+            con.print("stages (ms/scan): " + ", ".join(
+                f"{stage} {ms / n:.1f}" for stage, ms in res.stage_ms.items()), highlight=False)
+
+
+# ------------------------------------------------------------------------------------ config
+@config_app.command("show")
+def config_show(preset: Annotated[str | None, typer.Argument(help="Preset name.")] = None,
+                config: Annotated[Path | None, typer.Option("--config", help="YAML file.")]
+                = None) -> None:
+    """Print the effective config (defaults < preset < file) as YAML."""
+    from adalio.config import available_presets, load_config
+
+    cfg = load_config(preset, config)
+    head = f"# preset: {preset}" if preset else f"# defaults (presets: {', '.join(available_presets())})"
+    sys.stdout.write(head + "\n" + cfg.to_yaml())
+
+
+def register(app: typer.Typer) -> None:
+    """Add info, run and config to the main app."""
+    app.command("info")(info)
+    app.command("run")(run)
+    app.add_typer(config_app, name="config")
+
+
+__all__ = ["register", "AdalioError", "ConfigError"]

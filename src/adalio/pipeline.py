@@ -1,0 +1,239 @@
+"""``run_bag``: bag → sequencer → :class:`adalio.lio.Odometry` → writers.
+
+Writes into ``out_dir``: ``trajectory.tum`` (IMU pose in the world frame, stamped at each scan
+end, rows flushed as produced), ``scans.csv`` (one row per estimated scan), ``map.ply`` or
+``map.pcd`` (world-frame map, metres) and ``config.yaml`` (the effective config, with the
+extrinsic actually used). The map and config are also written when the run stops early
+(Ctrl-C, a damaged bag), so partial outputs stay valid.
+"""
+
+from __future__ import annotations
+
+import copy
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from adalio.config import Config, validate_transform
+from adalio.errors import AdalioError, BagError, ConfigError, InputError
+from adalio.io.bag import Bag, chain_transform
+from adalio.io.sequencer import Sequencer, SequencerStats
+from adalio.io.writers import ScansCsvWriter, TumWriter, write_map
+from adalio.types import ImuBatch
+
+
+@dataclass
+class RunResult:
+    """What :func:`run_bag` produced."""
+
+    out_dir: Path
+    trajectory_path: Path
+    scans_csv_path: Path
+    map_path: Path
+    config_path: Path
+    n_scans: int
+    n_degenerate: int
+    wall_s: float
+    ms_per_scan_median: float
+    stage_ms: dict[str, float]
+    interrupted: bool
+    degenerate_ranges_s: list[tuple[float, float]] = field(default_factory=list)
+    """(start, end) seconds since the first estimated scan of consecutive degenerate scans."""
+    lidar_topic: str = ""
+    imu_topic: str = ""
+    extrinsic_source: str = ""
+    time_spec: str = ""
+    sequencer: SequencerStats | None = None
+    n_scans_in: int = 0
+    """Scans handed to the estimator (including those consumed by initialization)."""
+
+
+def default_out_dir(bag_path: str | Path, root: str | Path = "runs") -> Path:
+    """``runs/<bag-stem>``, or ``runs/<bag-stem>_<k>`` with the first free k."""
+    stem = Path(str(bag_path).rstrip("/")).name
+    for suffix in (".bag", ".mcap", ".db3"):
+        if stem.endswith(suffix):
+            stem = stem[: -len(suffix)]
+    base = Path(root) / (stem or "run")
+    if not base.exists():
+        return base
+    k = 1
+    while (base.parent / f"{base.name}_{k}").exists():
+        k += 1
+    return base.parent / f"{base.name}_{k}"
+
+
+def resolve_extrinsic(bag: Bag, lidar_topic: str, imu_topic: str,
+                      config: Config) -> tuple[np.ndarray, str]:
+    """T_imu_lidar per ``sensor.extrinsic_source`` and a description of where it came from."""
+    source = config.sensor.extrinsic_source
+    if source == "config":
+        return config.T_imu_lidar(), "config"
+    edges = bag.static_transforms()
+    if not edges:
+        if source == "tf_static":
+            raise BagError(f"sensor.extrinsic_source is tf_static but {bag.path} has no "
+                           "/tf_static transforms; give --extrinsic or set it to config")
+        return config.T_imu_lidar(), "config"
+    imu_msg = bag.first_message(imu_topic)
+    cloud_msg = bag.first_message(lidar_topic)
+    imu_frame = imu_msg.header.frame_id if imu_msg is not None else ""
+    lidar_frame = cloud_msg.header.frame_id if cloud_msg is not None else ""
+    T = None
+    if imu_frame and lidar_frame and imu_frame.lstrip("/") != lidar_frame.lstrip("/"):
+        T = chain_transform(edges, imu_frame, lidar_frame)
+    if T is None:
+        if source == "tf_static":
+            raise BagError(f"/tf_static in {bag.path} has no chain from '{imu_frame}' (IMU) to "
+                           f"'{lidar_frame}' (LiDAR); give --extrinsic or set "
+                           "sensor.extrinsic_source to config")
+        return config.T_imu_lidar(), "config"
+    try:
+        T = validate_transform(T, f"/tf_static {imu_frame}<-{lidar_frame}")
+    except ConfigError as exc:
+        raise BagError(str(exc)) from None
+    return T, f"tf_static ({imu_frame} <- {lidar_frame})"
+
+
+def _degenerate_ranges(times_ns: list[int], flags: list[bool]) -> list[tuple[float, float]]:
+    if not times_ns:
+        return []
+    t0 = times_ns[0]
+    out: list[tuple[float, float]] = []
+    start = None
+    for i, (t, d) in enumerate(zip(times_ns, flags)):
+        if d and start is None:
+            start = t
+        if start is not None and (not d or i == len(flags) - 1):
+            end = t if d else times_ns[i - 1]
+            out.append(((start - t0) * 1e-9, (end - t0) * 1e-9))
+            start = None
+    return out
+
+
+def _progress(enabled: bool, total: int | None) -> Any:
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
+                               TimeElapsedColumn, TimeRemainingColumn)
+
+    return Progress(TextColumn("[bold]scans"), BarColumn(), MofNCompleteColumn(),
+                    TextColumn("{task.fields[rate]}"), TimeElapsedColumn(), TextColumn("eta"),
+                    TimeRemainingColumn(), disable=not enabled, transient=False)
+
+
+def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
+            gt_path: str | Path | None = None, progress: bool = True,
+            max_scans: int | None = None, map_format: str | None = None,
+            on_scan: Callable[[int], None] | None = None) -> RunResult:
+    """Run the estimator over a bag and write the results into ``out_dir``.
+
+    ``on_scan(n)`` is called after each scan handed to the estimator (n counts them); an
+    exception it raises stops the run like an error would (KeyboardInterrupt = Ctrl-C).
+    """
+    cfg = copy.deepcopy(config)
+    if map_format is not None:
+        cfg.output.map_format = map_format
+    cfg.validate()
+    if gt_path is not None and not Path(gt_path).is_file():
+        raise InputError(f"ground truth {gt_path} does not exist: check --gt")
+    if max_scans is not None and max_scans < 1:
+        raise ConfigError(f"--max-scans must be >= 1 (got {max_scans})")
+    try:
+        from adalio.lio import Odometry
+    except ImportError:
+        raise AdalioError("the estimator (adalio.lio.Odometry) is not available in this "
+                          "install; update adalio") from None
+
+    out = Path(out_dir)
+    bag = Bag(bag_path).open()
+    try:
+        lidar_topic, imu_topic = bag.select_topics(cfg.sensor)
+        T_imu_lidar, ext_source = resolve_extrinsic(bag, lidar_topic, imu_topic, cfg)
+        cfg.sensor.T_imu_lidar = T_imu_lidar.tolist()
+        n_clouds = next((t.count for t in bag.topics() if t.name == lidar_topic), 0)
+        total = min(n_clouds, max_scans) if max_scans else n_clouds
+        out.mkdir(parents=True, exist_ok=True)
+        paths = dict(trajectory=out / "trajectory.tum", scans=out / "scans.csv",
+                     map=out / f"map.{cfg.output.map_format}", config=out / "config.yaml")
+        paths["config"].write_text(cfg.to_yaml())
+        odom = Odometry(cfg)
+        seq = Sequencer(bag, lidar_topic, imu_topic, cfg.sensor)
+        tum = TumWriter(paths["trajectory"])
+        csvw = ScansCsvWriter(paths["scans"])
+        wall_ms: list[float] = []
+        est_t: list[int] = []
+        degen: list[bool] = []
+        n_in = 0
+        interrupted = False
+        t_start = time.perf_counter()
+        try:
+            with _progress(progress, total) as bar:
+                task = bar.add_task("scans", total=total or None, rate="")
+                for item in seq:
+                    if isinstance(item, ImuBatch):
+                        odom.add_imu(item.t_ns, item.gyro_rad_s, item.accel_m_s2)
+                        continue
+                    t0 = time.perf_counter()
+                    est = odom.add_scan(item.points_lidar, item.t_ns)
+                    ms = (time.perf_counter() - t0) * 1e3
+                    n_in += 1
+                    if est is not None:
+                        tum.write(est.t_ns, est.T_world_imu)
+                        stats = est.stats
+                        stats.t_ns = int(est.t_ns)
+                        if not stats.wall_ms:
+                            stats.wall_ms = ms
+                        csvw.write(stats)
+                        wall_ms.append(ms)
+                        est_t.append(int(est.t_ns))
+                        degen.append(bool(stats.degenerate))
+                    elapsed = time.perf_counter() - t_start
+                    bar.update(task, advance=1, rate=f"{n_in / max(elapsed, 1e-9):.1f} scans/s")
+                    if on_scan is not None:
+                        on_scan(n_in)
+                    if max_scans is not None and n_in >= max_scans:
+                        break
+        except KeyboardInterrupt:
+            interrupted = True
+        finally:
+            tum.close()
+            csvw.close()
+            try:
+                pts = odom.map_points()
+            except Exception:
+                pts = np.zeros((0, 3))
+            leaf = cfg.output.map_voxel_m
+            if leaf > 0 and len(pts):
+                try:
+                    from adalio.lio.voxel import voxel_downsample
+
+                    pts = voxel_downsample(np.asarray(pts, dtype=np.float64), leaf)
+                except Exception:
+                    pass
+            write_map(paths["map"], pts, cfg.output.map_format)
+            paths["config"].write_text(cfg.to_yaml())
+        wall_s = time.perf_counter() - t_start
+    finally:
+        bag.close()
+    result = RunResult(
+        out_dir=out, trajectory_path=paths["trajectory"], scans_csv_path=paths["scans"],
+        map_path=paths["map"], config_path=paths["config"], n_scans=len(est_t),
+        n_degenerate=int(sum(degen)), wall_s=wall_s,
+        ms_per_scan_median=statistics.median(wall_ms) if wall_ms else 0.0,
+        stage_ms=dict(getattr(odom, "stage_ms_total", {}) or {}), interrupted=interrupted,
+        degenerate_ranges_s=_degenerate_ranges(est_t, degen), lidar_topic=lidar_topic,
+        imu_topic=imu_topic, extrinsic_source=ext_source,
+        time_spec=seq.decoder.time_spec.describe() if seq.decoder.time_spec else "",
+        sequencer=seq.stats, n_scans_in=n_in)
+    if gt_path is not None and not interrupted:
+        try:
+            from adalio.eval.report import make_report
+        except ImportError:
+            make_report = None
+        if make_report is not None:
+            make_report(out, gt=gt_path)
+    return result
