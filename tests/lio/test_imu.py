@@ -16,8 +16,9 @@ def _random_state() -> State:
                  b_a=rng.normal(size=3) * 0.2, g=g, g_anchor=so3.anchor_frame(g))
 
 
-def _step(x: State, gyro, acc, dt, noise=np.zeros(12)) -> State:
+def _step(x: State, gyro, acc, dt, noise=None) -> State:
     """The discrete step of §3.1 with the additive noise of §3.2 injected."""
+    noise = np.zeros(12) if noise is None else noise
     p, R, v = imu.discrete_step(x.p, x.R, x.v, x.b_g, x.b_a, x.g, gyro - noise[0:3],
                                 acc - noise[3:6], dt)
     y = x.copy()

@@ -33,7 +33,7 @@ class StaticInit:
 
 def stillness_window(t_ns: np.ndarray, t_end_ns: int, window_s: float) -> slice | None:
     """Index range of the samples in ``[t_end − window, t_end]`` if the buffer reaches back that far."""
-    start_ns = t_end_ns - int(round(window_s * 1e9))
+    start_ns = t_end_ns - round(window_s * 1e9)
     if t_ns.size == 0 or t_ns[0] > start_ns:
         return None
     lo = int(np.searchsorted(t_ns, start_ns, side="left"))

@@ -1,0 +1,104 @@
+"""Iterated error-state Kalman update with the "small-H" gain (lio-design.md §6.4).
+
+The measurement callback returns, at a state iterate, the stacked point-to-plane Jacobian rows
+``H`` (m×12, error columns p, θ, θ_LI, t_LI) and residuals ``r`` (m,); the filter consumes
+``h = −r`` with isotropic variance ``R = laser_point_cov`` (m²). 23×23 algebra in numpy.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from adalio.config import FilterConfig
+from adalio.lio import so3
+from adalio.lio.state import DIM, State
+
+Measure = Callable[[State, bool], tuple[np.ndarray, np.ndarray]]
+"""``measure(x, research) -> (H (m,12), r (m,))``; ``research`` asks for a new kNN + plane fit."""
+
+_SO3_BLOCKS = (slice(3, 6), slice(6, 9))
+
+
+@dataclass
+class UpdateResult:
+    state: State
+    P: np.ndarray
+    iterations: int
+    """Measurement evaluations performed (≤ max_iterations + 1)."""
+    H: np.ndarray
+    """(m,12) rows accepted at the last evaluation (after any pose projection)."""
+    converged: bool
+
+
+def _reprojection(dx: np.ndarray) -> np.ndarray:
+    """J of §6.4 step 2: identity with ``A(δθ)ᵀ = J_r(δθ)`` on the SO(3) blocks (S² block: I)."""
+    J = np.eye(DIM)
+    for sl in _SO3_BLOCKS:
+        J[sl, sl] = so3.jr(dx[sl].copy())
+    return J
+
+
+def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: FilterConfig,
+                    pose_projector: np.ndarray | None = None) -> UpdateResult:
+    """IKFoM ``update_iterated_dyn_share_modified`` (§6.4).
+
+    Loop ``j = −1 … N_max−1``: evaluate ``H, r`` at ``x_j`` (re-search while ``research``),
+    ``δ̃ = J (x_j ⊟ x̂)``, ``P_j = J P̂ Jᵀ``, ``S = HᵀH/R + P_j⁻¹`` (HᵀH fills the 12×12 corner),
+    ``K = S⁻¹ Hᵀ/R``, ``δ = K h + (K H − I) δ̃``, ``x_{j+1} = x_j ⊞ δ``. Converged when every
+    ``|δ_i| ≤ ε``; forced before the last iteration; stop after two converged steps or N_max+1
+    evaluations. ``P⁺ = (I − K H) P_j``.
+
+    ``pose_projector`` (6×6, error order [δp, δθ]) restricts the update to observable pose
+    directions: ``H_pose ← H_pose P_obs`` and ``δ_pose ← P_obs δ_pose`` (AdaLIO+).
+    """
+    n_max = cfg.max_iterations
+    inv_r = 1.0 / cfg.laser_point_cov
+    x = x_prior.copy()
+    research = True
+    t_conv = 0
+    converged = False
+    iterations = 0
+    P_out = P_prior
+    H = np.zeros((0, 12))
+    for j in range(-1, n_max):
+        H, r = measure(x, research or cfg.refit_every_iteration)
+        iterations += 1
+        if not cfg.estimate_extrinsic and H.shape[0]:
+            H[:, 6:12] = 0.0
+        if pose_projector is not None and H.shape[0]:
+            H[:, :6] = H[:, :6] @ pose_projector
+        dx = x.boxminus(x_prior)
+        J = _reprojection(dx)
+        P_j = J @ P_prior @ J.T
+        dx_tilde = J @ dx
+        KH = np.zeros((DIM, DIM))
+        if H.shape[0] == 0:
+            delta = np.zeros(DIM)
+        else:
+            HTH = H.T @ H
+            HTh = -(H.T @ r)
+            S = np.linalg.inv(P_j)
+            S[:12, :12] += HTH * inv_r
+            S_inv = np.linalg.inv(S)
+            K_h = S_inv[:, :12] @ HTh * inv_r
+            KH[:, :12] = S_inv[:, :12] @ HTH * inv_r
+            delta = K_h + KH @ dx_tilde - dx_tilde
+            if pose_projector is not None:
+                delta[:6] = pose_projector @ delta[:6]
+            if not cfg.estimate_extrinsic:
+                delta[6:12] = 0.0
+        x = x.boxplus(delta)
+        converged = bool(np.all(np.abs(delta) <= cfg.convergence_eps))
+        if converged:
+            t_conv += 1
+        if not t_conv and j == n_max - 2:
+            converged = True
+        research = converged
+        if t_conv > 1 or j == n_max - 1:
+            P_out = (np.eye(DIM) - KH) @ P_j
+            break
+    P_out = 0.5 * (P_out + P_out.T)
+    return UpdateResult(state=x, P=P_out, iterations=iterations, H=H, converged=t_conv > 0)

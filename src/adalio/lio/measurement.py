@@ -1,0 +1,88 @@
+"""Point-to-plane measurement model: residual, range-adaptive gate and H rows (lio-design.md §6.3).
+
+Inputs are undistorted, downsampled LiDAR-frame points ``p_L`` (m) and world planes
+``nᵀx + d = 0`` (``|n| = 1``). World point ``p_W = R (R_LI p_L + t_LI) + p``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+GATE_FACTOR = 81.0
+"""Accept a residual iff ``|p_L| > 81 r²`` (FAST-LIO2's ``s > 0.9`` test, §6.3)."""
+
+
+@njit(cache=True)
+def points_to_world(points_lidar, R, p, R_LI, t_LI):
+    """``p_W = R (R_LI p_L + t_LI) + p`` for all points (§1)."""
+    n = points_lidar.shape[0]
+    M = R @ R_LI
+    t = R @ t_LI + p
+    out = np.empty((n, 3))
+    for i in range(n):
+        x, y, z = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
+        for r in range(3):
+            out[i, r] = M[r, 0] * x + M[r, 1] * y + M[r, 2] * z + t[r]
+    return out
+
+
+@njit(cache=True)
+def point_to_plane(points_lidar, R, p, R_LI, t_LI, normals, d, selected, estimate_extrinsic):
+    """Residuals and Jacobian rows of the accepted points (§6.3), all points in one call.
+
+    For each point with ``selected[i]``: ``r = nᵀ p_W + d``; accepted iff ``|p_L| > 81 r²``.
+    Row (12 columns, error order p, θ, θ_LI, t_LI) with ``p_I = R_LI p_L + t_LI``, ``c = Rᵀ n``:
+    ``[nᵀ, ([p_I]× c)ᵀ, ([p_L]× R_LIᵀ c)ᵀ, cᵀ]`` (extrinsic columns zero unless estimated).
+    Returns ``(H (m,12), r (m,), accepted (n,) bool)``, rows in point order.
+    """
+    n = points_lidar.shape[0]
+    accepted = np.zeros(n, dtype=np.bool_)
+    res = np.empty(n)
+    M = R @ R_LI
+    tw = R @ t_LI + p
+    m = 0
+    for i in range(n):
+        if not selected[i]:
+            continue
+        x, y, z = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
+        r = d[i]
+        for k in range(3):
+            r += normals[i, k] * (M[k, 0] * x + M[k, 1] * y + M[k, 2] * z + tw[k])
+        if np.sqrt(x * x + y * y + z * z) > GATE_FACTOR * r * r:
+            accepted[i] = True
+            res[i] = r
+            m += 1
+    H = np.zeros((m, 12))
+    r_out = np.empty(m)
+    j = 0
+    for i in range(n):
+        if not accepted[i]:
+            continue
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        cx = R[0, 0] * nx + R[1, 0] * ny + R[2, 0] * nz
+        cy = R[0, 1] * nx + R[1, 1] * ny + R[2, 1] * nz
+        cz = R[0, 2] * nx + R[1, 2] * ny + R[2, 2] * nz
+        lx, ly, lz = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
+        ix = R_LI[0, 0] * lx + R_LI[0, 1] * ly + R_LI[0, 2] * lz + t_LI[0]
+        iy = R_LI[1, 0] * lx + R_LI[1, 1] * ly + R_LI[1, 2] * lz + t_LI[1]
+        iz = R_LI[2, 0] * lx + R_LI[2, 1] * ly + R_LI[2, 2] * lz + t_LI[2]
+        H[j, 0] = nx
+        H[j, 1] = ny
+        H[j, 2] = nz
+        H[j, 3] = iy * cz - iz * cy
+        H[j, 4] = iz * cx - ix * cz
+        H[j, 5] = ix * cy - iy * cx
+        if estimate_extrinsic:
+            ex = R_LI[0, 0] * cx + R_LI[1, 0] * cy + R_LI[2, 0] * cz
+            ey = R_LI[0, 1] * cx + R_LI[1, 1] * cy + R_LI[2, 1] * cz
+            ez = R_LI[0, 2] * cx + R_LI[1, 2] * cy + R_LI[2, 2] * cz
+            H[j, 6] = ly * ez - lz * ey
+            H[j, 7] = lz * ex - lx * ez
+            H[j, 8] = lx * ey - ly * ex
+            H[j, 9] = cx
+            H[j, 10] = cy
+            H[j, 11] = cz
+        r_out[j] = res[i]
+        j += 1
+    return H, r_out, accepted
