@@ -1,0 +1,508 @@
+"""iVox: the incremental voxel hash map of Faster-LIO (lio-design.md §7).
+
+All points are in the world frame, in metres. A point p belongs to the voxel with integer key
+round(p / resolution_m) (round half up, so voxel centres sit at key * resolution_m). Voxels live in
+an open-addressing hash table held in numpy arrays; each voxel stores up to
+``max_points_per_voxel`` points in fixed-size blocks taken from a shared pool.
+
+Deviations from upstream, documented in lio-design.md §7:
+
+* Per-voxel cap: once a voxel holds ``max_points_per_voxel`` points, a new point replaces the
+  oldest one of that voxel (upstream lists grow without bound).
+* Recency: every inserted point stamps its voxel with a global, strictly increasing sequence
+  number (queries never refresh it). After each ``add_points`` call, if more than
+  ``capacity_voxels`` voxels exist, the voxels with the oldest stamps are evicted in one batch
+  until exactly ``capacity_voxels`` remain (upstream evicts one voxel per insertion).
+* kNN returns the exact k nearest of all points of the searched voxels with squared distance
+  < max_range_m**2, sorted ascending (upstream only guarantees element 0 is the nearest).
+
+Also holds the map-insertion rule of §7 (:func:`select_for_insertion`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from adalio.config import MapConfig
+from adalio.errors import ConfigError, InputError
+from adalio.lio.voxel import hash_key3, table_size_for
+
+BLOCK_POINTS = 8
+"""Points per storage block of a voxel (memory granularity, not an algorithm constant)."""
+INSERTION_NUM_NEIGHBORS = 5
+"""Neighbours compared by the §7 insertion rule (Faster-LIO NUM_MATCH_POINTS)."""
+NEARBY_TYPES = (0, 6, 18, 26)
+
+_MAX_ABS_KEY = 4.0e15
+_S_NV, _S_NP, _S_NBLOCKS, _S_NFREE, _S_SEQ = range(5)
+
+
+def nearby_offsets(nearby_type: int) -> np.ndarray:
+    """Integer voxel offsets searched around the query voxel (§7 "Neighbourhoods").
+
+    Order: centre, 6 faces, 12 edges, 8 corners; NEARBY0/6/18/26 take the first 1/7/19/27 rows.
+    """
+    if nearby_type not in NEARBY_TYPES:
+        raise ConfigError(f"map.nearby_type must be one of 0, 6, 18, 26, got {nearby_type!r}")
+    offs = [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)]
+    offs.sort(key=lambda o: (abs(o[0]) + abs(o[1]) + abs(o[2]), o))
+    n = {0: 1, 6: 7, 18: 19, 26: 27}[nearby_type]
+    return np.ascontiguousarray(np.array(offs[:n], dtype=np.int64))
+
+
+@njit(cache=True, inline="always")
+def _key_of(x: float, y: float, z: float, resolution_m: float):
+    fx = np.floor(x / resolution_m + 0.5)
+    fy = np.floor(y / resolution_m + 0.5)
+    fz = np.floor(z / resolution_m + 0.5)
+    ok = abs(fx) < _MAX_ABS_KEY and abs(fy) < _MAX_ABS_KEY and abs(fz) < _MAX_ABS_KEY
+    if not ok:
+        return False, 0, 0, 0
+    return True, np.int64(fx), np.int64(fy), np.int64(fz)
+
+
+@njit(cache=True, inline="always")
+def _lookup(table: np.ndarray, vkeys: np.ndarray, kx: int, ky: int, kz: int) -> int:
+    mask = table.shape[0] - 1
+    h = hash_key3(kx, ky, kz, mask)
+    while True:
+        v = table[h]
+        if v < 0:
+            return -1
+        if vkeys[v, 0] == kx and vkeys[v, 1] == ky and vkeys[v, 2] == kz:
+            return v
+        h = (h + 1) & mask
+
+
+@njit(cache=True)
+def _rebuild_table(table: np.ndarray, vkeys: np.ndarray, nv: int) -> None:
+    table[:] = -1
+    mask = table.shape[0] - 1
+    for v in range(nv):
+        h = hash_key3(vkeys[v, 0], vkeys[v, 1], vkeys[v, 2], mask)
+        while table[h] >= 0:
+            h = (h + 1) & mask
+        table[h] = v
+
+
+@njit(cache=True)
+def _insert_points(
+    points: np.ndarray,
+    resolution_m: float,
+    cap: int,
+    table: np.ndarray,
+    vkeys: np.ndarray,
+    vstamp: np.ndarray,
+    vtotal: np.ndarray,
+    vblocks: np.ndarray,
+    pool: np.ndarray,
+    free_blocks: np.ndarray,
+    state: np.ndarray,
+) -> None:
+    """Sequential, deterministic insertion of world points into their round(p/s) voxels (§7).
+
+    A voxel holding ``cap`` points overwrites its oldest point (ring order). Arrays must have room
+    for ``len(points)`` new voxels and blocks; ``state`` = [nv, n_points, n_blocks, n_free, seq].
+    """
+    mask = table.shape[0] - 1
+    nv = state[_S_NV]
+    n_points = state[_S_NP]
+    n_blocks = state[_S_NBLOCKS]
+    n_free = state[_S_NFREE]
+    seq = state[_S_SEQ]
+    for i in range(points.shape[0]):
+        ok, kx, ky, kz = _key_of(points[i, 0], points[i, 1], points[i, 2], resolution_m)
+        if not ok:
+            continue
+        h = hash_key3(kx, ky, kz, mask)
+        while True:
+            v = table[h]
+            if v < 0:
+                v = nv
+                table[h] = v
+                vkeys[v, 0] = kx
+                vkeys[v, 1] = ky
+                vkeys[v, 2] = kz
+                vtotal[v] = 0
+                nv += 1
+                break
+            if vkeys[v, 0] == kx and vkeys[v, 1] == ky and vkeys[v, 2] == kz:
+                break
+            h = (h + 1) & mask
+        t = vtotal[v]
+        if t < cap:
+            slot = t
+            if slot % BLOCK_POINTS == 0:
+                if n_free > 0:
+                    n_free -= 1
+                    b = free_blocks[n_free]
+                else:
+                    b = n_blocks
+                    n_blocks += 1
+                vblocks[v, slot // BLOCK_POINTS] = b
+            n_points += 1
+        else:
+            slot = t % cap
+        b = vblocks[v, slot // BLOCK_POINTS]
+        j = slot % BLOCK_POINTS
+        pool[b, j, 0] = points[i, 0]
+        pool[b, j, 1] = points[i, 1]
+        pool[b, j, 2] = points[i, 2]
+        vtotal[v] = t + 1
+        vstamp[v] = seq
+        seq += 1
+    state[_S_NV] = nv
+    state[_S_NP] = n_points
+    state[_S_NBLOCKS] = n_blocks
+    state[_S_NFREE] = n_free
+    state[_S_SEQ] = seq
+
+
+@njit(cache=True)
+def _evict(
+    evict: np.ndarray,
+    cap: int,
+    table: np.ndarray,
+    vkeys: np.ndarray,
+    vstamp: np.ndarray,
+    vtotal: np.ndarray,
+    vblocks: np.ndarray,
+    free_blocks: np.ndarray,
+    state: np.ndarray,
+) -> None:
+    """Drop the voxels flagged in ``evict`` (§7 LRU), compact the survivors in id order, rehash."""
+    nv = state[_S_NV]
+    n_free = state[_S_NFREE]
+    n_points = state[_S_NP]
+    w = 0
+    for v in range(nv):
+        count = min(vtotal[v], cap)
+        if evict[v]:
+            for blk in range((count + BLOCK_POINTS - 1) // BLOCK_POINTS):
+                free_blocks[n_free] = vblocks[v, blk]
+                n_free += 1
+            n_points -= count
+            continue
+        if w != v:
+            vkeys[w] = vkeys[v]
+            vstamp[w] = vstamp[v]
+            vtotal[w] = vtotal[v]
+            vblocks[w] = vblocks[v]
+        w += 1
+    state[_S_NV] = w
+    state[_S_NFREE] = n_free
+    state[_S_NP] = n_points
+    _rebuild_table(table, vkeys, w)
+
+
+@njit(cache=True, parallel=True)
+def _knn(
+    queries: np.ndarray,
+    k: int,
+    max_d2: float,
+    resolution_m: float,
+    offsets: np.ndarray,
+    cap: int,
+    table: np.ndarray,
+    vkeys: np.ndarray,
+    vtotal: np.ndarray,
+    vblocks: np.ndarray,
+    pool: np.ndarray,
+    out_nbrs: np.ndarray,
+    out_d2: np.ndarray,
+    out_counts: np.ndarray,
+) -> None:
+    """k nearest map points of each query among its neighbourhood voxels (§7 "kNN").
+
+    Candidates are the points of the query voxel round(q/s) and its ``offsets`` neighbours with
+    squared distance < max_d2; each output row is kept sorted ascending by insertion (ties keep the
+    first candidate in offset/slot order). Rows are independent, so the parallel loop is
+    deterministic. ``out_nbrs`` must be NaN-filled and ``out_d2`` inf-filled by the caller.
+    """
+    for qi in prange(queries.shape[0]):
+        qx = queries[qi, 0]
+        qy = queries[qi, 1]
+        qz = queries[qi, 2]
+        ok, kx, ky, kz = _key_of(qx, qy, qz, resolution_m)
+        cnt = 0
+        if ok:
+            for o in range(offsets.shape[0]):
+                v = _lookup(
+                    table, vkeys, kx + offsets[o, 0], ky + offsets[o, 1], kz + offsets[o, 2]
+                )
+                if v < 0:
+                    continue
+                n_in = min(vtotal[v], cap)
+                for j in range(n_in):
+                    b = vblocks[v, j // BLOCK_POINTS]
+                    s = j % BLOCK_POINTS
+                    px = pool[b, s, 0]
+                    py = pool[b, s, 1]
+                    pz = pool[b, s, 2]
+                    d2 = (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2
+                    if not d2 < max_d2:
+                        continue
+                    if cnt == k and not d2 < out_d2[qi, k - 1]:
+                        continue
+                    pos = cnt if cnt < k else k - 1
+                    while pos > 0 and d2 < out_d2[qi, pos - 1]:
+                        out_d2[qi, pos] = out_d2[qi, pos - 1]
+                        out_nbrs[qi, pos, 0] = out_nbrs[qi, pos - 1, 0]
+                        out_nbrs[qi, pos, 1] = out_nbrs[qi, pos - 1, 1]
+                        out_nbrs[qi, pos, 2] = out_nbrs[qi, pos - 1, 2]
+                        pos -= 1
+                    out_d2[qi, pos] = d2
+                    out_nbrs[qi, pos, 0] = px
+                    out_nbrs[qi, pos, 1] = py
+                    out_nbrs[qi, pos, 2] = pz
+                    if cnt < k:
+                        cnt += 1
+        out_counts[qi] = cnt
+
+
+@njit(cache=True)
+def _gather_points(
+    nv: int, n_points: int, cap: int, vtotal: np.ndarray, vblocks: np.ndarray, pool: np.ndarray
+) -> np.ndarray:
+    out = np.empty((n_points, 3), np.float64)
+    w = 0
+    for v in range(nv):
+        for j in range(min(vtotal[v], cap)):
+            out[w] = pool[vblocks[v, j // BLOCK_POINTS], j % BLOCK_POINTS]
+            w += 1
+    return out
+
+
+def _grow(arr: np.ndarray, n_rows: int, fill=None) -> np.ndarray:
+    if arr.shape[0] >= n_rows:
+        return arr
+    new_rows = max(n_rows, 2 * arr.shape[0])
+    out = np.empty((new_rows,) + arr.shape[1:], arr.dtype)
+    if fill is not None:
+        out.fill(fill)
+    out[: arr.shape[0]] = arr
+    return out
+
+
+class IVox:
+    """Incremental voxel map with approximate kNN over a voxel neighbourhood (lio-design.md §7).
+
+    ``IVox(resolution_m, nearby_type, capacity_voxels, max_points_per_voxel)``; points in world
+    frame, metres. See the module docstring for the deviations from upstream.
+    """
+
+    def __init__(
+        self,
+        resolution_m: float = 0.5,
+        nearby_type: int = 18,
+        capacity_voxels: int = 1_000_000,
+        max_points_per_voxel: int = 64,
+    ) -> None:
+        if not (np.isfinite(resolution_m) and resolution_m > 0.0):
+            raise ConfigError(
+                f"map.ivox_resolution_m must be a positive number of metres, got {resolution_m!r}"
+            )
+        if int(capacity_voxels) < 1:
+            raise ConfigError(f"map.capacity_voxels must be >= 1, got {capacity_voxels!r}")
+        if int(max_points_per_voxel) < 1:
+            raise ConfigError(
+                f"map.max_points_per_voxel must be >= 1, got {max_points_per_voxel!r}"
+            )
+        self.resolution_m = float(resolution_m)
+        self.nearby_type = int(nearby_type)
+        self.capacity_voxels = int(capacity_voxels)
+        self.max_points_per_voxel = int(max_points_per_voxel)
+        self._offsets = nearby_offsets(self.nearby_type)
+        blocks_per_voxel = -(-self.max_points_per_voxel // BLOCK_POINTS)
+        self._table = np.full(16, -1, np.int64)
+        self._vkeys = np.empty((0, 3), np.int64)
+        self._vstamp = np.empty(0, np.int64)
+        self._vtotal = np.empty(0, np.int64)
+        self._vblocks = np.empty((0, blocks_per_voxel), np.int64)
+        self._pool = np.empty((0, BLOCK_POINTS, 3), np.float64)
+        self._free = np.empty(0, np.int64)
+        self._state = np.zeros(5, np.int64)
+
+    @classmethod
+    def from_config(cls, cfg: MapConfig) -> IVox:
+        """Map built from the ``map`` config section."""
+        return cls(
+            cfg.ivox_resolution_m, cfg.nearby_type, cfg.capacity_voxels, cfg.max_points_per_voxel
+        )
+
+    @property
+    def num_voxels(self) -> int:
+        return int(self._state[_S_NV])
+
+    @property
+    def num_points(self) -> int:
+        return int(self._state[_S_NP])
+
+    def add_points(self, points_world: np.ndarray) -> None:
+        """Insert (N,3) world points in row order; non-finite rows are skipped (§7)."""
+        pts = _as_points(points_world, "points_world")
+        n = pts.shape[0]
+        if n == 0:
+            return
+        nv = self.num_voxels
+        n_blocks = int(self._state[_S_NBLOCKS])
+        self._vkeys = _grow(self._vkeys, nv + n)
+        self._vstamp = _grow(self._vstamp, nv + n)
+        self._vtotal = _grow(self._vtotal, nv + n)
+        self._vblocks = _grow(self._vblocks, nv + n)
+        self._pool = _grow(self._pool, n_blocks + n)
+        self._free = _grow(self._free, n_blocks + n)
+        size = table_size_for(nv + n)
+        if size > self._table.shape[0]:
+            self._table = np.full(size, -1, np.int64)
+            _rebuild_table(self._table, self._vkeys, nv)
+        _insert_points(
+            pts,
+            self.resolution_m,
+            self.max_points_per_voxel,
+            self._table,
+            self._vkeys,
+            self._vstamp,
+            self._vtotal,
+            self._vblocks,
+            self._pool,
+            self._free,
+            self._state,
+        )
+        nv = self.num_voxels
+        if nv > self.capacity_voxels:
+            n_evict = nv - self.capacity_voxels
+            oldest = np.argpartition(self._vstamp[:nv], n_evict - 1)[:n_evict]
+            evict = np.zeros(nv, np.bool_)
+            evict[oldest] = True
+            _evict(
+                evict,
+                self.max_points_per_voxel,
+                self._table,
+                self._vkeys,
+                self._vstamp,
+                self._vtotal,
+                self._vblocks,
+                self._free,
+                self._state,
+            )
+
+    def knn(
+        self, queries: np.ndarray, k: int, max_range_m: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """k nearest map points of each query within its neighbourhood voxels (§7, §9.4).
+
+        Returns ``(nbrs (M,k,3), counts (M,) int64, dist2 (M,k))``: rows sorted by ascending
+        squared distance, only points with dist2 < max_range_m**2, unused slots NaN / inf.
+        """
+        q = _as_points(queries, "queries")
+        k = int(k)
+        if k < 1:
+            raise InputError(f"knn k must be >= 1, got {k}")
+        m = q.shape[0]
+        nbrs = np.full((m, k, 3), np.nan)
+        dist2 = np.full((m, k), np.inf)
+        counts = np.zeros(m, np.int64)
+        if m == 0 or self.num_voxels == 0:
+            return nbrs, counts, dist2
+        _knn(
+            q,
+            k,
+            float(max_range_m) ** 2,
+            self.resolution_m,
+            self._offsets,
+            self.max_points_per_voxel,
+            self._table,
+            self._vkeys,
+            self._vtotal,
+            self._vblocks,
+            self._pool,
+            nbrs,
+            dist2,
+            counts,
+        )
+        return nbrs, counts, dist2
+
+    def points(self) -> np.ndarray:
+        """All stored points (P,3) float64, world frame, grouped by voxel in a deterministic order."""
+        return _gather_points(
+            self.num_voxels,
+            self.num_points,
+            self.max_points_per_voxel,
+            self._vtotal,
+            self._vblocks,
+            self._pool,
+        )
+
+
+def _as_points(points: np.ndarray, name: str) -> np.ndarray:
+    arr = np.ascontiguousarray(points, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InputError(f"{name} must have shape (N, 3), got {np.shape(points)}")
+    return arr
+
+
+@njit(cache=True)
+def _select_for_insertion(
+    points: np.ndarray, nbrs: np.ndarray, counts: np.ndarray, leaf_m: float, n_cmp: int
+) -> np.ndarray:
+    """Faster-LIO map-insertion rule (lio-design.md §7, "Insertion rule" 1-3)."""
+    m = points.shape[0]
+    add = np.ones(m, np.bool_)
+    half = 0.5 * leaf_m
+    for i in range(m):
+        if counts[i] <= 0:
+            continue
+        cx = (np.floor(points[i, 0] / leaf_m) + 0.5) * leaf_m
+        cy = (np.floor(points[i, 1] / leaf_m) + 0.5) * leaf_m
+        cz = (np.floor(points[i, 2] / leaf_m) + 0.5) * leaf_m
+        if (
+            abs(nbrs[i, 0, 0] - cx) > half
+            and abs(nbrs[i, 0, 1] - cy) > half
+            and abs(nbrs[i, 0, 2] - cz) > half
+        ):
+            continue
+        if counts[i] < n_cmp:
+            continue
+        dq = (points[i, 0] - cx) ** 2 + (points[i, 1] - cy) ** 2 + (points[i, 2] - cz) ** 2
+        for j in range(n_cmp):
+            dn = (nbrs[i, j, 0] - cx) ** 2 + (nbrs[i, j, 1] - cy) ** 2 + (nbrs[i, j, 2] - cz) ** 2
+            if not dq < dn:
+                add[i] = False
+                break
+    return add
+
+
+def select_for_insertion(
+    points_world: np.ndarray,
+    nbrs: np.ndarray,
+    counts: np.ndarray,
+    map_leaf_m: float,
+    insert_all: bool,
+) -> np.ndarray:
+    """Which updated world points go into the map: Faster-LIO's rule (lio-design.md §7).
+
+    With m = map_leaf_m and cell centre c = (floor(q/m) + 1/2) m of point q:
+    1. ``insert_all`` (first 0.1 s after init) or no neighbours: add.
+    2. The nearest neighbour nbrs[:, 0] lies farther than m/2 from c on all three axes: add.
+    3. Otherwise, with >= 5 neighbours, add only if |q - c|^2 < |n_i - c|^2 for each of the 5
+       nearest (strict, as §7; upstream adds a 1e-6 slack); with < 5 neighbours, add.
+    ``nbrs``/``counts`` are those of the last search, rows sorted ascending. Returns (M,) bool.
+    """
+    pts = _as_points(points_world, "points_world")
+    m = pts.shape[0]
+    if insert_all:
+        return np.ones(m, np.bool_)
+    nb = np.ascontiguousarray(nbrs, dtype=np.float64)
+    cn = np.ascontiguousarray(counts, dtype=np.int64)
+    if nb.ndim != 3 or nb.shape[0] != m or nb.shape[2] != 3 or cn.shape != (m,):
+        raise InputError(
+            f"nbrs must be (M, k, 3) and counts (M,) for M={m} points, got {nb.shape}, {cn.shape}"
+        )
+    if not (np.isfinite(map_leaf_m) and map_leaf_m > 0.0):
+        raise ConfigError(f"map.map_leaf_m must be a positive number of metres, got {map_leaf_m!r}")
+    n_cmp = INSERTION_NUM_NEIGHBORS
+    if nb.shape[1] < n_cmp:
+        cn = np.minimum(cn, nb.shape[1])
+    return _select_for_insertion(pts, nb, cn, float(map_leaf_m), n_cmp)

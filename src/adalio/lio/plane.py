@@ -1,0 +1,242 @@
+"""Local plane fits to the k nearest map neighbours of each scan point (lio-design.md §6.2).
+
+Neighbours are world-frame points in metres, as returned by :meth:`adalio.lio.ivox.IVox.knn`
+(``nbrs (M,k,3)``, first ``counts[i]`` rows valid). A plane is ``{x : n . x + d = 0}`` with
+``|n| = 1``; both methods return ``d >= 0`` (normal pointing away from the world origin).
+
+* ``'ls'`` (Faster-LIO parity): least squares on ``a^T x = -1`` through the 3x3 normal equations
+  ``(A^T A) a = -A^T 1``, ``n = a/|a|``, ``d = 1/|a|``. This parameterisation cannot represent a
+  plane through the world origin (``|a| -> inf``, ``A^T A`` singular): when the estimated
+  reciprocal condition number of ``A^T A`` is below ``LS_MIN_RCOND`` or the solution is not
+  finite, that point falls back to the PCA fit (it is not marked invalid for that reason).
+* ``'pca'``: normal = eigenvector of the smallest eigenvalue of the neighbour covariance (cyclic
+  Jacobi in numba), ``d = -n . mean``.
+
+A plane is valid iff ``counts >= max(min_neighbors, 3)``, the fit is finite and non-degenerate
+(neighbours not collinear), and **every** neighbour satisfies ``|n . q_i + d| <= margin_m``.
+Rows with a fit keep it even when invalid by margin; rows without one are NaN.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from adalio.errors import ConfigError, InputError
+
+LS_MIN_RCOND = 1e-10
+"""LS falls back to PCA when the reciprocal condition number of A^T A (estimated as
+det / (trace * sum of principal 2x2 minors), within a factor 9 of lambda_min / lambda_max) is
+below this: the neighbours' plane passes (numerically) through the origin (lio-design.md §6.2)."""
+PCA_MIN_REL_SPREAD = 1e-12
+"""PCA fit rejected when the middle covariance eigenvalue is below this fraction of the largest
+(collinear or coincident neighbours: the normal is undefined)."""
+PLANE_METHODS = ("ls", "pca")
+_JACOBI_SWEEPS = 12
+
+
+@njit(cache=True)
+def _jacobi_smallest(c: np.ndarray):
+    """Smallest eigenpair of a symmetric 3x3 matrix by cyclic Jacobi rotations (§6.2 PCA).
+
+    Returns (lambda_min, lambda_mid, lambda_max, v (3,)); ``c`` is overwritten.
+    """
+    v = np.eye(3)
+    for _ in range(_JACOBI_SWEEPS):
+        off = abs(c[0, 1]) + abs(c[0, 2]) + abs(c[1, 2])
+        scale = abs(c[0, 0]) + abs(c[1, 1]) + abs(c[2, 2])
+        if off <= 1e-15 * scale or off == 0.0:
+            break
+        for p, q in ((0, 1), (0, 2), (1, 2)):
+            apq = c[p, q]
+            if apq == 0.0:
+                continue
+            theta = (c[q, q] - c[p, p]) / (2.0 * apq)
+            t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
+            if theta < 0.0:
+                t = -t
+            cs = 1.0 / np.sqrt(t * t + 1.0)
+            sn = t * cs
+            for r in range(3):
+                crp = c[r, p]
+                crq = c[r, q]
+                c[r, p] = cs * crp - sn * crq
+                c[r, q] = sn * crp + cs * crq
+            for r in range(3):
+                cpr = c[p, r]
+                cqr = c[q, r]
+                c[p, r] = cs * cpr - sn * cqr
+                c[q, r] = sn * cpr + cs * cqr
+            for r in range(3):
+                vrp = v[r, p]
+                vrq = v[r, q]
+                v[r, p] = cs * vrp - sn * vrq
+                v[r, q] = sn * vrp + cs * vrq
+    i0 = 0
+    i2 = 0
+    for i in range(1, 3):
+        if c[i, i] < c[i0, i0]:
+            i0 = i
+        if c[i, i] > c[i2, i2]:
+            i2 = i
+    if i0 == i2:
+        i2 = (i0 + 1) % 3
+    i1 = 3 - i0 - i2
+    return c[i0, i0], c[i1, i1], c[i2, i2], v[:, i0].copy()
+
+
+@njit(cache=True)
+def _fit_pca(nbrs: np.ndarray, cnt: int, out_n: np.ndarray) -> float:
+    """PCA plane through the neighbour mean (§6.2 option); returns d, or NaN if degenerate."""
+    mx = 0.0
+    my = 0.0
+    mz = 0.0
+    for j in range(cnt):
+        mx += nbrs[j, 0]
+        my += nbrs[j, 1]
+        mz += nbrs[j, 2]
+    mx /= cnt
+    my /= cnt
+    mz /= cnt
+    c = np.zeros((3, 3))
+    for j in range(cnt):
+        dx = nbrs[j, 0] - mx
+        dy = nbrs[j, 1] - my
+        dz = nbrs[j, 2] - mz
+        c[0, 0] += dx * dx
+        c[0, 1] += dx * dy
+        c[0, 2] += dx * dz
+        c[1, 1] += dy * dy
+        c[1, 2] += dy * dz
+        c[2, 2] += dz * dz
+    c[1, 0] = c[0, 1]
+    c[2, 0] = c[0, 2]
+    c[2, 1] = c[1, 2]
+    _lam_min, lam_mid, lam_max, v = _jacobi_smallest(c)
+    if not (lam_mid > PCA_MIN_REL_SPREAD * lam_max):
+        return np.nan
+    norm = np.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2)
+    nx = v[0] / norm
+    ny = v[1] / norm
+    nz = v[2] / norm
+    d = -(nx * mx + ny * my + nz * mz)
+    flip = d < 0.0
+    if d == 0.0:
+        big = nx
+        if abs(ny) > abs(big):
+            big = ny
+        if abs(nz) > abs(big):
+            big = nz
+        flip = big < 0.0
+    if flip:
+        nx, ny, nz, d = -nx, -ny, -nz, -d
+    out_n[0] = nx
+    out_n[1] = ny
+    out_n[2] = nz
+    return d + 0.0
+
+
+@njit(cache=True)
+def _fit_ls(nbrs: np.ndarray, cnt: int, out_n: np.ndarray) -> float:
+    """a^T x = -1 least squares via 3x3 normal equations (§6.2); NaN when it must fall back."""
+    s00 = 0.0
+    s01 = 0.0
+    s02 = 0.0
+    s11 = 0.0
+    s12 = 0.0
+    s22 = 0.0
+    b0 = 0.0
+    b1 = 0.0
+    b2 = 0.0
+    for j in range(cnt):
+        x = nbrs[j, 0]
+        y = nbrs[j, 1]
+        z = nbrs[j, 2]
+        s00 += x * x
+        s01 += x * y
+        s02 += x * z
+        s11 += y * y
+        s12 += y * z
+        s22 += z * z
+        b0 -= x
+        b1 -= y
+        b2 -= z
+    c00 = s11 * s22 - s12 * s12
+    c01 = s02 * s12 - s01 * s22
+    c02 = s01 * s12 - s02 * s11
+    c11 = s00 * s22 - s02 * s02
+    c12 = s01 * s02 - s00 * s12
+    c22 = s00 * s11 - s01 * s01
+    det = s00 * c00 + s01 * c01 + s02 * c02
+    if not (det > LS_MIN_RCOND * (s00 + s11 + s22) * (c00 + c11 + c22)):
+        return np.nan
+    ax = (c00 * b0 + c01 * b1 + c02 * b2) / det
+    ay = (c01 * b0 + c11 * b1 + c12 * b2) / det
+    az = (c02 * b0 + c12 * b1 + c22 * b2) / det
+    norm = np.sqrt(ax * ax + ay * ay + az * az)
+    if not (np.isfinite(norm) and norm > 0.0):
+        return np.nan
+    d = 1.0 / norm
+    out_n[0] = ax / norm
+    out_n[1] = ay / norm
+    out_n[2] = az / norm
+    return d
+
+
+@njit(cache=True, parallel=True)
+def _fit_planes(
+    nbrs: np.ndarray, counts: np.ndarray, min_count: int, margin_m: float, use_ls: bool
+):
+    """Per-row plane fit and the all-neighbours margin test of lio-design.md §6.2."""
+    m = nbrs.shape[0]
+    normals = np.full((m, 3), np.nan)
+    dist = np.full(m, np.nan)
+    valid = np.zeros(m, np.bool_)
+    for i in prange(m):
+        cnt = min(counts[i], nbrs.shape[1])
+        if cnt < min_count:
+            continue
+        nrm = np.empty(3)
+        d = np.nan
+        if use_ls:
+            d = _fit_ls(nbrs[i], cnt, nrm)
+        if not np.isfinite(d):
+            d = _fit_pca(nbrs[i], cnt, nrm)
+        if not np.isfinite(d):
+            continue
+        normals[i, 0] = nrm[0]
+        normals[i, 1] = nrm[1]
+        normals[i, 2] = nrm[2]
+        dist[i] = d
+        ok = True
+        for j in range(cnt):
+            r = nrm[0] * nbrs[i, j, 0] + nrm[1] * nbrs[i, j, 1] + nrm[2] * nbrs[i, j, 2] + d
+            if not abs(r) <= margin_m:
+                ok = False
+                break
+        valid[i] = ok
+    return normals, dist, valid
+
+
+def fit_planes(
+    nbrs: np.ndarray,
+    counts: np.ndarray,
+    min_neighbors: int,
+    margin_m: float,
+    method: str = "ls",
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plane n . x + d = 0 through each row's neighbours, with the §6.2 validity test.
+
+    ``nbrs`` (M,k,3) world points (first ``counts[i]`` used), ``method`` 'ls' or 'pca' (see the
+    module docstring). Returns ``(normals (M,3), d (M,), valid (M,) bool)``.
+    """
+    if method not in PLANE_METHODS:
+        raise ConfigError(f"filter.plane_fit must be 'ls' or 'pca', got {method!r}")
+    nb = np.ascontiguousarray(nbrs, dtype=np.float64)
+    cn = np.ascontiguousarray(counts, dtype=np.int64)
+    if nb.ndim != 3 or nb.shape[2] != 3 or cn.shape != (nb.shape[0],):
+        raise InputError(
+            f"nbrs must be (M, k, 3) and counts (M,), got {np.shape(nbrs)}, {np.shape(counts)}"
+        )
+    min_count = max(int(min_neighbors), 3)
+    return _fit_planes(nb, cn, min_count, float(margin_m), method == "ls")
