@@ -35,6 +35,9 @@ TIME_FIELD_CANDIDATES: tuple[str, ...] = (
 """Field names tried, in order, when ``sensor.point_time_field`` is 'auto'."""
 
 UNIT_TO_NS: dict[str, int] = {"s": 1_000_000_000, "ms": 1_000_000, "us": 1_000, "ns": 1}
+MIN_SPAN_SWEEPS = 0.02
+"""A cloud's times must span at least this fraction of a sweep for a unit to be accepted."""
+MIN_POINTS_FOR_SPAN = 100
 INTENSITY_FIELDS: tuple[str, ...] = ("intensity", "reflectivity", "i")
 RING_FIELDS: tuple[str, ...] = ("ring", "channel", "line", "laser_id")
 
@@ -195,7 +198,8 @@ def detect_time_spec(values: np.ndarray, datatype: int, field: str, stamp_ns: in
     """Choose unit and reference of raw time ``values`` (one cloud) against the header stamp.
 
     Hypotheses (unit, reference) are kept when the implied offsets from the header stamp lie
-    within two sweeps (sweep = 1/lidar_rate_hz) and their span is at most 2.5 sweeps; the one
+    within two sweeps (sweep = 1/lidar_rate_hz) and their span is between MIN_SPAN_SWEEPS (when
+    the cloud has at least MIN_POINTS_FOR_SPAN points) and 2.5 sweeps; the one
     whose span is closest to one sweep (log ratio) wins, floats preferring s and integers ns on
     ties.
     """
@@ -218,7 +222,8 @@ def detect_time_spec(values: np.ndarray, datatype: int, field: str, stamp_ns: in
     for unit in units:
         scale = UNIT_TO_NS[unit] * 1e-9
         span_s = (vmax - vmin) * scale
-        if span_s > 2.5 * sweep_s:
+        if span_s > 2.5 * sweep_s or (v.size >= MIN_POINTS_FOR_SPAN
+                                       and span_s < MIN_SPAN_SWEEPS * sweep_s):
             continue
         for ref in refs:
             base = stamp_s if ref == "absolute" else 0.0
