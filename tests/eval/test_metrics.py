@@ -1,0 +1,201 @@
+"""ATE / RPE against hand computations in numpy (independent of evo)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from adalio.errors import AdalioError, InputError
+from adalio.eval.metrics import align_pair, ate, rpe
+
+
+def write_tum(path: Path, t_s: np.ndarray, xyz: np.ndarray, rot: Rotation) -> Path:
+    q = rot.as_quat()  # x y z w
+    rows = np.column_stack([t_s, xyz, q])
+    np.savetxt(path, rows, fmt="%.9f", delimiter=" ")
+    return path
+
+
+def umeyama_np(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """R, t minimizing sum |dst - (R src + t)|^2 (Umeyama 1991, no scale)."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    cov = (dst - mu_d).T @ (src - mu_s) / len(src)
+    U, _, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1
+    R = U @ S @ Vt
+    return R, mu_d - R @ mu_s
+
+
+@pytest.fixture(scope="module")
+def synthetic_pair(tmp_path_factory):
+    """Dense GT (100 Hz) and a 10 Hz estimate with a rigid offset, position and heading noise."""
+    d = tmp_path_factory.mktemp("pair")
+    rng = np.random.default_rng(7)
+    t_gt = 1000.0 + np.arange(0, 20.0, 0.01)
+    xyz_gt = np.column_stack([3 * np.cos(0.3 * (t_gt - 1000)), 2 * np.sin(0.5 * (t_gt - 1000)),
+                              0.1 * (t_gt - 1000)])
+    rot_gt = Rotation.from_euler("zyx", np.column_stack([0.4 * (t_gt - 1000),
+                                                         0.1 * np.sin(t_gt), 0.05 * np.cos(t_gt)]))
+    # estimate: 10 Hz, stamps jittered by up to 4 ms around GT stamps
+    idx = np.arange(5, len(t_gt) - 5, 10)
+    t_est = t_gt[idx] + rng.uniform(-0.004, 0.004, idx.size)
+    R_off = Rotation.from_euler("xyz", [10, -5, 35], degrees=True)
+    t_off = np.array([1.5, -2.0, 0.3])
+    noise = rng.normal(0, 0.02, (idx.size, 3))
+    xyz_est = R_off.apply(xyz_gt[idx]) + t_off + noise
+    rot_noise = Rotation.from_rotvec(rng.normal(0, np.deg2rad(1.0), (idx.size, 3)))
+    rot_est = R_off * rot_gt[idx] * rot_noise
+    gt = write_tum(d / "gt.tum", t_gt, xyz_gt, rot_gt)
+    est = write_tum(d / "est.tum", t_est, xyz_est, rot_est)
+    # expected values use the numbers as written (9 decimals)
+    t_gt, xyz_gt, rot_gt = _reload(gt)
+    t_est, xyz_est, rot_est = _reload(est)
+    # independent association: nearest GT stamp to each estimate stamp
+    nearest = np.abs(t_gt[None, :] - t_est[:, None]).argmin(1)
+    return {"gt": gt, "est": est, "xyz_gt": xyz_gt[nearest], "rot_gt": rot_gt[nearest],
+            "xyz_est": xyz_est, "rot_est": rot_est, "noise": noise, "nearest": nearest,
+            "idx": idx}
+
+
+def _reload(path: Path) -> tuple[np.ndarray, np.ndarray, Rotation]:
+    m = np.loadtxt(path)
+    return m[:, 0], m[:, 1:4], Rotation.from_quat(m[:, 4:8])
+
+
+def _stats(err: np.ndarray) -> dict:
+    return {"rmse_m": np.sqrt(np.mean(err**2)), "mean_m": err.mean(), "median_m": np.median(err),
+            "max_m": err.max(), "n": err.size}
+
+
+def _check(result: dict, expected: dict) -> None:
+    assert result["n"] == expected["n"]
+    for key in ("rmse_m", "mean_m", "median_m", "max_m"):
+        assert result[key] == pytest.approx(expected[key], rel=1e-9, abs=1e-12), key
+
+
+def test_association_is_nearest_gt(synthetic_pair):
+    assert np.array_equal(synthetic_pair["nearest"], synthetic_pair["idx"])
+    pair = align_pair(synthetic_pair["est"], synthetic_pair["gt"], "none")
+    assert np.allclose(pair.gt.positions_xyz, synthetic_pair["xyz_gt"], atol=1e-8)
+
+
+def test_ate_none_is_raw_difference(synthetic_pair):
+    p = synthetic_pair
+    err = np.linalg.norm(p["xyz_est"] - p["xyz_gt"], axis=1)
+    _check(ate(p["est"], p["gt"], align="none"), _stats(err))
+    assert err.mean() > 1.0  # the rigid offset dominates without alignment
+
+
+def test_ate_first_pose_composition(synthetic_pair):
+    p = synthetic_pair
+    T_gt0 = np.eye(4)
+    T_gt0[:3, :3] = p["rot_gt"][0].as_matrix()
+    T_gt0[:3, 3] = p["xyz_gt"][0]
+    T_est0 = np.eye(4)
+    T_est0[:3, :3] = p["rot_est"][0].as_matrix()
+    T_est0[:3, 3] = p["xyz_est"][0]
+    T = T_gt0 @ np.linalg.inv(T_est0)
+    aligned = p["xyz_est"] @ T[:3, :3].T + T[:3, 3]
+    err = np.linalg.norm(aligned - p["xyz_gt"], axis=1)
+    _check(ate(p["est"], p["gt"], align="first"), _stats(err))
+    assert err[0] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_ate_se3_umeyama(synthetic_pair):
+    p = synthetic_pair
+    R, t = umeyama_np(p["xyz_est"], p["xyz_gt"])
+    err = np.linalg.norm(p["xyz_est"] @ R.T + t - p["xyz_gt"], axis=1)
+    res = ate(p["est"], p["gt"], align="se3")
+    _check(res, _stats(err))
+    # with the rigid offset removed, what is left is the injected noise (sigma 2 cm per axis)
+    assert res["rmse_m"] == pytest.approx(np.sqrt(np.mean(np.sum(p["noise"]**2, 1))), rel=0.05)
+
+
+def test_denser_estimate_associates_each_gt(tmp_path):
+    t_gt = 10.0 + np.arange(0, 5, 0.5)
+    xyz = np.column_stack([t_gt, np.sin(t_gt), 0.2 * t_gt**1.5])
+    gt = write_tum(tmp_path / "gt.tum", t_gt, xyz, Rotation.identity(t_gt.size))
+    t_est = 10.0 + np.arange(0, 5, 0.01) + 0.003
+    xyz_est = np.column_stack([t_est, np.sin(t_est), 0.2 * t_est**1.5])
+    est = write_tum(tmp_path / "est.tum", t_est, xyz_est, Rotation.identity(t_est.size))
+    res = ate(est, gt, align="none")
+    assert res["n"] == t_gt.size
+    assert res["max_m"] < 0.01  # nearest estimate is 3 ms away
+
+
+def test_max_diff_controls_association(tmp_path, synthetic_pair):
+    t, xyz, rot = _reload(synthetic_pair["gt"])
+    sparse = write_tum(tmp_path / "sparse.tum", t[::50], xyz[::50], rot[::50])  # 2 Hz
+    late = write_tum(tmp_path / "late.tum", t[::50] + 0.05, xyz[::50], rot[::50])
+    with pytest.raises(InputError, match="no estimate/GT pose pairs"):
+        ate(late, sparse)
+    assert ate(late, sparse, max_diff_s=0.06)["n"] == t[::50].size
+
+
+def test_rpe_scale_drift(tmp_path):
+    t = 50.0 + np.arange(0, 10, 0.05)
+    xyz = np.column_stack([t - 50.0, np.zeros_like(t), np.zeros_like(t)])  # 1 m/s along x
+    rot = Rotation.from_euler("z", np.full((t.size, 1), 20.0), degrees=True)
+    gt = write_tum(tmp_path / "gt.tum", t, xyz, rot)
+    est = write_tum(tmp_path / "est.tum", t, xyz * 1.02, rot)
+    rigid = write_tum(tmp_path / "rigid.tum", t,
+                      Rotation.from_euler("z", 40, degrees=True).apply(xyz) + [3, 1, 2],
+                      Rotation.from_euler("z", 40, degrees=True) * rot)
+    rows = {r["delta_m"]: r for r in rpe(est, gt, (1.0, 5.0, 50.0))}
+    for delta in (1.0, 5.0):
+        assert rows[delta]["n"] > 0
+        # 2 % scale error: the relative translation error is 0.02 x segment length
+        assert rows[delta]["mean_m"] == pytest.approx(0.02 * delta, rel=0.12)
+        assert rows[delta]["rot_rmse_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert rows[50.0]["n"] == 0 and rows[50.0]["rmse_m"] is None
+    assert all(r["max_m"] < 1e-6 for r in rpe(rigid, gt, (1.0, 5.0)))
+
+
+def test_bad_files(tmp_path, synthetic_pair):
+    bad = tmp_path / "bad.txt"
+    bad.write_text("hello world\n1 2 3\n")
+    with pytest.raises(InputError, match="not a TUM trajectory"):
+        ate(bad, synthetic_pair["gt"])
+    with pytest.raises(InputError, match="does not exist"):
+        ate(tmp_path / "missing.tum", synthetic_pair["gt"])
+    back = tmp_path / "back.tum"
+    back.write_text("2 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n")
+    with pytest.raises(InputError, match="time goes backwards"):
+        ate(back, synthetic_pair["gt"])
+    with pytest.raises(InputError, match="--align"):
+        ate(synthetic_pair["est"], synthetic_pair["gt"], align="sim3")
+
+
+def test_cli_json_and_table(synthetic_pair):
+    import json
+
+    from adalio.cli import app
+
+    runner = CliRunner()
+    p = synthetic_pair
+    out = runner.invoke(app, ["eval", str(p["est"]), str(p["gt"]), "--json", "--align", "first"])
+    assert out.exit_code == 0, out.output
+    data = json.loads(out.output)
+    assert data["ate"] == ate(p["est"], p["gt"], align="first")
+    assert [r["delta_m"] for r in data["rpe"]] == [1.0, 5.0]
+    out = runner.invoke(app, ["eval", str(p["est"]), str(p["gt"]), "--rpe-delta", "2"])
+    assert out.exit_code == 0 and "RMSE" in out.output
+    out = runner.invoke(app, ["eval", str(p["est"]), "/nonexistent.tum"])
+    assert isinstance(out.exception, AdalioError)
+
+
+def test_cli_error_is_one_line(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "adalio.cli", "eval", str(tmp_path / "a.tum"),
+                           str(tmp_path / "b.tum")], capture_output=True, text=True, timeout=120,
+                          check=False)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and "does not exist" in proc.stderr
