@@ -1,0 +1,218 @@
+"""Benchmark: fixed vs adaptive vs adaptive+ on the simulator's scenes (issue #5).
+
+For every scene and seed, the simulator's sequence (``adalio.sim.cached_sequence``) is run
+through ``adalio.pipeline.run_bag`` with the sequence's own ``config.yaml`` and only
+``adaptive.mode`` overridden. Per run: ATE RMSE after SE(3) (Umeyama) and first-pose alignment
+(``adalio.eval.metrics.ate``, translation part, metres), the max first-pose-aligned error,
+divergence (max first-pose-aligned error > ``--diverge-m`` (1 m), or the run aborted / stopped
+before 90 % of the scans), the share of scans the detector put in the degenerate set, and the
+median wall time per scan.
+
+Prints one markdown table (mean over seeds; worst seed in brackets), the command that made
+it, and the per-scene distributions of N_down / N_near / degeneracy score (from the fixed
+runs, whose detector still reports them) with the share of scans each threshold would flag,
+so that tau_n / tau_near are judged on all scenes, not tuned on one.
+
+    python benchmarks/bench_modes.py --scenes hall corridor --seeds 2 --duration 30
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import shlex
+import sys
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from adalio.config import MODES, load_config
+from adalio.eval.metrics import ate
+from adalio.pipeline import run_bag
+from adalio.sim import SCENES, cached_sequence
+
+
+@dataclass
+class RunRow:
+    scene: str
+    seed: int
+    mode: str
+    ate_se3_m: float = float("nan")
+    ate_first_m: float = float("nan")
+    max_err_m: float = float("nan")
+    diverged: bool = True
+    aborted: str = ""
+    pct_degenerate: float = float("nan")
+    ms_per_scan: float = float("nan")
+    n_scans: int = 0
+    scans: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def read_scans_csv(path: Path) -> dict[str, np.ndarray]:
+    with open(path, newline="", encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows:
+        return {}
+    out: dict[str, np.ndarray] = {}
+    for key in rows[0]:
+        if key == "trigger":
+            out[key] = np.array([r[key] for r in rows])
+        else:
+            out[key] = np.array([float(r[key]) for r in rows])
+    return out
+
+
+def gt_scan_count(gt_path: Path, lidar_rate_hz: float) -> int:
+    t = np.loadtxt(gt_path, usecols=0, comments="#", ndmin=1)
+    return int((t[-1] - t[0]) * lidar_rate_hz) if t.size > 1 else 0
+
+
+def run_one(scene: str, seed: int, mode: str, duration_s: float | None, out_root: Path,
+            diverge_m: float) -> RunRow:
+    row = RunRow(scene, seed, mode)
+    sim = cached_sequence(scene, seed=seed, duration_s=duration_s)
+    cfg = load_config(config_file=sim.config_path, overrides={"adaptive.mode": mode})
+    out_dir = out_root / f"{scene}_s{seed}_{mode.replace('+', 'plus')}"
+    try:
+        res = run_bag(sim.bag_path, cfg, out_dir, progress=False)
+    except Exception as exc:  # noqa: BLE001 - a crashed run is a diverged run in this table
+        row.aborted = f"{type(exc).__name__}: {exc}".splitlines()[0][:120]
+        traceback.print_exc(file=sys.stderr)
+        return row
+    row.n_scans = res.n_scans
+    row.ms_per_scan = res.ms_per_scan_median
+    row.scans = read_scans_csv(res.scans_csv_path)
+    if row.scans:
+        row.pct_degenerate = 100.0 * float(np.mean(row.scans["degenerate"]))
+    expected = gt_scan_count(sim.gt_path, cfg.sensor.lidar_rate_hz)
+    if res.interrupted:
+        row.aborted = "interrupted"
+    elif expected and res.n_scans < 0.9 * expected - 5:
+        row.aborted = f"stopped at {res.n_scans}/{expected} scans"
+    try:
+        se3 = ate(res.trajectory_path, sim.gt_path, align="se3")
+        first = ate(res.trajectory_path, sim.gt_path, align="first")
+    except Exception as exc:  # noqa: BLE001
+        row.aborted = row.aborted or f"eval failed: {exc}".splitlines()[0][:120]
+        return row
+    row.ate_se3_m = se3["rmse_m"]
+    row.ate_first_m = first["rmse_m"]
+    row.max_err_m = first["max_m"]
+    row.diverged = bool(row.aborted) or not (row.max_err_m <= diverge_m)
+    return row
+
+
+def triggers(row: RunRow) -> str:
+    if "trigger" not in row.scans:
+        return ""
+    names, counts = np.unique(row.scans["trigger"], return_counts=True)
+    return ",".join(f"{n or 'none'}:{c}" for n, c in zip(names, counts, strict=True))
+
+
+def fmt_cm(values: list[float]) -> str:
+    vals = np.array(values, dtype=float)
+    if np.all(np.isnan(vals)):
+        return "–"
+    mean, worst = np.nanmean(vals) * 100, np.nanmax(vals) * 100
+    return f"{mean:.1f}" if len(vals) == 1 else f"{mean:.1f} ({worst:.1f})"
+
+
+def results_table(rows: list[RunRow]) -> str:
+    head = ("| scene | mode | ATE SE(3) cm | ATE first-pose cm | max err cm | diverged | "
+            "% degenerate | ms/scan |")
+    lines = [head, "|" + "---|" * 8]
+    keys = list(dict.fromkeys((r.scene, r.mode) for r in rows))
+    for scene, mode in keys:
+        rs = [r for r in rows if r.scene == scene and r.mode == mode]
+        ok = [r for r in rs if not r.aborted]
+        div = sum(r.diverged for r in rs)
+        pct = np.nanmean([r.pct_degenerate for r in rs]) if ok else float("nan")
+        ms = np.nanmedian([r.ms_per_scan for r in rs]) if ok else float("nan")
+        lines.append(
+            f"| {scene} | {mode} | {fmt_cm([r.ate_se3_m for r in ok])} | "
+            f"{fmt_cm([r.ate_first_m for r in ok])} | {fmt_cm([r.max_err_m for r in ok])} | "
+            f"{div}/{len(rs)} | {pct:.0f} | {ms:.0f} |")
+    return "\n".join(lines)
+
+
+def pct3(x: np.ndarray) -> str:
+    return "/".join(f"{v:.0f}" for v in np.percentile(x, [5, 50, 95]))
+
+
+def threshold_table(rows: list[RunRow], cfg_adaptive) -> str:
+    a = cfg_adaptive
+    title = (f"Per-scene N_down / N_near (general leaf {a.general.voxel_size_m} m, d_xy "
+             f"{a.d_xy_m} m), from the fixed runs; flags at tau_n={a.tau_n}, "
+             f"tau_near={a.tau_near}, near_ratio={a.near_ratio}, "
+             f"min_eigen_ratio={a.min_eigen_ratio}:")
+    head = ("| scene | scans | N_down p5/p50/p95 | N_near p5/p50/p95 | near/down p50 | "
+            "score p50/p95 | N_down<tau_n % | N_near<tau_near % | near_ratio rule % |")
+    lines = [title, "", head, "|" + "---|" * 9]
+    for scene in dict.fromkeys(r.scene for r in rows):
+        rs = [r for r in rows if r.scene == scene and r.mode == "fixed" and r.scans]
+        if not rs:
+            rs = [r for r in rows if r.scene == scene and r.scans]
+        if not rs:
+            continue
+        nd = np.concatenate([r.scans["n_down_general"] for r in rs])
+        nn = np.concatenate([r.scans["n_near"] for r in rs])
+        sc = np.concatenate([r.scans["degeneracy_score"] for r in rs])
+        frac = np.divide(nn, nd, out=np.ones_like(nn), where=nd > 0)
+        rule = (nd < a.tau_n) & (frac > a.near_ratio)
+        lines.append(
+            f"| {scene} | {nd.size} | {pct3(nd)} | {pct3(nn)} | {np.median(frac):.2f} | "
+            f"{np.median(sc):.2f}/{np.percentile(sc, 95):.2f} | "
+            f"{100 * np.mean(nd < a.tau_n):.0f} | {100 * np.mean(nn < a.tau_near):.0f} | "
+            f"{100 * np.mean(rule):.0f} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
+    ap.add_argument("--seeds", type=int, default=2, help="number of seeds (0 .. N-1)")
+    ap.add_argument("--duration", type=float, default=None,
+                    help="sequence length in seconds (default: the simulator's)")
+    ap.add_argument("--modes", nargs="+", default=list(MODES), choices=list(MODES))
+    ap.add_argument("--diverge-m", type=float, default=1.0,
+                    help="a run diverged if its max first-pose-aligned error exceeds this")
+    ap.add_argument("--out", type=Path, default=Path(".cache/bench_modes"))
+    args = ap.parse_args(argv)
+
+    rows: list[RunRow] = []
+    t0 = time.perf_counter()
+    for scene in args.scenes:
+        for seed in range(args.seeds):
+            for mode in args.modes:
+                t_run = time.perf_counter()
+                row = run_one(scene, seed, mode, args.duration, args.out, args.diverge_m)
+                rows.append(row)
+                print(f"[{time.perf_counter() - t0:7.0f} s] {scene} seed {seed} {mode}: "
+                      f"ATE se3 {row.ate_se3_m:.3f} m first {row.ate_first_m:.3f} m max "
+                      f"{row.max_err_m:.3f} m degenerate {row.pct_degenerate:.0f} % "
+                      f"{row.ms_per_scan:.0f} ms/scan {triggers(row)} {row.aborted} "
+                      f"({time.perf_counter() - t_run:.0f} s)", file=sys.stderr, flush=True)
+
+    sim0 = cached_sequence(args.scenes[0], seed=0, duration_s=args.duration)
+    cfg0 = load_config(config_file=sim0.config_path)
+    cmd = "python benchmarks/bench_modes.py " + " ".join(
+        shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
+    print(f"Command: `{cmd.strip()}`  ({args.seeds} seeds, duration "
+          f"{args.duration or 'default'} s, divergence = max first-pose error > "
+          f"{args.diverge_m} m or run aborted)\n")
+    print(results_table(rows))
+    print()
+    print(threshold_table(rows, cfg0.adaptive))
+    aborted = [r for r in rows if r.aborted]
+    if aborted:
+        print()
+        for r in aborted:
+            print(f"- aborted: {r.scene} seed {r.seed} {r.mode}: {r.aborted}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
