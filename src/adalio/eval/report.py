@@ -106,7 +106,9 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *, hilti: boo
     pair = None
     if gt is not None:
         gt_traj = read_trajectory(gt, "ground-truth")
-        gt_xyz = np.asarray(gt_traj.positions_xyz, dtype=np.float64)
+        gt_t = np.asarray(gt_traj.timestamps, dtype=np.float64)
+        in_span = (gt_t >= est.timestamps[0] - 1.0) & (gt_t <= est.timestamps[-1] + 1.0)
+        gt_xyz = np.asarray(gt_traj.positions_xyz, dtype=np.float64)[in_span]
         if hilti:
             from adalio.eval.hilti import hilti_score
 

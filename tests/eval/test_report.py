@@ -1,0 +1,112 @@
+"""Run reports and map/scans readers on a run folder written with adalio's own writers."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from adalio.config import Config
+from adalio.errors import InputError
+from adalio.eval.files import read_map_points, read_scans_csv
+from adalio.eval.metrics import ate
+from adalio.eval.report import make_report
+from adalio.io.writers import ScansCsvWriter, TumWriter, write_pcd, write_ply
+from adalio.types import ScanStats
+
+FIGURES = ("trajectory_top.png", "trajectory_side.png", "error.png", "degeneracy.png",
+           "map_top.png")
+
+
+def assert_png_image(path: Path, min_px: int = 200) -> None:
+    assert path.is_file() and path.stat().st_size > 1000, path
+    img = mpimg.imread(path)
+    assert img.ndim == 3 and img.shape[0] >= min_px and img.shape[1] >= min_px, img.shape
+    assert float(np.ptp(img[..., :3])) > 0.2, f"{path} is a constant image"
+
+
+def _pose(t: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("z", 0.3 * t).as_matrix()
+    T[:3, 3] = [2 * np.cos(0.3 * t), 2 * np.sin(0.3 * t), -0.2 * t]
+    return T
+
+
+@pytest.fixture()
+def run_dir(tmp_path):
+    """A fake run: 10 Hz estimate = GT + 3 cm offset in x, scans.csv with a degenerate span."""
+    out = tmp_path / "run"
+    out.mkdir()
+    t0_ns = 1_700_000_000_000_000_000
+    times_ns = t0_ns + np.arange(120) * 100_000_000
+    gt_path = tmp_path / "gt.tum"
+    with TumWriter(gt_path) as gt_w:
+        for k in range(1200):
+            gt_w.write(t0_ns + k * 10_000_000, _pose(k * 0.01))
+    rng = np.random.default_rng(0)
+    with TumWriter(out / "trajectory.tum") as tw:
+        for k, t_ns in enumerate(times_ns):
+            T = _pose(k * 0.1)
+            T[:3, 3] += rng.normal(0, 0.03, 3)
+            tw.write(int(t_ns), T)
+    csvw = ScansCsvWriter(out / "scans.csv")
+    for k, t_ns in enumerate(times_ns):
+        degen = 40 <= k < 70
+        csvw.write(ScanStats(t_ns=int(t_ns), n_raw=20000, n_down=1500 if not degen else 600,
+                             n_down_general=1400 if not degen else 500, n_near=300,
+                             degenerate=degen, trigger="count" if degen else "",
+                             voxel_size_m=0.2, search_radius_m=3.0, plane_margin_m=0.05,
+                             n_matched=900, iterations=3, wall_ms=12.0 + k % 3,
+                             eigenvalues=np.geomspace(1e1 if not degen else 1e-2, 1e5, 6)))
+    csvw.close()
+    walls = rng.uniform(-5, 5, (20000, 2))
+    write_ply(out / "map.ply", np.column_stack([walls, rng.uniform(-2, 1, 20000)]))
+    (out / "config.yaml").write_text(Config().to_yaml())
+    return out, gt_path
+
+
+def test_readers_roundtrip(tmp_path):
+    pts = np.random.default_rng(1).normal(size=(500, 3)).astype(np.float32).astype(np.float64)
+    assert np.array_equal(read_map_points(write_ply(tmp_path / "m.ply", pts)), pts)
+    assert np.array_equal(read_map_points(write_pcd(tmp_path / "m.pcd", pts)), pts)
+    (tmp_path / "bad.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\n")
+    with pytest.raises(InputError):
+        read_map_points(tmp_path / "bad.ply")
+
+
+def test_make_report_with_gt(run_dir):
+    out, gt = run_dir
+    report = make_report(out, gt)
+    assert report == out / "report.md"
+    text = report.read_text()
+    for name in FIGURES:
+        assert_png_image(out / name)
+        assert f"]({name})" in text
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["ate_se3"] == ate(out / "trajectory.tum", gt, "se3")
+    assert metrics["ate_se3"]["n"] == 120
+    assert 0.02 < metrics["ate_se3"]["rmse_m"] < 0.09  # 3 cm per axis noise
+    assert metrics["scans"]["n_scans"] == 120
+    assert metrics["scans"]["degenerate_pct"] == pytest.approx(25.0)
+    assert metrics["map_points"] == 20000
+    scans = read_scans_csv(out / "scans.csv")
+    assert scans["degenerate"].sum() == 30 and set(scans["trigger"]) == {"", "count"}
+    assert f"{metrics['ate_se3']['rmse_m']:.3f}" in text
+
+
+def test_report_without_gt_and_cli(run_dir):
+    from adalio.cli import app
+
+    out, _ = run_dir
+    res = CliRunner().invoke(app, ["report", str(out)])
+    assert res.exit_code == 0, res.output
+    assert not (out / "error.png").exists()
+    for name in ("trajectory_top.png", "degeneracy.png", "map_top.png"):
+        assert_png_image(out / name)
+    res = CliRunner().invoke(app, ["report", str(out.parent / "nope")])
+    assert isinstance(res.exception, InputError)
