@@ -1,0 +1,140 @@
+"""Reading bags written with rosbags in every supported format; /tf_static extrinsics."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bagfactory as bf  # noqa: E402
+
+from adalio.config import Config, SensorConfig  # noqa: E402
+from adalio.errors import BagError  # noqa: E402
+from adalio.io.bag import Bag, chain_transform  # noqa: E402
+from adalio.io.bagwrite import BagWriter  # noqa: E402
+from adalio.io.pointcloud2 import stamp_to_ns  # noqa: E402
+from adalio.io.sequencer import Sequencer  # noqa: E402
+from adalio.pipeline import resolve_extrinsic  # noqa: E402
+from adalio.types import ImuBatch, Scan  # noqa: E402
+
+FORMATS = [("ros1", "rig.bag"), ("sqlite3", "rig_db3"), ("mcap", "rig_mcap"),
+           ("mcap_file", "rig.mcap")]
+
+
+def random_T(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.random(random_state=seed).as_matrix()
+    T[:3, 3] = rng.normal(size=3)
+    return T
+
+
+@pytest.mark.parametrize("fmt,name", FORMATS)
+def test_formats_read_back_counts_order_and_points(tmp_path, fmt, name):
+    path = bf.write_static_rig(tmp_path / name, fmt, duration_s=1.0, imu_rate_hz=100.0,
+                               columns=90)
+    pts, t_rel, _ = bf.box_scan(columns=90)
+    with Bag(path) as bag:
+        counts = {t.name: (t.msgtype, t.count) for t in bag.topics()}
+        assert counts == {"/imu": ("sensor_msgs/msg/Imu", 100),
+                          "/points": ("sensor_msgs/msg/PointCloud2", 9)}
+        assert bag.select_topics(SensorConfig()) == ("/points", "/imu")
+        stamps = {"/imu": [], "/points": []}
+        recv = []
+        for topic, t_recv, msg in bag.messages(["/imu", "/points"]):
+            stamps[topic].append(stamp_to_ns(msg.header.stamp))
+            recv.append(t_recv)
+        assert recv == sorted(recv)
+        assert stamps["/imu"] == [bf.T0_NS + k * 10_000_000 for k in range(100)]
+        assert stamps["/points"] == [bf.T0_NS + k * 100_000_000 for k in range(9)]
+        items = list(Sequencer(bag, "/points", "/imu"))
+    scans = [i for i in items if isinstance(i, Scan)]
+    assert len(scans) == 9
+    imu_t = np.concatenate([i.t_ns for i in items if isinstance(i, ImuBatch)])
+    np.testing.assert_array_equal(imu_t, [bf.T0_NS + k * 10_000_000 for k in range(100)])
+    seen = 0
+    for item in items:
+        if isinstance(item, ImuBatch):
+            seen += len(item)
+        else:
+            assert seen == np.count_nonzero(imu_t <= item.t_end_ns)
+    np.testing.assert_array_equal(scans[3].points_lidar, pts.astype(np.float32))
+    np.testing.assert_array_equal(scans[3].t_ns, bf.T0_NS + 300_000_000 + t_rel.astype(np.int64))
+
+
+def test_folder_of_split_ros1_bags(tmp_path):
+    folder = tmp_path / "split"
+    folder.mkdir()
+    for part in range(2):
+        with BagWriter(folder / f"part_{part}.bag", "ros1") as w:
+            for k in range(50):
+                t = bf.T0_NS + (part * 50 + k) * 5_000_000
+                w.add_imu("/imu", t, [0, 0, 0], [0, 0, 9.81])
+    with Bag(folder) as bag:
+        assert [t.count for t in bag.topics()] == [100]
+        got = [stamp_to_ns(m.header.stamp) for _, _, m in bag.messages(["/imu"])]
+    assert got == [bf.T0_NS + k * 5_000_000 for k in range(100)]
+
+
+@pytest.mark.parametrize("fmt,name", FORMATS[:2])
+def test_tf_static_chain_gives_T_imu_lidar(tmp_path, fmt, name):
+    T_base_imu, T_base_mid, T_mid_lidar = random_T(1), random_T(2), random_T(3)
+    tf = [("base_link", "imu_link", T_base_imu), ("base_link", "mid", T_base_mid),
+          ("mid", "hesai", T_mid_lidar)]
+    path = bf.write_static_rig(tmp_path / name, fmt, duration_s=0.3, tf_static=tf,
+                               imu_frame="imu_link", lidar_frame="hesai", columns=30)
+    truth = np.linalg.inv(T_base_imu) @ T_base_mid @ T_mid_lidar
+    cfg = Config()
+    with Bag(path) as bag:
+        T, src = resolve_extrinsic(bag, "/points", "/imu", cfg)
+        assert "tf_static" in src
+        np.testing.assert_allclose(T, truth, atol=1e-9)
+        cfg.sensor.extrinsic_source = "config"
+        T_cfg, src = resolve_extrinsic(bag, "/points", "/imu", cfg)
+        assert src == "config" and np.allclose(T_cfg, np.eye(4))
+
+
+def test_tf_static_required_but_absent_is_error(tmp_path):
+    path = bf.write_static_rig(tmp_path / "a.bag", duration_s=0.3, columns=30)
+    cfg = Config()
+    cfg.sensor.extrinsic_source = "tf_static"
+    with Bag(path) as bag, pytest.raises(BagError, match="has no /tf_static"):
+        resolve_extrinsic(bag, "/points", "/imu", cfg)
+
+
+def test_chain_transform_unconnected_is_none():
+    edges = [("a", "b", random_T(4)), ("c", "d", random_T(5))]
+    assert chain_transform(edges, "a", "d") is None
+    np.testing.assert_allclose(chain_transform(edges, "b", "a"), np.linalg.inv(edges[0][2]))
+
+
+def test_accel_in_g_is_converted_once(tmp_path):
+    path = bf.write_static_rig(tmp_path / "g.bag", duration_s=1.0, accel_scale=1 / 9.81,
+                               columns=30)
+    with Bag(path) as bag, pytest.warns(UserWarning, match="reports in g"):
+        seq = Sequencer(bag, "/points", "/imu")
+        acc = np.concatenate([i.accel_m_s2 for i in seq if isinstance(i, ImuBatch)])
+    assert seq.stats.accel_in_g
+    np.testing.assert_allclose(acc[:, 2], 9.80665, rtol=1e-6)
+    with Bag(path) as bag:
+        seq = Sequencer(bag, "/points", "/imu", SensorConfig(accel_unit="m_s2"))
+        acc = np.concatenate([i.accel_m_s2 for i in seq if isinstance(i, ImuBatch)])
+    np.testing.assert_allclose(acc[:, 2], 1.0, rtol=1e-6)
+
+
+@pytest.mark.parametrize("content,match", [(b"hello world" * 10, "not a ROS1 bag"),
+                                           (None, "truncated or corrupted")])
+def test_damaged_bags_are_bag_errors(tmp_path, content, match):
+    path = tmp_path / "bad.bag"
+    if content is None:
+        good = bf.write_static_rig(tmp_path / "good.bag", duration_s=0.5, columns=30)
+        path.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    else:
+        path.write_bytes(content)
+    with pytest.raises(BagError, match=match):
+        with Bag(path) as bag:
+            list(bag.messages([t.name for t in bag.topics()]))
