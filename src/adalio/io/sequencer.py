@@ -26,7 +26,7 @@ from adalio.types import ImuBatch, Scan
 
 IMU_LOOKAHEAD_NS = 10_000_000
 """A scan is released once an IMU sample this much later than its end has been read."""
-IMU_WINDOW_NS = 500_000_000
+IMU_WINDOW_NS = 2_000_000_000
 """IMU samples older than the newest one by more than this are released even without a scan."""
 ACCEL_UNIT_SAMPLES = 50
 """IMU samples averaged to decide whether the accelerometer reports in g."""
@@ -58,8 +58,12 @@ class SequencerStats:
         warnings.warn(text, stacklevel=3)
 
 
-def _fmt_s(t_ns: int | None) -> str:
-    return "?" if t_ns is None else f"{t_ns * 1e-9:.3f}"
+def _fmt_s(t_ns: int | None, decimals: int = 3) -> str:
+    if t_ns is None:
+        return "?"
+    q, r = divmod(abs(int(t_ns)), 1_000_000_000)
+    text = f"{'-' if t_ns < 0 else ''}{q}.{r:09d}"
+    return text[: len(text) - 9 + decimals]
 
 
 def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None, *,
@@ -126,8 +130,8 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
             t = np.asarray(item.t_ns, dtype=np.int64)
             if released_imu_t is not None and int(t.min()) < released_imu_t:
                 bad = int(t[t < released_imu_t][0])
-                raise InputError(f"IMU stamps on {imu_topic} go backwards: {bad * 1e-9:.6f} s "
-                                 f"after {released_imu_t * 1e-9:.6f} s; the bag is not "
+                raise InputError(f"IMU stamps on {imu_topic} go backwards: {_fmt_s(bad, 9)} s "
+                                 f"after {_fmt_s(released_imu_t, 9)} s; the bag is not "
                                  "time-consistent (re-stamp or sort the IMU topic)")
             if released_imu_t is not None:
                 dup = t == released_imu_t
@@ -157,14 +161,18 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
             st.scan_first_end_ns = end if st.scan_first_end_ns is None else st.scan_first_end_ns
             if released_scan_end is not None and end <= released_scan_end:
                 raise InputError(f"scan end times on {lidar_topic} go backwards: "
-                                 f"{end * 1e-9:.6f} s after {released_scan_end * 1e-9:.6f} s; "
+                                 f"{_fmt_s(end, 9)} s after {_fmt_s(released_scan_end, 9)} s; "
                                  "check sensor.point_time_* (unit/reference) or re-stamp the "
                                  "bag")
-            if released_imu_t is not None and end < released_imu_t:
-                st.scans_late += 1
-                continue
             st.scan_last_end_ns = end if st.scan_last_end_ns is None \
                 else max(st.scan_last_end_ns, end)
+            if released_imu_t is not None and end < released_imu_t:
+                st.scans_late += 1
+                if st.scans_late == 1:
+                    st.warn(f"scan on {lidar_topic} ending at {_fmt_s(end)} s arrived more than "
+                            f"{window_ns * 1e-9:.1f} s after its IMU samples; skipped (further "
+                            "ones are counted)")
+                continue
             pending.append(item)
         yield from release(final=False)
     yield from release(final=True)
