@@ -39,7 +39,11 @@ def _pose(t: float) -> np.ndarray:
 
 @pytest.fixture()
 def run_dir(tmp_path):
-    """A fake run: 10 Hz estimate = GT + 3 cm offset in x, scans.csv with a degenerate span."""
+    return make_run_dir(tmp_path)
+
+
+def make_run_dir(tmp_path: Path) -> tuple[Path, Path]:
+    """A run folder: 10 Hz estimate = GT + 3 cm noise, scans.csv with a degenerate span."""
     out = tmp_path / "run"
     out.mkdir()
     t0_ns = 1_700_000_000_000_000_000

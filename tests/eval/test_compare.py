@@ -1,0 +1,69 @@
+"""`adalio compare` and the per-mode reports on a short simulated sequence."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from adalio.errors import ConfigError
+from adalio.eval.compare import DIVERGED_MAX_ERROR_M, parse_modes
+from adalio.eval.files import read_scans_csv
+from adalio.eval.metrics import ate
+
+SIM_SCENE = "spiral"
+SIM_DURATION_S = 6.0
+SIM_COLUMNS = 400
+
+
+def assert_png_image(path: Path, min_px: int = 200) -> None:
+    assert path.is_file() and path.stat().st_size > 1000, path
+    img = mpimg.imread(path)
+    assert img.ndim == 3 and img.shape[0] >= min_px and img.shape[1] >= min_px, img.shape
+    assert float(np.ptp(img[..., :3])) > 0.2, f"{path} is a constant image"
+
+
+def test_parse_modes():
+    assert parse_modes("fixed, adaptive+") == ["fixed", "adaptive+"]
+    for bad in ("", "fixed,turbo", "fixed,fixed"):
+        with pytest.raises(ConfigError):
+            parse_modes(bad)
+
+
+@pytest.mark.slow
+def test_compare_cli_on_simulated_run(tmp_path):
+    from adalio.cli import app
+    from adalio.sim import cached_sequence
+
+    sim = cached_sequence(SIM_SCENE, seed=0, duration_s=SIM_DURATION_S, columns=SIM_COLUMNS)
+    out = tmp_path / "cmp"
+    res = CliRunner().invoke(app, ["compare", str(sim.bag_path), "--modes", "fixed,adaptive",
+                                   "--gt", str(sim.gt_path), "--config", str(sim.config_path),
+                                   "--out", str(out)])
+    assert res.exit_code == 0, res.output + repr(res.exception)
+    assert "ATE rmse" in res.output and "adaptive" in res.output
+    data = json.loads((out / "compare.json").read_text())
+    assert [r["mode"] for r in data["rows"]] == ["fixed", "adaptive"]
+    for name in ("compare_top.png", "compare_side.png", "compare_error.png"):
+        assert_png_image(out / name)
+    assert "compare_top.png" in (out / "compare.md").read_text()
+    for row in data["rows"]:
+        run_dir = Path(row["out_dir"])
+        assert row["aborted"] is None, row
+        expected = ate(run_dir / "trajectory.tum", sim.gt_path, "se3")
+        assert row["ate_rmse_m"] == pytest.approx(expected["rmse_m"])
+        assert row["max_error_m"] == pytest.approx(expected["max_m"])
+        assert row["diverged"] == (expected["max_m"] > DIVERGED_MAX_ERROR_M)
+        scans = read_scans_csv(run_dir / "scans.csv")
+        assert row["n_scans"] == len(scans["t_s"])
+        assert row["degenerate_pct"] == pytest.approx(100 * scans["degenerate"].mean())
+        report = Path(row["report"])
+        assert report.is_file()
+        for png in ("trajectory_top.png", "trajectory_side.png", "error.png", "degeneracy.png",
+                    "map_top.png"):
+            assert_png_image(run_dir / png)
+            assert png in report.read_text()
