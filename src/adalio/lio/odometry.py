@@ -1,0 +1,369 @@
+"""The per-scan LiDAR-inertial odometry pipeline (lio-design.md §10, AdaLIO §9).
+
+``Odometry.add_imu`` buffers IMU samples (int64 ns, gyro rad/s, accel m/s² or g);
+``Odometry.add_scan`` takes one sweep (LiDAR-frame points in metres, absolute per-point int64 ns)
+and runs, in paper order: preprocess → (static init) → propagate + undistort to the scan end →
+voxel downsample (general leaf) → degeneracy check / parameter switch → iterated ESKF update →
+map insertion, returning the IMU pose in the world frame stamped at the scan end.
+
+Search radius (§9.4): the kNN query returns up to k neighbours within ``KNN_MAX_RANGE_M``; a
+correspondence is rejected when fewer than ``filter.min_neighbors`` were found or when the
+farthest of the found neighbours lies beyond the active ``search_radius_m`` (FAST-LIO2-style gate
+on the k-th neighbour). The plane margin of the active set is the §6.2 validity threshold.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from adalio.config import Config
+from adalio.errors import InputError
+from adalio.lio import imu, so3
+from adalio.lio.degeneracy import (
+    DegeneracyDetector,
+    Localizability,
+    localizability,
+    observable_projector,
+)
+from adalio.lio.ieskf import iterated_update
+from adalio.lio.ivox import IVox, select_for_insertion
+from adalio.lio.measurement import point_to_plane, points_to_world
+from adalio.lio.plane import fit_planes
+from adalio.lio.state import State, initial_covariance
+from adalio.lio.voxel import voxel_downsample
+from adalio.types import Estimate, ScanStats
+
+STAGES = ("preprocess", "undistort", "downsample", "degeneracy", "update", "map")
+INIT_TIME_NS = 100_000_000
+"""After the first map scan, scans within this time insert all points (Faster-LIO INIT_TIME)."""
+KNN_MAX_RANGE_M = 5.0
+"""Range of the iVox neighbour query (Faster-LIO's ``GetClosestPoint`` default, §7)."""
+MIN_POINTS_FOR_UPDATE = 5
+"""Fewer downsampled points than this: the scan is not used for an update (§6.1)."""
+
+
+class _Association:
+    """Point-to-plane correspondences of one downsampled scan against the map (§6.2-6.3).
+
+    Used as the ``measure`` callback of :func:`iterated_update`; keeps the neighbours of the last
+    search for the map-insertion rule and the raw H of the last evaluation.
+    """
+
+    def __init__(self, points_lidar: np.ndarray, ivox: IVox, cfg: Config, radius_m: float,
+                 margin_m: float) -> None:
+        self.points_lidar = points_lidar
+        self.ivox = ivox
+        self.cfg = cfg.filter
+        self.radius2 = radius_m * radius_m
+        self.margin_m = margin_m
+        n = points_lidar.shape[0]
+        self.nbrs = np.full((n, cfg.filter.knn_k, 3), np.nan)
+        self.counts = np.zeros(n, np.int64)
+        self.normals = np.zeros((n, 3))
+        self.d = np.zeros(n)
+        self.selected = np.zeros(n, np.bool_)
+        self.H = np.zeros((0, 12))
+
+    def measure(self, x: State, research: bool) -> tuple[np.ndarray, np.ndarray]:
+        f = self.cfg
+        if research:
+            p_world = points_to_world(self.points_lidar, x.R, x.p, x.R_LI, x.t_LI)
+            self.nbrs, self.counts, dist2 = self.ivox.knn(p_world, f.knn_k, KNN_MAX_RANGE_M)
+            n = self.counts.shape[0]
+            farthest2 = dist2[np.arange(n), np.maximum(self.counts - 1, 0)]
+            near_enough = (self.counts >= f.min_neighbors) & (farthest2 <= self.radius2)
+            self.normals, self.d, valid = fit_planes(self.nbrs, self.counts, f.min_neighbors,
+                                                     self.margin_m, f.plane_fit)
+            self.selected = valid & near_enough
+        H, r, accepted = point_to_plane(self.points_lidar, x.R, x.p, x.R_LI, x.t_LI, self.normals,
+                                        self.d, self.selected, f.estimate_extrinsic)
+        self.selected = accepted
+        self.H = H
+        return H.copy(), r
+
+
+@dataclass
+class _ImuBuffer:
+    t_ns: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+
+
+def _timer(stage_ms: dict[str, float], name: str, t0: float) -> float:
+    now = time.perf_counter()
+    stage_ms[name] = stage_ms.get(name, 0.0) + (now - t0) * 1e3
+    return now
+
+
+class Odometry:
+    """Faster-LIO-style iterated-ESKF LiDAR-inertial odometry with AdaLIO switching.
+
+    Contract (notes/contracts.md): ``add_imu``, ``add_scan``, ``map_points``, ``initialized``,
+    ``stage_ms_total``. World = IMU frame at init (or gravity-aligned, ``imu.gravity_align_world``).
+    """
+
+    def __init__(self, config: Config) -> None:
+        self.cfg = config
+        T = config.T_imu_lidar()
+        self._R_LI = T[:3, :3].copy()
+        self._t_LI = T[:3, 3].copy()
+        self.initialized = False
+        self.stage_ms_total: dict[str, float] = dict.fromkeys(STAGES, 0.0)
+        self.n_scans = 0
+        self._pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._buf = _ImuBuffer(np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)))
+        self._last_imu_t_ns: int | None = None
+        self._ivox = IVox.from_config(config.map)
+        self._detector = DegeneracyDetector(config.adaptive)
+        self._q_diag = imu.process_noise(config.imu)
+        self._weak_geometry = False
+        self._state = State(R_LI=self._R_LI.copy(), t_LI=self._t_LI.copy())
+        self._P = initial_covariance(config.filter.estimate_extrinsic)
+        self._t_state_ns = 0
+        self._prev_sample: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._accel_scale = 1.0
+        self._t_first_map_ns: int | None = None
+
+    # ------------------------------------------------------------------ public API
+    @property
+    def state(self) -> State:
+        """A copy of the current filter state (world frame)."""
+        return self._state.copy()
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self._P.copy()
+
+    def add_imu(self, t_ns, gyro_rad_s, accel_m_s2) -> None:
+        """Buffer IMU samples: scalar ``t_ns`` with (3,) vectors or (N,) int64 with (N,3)."""
+        t = np.atleast_1d(np.asarray(t_ns))
+        gyro = np.asarray(gyro_rad_s, dtype=np.float64).reshape(-1, 3) \
+            if np.size(gyro_rad_s) % 3 == 0 else None
+        acc = np.asarray(accel_m_s2, dtype=np.float64).reshape(-1, 3) \
+            if np.size(accel_m_s2) % 3 == 0 else None
+        if t.ndim != 1 or not np.issubdtype(t.dtype, np.integer):
+            raise InputError(f"add_imu: t_ns must be int64 nanoseconds, got dtype {t.dtype} "
+                             f"shape {t.shape}")
+        if gyro is None or acc is None or gyro.shape[0] != t.size or acc.shape[0] != t.size:
+            raise InputError(f"add_imu: expected gyro/accel of shape ({t.size}, 3), got "
+                             f"{np.shape(gyro_rad_s)} and {np.shape(accel_m_s2)}")
+        if not (np.all(np.isfinite(gyro)) and np.all(np.isfinite(acc))):
+            raise InputError("add_imu: gyro/accel contain NaN or inf: drop those samples")
+        t = t.astype(np.int64)
+        if t.size == 0:
+            return
+        if np.any(np.diff(t) < 0) or (self._last_imu_t_ns is not None
+                                       and t[0] < self._last_imu_t_ns):
+            raise InputError(f"add_imu: IMU time goes backwards at t_ns={int(t.min())}: "
+                             "samples must be added in time order")
+        self._last_imu_t_ns = int(t[-1])
+        self._pending.append((t, gyro.copy(), acc.copy()))
+
+    def map_points(self) -> np.ndarray:
+        """All map points (M,3) float64, world frame."""
+        return self._ivox.points()
+
+    def add_scan(self, points_lidar: np.ndarray, t_ns: np.ndarray) -> Estimate | None:
+        """Process one sweep (§10); None while initializing (or for an empty scan)."""
+        t_start = time.perf_counter()
+        stage_ms: dict[str, float] = {}
+        cfg = self.cfg
+        stats = ScanStats()
+
+        # 1. preprocess (§6.1): finite, blind, max range, decimation
+        t0 = t_start
+        pts, t_pts, stats.n_raw = self._preprocess(points_lidar, t_ns)
+        self._merge_imu()
+        t0 = _timer(stage_ms, "preprocess", t0)
+        if pts.shape[0] == 0:
+            return None
+        t_b, t_e = int(t_pts.min()), int(t_pts.max())
+        stats.t_ns = t_e
+
+        # 2. static initialization (§4)
+        if not self.initialized and not self._try_initialize(t_b):
+            self._accumulate(stage_ms)
+            return None
+
+        # 3-4. propagate with pose records, undistort to the scan end (§5)
+        pts_e = self._propagate_and_undistort(pts, t_pts, t_e)
+        t0 = _timer(stage_ms, "undistort", t0)
+
+        # 5. first scan after init: whole scan into the map, no update (§4)
+        if self._t_first_map_ns is None:
+            p_world = points_to_world(pts_e, self._state.R, self._state.p, self._state.R_LI,
+                                      self._state.t_LI)
+            self._ivox.add_points(p_world)
+            self._t_first_map_ns = t_e
+            t0 = _timer(stage_ms, "map", t0)
+            g = cfg.adaptive.general
+            stats.n_down = stats.n_down_general = int(pts_e.shape[0])
+            stats.voxel_size_m, stats.search_radius_m = g.voxel_size_m, g.search_radius_m
+            stats.plane_margin_m = g.plane_margin_m
+            return self._emit(stats, stage_ms, t_start, p_world)
+
+        # 6. downsample with the general leaf, degeneracy check, switch parameters (§6.1, §9)
+        general = cfg.adaptive.general
+        down_general = voxel_downsample(pts_e, general.voxel_size_m)
+        t0 = _timer(stage_ms, "downsample", t0)
+        decision = self._detector.check(down_general, weak_geometry=self._weak_geometry)
+        params = decision.params
+        t0 = _timer(stage_ms, "degeneracy", t0)
+        leaf_m = params.voxel_size_m
+        down = down_general if leaf_m == general.voxel_size_m else voxel_downsample(pts_e, leaf_m)
+        t0 = _timer(stage_ms, "downsample", t0)
+        x_pred, P_pred = self._state, self._P
+        assoc = _Association(down, self._ivox, cfg, params.search_radius_m, params.plane_margin_m)
+        projector = None
+        if cfg.adaptive.mode == "adaptive+" and decision.degenerate:
+            down, assoc, leaf_m, projector = self._refine(pts_e, down, assoc, leaf_m, params)
+        t0 = _timer(stage_ms, "degeneracy", t0)
+
+        # 7. iterated ESKF update (§6.4)
+        loc: Localizability | None = None
+        if down.shape[0] >= MIN_POINTS_FOR_UPDATE:
+            result = iterated_update(x_pred, P_pred, assoc.measure, cfg.filter, projector)
+            self._state, self._P = result.state, result.P
+            stats.iterations = result.iterations
+            stats.n_matched = int(assoc.H.shape[0])
+            loc = localizability(assoc.H[:, :6], cfg.filter.laser_point_cov)
+            stats.eigenvalues = loc.eigenvalues
+            stats.weakest_direction = loc.weakest
+            stats.degeneracy_score = loc.score
+        else:
+            stats.degeneracy_score = 1.0
+        self._weak_geometry = bool(cfg.adaptive.use_localizability_trigger and loc is not None
+                                   and loc.translation_ratio < cfg.adaptive.min_eigen_ratio)
+        t0 = _timer(stage_ms, "update", t0)
+
+        # 8. map insertion with the updated pose (§7)
+        s = self._state
+        p_world = points_to_world(down, s.R, s.p, s.R_LI, s.t_LI)
+        insert_all = t_e - self._t_first_map_ns < INIT_TIME_NS
+        if down.shape[0]:
+            add = select_for_insertion(p_world, assoc.nbrs, assoc.counts, cfg.map.map_leaf_m,
+                                       insert_all)
+            self._ivox.add_points(p_world[add])
+        t0 = _timer(stage_ms, "map", t0)
+
+        stats.n_down, stats.n_down_general = int(down.shape[0]), int(down_general.shape[0])
+        stats.n_near, stats.degenerate, stats.trigger = (decision.n_near, decision.degenerate,
+                                                         decision.trigger)
+        stats.voxel_size_m, stats.search_radius_m = leaf_m, params.search_radius_m
+        stats.plane_margin_m = params.plane_margin_m
+        return self._emit(stats, stage_ms, t_start, p_world)
+
+    # ------------------------------------------------------------------ stages
+    def _preprocess(self, points_lidar, t_ns) -> tuple[np.ndarray, np.ndarray, int]:
+        pts = np.asarray(points_lidar)
+        t = np.asarray(t_ns)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise InputError(f"add_scan: points_lidar must have shape (N, 3), got {pts.shape}")
+        if t.shape != (pts.shape[0],) or not np.issubdtype(t.dtype, np.integer):
+            raise InputError(f"add_scan: t_ns must be (N,) int64 absolute nanoseconds matching "
+                             f"the {pts.shape[0]} points, got dtype {t.dtype} shape {t.shape}")
+        pts = pts.astype(np.float64, copy=False)
+        finite = np.isfinite(pts).all(axis=1)
+        n_raw = int(np.count_nonzero(finite))
+        pre = self.cfg.preprocess
+        r2 = np.einsum("ij,ij->i", pts, pts)
+        keep = finite & (r2 >= pre.blind_m ** 2) & (r2 <= pre.max_range_m ** 2)
+        if pre.point_filter_num > 1:
+            keep[np.arange(keep.size) % pre.point_filter_num != 0] = False
+        return pts[keep], t[keep].astype(np.int64), n_raw
+
+    def _merge_imu(self) -> None:
+        if not self._pending:
+            return
+        b = self._buf
+        self._buf = _ImuBuffer(np.concatenate([b.t_ns] + [p[0] for p in self._pending]),
+                               np.concatenate([b.gyro] + [p[1] for p in self._pending]),
+                               np.concatenate([b.accel] + [p[2] for p in self._pending]))
+        self._pending.clear()
+
+    def _try_initialize(self, t_b_ns: int) -> bool:
+        """Static init over ``imu.init_window_s`` before the scan start, if at rest (§4)."""
+        cfg = self.cfg.imu
+        b = self._buf
+        window = imu.stillness_window(b.t_ns, t_b_ns, cfg.init_window_s)
+        if window is None or not imu.is_still(b.gyro[window], b.accel[window], cfg):
+            keep_from = int(np.searchsorted(b.t_ns, t_b_ns - round(cfg.init_window_s * 1e9)))
+            self._buf = _ImuBuffer(b.t_ns[keep_from:], b.gyro[keep_from:], b.accel[keep_from:])
+            return False
+        init = imu.static_init(b.gyro[window], b.accel[window], cfg)
+        self._accel_scale = init.accel_scale
+        g = init.gravity_world_m_s2
+        self._state = State(R=init.R_world_imu, R_LI=self._R_LI.copy(), t_LI=self._t_LI.copy(),
+                            b_g=init.gyro_bias_rad_s, g=g, g_anchor=so3.anchor_frame(g))
+        self._P = initial_covariance(self.cfg.filter.estimate_extrinsic)
+        self._t_state_ns = t_b_ns
+        last = window.stop - 1
+        self._prev_sample = (int(b.t_ns[last]), b.gyro[last].copy(), b.accel[last].copy())
+        self._buf = _ImuBuffer(b.t_ns[window.stop:], b.gyro[window.stop:], b.accel[window.stop:])
+        self.initialized = True
+        return True
+
+    def _propagate_and_undistort(self, pts: np.ndarray, t_pts: np.ndarray,
+                                 t_e_ns: int) -> np.ndarray:
+        """Forward propagation to the scan end with pose records, then undistortion (§5)."""
+        b = self._buf
+        n_use = int(np.searchsorted(b.t_ns, t_e_ns, side="right"))
+        t_prev, gyro_prev, acc_prev = self._prev_sample
+        t_ref = self._t_state_ns
+        imu_tau = np.empty(n_use + 1)
+        imu_tau[0] = (t_prev - t_ref) * 1e-9
+        imu_tau[1:] = (b.t_ns[:n_use] - t_ref) * 1e-9
+        gyro = np.vstack([gyro_prev[None], b.gyro[:n_use]])
+        acc = np.vstack([acc_prev[None], b.accel[:n_use]]) * self._accel_scale
+        tau_end = max((t_e_ns - t_ref) * 1e-9, 0.0)
+        self._state, self._P, rec = imu.propagate(self._state, self._P, imu_tau, gyro, acc, 0.0,
+                                                  tau_end, self._q_diag,
+                                                  self.cfg.imu.noise_discretization)
+        if n_use:
+            self._prev_sample = (int(b.t_ns[n_use - 1]), b.gyro[n_use - 1].copy(),
+                                 b.accel[n_use - 1].copy())
+            self._buf = _ImuBuffer(b.t_ns[n_use:], b.gyro[n_use:], b.accel[n_use:])
+        self._t_state_ns = max(t_e_ns, t_ref)
+        s = self._state
+        return imu.undistort(pts, (t_pts - t_ref) * 1e-9, rec, s.R, s.p, s.R_LI, s.t_LI)
+
+    def _refine(self, pts_e, down, assoc, leaf_m, params):
+        """AdaLIO+ (degeneracy.py §3): halve the leaf while the translation information is weak
+        and within the point budget, then restrict the update to observable pose directions."""
+        ada = self.cfg.adaptive
+        x = self._state
+
+        def probe(a: _Association) -> Localizability:
+            a.measure(x, True)
+            return localizability(a.H[:, :6], self.cfg.filter.laser_point_cov)
+
+        loc = probe(assoc)
+        while loc.translation_ratio < ada.min_eigen_ratio and leaf_m / 2 >= ada.min_voxel_size_m:
+            finer = voxel_downsample(pts_e, leaf_m / 2)
+            if finer.shape[0] > ada.point_budget:
+                break
+            leaf_m, down = leaf_m / 2, finer
+            assoc = _Association(down, self._ivox, self.cfg, params.search_radius_m,
+                                 params.plane_margin_m)
+            loc = probe(assoc)
+        projector = observable_projector(loc, ada.observable_eigen_ratio)
+        return down, assoc, leaf_m, projector
+
+    def _accumulate(self, stage_ms: dict[str, float]) -> None:
+        for k, v in stage_ms.items():
+            self.stage_ms_total[k] = self.stage_ms_total.get(k, 0.0) + v
+
+    def _emit(self, stats: ScanStats, stage_ms: dict[str, float], t_start: float,
+              p_world: np.ndarray) -> Estimate:
+        self._accumulate(stage_ms)
+        self.n_scans += 1
+        stats.stage_ms = {k: stage_ms.get(k, 0.0) for k in STAGES}
+        stats.wall_ms = (time.perf_counter() - t_start) * 1e3
+        s = self._state
+        return Estimate(t_ns=stats.t_ns, T_world_imu=s.T_world_imu(), velocity_world_m_s=s.v.copy(),
+                        gyro_bias_rad_s=s.b_g.copy(), accel_bias_m_s2=s.b_a.copy(),
+                        gravity_world_m_s2=s.g.copy(), cov_diag=np.diag(self._P).copy(),
+                        stats=stats, points_world=p_world)

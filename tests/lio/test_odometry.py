@@ -1,0 +1,217 @@
+"""End-to-end tests of the estimator on a synthetic box room generated here (ray-box casting)."""
+
+import numpy as np
+import pytest
+
+from adalio.config import Config
+from adalio.errors import InputError
+from adalio.lio import Odometry, so3
+from adalio.lio.odometry import STAGES
+
+GRAVITY = np.array([0.0, 0.0, -9.81])
+ROOM_LO = np.array([-9.0, -6.0, -1.6])
+ROOM_HI = np.array([11.0, 7.0, 3.4])
+T_MOVE = 1.0
+R_LI = so3.exp(np.array([0.0, 0.0, 0.3]))
+T_LI = np.array([0.05, -0.02, 0.1])
+GYRO_BIAS = np.array([0.004, -0.003, 0.002])
+
+
+def _h(u, w):
+    """(1 − cos wu)² and its first two derivatives: a smooth start from rest at u = 0."""
+    c, s = np.cos(w * u), np.sin(w * u)
+    return (1 - c) ** 2, 2 * (1 - c) * w * s, 2 * w * w * (s * s + (1 - c) * c)
+
+
+def trajectory(t: np.ndarray):
+    """Analytic IMU pose, velocity, acceleration and body rate (world z up)."""
+    t = np.atleast_1d(np.asarray(t, float))
+    u = np.maximum(t - T_MOVE, 0.0)
+    amp_p = np.array([0.9, 0.6, 0.08])
+    w_p = np.array([0.9, 1.3, 1.7])
+    p = np.zeros((t.size, 3))
+    v = np.zeros_like(p)
+    a = np.zeros_like(p)
+    for i in range(3):
+        f, df, ddf = _h(u, w_p[i])
+        p[:, i], v[:, i], a[:, i] = amp_p[i] * f, amp_p[i] * df, amp_p[i] * ddf
+    p += np.array([0.5, -0.3, 0.2])
+    angles = []
+    for amp, w, off in ((0.03, 1.9, 0.02), (0.04, 1.5, -0.03), (0.35, 1.1, 0.1)):
+        f, df, _ = _h(u, w)
+        angles.append((off + amp * f, amp * df))
+    (phi, dphi), (th, dth), (psi, dpsi) = angles
+    cph, sph, cth, sth, cps, sps = (np.cos(phi), np.sin(phi), np.cos(th), np.sin(th),
+                                    np.cos(psi), np.sin(psi))
+    R = np.empty((t.size, 3, 3))
+    R[:, 0, 0] = cps * cth
+    R[:, 0, 1] = cps * sth * sph - sps * cph
+    R[:, 0, 2] = cps * sth * cph + sps * sph
+    R[:, 1, 0] = sps * cth
+    R[:, 1, 1] = sps * sth * sph + cps * cph
+    R[:, 1, 2] = sps * sth * cph - cps * sph
+    R[:, 2, 0] = -sth
+    R[:, 2, 1] = cth * sph
+    R[:, 2, 2] = cth * cph
+    omega = np.stack([dphi - dpsi * sth, dth * cph + dpsi * cth * sph,
+                      -dth * sph + dpsi * cth * cph], axis=1)
+    return p, R, v, a, omega
+
+
+def imu_samples(t0: float, t1: float, rate_hz: float, rng, noise: float = 0.0):
+    t = np.arange(t0, t1, 1.0 / rate_hz)
+    _, R, _, a, omega = trajectory(t)
+    accel = np.einsum("nji,nj->ni", R, a - GRAVITY)
+    gyro = omega + GYRO_BIAS
+    if noise:
+        gyro = gyro + rng.normal(scale=noise * 0.1, size=gyro.shape)
+        accel = accel + rng.normal(scale=noise, size=accel.shape)
+    return np.round(t * 1e9).astype(np.int64), gyro, accel
+
+
+def lidar_scan(t_start: float, n_cols: int, rng, period: float = 0.1, noise_m: float = 0.003):
+    """An XT-32-like sweep: 32 beams (−16°..15°), column-wise times, ray-box intersection."""
+    elev = np.deg2rad(np.linspace(-16.0, 15.0, 32))
+    az = 2 * np.pi * np.arange(n_cols) / n_cols
+    t_col = t_start + period * np.arange(n_cols) / n_cols
+    dirs = np.stack([np.cos(elev)[None, :] * np.cos(az)[:, None],
+                     np.cos(elev)[None, :] * np.sin(az)[:, None],
+                     np.broadcast_to(np.sin(elev)[None, :], (n_cols, 32))], axis=2)
+    p, R, *_ = trajectory(t_col)
+    origin = np.einsum("nij,j->ni", R, T_LI) + p
+    d_world = np.einsum("nij,jk,nbk->nbi", R, R_LI, dirs)
+    with np.errstate(divide="ignore"):
+        t_hi = (ROOM_HI[None, None] - origin[:, None]) / d_world
+        t_lo = (ROOM_LO[None, None] - origin[:, None]) / d_world
+    rng_m = np.where(d_world > 0, t_hi, t_lo).min(axis=2)
+    rng_m = rng_m + rng.normal(scale=noise_m, size=rng_m.shape)
+    pts = (dirs * rng_m[..., None]).reshape(-1, 3)
+    t_ns = np.round(np.repeat(t_col, 32) * 1e9).astype(np.int64)
+    return pts, t_ns
+
+
+def _config() -> Config:
+    cfg = Config()
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R_LI, T_LI
+    cfg.sensor.T_imu_lidar = T.tolist()
+    cfg.adaptive.mode = "fixed"
+    return cfg.validate()
+
+
+def _run(cfg: Config, duration: float, n_cols: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    odom = Odometry(cfg)
+    t_imu, gyro, acc = imu_samples(0.0, duration + 0.05, 400.0, rng, noise=0.01)
+    estimates, k = [], 0
+    for s in np.arange(0.0, duration, 0.1):
+        pts, t_ns = lidar_scan(s, n_cols, rng)
+        hi = int(np.searchsorted(t_imu, t_ns.max(), side="right"))
+        if hi > k:
+            odom.add_imu(t_imu[k:hi], gyro[k:hi], acc[k:hi])
+            k = hi
+        est = odom.add_scan(pts, t_ns)
+        if est is not None:
+            estimates.append(est)
+    return odom, estimates
+
+
+def umeyama_ate(est_xyz: np.ndarray, gt_xyz: np.ndarray) -> float:
+    """RMSE of positions after the least-squares SE(3) alignment (Umeyama, no scale)."""
+    mu_e, mu_g = est_xyz.mean(0), gt_xyz.mean(0)
+    C = (gt_xyz - mu_g).T @ (est_xyz - mu_e)
+    U, _, Vt = np.linalg.svd(C)
+    S = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ S @ Vt
+    aligned = (est_xyz - mu_e) @ R.T + mu_g
+    return float(np.sqrt(np.mean(np.sum((aligned - gt_xyz) ** 2, axis=1))))
+
+
+def test_trajectory_generator_is_self_consistent():
+    t = np.linspace(1.0, 3.0, 2001)
+    p, R, v, a, omega = trajectory(t)
+    dt = t[1] - t[0]
+    assert np.allclose(np.gradient(p, dt, axis=0)[5:-5], v[5:-5], atol=1e-4)
+    assert np.allclose(np.gradient(v, dt, axis=0)[5:-5], a[5:-5], atol=1e-4)
+    for i in range(10, 2000, 97):
+        w_num = so3.log(R[i].T @ R[i + 1]) / dt
+        assert np.allclose(w_num, 0.5 * (omega[i] + omega[i + 1]), atol=1e-4)
+
+
+def test_waits_for_rest_then_initializes_and_emits_first_scan():
+    cfg = _config()
+    odom, est = _run(cfg, 0.75, 300)
+    assert odom.initialized
+    # the first 0.5 s window is not full before t = 0.5 s: scans at 0.0..0.4 are dropped
+    assert [round(e.t_ns * 1e-9, 1) for e in est] == [0.6, 0.7, 0.8]
+    first = est[0]
+    assert first.stats.iterations == 0 and odom.map_points().shape[0] > 1000
+    g_imu = first.T_world_imu[:3, :3].T @ first.gravity_world_m_s2
+    _, R, *_ = trajectory(0.5)
+    assert np.allclose(g_imu, R[0].T @ GRAVITY, atol=0.05)
+    assert np.allclose(first.gyro_bias_rad_s, GYRO_BIAS, atol=2e-3)
+    assert set(odom.stage_ms_total) == set(STAGES)
+    st = est[-1].stats
+    assert st.iterations >= 2 and st.n_matched > 100 and st.n_down <= st.n_raw
+    assert st.voxel_size_m == cfg.adaptive.general.voxel_size_m
+    assert set(st.stage_ms) == set(STAGES) and st.wall_ms > 0
+    assert st.eigenvalues.shape == (6,) and st.eigenvalues[0] > 0
+
+
+def test_moving_start_is_rejected_until_still():
+    cfg = _config()
+    odom = Odometry(cfg)
+    rng = np.random.default_rng(1)
+    t = np.arange(0.0, 1.0, 0.0025)
+    gyro = np.tile(GYRO_BIAS, (t.size, 1))
+    acc = np.tile([0.0, 0.0, 9.81], (t.size, 1))
+    gyro[t < 0.45, 2] += 0.8
+    acc[t < 0.45, 0] += np.sin(20 * t[t < 0.45])
+    odom.add_imu(np.round(t * 1e9).astype(np.int64), gyro, acc)
+    pts = rng.uniform(-5, 5, size=(100, 3))
+    for s in (0.5, 0.8):
+        assert odom.add_scan(pts, np.full(100, int(s * 1e9), np.int64)) is None
+        assert not odom.initialized
+    assert odom.add_scan(pts, np.full(100, int(0.96e9), np.int64)) is not None
+    assert odom.initialized
+
+
+def test_input_validation_raises_input_error():
+    odom = Odometry(_config())
+    with pytest.raises(InputError):
+        odom.add_imu(np.array([2, 1], np.int64), np.zeros((2, 3)), np.zeros((2, 3)))
+    odom.add_imu(10, np.zeros(3), np.array([0, 0, 9.81]))
+    with pytest.raises(InputError):
+        odom.add_imu(5, np.zeros(3), np.zeros(3))
+    with pytest.raises(InputError):
+        odom.add_imu(np.array([20, 30], np.int64), np.zeros((3, 3)), np.zeros((2, 3)))
+    with pytest.raises(InputError):
+        odom.add_scan(np.zeros((5, 2)), np.zeros(5, np.int64))
+    with pytest.raises(InputError):
+        odom.add_scan(np.zeros((5, 3)), np.zeros(4, np.int64))
+    with pytest.raises(InputError):
+        odom.add_scan(np.zeros((5, 3)), np.zeros(5))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["fixed", "adaptive+"])
+def test_end_to_end_box_room_ate_below_2cm(mode):
+    cfg = _config()
+    cfg.adaptive.mode = mode
+    odom, est = _run(cfg, 4.5, 1000)
+    assert len(est) >= 38
+    t = np.array([e.t_ns for e in est]) * 1e-9
+    gt_p, gt_R, *_ = trajectory(t)
+    est_p = np.array([e.T_world_imu[:3, 3] for e in est])
+    ate = umeyama_ate(est_p, gt_p)
+    travelled = np.linalg.norm(np.diff(gt_p, axis=0), axis=1).sum()
+    print(f"mode={mode} ATE={ate * 100:.2f} cm over {travelled:.1f} m, "
+          f"median {np.median([e.stats.wall_ms for e in est]):.1f} ms/scan")
+    assert travelled > 3.0
+    assert ate < 0.02
+    # relative rotation from the first estimate agrees with ground truth
+    R0e, R0g = est[0].T_world_imu[:3, :3], gt_R[0]
+    for e, Rg in zip(est[::5], gt_R[::5]):
+        rel_e = R0e.T @ e.T_world_imu[:3, :3]
+        rel_g = R0g.T @ Rg
+        assert np.linalg.norm(so3.log(rel_g.T @ rel_e)) < np.deg2rad(0.5)
