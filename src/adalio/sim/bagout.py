@@ -1,0 +1,134 @@
+"""Writing simulated sweeps and IMU samples as ROS1 / ROS2 (sqlite3, mcap) bags with rosbags.
+
+Layouts follow the real drivers. PandarXT-32 (HILTI 2022, ``/hesai/pandar``): unorganized cloud
+of valid returns only, column-major; fields x, y, z (f32 @0,4,8), intensity (f32 @16), timestamp
+(f64 absolute seconds @24), ring (u16 @32), point_step 48 (Hesai ``PointXYZIT``). Ouster-like
+(``/ouster/points``): organized 64 x 1024 cloud (row = beam) with zero points for missing returns;
+x, y, z (f32), intensity (f32 @16), t (u32 ns relative to the header stamp @20), reflectivity
+(u16 @24), ring (u16 @26), ambient (u16 @28), range (u32 mm @32), point_step 48. Header stamp =
+sweep start; the bag record time of a sweep is its end. sensor_msgs/Imu: orientation unknown
+(covariance[0] = -1).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from rosbags.typesys import Stores, get_typestore
+
+from adalio.io.pointcloud2 import encode_pointcloud2
+from adalio.sim.lidar import LidarModel, SweepPoints
+
+FORMATS = ("ros1", "ros2", "mcap")
+
+XT32_LAYOUT = [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("intensity", 16, "f4"),
+               ("timestamp", 24, "f8"), ("ring", 32, "u2")]
+OUSTER_LAYOUT = [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("intensity", 16, "f4"),
+                 ("t", 20, "u4"), ("reflectivity", 24, "u2"), ("ring", 26, "u2"),
+                 ("ambient", 28, "u2"), ("range", 32, "u4")]
+POINT_STEP = 48
+
+
+def bag_path_for(out_dir: Path, stem: str, fmt: str) -> Path:
+    """Where the bag of ``fmt`` goes inside ``out_dir`` (a file for ROS1, a folder for ROS2)."""
+    return out_dir / (f"{stem}.bag" if fmt == "ros1" else f"{stem}_{fmt}")
+
+
+class SimBagWriter:
+    """Context manager writing IMU and sweep messages in record-time order."""
+
+    def __init__(self, path: Path, fmt: str, model: LidarModel) -> None:
+        self.path = Path(path)
+        self.fmt = fmt
+        self.model = model
+        self.ros1 = fmt == "ros1"
+        self.typestore = get_typestore(Stores.ROS1_NOETIC if self.ros1 else Stores.ROS2_HUMBLE)
+        T = self.typestore.types
+        self._Header, self._Time = T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"]
+        self._Cloud, self._Field = T["sensor_msgs/msg/PointCloud2"], T["sensor_msgs/msg/PointField"]
+        self._Imu, self._Vec = T["sensor_msgs/msg/Imu"], T["geometry_msgs/msg/Vector3"]
+        self._Quat = T["geometry_msgs/msg/Quaternion"]
+        self._serialize = (self.typestore.serialize_ros1 if self.ros1
+                           else self.typestore.serialize_cdr)
+        self._seq = {"imu": 0, "lidar": 0}
+        self.n_imu = 0
+        self.n_scans = 0
+
+    def __enter__(self) -> SimBagWriter:
+        if self.ros1:
+            from rosbags.rosbag1 import Writer
+
+            self._writer = Writer(self.path)
+        else:
+            from rosbags.rosbag2 import StoragePlugin, Writer
+
+            plugin = StoragePlugin.MCAP if self.fmt == "mcap" else StoragePlugin.SQLITE3
+            self._writer = Writer(self.path, version=8, storage_plugin=plugin)
+        self._writer.open()
+        self._conn_imu = self._writer.add_connection(self.model.imu_topic, "sensor_msgs/msg/Imu",
+                                                     typestore=self.typestore)
+        self._conn_lidar = self._writer.add_connection(
+            self.model.lidar_topic, "sensor_msgs/msg/PointCloud2", typestore=self.typestore)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._writer.close()
+
+    def _header(self, kind: str, stamp_ns: int, frame_id: str):
+        stamp = self._Time(sec=int(stamp_ns // 1_000_000_000),
+                           nanosec=int(stamp_ns % 1_000_000_000))
+        if self.ros1:
+            seq = self._seq[kind]
+            self._seq[kind] += 1
+            return self._Header(seq=seq, stamp=stamp, frame_id=frame_id)
+        return self._Header(stamp=stamp, frame_id=frame_id)
+
+    def write_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        """Write IMU samples (absolute int64 ns stamps, IMU frame)."""
+        ocov = np.zeros(9)
+        ocov[0] = -1.0
+        zero9 = np.zeros(9)
+        quat = self._Quat(x=0.0, y=0.0, z=0.0, w=1.0)
+        for t, w, a in zip(t_ns.tolist(), gyro.tolist(), accel.tolist(), strict=True):
+            msg = self._Imu(header=self._header("imu", t, self.model.imu_frame), orientation=quat,
+                            orientation_covariance=ocov,
+                            angular_velocity=self._Vec(x=w[0], y=w[1], z=w[2]),
+                            angular_velocity_covariance=zero9,
+                            linear_acceleration=self._Vec(x=a[0], y=a[1], z=a[2]),
+                            linear_acceleration_covariance=zero9)
+            self._writer.write(self._conn_imu, t, self._serialize(msg, "sensor_msgs/msg/Imu"))
+            self.n_imu += 1
+
+    def write_sweep(self, sweep: SweepPoints, stamp_ns: int, record_ns: int) -> int:
+        """Write one sweep; returns the number of points in the message."""
+        if self.model.name == "ouster64":
+            C, K = self.model.columns, self.model.channels
+            order = np.arange(C * K).reshape(C, K).T.ravel()
+            v = sweep.valid[order]
+            rng_mm = np.where(v, np.round(sweep.range_m[order].astype(np.float64) * 1000.0), 0)
+            cols = {"x": sweep.xyz_lidar_m[order, 0], "y": sweep.xyz_lidar_m[order, 1],
+                    "z": sweep.xyz_lidar_m[order, 2], "intensity": sweep.intensity[order],
+                    "t": (sweep.t_ns[order] - stamp_ns).astype(np.uint32),
+                    "reflectivity": np.clip(sweep.intensity[order], 0, 255).astype(np.uint16),
+                    "ring": sweep.ring[order],
+                    "ambient": np.where(v, 40, 0).astype(np.uint16),
+                    "range": rng_mm.astype(np.uint32)}
+            layout, height, width, dense = OUSTER_LAYOUT, K, C, False
+        else:
+            v = sweep.valid
+            cols = {"x": sweep.xyz_lidar_m[v, 0], "y": sweep.xyz_lidar_m[v, 1],
+                    "z": sweep.xyz_lidar_m[v, 2], "intensity": sweep.intensity[v],
+                    "timestamp": sweep.t_ns[v] * 1e-9, "ring": sweep.ring[v]}
+            layout, height, width, dense = XT32_LAYOUT, 1, int(v.sum()), True
+        data, fields = encode_pointcloud2(cols, layout, POINT_STEP)
+        msg = self._Cloud(
+            header=self._header("lidar", stamp_ns, self.model.lidar_frame), height=height,
+            width=width,
+            fields=[self._Field(name=n, offset=o, datatype=d, count=c) for n, o, d, c in fields],
+            is_bigendian=False, point_step=POINT_STEP, row_step=POINT_STEP * width,
+            data=np.frombuffer(data, dtype=np.uint8), is_dense=dense)
+        self._writer.write(self._conn_lidar, record_ns,
+                           self._serialize(msg, "sensor_msgs/msg/PointCloud2"))
+        self.n_scans += 1
+        return height * width

@@ -1,0 +1,277 @@
+"""``simulate``: scene + trajectory + LiDAR + IMU -> bag, ground truth, metadata and config.
+
+Outputs in ``out_dir``: the bag (``<scene>.bag`` for ROS1, ``<scene>_ros2/`` or
+``<scene>_mcap/`` for ROS2), ``gt.tum`` (IMU pose in the world = IMU frame at the first sample,
+100 Hz, absolute seconds with 9 decimals), ``meta.json``, ``config.yaml`` (accepted by
+``adalio run --config``) and ``scene.ply`` (the mesh in the scene frame; ``meta.json`` carries
+``T_scene_world`` to place it). Time: int64 ns, starting at ``START_NS``. Deterministic for a seed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import time
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+import yaml
+from scipy.spatial.transform import Rotation
+
+from adalio.config import validate_transform
+from adalio.errors import InputError
+from adalio.sim.bagout import FORMATS, SimBagWriter, bag_path_for
+from adalio.sim.imu import GRAVITY_M_S2, ImuNoise, synthesize_imu
+from adalio.sim.lidar import LIDAR_MODELS, Occluder, RayCaster, SweepSimulator, lidar_model
+from adalio.sim.scenes import build_scene
+from adalio.sim.trajectory import Trajectory
+
+SCENES = ("hall", "corridor", "spiral", "stairs_garage")
+START_NS = 1_646_304_541_527_137_000
+"""Sequence start (epoch ns), the first HILTI 2022 exp04 sweep."""
+IMU_RATE_HZ = 400.0
+GT_RATE_HZ = 100.0
+T_IMU_LIDAR_HILTI = [[0.0, -1.0, 0.0, -0.001], [-1.0, 0.0, 0.0, -0.00855],
+                     [0.0, 0.0, -1.0, 0.055], [0.0, 0.0, 0.0, 1.0]]
+"""HILTI 2022 PandarXT-32 -> BMI085 extrinsic (p_imu = R p_lidar + t)."""
+MIN_CLEARANCE_M = 0.25
+
+
+@dataclass
+class SimResult:
+    """Paths of a generated sequence."""
+
+    bag_path: Path
+    gt_path: Path
+    meta_path: Path
+    config_path: Path
+
+
+def _ns_to_s_str(t_ns: int) -> str:
+    return f"{t_ns // 1_000_000_000}.{t_ns % 1_000_000_000:09d}"
+
+
+def _check_args(scene: str, duration_s: float | None, lidar: str, fmt: str,
+                noise_scale: float) -> None:
+    if scene not in SCENES:
+        raise InputError(f"unknown scene '{scene}': choose one of {', '.join(SCENES)}")
+    if lidar not in LIDAR_MODELS:
+        raise InputError(f"unknown lidar '{lidar}': choose one of {', '.join(LIDAR_MODELS)}")
+    if fmt not in FORMATS:
+        raise InputError(f"unknown bag format '{fmt}': choose one of {', '.join(FORMATS)}")
+    if duration_s is not None and not duration_s > 0.5:
+        raise InputError(f"--duration must be > 0.5 s (got {duration_s})")
+    if not noise_scale >= 0:
+        raise InputError(f"--noise-scale must be >= 0 (got {noise_scale})")
+
+
+def build_trajectory(scene_obj, T_imu_lidar: np.ndarray, seed: int) -> Trajectory:
+    """The walking trajectory of a scene for a seed."""
+    return Trajectory(scene_obj.waypoints_m, scene_obj.speed_limit_m_s,
+                      T_imu_lidar[:3, :3].T, seed=seed, fillet_m=scene_obj.fillet_m)
+
+
+def mesh_distance_m(caster: RayCaster, points: np.ndarray, n_dirs: int = 256) -> np.ndarray:
+    """Exact distance of each point to the mesh surface (metres).
+
+    Embree rays in ``n_dirs`` directions give an upper bound; the exact point-triangle distance
+    is then computed for the triangles whose bounding box lies within that bound.
+    """
+    k = np.arange(n_dirs) + 0.5
+    phi = np.arccos(1 - 2 * k / n_dirs)
+    th = np.pi * (1 + 5**0.5) * k
+    dirs = np.column_stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)])
+    P = np.asarray(points, dtype=np.float64)
+    d, _ = caster.cast(np.repeat(P, n_dirs, axis=0), np.tile(dirs, (len(P), 1)))
+    bound = d.reshape(len(P), n_dirs).min(axis=1)
+    tris = caster.mesh.triangles
+    lo, hi = tris.min(axis=1), tris.max(axis=1)
+    out = np.empty(len(P))
+    for i, (p, b) in enumerate(zip(P, bound, strict=True)):
+        box_d = np.linalg.norm(np.maximum(np.maximum(lo - p, p - hi), 0.0), axis=1)
+        cand = np.flatnonzero(box_d <= min(b, 1e3) + 1e-9)
+        if len(cand) == 0:
+            out[i] = b
+            continue
+        q = trimesh.triangles.closest_point(tris[cand], np.repeat(p[None], len(cand), axis=0))
+        out[i] = np.linalg.norm(q - p, axis=1).min()
+    return out
+
+
+def _config_dict(model_name: str, model, T_imu_lidar: np.ndarray) -> dict:
+    sensor = {"lidar_topic": model.lidar_topic, "imu_topic": model.imu_topic,
+              "T_imu_lidar": np.asarray(T_imu_lidar).tolist(), "extrinsic_source": "config",
+              "imu_rate_hz": IMU_RATE_HZ, "lidar_rate_hz": model.rate_hz}
+    if model_name == "ouster64":
+        sensor.update(point_time_field="t", point_time_unit="ns", point_time_reference="relative")
+        return {"preset": "ouster", "sensor": sensor}
+    sensor.update(point_time_field="timestamp", point_time_unit="s",
+                  point_time_reference="absolute")
+    return {"preset": "hilti2022", "sensor": sensor}
+
+
+def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: float | None = None,
+             lidar: str = "xt32", fmt: str = "ros1", columns: int | None = None,
+             noise_scale: float = 1.0, progress: bool = False,
+             T_imu_lidar: list[list[float]] | np.ndarray | None = None,
+             occluder: bool = True) -> SimResult:
+    """Generate one sequence of ``scene`` into ``out_dir`` (created; the bag must not exist).
+
+    ``duration_s`` None walks the whole route; shorter values truncate it (static start kept).
+    ``noise_scale`` multiplies all sensor noise, dropouts and initial IMU biases (0 = perfect).
+    """
+    _check_args(scene, duration_s, lidar, fmt, noise_scale)
+    wall0 = time.perf_counter()
+    T_il = validate_transform(T_IMU_LIDAR_HILTI if T_imu_lidar is None else T_imu_lidar,
+                              "T_imu_lidar")
+    model = lidar_model(lidar, columns)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    bag_path = bag_path_for(out_dir, scene, fmt)
+    if bag_path.exists():
+        raise InputError(f"{bag_path} already exists: delete it or choose another --out")
+    scn = build_scene(scene, seed)
+    traj = build_trajectory(scn, T_il, seed)
+    dur = math.floor(traj.duration_s * 10.0) / 10.0 if duration_s is None else float(duration_s)
+    dur_ns = int(round(dur * 1e9))
+    t0 = START_NS
+
+    caster = RayCaster(scn.mesh, seed)
+    t_check = np.arange(traj.static_s, dur, 0.1)
+    clearance = float(mesh_distance_m(caster, traj.sample(t_check).p_world_imu_m).min())
+    if clearance < MIN_CLEARANCE_M:
+        raise InputError(f"scene {scene} seed {seed}: route passes {clearance:.2f} m from the "
+                         "geometry; try another --seed")
+
+    imu_dt_ns = int(round(1e9 / IMU_RATE_HZ))
+    t_imu = t0 + np.arange(dur_ns // imu_dt_ns + 1, dtype=np.int64) * imu_dt_ns
+    imu_noise = ImuNoise()
+    imu = synthesize_imu(traj, t_imu, t0, np.random.default_rng([seed, 200]), imu_noise,
+                         noise_scale, IMU_RATE_HZ)
+    period = model.period_ns
+    n_scans = dur_ns // period
+    sim = SweepSimulator(caster, traj, model, T_il, t0, Occluder() if occluder else None)
+    n_points = 0
+    bar = None
+    if progress:
+        from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+        bar = Progress(TextColumn(f"simulating {scene}"), BarColumn(),
+                       TextColumn("{task.completed}/{task.total} sweeps"), TimeRemainingColumn())
+        bar.start()
+        task = bar.add_task("sweeps", total=int(n_scans))
+    try:
+        with SimBagWriter(bag_path, fmt, model) as writer:
+            i_imu = 0
+            for k in range(int(n_scans)):
+                stamp = t0 + k * period
+                record = stamp + period
+                j = int(np.searchsorted(t_imu, record, side="right"))
+                if j > i_imu:
+                    writer.write_imu(t_imu[i_imu:j], imu.gyro_rad_s[i_imu:j],
+                                     imu.accel_m_s2[i_imu:j])
+                    i_imu = j
+                sweep = sim.sweep(stamp, np.random.default_rng([seed, 100, k]), noise_scale)
+                n_points += writer.write_sweep(sweep, stamp, record)
+                if bar is not None:
+                    bar.advance(task)
+            if i_imu < len(t_imu):
+                writer.write_imu(t_imu[i_imu:], imu.gyro_rad_s[i_imu:], imu.accel_m_s2[i_imu:])
+    except BaseException:
+        if bag_path.is_dir():
+            shutil.rmtree(bag_path, ignore_errors=True)
+        elif bag_path.exists():
+            bag_path.unlink()
+        raise
+    finally:
+        if bar is not None:
+            bar.stop()
+
+    gt_dt_ns = int(round(1e9 / GT_RATE_HZ))
+    t_gt = t0 + np.arange(dur_ns // gt_dt_ns + 1, dtype=np.int64) * gt_dt_ns
+    s = traj.sample((t_gt - t0) * 1e-9)
+    R0, p0 = s.R_world_imu[0], s.p_world_imu_m[0]
+    R_gt = np.einsum("ji,njk->nik", R0, s.R_world_imu)
+    p_gt = (s.p_world_imu_m - p0) @ R0
+    q_gt = Rotation.from_matrix(R_gt).as_quat()
+    gt_path = out_dir / "gt.tum"
+    with open(gt_path, "w") as f:
+        f.write("# t_s x y z qx qy qz qw (IMU pose in world = IMU frame at t0)\n")
+        for t, p, q in zip(t_gt.tolist(), p_gt, q_gt, strict=True):
+            f.write(_ns_to_s_str(t) + " " + " ".join(f"{v:.9f}" for v in (*p, *q)) + "\n")
+
+    T_scene_world = np.eye(4)
+    T_scene_world[:3, :3] = R0
+    T_scene_world[:3, 3] = p0
+    scn.mesh.export(out_dir / "scene.ply")
+    meta = {
+        "scene": scene, "seed": int(seed), "duration_s": dur, "lidar": model.name,
+        "format": fmt, "columns": model.columns, "channels": model.channels,
+        "noise_scale": float(noise_scale), "occluder": bool(occluder),
+        "topics": {"lidar": model.lidar_topic, "imu": model.imu_topic},
+        "frame_ids": {"lidar": model.lidar_frame, "imu": model.imu_frame},
+        "T_imu_lidar": T_il.tolist(), "T_scene_world": T_scene_world.tolist(),
+        "start_time_ns": t0, "start_time_s": _ns_to_s_str(t0), "static_s": traj.static_s,
+        "imu_rate_hz": IMU_RATE_HZ, "lidar_rate_hz": model.rate_hz, "gt_rate_hz": GT_RATE_HZ,
+        "gravity_m_s2": GRAVITY_M_S2, "n_scans": int(n_scans), "n_imu": int(len(t_imu)),
+        "n_points": int(n_points), "route_length_m": traj.route_length_m,
+        "min_clearance_m": round(clearance, 4),
+        "range_noise_m": model.range_noise_m * noise_scale,
+        "imu_noise": {k: v for k, v in vars(imu_noise).items()},
+        "gyro_bias0_rad_s": imu.gyro_bias_rad_s[0].tolist(),
+        "accel_bias0_m_s2": imu.accel_bias_m_s2[0].tolist(),
+        "bag": bag_path.name,
+    }
+    meta_path = out_dir / "meta.json"
+    meta_path.write_text(json.dumps(meta, indent=2) + "\n")
+    config_path = out_dir / "config.yaml"
+    config_path.write_text(yaml.safe_dump(_config_dict(model.name, model, T_il), sort_keys=False,
+                                          default_flow_style=None))
+    _ = time.perf_counter() - wall0
+    return SimResult(bag_path=bag_path, gt_path=gt_path, meta_path=meta_path,
+                     config_path=config_path)
+
+
+def cache_root() -> Path:
+    """``$ADALIO_CACHE_DIR`` (default ``~/.cache/adalio``) / sim."""
+    return Path(os.environ.get("ADALIO_CACHE_DIR", "~/.cache/adalio")).expanduser() / "sim"
+
+
+def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = None,
+                    lidar: str = "xt32", fmt: str = "ros1",
+                    columns: int | None = None) -> SimResult:
+    """Generate once (atomically: temp folder + rename + completion marker) and reuse."""
+    _check_args(scene, duration_s, lidar, fmt, 1.0)
+    cols = lidar_model(lidar, columns).columns
+    dur = "full" if duration_s is None else f"{float(duration_s):g}"
+    key = f"{scene}-s{seed}-d{dur}-{lidar}-{fmt}-c{cols}"
+    final = cache_root() / key
+
+    def result(d: Path) -> SimResult:
+        return SimResult(bag_path=bag_path_for(d, scene, fmt), gt_path=d / "gt.tum",
+                         meta_path=d / "meta.json", config_path=d / "config.yaml")
+
+    if (final / "COMPLETE").is_file():
+        return result(final)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = final.parent / f".{key}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    try:
+        simulate(scene, tmp, seed=seed, duration_s=duration_s, lidar=lidar, fmt=fmt,
+                 columns=columns)
+        (tmp / "COMPLETE").write_text("ok\n")
+        if final.exists() and not (final / "COMPLETE").is_file():
+            shutil.rmtree(final, ignore_errors=True)
+        try:
+            os.rename(tmp, final)
+        except OSError:
+            if not (final / "COMPLETE").is_file():
+                raise
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return result(final)
