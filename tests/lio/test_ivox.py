@@ -1,0 +1,278 @@
+"""IVox map and insertion rule against brute force and a plain-Python model (lio-design.md §7)."""
+
+import numpy as np
+import pytest
+
+from adalio.config import MapConfig
+from adalio.errors import ConfigError, InputError
+from adalio.lio.ivox import IVox, nearby_offsets, select_for_insertion
+
+
+def voxel_keys(points: np.ndarray, resolution_m: float) -> np.ndarray:
+    return np.floor(points / resolution_m + 0.5).astype(np.int64)
+
+
+def brute_knn_in_neighbourhood(
+    map_points: np.ndarray,
+    queries: np.ndarray,
+    k: int,
+    max_range_m: float,
+    resolution_m: float,
+    nearby_type: int,
+) -> list[np.ndarray]:
+    """Sorted squared distances of the k nearest points whose voxel is in the searched set."""
+    offset_codes = nearby_offsets(nearby_type) @ np.array([9, 3, 1]) + 13
+    pkeys = voxel_keys(map_points, resolution_m)
+    out = []
+    for q, qk in zip(queries, voxel_keys(queries, resolution_m), strict=True):
+        rel = pkeys - qk
+        close = np.all(np.abs(rel) <= 1, axis=1)
+        in_set = close & np.isin(rel @ np.array([9, 3, 1]) + 13, offset_codes)
+        d2 = np.sum((map_points[in_set] - q) ** 2, axis=1)
+        d2 = np.sort(d2[d2 < max_range_m**2])
+        out.append(d2[:k])
+    return out
+
+
+def random_map(
+    seed: int, n: int = 4000, half_m: float = 2.0
+) -> tuple[np.random.Generator, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return rng, rng.uniform(-half_m, half_m, size=(n, 3))
+
+
+@pytest.mark.parametrize("nearby_type", [0, 6, 18, 26])
+def test_knn_equals_brute_force_over_searched_voxels(nearby_type: int) -> None:
+    rng, pts = random_map(0)
+    ivox = IVox(0.5, nearby_type, 10**6, 1000)
+    ivox.add_points(pts)
+    queries = rng.uniform(-2.2, 2.2, size=(300, 3))
+    nbrs, counts, dist2 = ivox.knn(queries, 5, 5.0)
+    expected = brute_knn_in_neighbourhood(pts, queries, 5, 5.0, 0.5, nearby_type)
+    for i, e in enumerate(expected):
+        assert counts[i] == len(e)
+        np.testing.assert_array_equal(dist2[i, : len(e)], e)
+        assert np.all(np.isinf(dist2[i, len(e) :]))
+        assert np.all(np.isnan(nbrs[i, len(e) :]))
+        np.testing.assert_allclose(
+            np.sum((nbrs[i, : len(e)] - queries[i]) ** 2, axis=1), e, rtol=0, atol=0
+        )
+
+
+def test_knn_recall_and_exact_nearest_against_global_brute_force() -> None:
+    rng, pts = random_map(1, n=6000)
+    s = 0.5
+    queries = rng.uniform(-1.8, 1.8, size=(600, 3))
+    d2_all = np.sum((queries[:, None, :] - pts[None, :, :]) ** 2, axis=2)
+    true_idx = np.argsort(d2_all, axis=1)[:, :5]
+    true_d2 = np.take_along_axis(d2_all, true_idx, axis=1)
+    within_voxel = true_d2[:, -1] <= s**2
+    assert within_voxel.mean() > 0.9
+    recall = {}
+    for nearby_type in (6, 18, 26):
+        ivox = IVox(s, nearby_type, 10**6, 1000)
+        ivox.add_points(pts)
+        nbrs, counts, dist2 = ivox.knn(queries, 5, 5.0)
+        hits = [
+            len(set(map(tuple, pts[true_idx[i]])) & set(map(tuple, nbrs[i, : counts[i]])))
+            for i in np.flatnonzero(within_voxel)
+        ]
+        recall[nearby_type] = float(round(np.sum(hits) / (5.0 * within_voxel.sum()), 4))
+        searched = {tuple(o) for o in nearby_offsets(nearby_type)}
+        nearest_key = voxel_keys(pts[true_idx[:, 0]], s) - voxel_keys(queries, s)
+        nearest_inside = np.array([tuple(r) in searched for r in nearest_key])
+        np.testing.assert_array_equal(dist2[nearest_inside, 0], true_d2[nearest_inside, 0])
+        np.testing.assert_array_equal(nbrs[nearest_inside, 0], pts[true_idx[nearest_inside, 0]])
+    print(f"iVox kNN recall (k=5, true kNN within one voxel, s={s}): {recall}")
+    assert recall[18] >= 0.95
+    assert recall[6] <= recall[18] <= recall[26]
+
+    cheb = np.max(np.abs(pts[true_idx] - queries[:, None, :]), axis=(1, 2))
+    inside_cube = cheb <= s / 2
+    ivox26 = IVox(s, 26, 10**6, 1000)
+    ivox26.add_points(pts)
+    _, _, d2_26 = ivox26.knn(queries[inside_cube], 5, 5.0)
+    np.testing.assert_array_equal(d2_26, true_d2[inside_cube])
+
+
+def test_max_range_is_respected() -> None:
+    rng, pts = random_map(2)
+    ivox = IVox(0.5, 18, 10**6, 1000)
+    ivox.add_points(pts)
+    queries = rng.uniform(-2, 2, size=(300, 3))
+    for max_range in (0.05, 0.1, 0.2):
+        nbrs, counts, dist2 = ivox.knn(queries, 5, max_range)
+        expected = brute_knn_in_neighbourhood(pts, queries, 5, max_range, 0.5, 18)
+        np.testing.assert_array_equal(counts, [len(e) for e in expected])
+        used = np.arange(5)[None, :] < counts[:, None]
+        assert np.all(dist2[used] < max_range**2)
+        ranges = np.linalg.norm(nbrs - queries[:, None, :], axis=2)
+        assert np.all(ranges[used] < max_range * (1 + 1e-12))
+        assert np.all(np.isinf(dist2[~used]))
+    assert counts.min() < 5 and counts.max() > 0
+
+
+def test_empty_map_and_bad_input() -> None:
+    ivox = IVox(0.5, 18, 100, 8)
+    nbrs, counts, dist2 = ivox.knn(np.zeros((3, 3)), 5, 5.0)
+    assert nbrs.shape == (3, 5, 3) and dist2.shape == (3, 5)
+    assert np.all(counts == 0) and np.all(np.isnan(nbrs)) and np.all(np.isinf(dist2))
+    assert ivox.points().shape == (0, 3)
+    with pytest.raises(InputError):
+        ivox.add_points(np.zeros((3, 2)))
+    with pytest.raises(InputError):
+        ivox.knn(np.zeros(3), 5, 1.0)
+    with pytest.raises(ConfigError):
+        IVox(0.5, 5, 100, 8)
+    with pytest.raises(ConfigError):
+        IVox(0.0, 18, 100, 8)
+    ivox.add_points(np.array([[np.nan, 0, 0], [0.1, 0.1, 0.1]]))
+    assert ivox.num_points == 1 and ivox.num_voxels == 1
+    from_cfg = IVox.from_config(MapConfig())
+    assert from_cfg.resolution_m == MapConfig().ivox_resolution_m
+
+
+def voxel_sets(ivox: IVox) -> dict[tuple, set[tuple]]:
+    out: dict[tuple, set[tuple]] = {}
+    pts = ivox.points()
+    for p, key in zip(pts, voxel_keys(pts, ivox.resolution_m), strict=True):
+        out.setdefault(tuple(key), set()).add(tuple(p))
+    return out
+
+
+def test_eviction_is_least_recently_inserted_first() -> None:
+    ivox = IVox(1.0, 18, 3, 8)
+    a, b, c, d, e = (np.array([[10.0 * i, 0.0, 0.0]]) for i in range(5))
+    for p in (a, b, c):
+        ivox.add_points(p)
+    ivox.add_points(a + 0.1)
+    ivox.add_points(d)
+    assert ivox.num_voxels == 3
+    assert set(voxel_sets(ivox)) == {(0, 0, 0), (20, 0, 0), (30, 0, 0)}
+    ivox.add_points(e)
+    assert set(voxel_sets(ivox)) == {(0, 0, 0), (30, 0, 0), (40, 0, 0)}
+    _, counts, _ = ivox.knn(np.vstack([b, c]), 5, 5.0)
+    np.testing.assert_array_equal(counts, [0, 0])
+    assert ivox.num_points == 4
+
+    batch = IVox(1.0, 18, 3, 8)
+    batch.add_points(np.vstack([a, b, c, d, e]))
+    assert set(voxel_sets(batch)) == {(20, 0, 0), (30, 0, 0), (40, 0, 0)}
+
+
+def test_per_voxel_cap_replaces_oldest() -> None:
+    for cap in (4, 10, 16):
+        ivox = IVox(1.0, 18, 100, cap)
+        pts = np.column_stack([np.linspace(0.0, 0.4, 23), np.zeros(23), np.zeros(23)])
+        ivox.add_points(pts[:5])
+        ivox.add_points(pts[5:])
+        assert ivox.num_points == cap and ivox.num_voxels == 1
+        assert set(map(tuple, ivox.points())) == set(map(tuple, pts[-cap:]))
+
+
+def reference_model_points(
+    batches: list[np.ndarray], resolution_m: float, capacity: int, cap: int
+) -> dict[tuple, set[tuple]]:
+    """Plain-Python iVox: per-voxel FIFO of `cap` points, LRU by last insertion, batch eviction."""
+    voxels: dict[tuple, list[tuple]] = {}
+    stamp: dict[tuple, int] = {}
+    seq = 0
+    for batch in batches:
+        for p, key in zip(batch, voxel_keys(batch, resolution_m), strict=True):
+            key = tuple(key)
+            voxels.setdefault(key, []).append(tuple(p))
+            voxels[key] = voxels[key][-cap:]
+            stamp[key] = seq
+            seq += 1
+        while len(voxels) > capacity:
+            oldest = min(voxels, key=stamp.__getitem__)
+            del voxels[oldest]
+            del stamp[oldest]
+    return {k: set(v) for k, v in voxels.items()}
+
+
+def test_random_insert_evict_sequence_matches_reference_model() -> None:
+    rng = np.random.default_rng(7)
+    ivox = IVox(0.5, 18, 40, 10)
+    batches = []
+    centre = np.zeros(3)
+    for _ in range(30):
+        centre = centre + rng.normal(scale=0.6, size=3)
+        batch = centre + rng.normal(scale=0.8, size=(int(rng.integers(1, 60)), 3))
+        batches.append(batch)
+        ivox.add_points(batch)
+        expected = reference_model_points(batches, 0.5, 40, 10)
+        assert voxel_sets(ivox) == expected
+        assert ivox.num_points == sum(len(v) for v in expected.values())
+        assert ivox.num_voxels == len(expected)
+    queries = centre + rng.normal(scale=1.0, size=(200, 3))
+    pts = ivox.points()
+    _, counts, dist2 = ivox.knn(queries, 5, 5.0)
+    expected = brute_knn_in_neighbourhood(pts, queries, 5, 5.0, 0.5, 18)
+    for i, e in enumerate(expected):
+        np.testing.assert_array_equal(dist2[i, : counts[i]], e)
+
+
+def test_deterministic_outputs() -> None:
+    rng, pts = random_map(9, n=3000)
+    queries = rng.uniform(-2, 2, size=(500, 3))
+    runs = []
+    for _ in range(2):
+        ivox = IVox(0.4, 18, 200, 6)
+        for chunk in np.array_split(pts, 7):
+            ivox.add_points(chunk)
+        runs.append((ivox.points(), *ivox.knn(queries, 5, 1.0)))
+    for a, b in zip(runs[0], runs[1], strict=True):
+        np.testing.assert_array_equal(a, b)
+    reversed_rows = ivox.knn(queries[::-1], 5, 1.0)
+    for a, b in zip(runs[1][1:], reversed_rows, strict=True):
+        np.testing.assert_array_equal(a, b[::-1])
+
+
+def nbr_rows(rows: list[list[float]], k: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    nbrs = np.full((1, k, 3), np.nan)
+    nbrs[0, : len(rows)] = np.array(rows, dtype=float).reshape(-1, 3)
+    return nbrs, np.array([len(rows)])
+
+
+def insert(q: list[float], rows: list[list[float]], leaf: float = 1.0, insert_all=False) -> bool:
+    nbrs, counts = nbr_rows(rows)
+    return bool(select_for_insertion(np.array([q]), nbrs, counts, leaf, insert_all)[0])
+
+
+def test_insertion_rule_branches() -> None:
+    q = [0.3, 0.3, 0.3]
+    centre_hugging = [[0.5, 0.5, 0.5], [0.51, 0.5, 0.5], [0.5, 0.52, 0.5]] + [[0.5, 0.5, 0.53]] * 2
+    assert insert(q, centre_hugging, insert_all=True)
+    assert not insert(q, centre_hugging)
+    assert insert(q, [])
+    assert insert(q, centre_hugging[:4])
+
+    q_far = [0.05, 0.05, 0.05]
+    rest_at_centre = [[0.5, 0.5, 0.5]] * 4
+    assert insert(q_far, [[1.05, 1.05, 1.05]] + rest_at_centre)
+    assert not insert(q_far, [[1.05, 1.05, 0.9]] + rest_at_centre)
+    assert not insert(q_far, [[1.05, 1.05, 0.5]] * 5)
+    assert insert(q_far, [[1.05, 1.05, 0.9]] + rest_at_centre[:3])
+
+    q_central = [0.25, 0.5, 0.5]
+    farther = [[0.1, 0.5, 0.5], [0.5, 0.1, 0.5], [0.5, 0.5, 0.1], [0.9, 0.5, 0.5], [0.5, 0.9, 0.5]]
+    assert insert(q_central, farther)
+    assert not insert(q_central, farther[:4] + [[0.5, 0.5, 0.6]])
+    assert not insert(q_central, farther[:4] + [[0.5, 0.75, 0.5]])
+
+
+def test_insertion_cell_centre_uses_floor_for_negative_coordinates() -> None:
+    q = [-0.3, -0.3, -0.3]
+    assert insert(q, [[0.05, 0.05, 0.05]] + [[0.5, 0.5, 0.5]] * 4)
+    assert not insert(q, [[-0.45, -0.45, -0.45]] + [[-0.5, -0.5, -0.5]] * 4)
+    assert insert([-0.3, -0.3, -0.3], [[-0.9, -0.1, -0.1]] * 5, leaf=1.0)
+
+
+def test_insertion_batch_and_small_k() -> None:
+    q = np.array([[0.3, 0.3, 0.3], [0.45, 0.5, 0.5]])
+    nbrs = np.full((2, 3, 3), 0.5)
+    counts = np.array([3, 3])
+    np.testing.assert_array_equal(select_for_insertion(q, nbrs, counts, 1.0, False), [True, True])
+    with pytest.raises(InputError):
+        select_for_insertion(q, nbrs[:1], counts, 1.0, False)
