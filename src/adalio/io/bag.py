@@ -226,8 +226,8 @@ class Bag:
             except StopIteration:
                 return
             except Exception as exc:
-                raise BagError(f"cannot read bag {self.path} past "
-                               f"{getattr(self, '_last_t', self.start_ns) * 1e-9:.3f} s: "
+                done_s = (getattr(self, "_last_t", self.start_ns) - self.start_ns) * 1e-9
+                raise BagError(f"cannot read bag {self.path} after {done_s:.3f} s of it: "
                                f"{_reason(exc)}; it is truncated or corrupted (rows written so "
                                "far are kept)") from None
             self._last_t = int(t_ns)

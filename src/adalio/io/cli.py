@@ -83,7 +83,7 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
         try:
             lidar, imu = b.select_topics(cfg.sensor)
         except BagError as exc:
-            out.print(f"[yellow]topics:[/] {exc}", highlight=False)
+            out.print(f"[yellow]topics:[/] {exc}", highlight=False, soft_wrap=True)
             return
         out.print(f"would use: lidar [bold]{lidar}[/], imu [bold]{imu}[/]")
         dec = CloudDecoder(cfg.sensor, lidar)
@@ -96,9 +96,9 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
                     f"{'big' if msg.is_bigendian else 'little'}-endian)"
                 frame = msg.header.frame_id
             counts.append(len(dec.decode(msg)))
-        out.print(f"cloud fields: {layout}  frame '{frame}'", highlight=False)
+        out.print(f"cloud fields: {layout}  frame '{frame}'", highlight=False, soft_wrap=True)
         spec = dec.time_spec.describe() if dec.time_spec else "unknown"
-        out.print(f"per-point time: {spec}", highlight=False)
+        out.print(f"per-point time: {spec}", highlight=False, soft_wrap=True)
         if counts:
             out.print(f"points per scan (first {len(counts)}): min {min(counts)}, "
                       f"median {statistics.median(counts):.0f}, max {max(counts)}")
@@ -154,17 +154,17 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
     status = "[yellow]interrupted[/]" if res.interrupted else "[green]done[/]"
     con.print(f"{status}: {res.n_scans} poses from {res.n_scans_in} scans in {res.wall_s:.1f} s "
               f"({res.n_scans_in / max(res.wall_s, 1e-9):.1f} scans/s, median "
-              f"{res.ms_per_scan_median:.1f} ms/scan) → {res.out_dir}", highlight=False)
+              f"{res.ms_per_scan_median:.1f} ms/scan) → {res.out_dir}", highlight=False, soft_wrap=True)
     con.print(f"topics: {res.lidar_topic} + {res.imu_topic}; extrinsic from "
-              f"{res.extrinsic_source}; point time {res.time_spec}", highlight=False)
+              f"{res.extrinsic_source}; point time {res.time_spec}", highlight=False, soft_wrap=True)
     ranges = ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in res.degenerate_ranges_s[:8])
     more = " ..." if len(res.degenerate_ranges_s) > 8 else ""
     con.print(f"degenerate scans: {res.n_degenerate}/{res.n_scans}"
-              + (f" at {ranges}{more}" if ranges else ""), highlight=False)
+              + (f" at {ranges}{more}" if ranges else ""), highlight=False, soft_wrap=True)
     if res.sequencer is not None:
         for msg in res.sequencer.messages:
             if msg.startswith("skipped"):
-                con.print(f"[yellow]note:[/] {msg}", highlight=False)
+                con.print(f"[yellow]note:[/] {msg}", highlight=False, soft_wrap=True)
     if res.stage_ms:
         n = max(res.n_scans_in, 1)
         total = sum(res.stage_ms.values())
@@ -178,7 +178,7 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
             con.print(table)
         else:
             con.print("stages (ms/scan): " + ", ".join(
-                f"{stage} {ms / n:.1f}" for stage, ms in res.stage_ms.items()), highlight=False)
+                f"{stage} {ms / n:.1f}" for stage, ms in res.stage_ms.items()), highlight=False, soft_wrap=True)
 
 
 # ------------------------------------------------------------------------------------ config

@@ -1,0 +1,252 @@
+"""`adalio info` / `adalio run` / `adalio config show` through the console entry point:
+bad inputs give one line and exit 2; runs write parseable outputs, also when interrupted."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parent / "io"))
+import bagfactory as bf  # noqa: E402
+
+from adalio import cli  # noqa: E402
+from adalio.config import config_from_dict, load_config  # noqa: E402
+from adalio.io.bagwrite import BagWriter  # noqa: E402
+from adalio.io.writers import SCANS_CSV_COLUMNS, read_ply_points, read_tum  # noqa: E402
+
+
+def run_cli(monkeypatch, capsys, *argv: str) -> tuple[int, str, str]:
+    monkeypatch.setattr(sys, "argv", ["adalio", *map(str, argv)])
+    try:
+        cli.main()
+        code = 0
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_one_line_error(code: int, err: str, *fragments: str) -> None:
+    assert code == 2, err
+    assert "Traceback" not in err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    errors = [ln for ln in lines if ln.startswith("error:")]
+    assert len(errors) == 1, err
+    for frag in fragments:
+        assert frag in errors[0], errors[0]
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory) -> Path:
+    return bf.write_static_rig(tmp_path_factory.mktemp("rig") / "rig.bag", duration_s=2.0,
+                               columns=180)
+
+
+# ------------------------------------------------------------------ bad inputs
+@pytest.mark.parametrize("cmd", ["run", "info"])
+def test_missing_path(monkeypatch, capsys, tmp_path, cmd):
+    code, _, err = run_cli(monkeypatch, capsys, cmd, tmp_path / "nope.bag")
+    assert_one_line_error(code, err, "nope.bag does not exist")
+
+
+def test_not_a_bag(monkeypatch, capsys, tmp_path):
+    (tmp_path / "notes.txt").write_text("hello")
+    code, _, err = run_cli(monkeypatch, capsys, "run", tmp_path / "notes.txt")
+    assert_one_line_error(code, err, "notes.txt is not a bag")
+    (tmp_path / "fake.bag").write_text("hello, I am not a bag")
+    code, _, err = run_cli(monkeypatch, capsys, "info", tmp_path / "fake.bag")
+    assert_one_line_error(code, err, "fake.bag is not a ROS1 bag")
+
+
+@pytest.mark.parametrize("fmt,name", [("ros1", "r.bag"), ("mcap_file", "r.mcap")])
+def test_truncated_bag(monkeypatch, capsys, tmp_path, fmt, name):
+    good = bf.write_static_rig(tmp_path / name, fmt, duration_s=0.5, columns=30)
+    data = good.read_bytes()
+    bad = tmp_path / f"cut_{name}"
+    bad.write_bytes(data[: len(data) * 2 // 3])
+    code, _, err = run_cli(monkeypatch, capsys, "run", bad, "--out", tmp_path / "o")
+    assert_one_line_error(code, err, f"cannot read bag {bad}", "truncated or corrupted")
+
+
+def test_missing_and_ambiguous_topics(monkeypatch, capsys, tmp_path, rig):
+    code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--lidar-topic", "/nope")
+    assert_one_line_error(code, err, "topic /nope is not in", "/points", "--lidar-topic")
+    code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--imu-topic", "/points")
+    assert_one_line_error(code, err, "/points", "is sensor_msgs/msg/PointCloud2, not "
+                          "sensor_msgs/Imu")
+    two = tmp_path / "two.bag"
+    pts, t_rel, _ = bf.box_scan(columns=10)
+    cols = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "t": t_rel}
+    layout = [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("t", 12, "u4")]
+    with BagWriter(two) as w:
+        w.add_cloud("/a", bf.T0_NS, cols, layout, 16)
+        w.add_cloud("/b", bf.T0_NS, cols, layout, 16)
+    code, _, err = run_cli(monkeypatch, capsys, "run", two)
+    assert_one_line_error(code, err, "several sensor_msgs/PointCloud2 topics (/a, /b)",
+                          "--lidar-topic")
+    code, _, err = run_cli(monkeypatch, capsys, "run", two, "--lidar-topic", "/a")
+    assert_one_line_error(code, err, "has no sensor_msgs/Imu topic")
+
+
+def test_cloud_without_xyz(monkeypatch, capsys, tmp_path):
+    layout = [("x", 0, "f4"), ("y", 4, "f4"), ("intensity", 8, "f4"), ("t", 12, "u4")]
+    path = bf.write_static_rig(tmp_path / "noz.bag", duration_s=0.5, columns=30, layout=layout,
+                               point_step=16)
+    for cmd in ("run", "info"):
+        code, _, err = run_cli(monkeypatch, capsys, cmd, path)
+        assert_one_line_error(code, err, "PointCloud2 on /points has no z field",
+                              "fields: x, y, intensity, t")
+
+
+def test_imu_not_covering_scans(monkeypatch, capsys, tmp_path):
+    path = bf.write_static_rig(tmp_path / "late_imu.bag", duration_s=0.5, columns=30,
+                               imu_offset_s=100.0)
+    code, _, err = run_cli(monkeypatch, capsys, "run", path, "--out", tmp_path / "o")
+    assert_one_line_error(code, err, "IMU on /imu", "does not cover any scan on /points")
+
+
+def test_non_monotonic_imu_stamps(monkeypatch, capsys, tmp_path):
+    path = tmp_path / "backwards.bag"
+    pts, t_rel, _ = bf.box_scan(columns=30)
+    cols = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "t": t_rel}
+    layout = [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("t", 12, "u4")]
+    with BagWriter(path) as w:
+        for k in range(1000):
+            t = bf.T0_NS + k * 5_000_000
+            stamp = t - 3_000_000_000 if k == 800 else t
+            w.add_imu("/imu", stamp, [0, 0, 0], [0, 0, 9.81], t_recv_ns=t)
+            if k % 20 == 0 and k:
+                w.add_cloud("/points", t - 100_000_000, cols, layout, 16, t_recv_ns=t + 1)
+    code, _, err = run_cli(monkeypatch, capsys, "run", path, "--out", tmp_path / "o",
+                           "--no-progress")
+    assert_one_line_error(code, err, "IMU stamps on /imu go backwards: 1700000001.000000000 s",
+                          "re-stamp")
+
+
+@pytest.mark.parametrize("args,frag", [
+    (["--extrinsic", "0 0 0 0.5 0.5 0.5 0.1"], "is not a rotation"),
+    (["--extrinsic", "0 0 0 1 0"], "must be 7 numbers"),
+    (["--mode", "fast"], "adaptive.mode must be one of"),
+])
+def test_bad_flags(monkeypatch, capsys, rig, args, frag):
+    code, _, err = run_cli(monkeypatch, capsys, "run", rig, *args)
+    assert_one_line_error(code, err, frag)
+
+
+def test_config_extrinsic_not_rotation(monkeypatch, capsys, tmp_path, rig):
+    f = tmp_path / "c.yaml"
+    f.write_text("sensor:\n  T_imu_lidar: [[2,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]\n")
+    code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--config", f)
+    assert_one_line_error(code, err, "sensor.T_imu_lidar is not a rigid transform")
+
+
+# ------------------------------------------------------------------ info / config
+def test_info_reports_topics_and_time_format(monkeypatch, capsys, rig):
+    code, out, err = run_cli(monkeypatch, capsys, "info", rig)
+    assert code == 0, err
+    assert "would use: lidar /points, imu /imu" in out
+    assert "per-point time: 't' in ns, relative" in out
+    n = 180 * 16
+    assert f"min {n}, median {n}, max {n}" in out
+    assert "accelerometer in m/s^2" in out
+
+
+def test_config_show_roundtrips(monkeypatch, capsys):
+    code, out, _ = run_cli(monkeypatch, capsys, "config", "show", "hilti2022")
+    assert code == 0
+    cfg = config_from_dict(yaml.safe_load(out))
+    assert cfg.to_dict() == load_config("hilti2022").to_dict()
+    code, _, err = run_cli(monkeypatch, capsys, "config", "show", "hilt2022")
+    assert_one_line_error(code, err, "unknown preset 'hilt2022'", "hilti2022")
+
+
+# ------------------------------------------------------------------ runs
+def check_outputs(out_dir: Path, map_name: str = "map.ply") -> np.ndarray:
+    t_ns, poses = read_tum(out_dir / "trajectory.tum")
+    lines = (out_dir / "scans.csv").read_text().splitlines()
+    assert lines[0].split(",") == list(SCANS_CSV_COLUMNS)
+    assert len(lines) - 1 == len(t_ns)
+    csv_t = [ln.split(",")[0] for ln in lines[1:]]
+    tum_t = [ln.split()[0] for ln in (out_dir / "trajectory.tum").read_text().splitlines()]
+    assert csv_t == tum_t
+    assert all(len(s.split(".")[1]) == 9 for s in tum_t)
+    assert np.all(np.diff(t_ns) > 0)
+    np.testing.assert_allclose(np.linalg.norm(poses[:, 3:], axis=1), 1.0, atol=1e-6)
+    config_from_dict(yaml.safe_load((out_dir / "config.yaml").read_text()))
+    assert (out_dir / map_name).is_file()
+    return poses
+
+
+@pytest.mark.slow
+def test_run_static_rig_stays_at_origin(monkeypatch, capsys, tmp_path, rig):
+    out = tmp_path / "run"
+    code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--out", out, "--no-progress",
+                           "--profile")
+    assert code == 0, err
+    assert "per-stage time" in err
+    poses = check_outputs(out)
+    assert len(poses) >= 10
+    assert np.linalg.norm(poses[:, :3], axis=1).max() < 0.01
+    pts = read_ply_points(out / "map.ply")
+    assert len(pts) > 100
+    lo, hi = bf.BOX_LO, bf.BOX_HI
+    # every map point lies on a wall of the box room
+    d_wall = np.minimum(np.abs(pts - lo), np.abs(pts - hi)).min(axis=1)
+    assert np.percentile(d_wall, 99) < 0.05
+    header = (out / "map.ply").read_bytes()[:200].decode("ascii", "replace")
+    assert header.startswith("ply\nformat binary_little_endian 1.0\n")
+
+
+@pytest.mark.slow
+def test_run_pcd_map_and_empty_scans_counted(monkeypatch, capsys, tmp_path):
+    path = bf.write_static_rig(tmp_path / "gaps.bag", duration_s=1.5, columns=120,
+                               empty_scans=(6, 8))
+    out = tmp_path / "run"
+    code, _, err = run_cli(monkeypatch, capsys, "run", path, "--out", out, "--no-progress",
+                           "--map-format", "pcd")
+    assert code == 0, err
+    assert "warning: empty scan on /points" in err
+    assert "skipped 2 empty scans" in err
+    check_outputs(out, "map.pcd")
+    head = (out / "map.pcd").read_bytes()[:300].decode("ascii", "replace")
+    assert "FIELDS x y z" in head and "DATA binary" in head
+
+
+@pytest.mark.slow
+def test_ctrl_c_leaves_valid_partial_outputs(monkeypatch, capsys, tmp_path, rig):
+    import adalio.pipeline as pipeline
+
+    class Interrupting(pipeline.Sequencer):
+        def __iter__(self):
+            n = 0
+            for item in super().__iter__():
+                if not isinstance(item, pipeline.ImuBatch):
+                    n += 1
+                    if n > 10:
+                        raise KeyboardInterrupt
+                yield item
+
+    monkeypatch.setattr(pipeline, "Sequencer", Interrupting)
+    out = tmp_path / "run"
+    code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--out", out, "--no-progress")
+    assert code == 130, err
+    assert "interrupted" in err
+    poses = check_outputs(out)
+    assert 1 <= len(poses) <= 10
+    assert len(read_ply_points(out / "map.ply")) > 0
+
+
+@pytest.mark.slow
+def test_run_bag_api_max_scans_and_hook(tmp_path, rig):
+    from adalio.pipeline import run_bag
+
+    seen = []
+    res = run_bag(rig, load_config(), tmp_path / "api", progress=False, max_scans=9,
+                  on_scan=seen.append)
+    assert seen == list(range(1, 10)) and res.n_scans_in == 9
+    assert res.n_scans == len(read_tum(res.trajectory_path)[0]) and not res.interrupted
+    assert res.map_path.name == "map.ply" and res.config_path.is_file()
