@@ -106,7 +106,7 @@ def _degenerate_ranges(times_ns: list[int], flags: list[bool]) -> list[tuple[flo
     t0 = times_ns[0]
     out: list[tuple[float, float]] = []
     start = None
-    for i, (t, d) in enumerate(zip(times_ns, flags)):
+    for i, (t, d) in enumerate(zip(times_ns, flags, strict=True)):
         if d and start is None:
             start = t
         if start is not None and (not d or i == len(flags) - 1):
@@ -117,8 +117,14 @@ def _degenerate_ranges(times_ns: list[int], flags: list[bool]) -> list[tuple[flo
 
 
 def _progress(enabled: bool, total: int | None) -> Any:
-    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
-                               TimeElapsedColumn, TimeRemainingColumn)
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     return Progress(TextColumn("[bold]scans"), BarColumn(), MofNCompleteColumn(),
                     TextColumn("{task.fields[rate]}"), TimeElapsedColumn(), TextColumn("eta"),

@@ -15,7 +15,11 @@ from hypothesis import strategies as st
 from adalio.config import SensorConfig
 from adalio.errors import AdalioError, BagError
 from adalio.io.pointcloud2 import (
-    CloudDecoder, CloudLayout, TimeSpec, detect_time_spec, encode_pointcloud2,
+    CloudDecoder,
+    CloudLayout,
+    TimeSpec,
+    detect_time_spec,
+    encode_pointcloud2,
 )
 
 SCAN = (Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real"

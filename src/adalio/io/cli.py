@@ -154,9 +154,11 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
     status = "[yellow]interrupted[/]" if res.interrupted else "[green]done[/]"
     con.print(f"{status}: {res.n_scans} poses from {res.n_scans_in} scans in {res.wall_s:.1f} s "
               f"({res.n_scans_in / max(res.wall_s, 1e-9):.1f} scans/s, median "
-              f"{res.ms_per_scan_median:.1f} ms/scan) → {res.out_dir}", highlight=False, soft_wrap=True)
+              f"{res.ms_per_scan_median:.1f} ms/scan) → {res.out_dir}", highlight=False,
+              soft_wrap=True)
     con.print(f"topics: {res.lidar_topic} + {res.imu_topic}; extrinsic from "
-              f"{res.extrinsic_source}; point time {res.time_spec}", highlight=False, soft_wrap=True)
+              f"{res.extrinsic_source}; point time {res.time_spec}", highlight=False,
+              soft_wrap=True)
     ranges = ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in res.degenerate_ranges_s[:8])
     more = " ..." if len(res.degenerate_ranges_s) > 8 else ""
     con.print(f"degenerate scans: {res.n_degenerate}/{res.n_scans}"
@@ -178,7 +180,8 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
             con.print(table)
         else:
             con.print("stages (ms/scan): " + ", ".join(
-                f"{stage} {ms / n:.1f}" for stage, ms in res.stage_ms.items()), highlight=False, soft_wrap=True)
+                f"{stage} {ms / n:.1f}" for stage, ms in res.stage_ms.items()),
+                highlight=False, soft_wrap=True)
 
 
 # ------------------------------------------------------------------------------------ config
@@ -190,7 +193,8 @@ def config_show(preset: Annotated[str | None, typer.Argument(help="Preset name."
     from adalio.config import available_presets, load_config
 
     cfg = load_config(preset, config)
-    head = f"# preset: {preset}" if preset else f"# defaults (presets: {', '.join(available_presets())})"
+    head = f"# preset: {preset}" if preset else \
+        f"# defaults (presets: {', '.join(available_presets())})"
     sys.stdout.write(head + "\n" + cfg.to_yaml())
 
 

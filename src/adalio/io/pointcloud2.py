@@ -43,7 +43,8 @@ RING_FIELDS: tuple[str, ...] = ("ring", "channel", "line", "laser_id")
 
 
 def encode_pointcloud2(columns: dict[str, np.ndarray], layout: list[tuple[str, int, str]],
-                       point_step: int, big_endian: bool = False) -> tuple[bytes, list[tuple[str, int, int, int]]]:
+                       point_step: int, big_endian: bool = False
+                       ) -> tuple[bytes, list[tuple[str, int, int, int]]]:
     """Pack per-point columns into PointCloud2 ``data`` bytes.
 
     ``layout`` lists ``(name, byte_offset, numpy_kind)`` with kinds from ``POINTFIELD_DTYPES``
@@ -129,7 +130,7 @@ def decode_fields(data: Any, layout: CloudLayout, names: list[str],
     n_points = n_rows * width
     if n_points == 0:
         return {name: np.zeros(0, dtype=np.dtype(fmt).newbyteorder("=")) for name, fmt in
-                zip(names, fmts)}
+                zip(names, fmts, strict=True)}
     buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) \
         else data.reshape(-1).view(np.uint8)
     row_bytes = width * step
@@ -147,7 +148,7 @@ def decode_fields(data: Any, layout: CloudLayout, names: list[str],
         block = np.ascontiguousarray(
             buf[: n_rows * row_step].reshape(n_rows, row_step)[:, :row_bytes]).reshape(-1)
     out: dict[str, np.ndarray] = {}
-    for name, fmt, off in zip(names, fmts, offs):
+    for name, fmt, off in zip(names, fmts, offs, strict=True):
         dtype = np.dtype({"names": ["v"], "formats": [fmt], "offsets": [off], "itemsize": step})
         col = block.view(dtype)["v"]
         out[name] = col.astype(np.dtype(fmt).newbyteorder("="), copy=True)
