@@ -1,0 +1,189 @@
+"""Physics of the simulator against independent truth (integration, geometry, finite differences)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+from rosbags.highlevel import AnyReader
+from scipy.interpolate import CubicSpline
+from scipy.spatial.transform import Rotation, Slerp
+
+from adalio.sim import SCENES, simulate
+from adalio.sim.generate import build_trajectory, mesh_distance_m, T_IMU_LIDAR_HILTI
+from adalio.sim.imu import GRAVITY_M_S2
+from adalio.sim.lidar import RayCaster
+from adalio.sim.scenes import build_scene
+
+
+def _read_bag(bag_path, lidar_topic="/hesai/pandar", max_scans=None):
+    imu_t, gyro, acc, scans = [], [], [], []
+    with AnyReader([bag_path]) as reader:
+        for conn, _, raw in reader.messages():
+            msg = reader.deserialize(raw, conn.msgtype)
+            if conn.topic == lidar_topic:
+                if max_scans is None or len(scans) < max_scans:
+                    scans.append(msg)
+            else:
+                st = msg.header.stamp
+                imu_t.append(st.sec * 1_000_000_000 + st.nanosec)
+                w, a = msg.angular_velocity, msg.linear_acceleration
+                gyro.append([w.x, w.y, w.z])
+                acc.append([a.x, a.y, a.z])
+    return np.array(imu_t, dtype=np.int64), np.array(gyro), np.array(acc), scans
+
+
+def _read_tum(path):
+    rows = [line.split() for line in open(path) if not line.startswith("#")]
+    t_ns = np.array([int(r[0].replace(".", "")) for r in rows], dtype=np.int64)
+    vals = np.array([[float(v) for v in r[1:]] for r in rows])
+    return t_ns, vals[:, :3], Rotation.from_quat(vals[:, 3:])
+
+
+def _cloud_xyzt(msg):
+    offs = {f.name: f.offset for f in msg.fields}
+    dt = np.dtype({"names": ["x", "y", "z", "timestamp"], "formats": ["<f4", "<f4", "<f4", "<f8"],
+                   "offsets": [offs["x"], offs["y"], offs["z"], offs["timestamp"]],
+                   "itemsize": msg.point_step})
+    arr = np.frombuffer(msg.data.tobytes(), dtype=dt)
+    return np.column_stack([arr["x"], arr["y"], arr["z"]]).astype(np.float64), arr["timestamp"]
+
+
+@pytest.fixture(scope="module")
+def perfect_hall(tmp_path_factory):
+    out = tmp_path_factory.mktemp("perfect")
+    return simulate("hall", out, duration_s=12.6, columns=36, noise_scale=0.0, seed=3)
+
+
+def test_noise_free_imu_integrates_to_ground_truth(perfect_hall):
+    res = perfect_hall
+    meta = json.loads(res.meta_path.read_text())
+    t_ns, gyro, acc, _ = _read_bag(res.bag_path)
+    gt_t, gt_p, gt_R = _read_tum(res.gt_path)
+    R0 = np.asarray(meta["T_scene_world"])[:3, :3]
+    g_world = R0.T @ np.array([0.0, 0.0, -GRAVITY_M_S2])
+    ts = (t_ns - t_ns[0]) * 1e-9
+    wf, af = CubicSpline(ts, gyro), CubicSpline(ts, acc)
+
+    def deriv(t, R, v):
+        w = wf(t)
+        W = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+        return R @ W, R @ af(t) + g_world, v
+
+    R, v, p = np.eye(3), np.zeros(3), np.zeros(3)
+    dt = ts[1] - ts[0]
+    end = int(round(12.5 / dt))
+    for k in range(end):
+        t = ts[k]
+        k1 = deriv(t, R, v)
+        k2 = deriv(t + dt / 2, R + dt / 2 * k1[0], v + dt / 2 * k1[1])
+        k3 = deriv(t + dt / 2, R + dt / 2 * k2[0], v + dt / 2 * k2[1])
+        k4 = deriv(t + dt, R + dt * k3[0], v + dt * k3[1])
+        R = R + dt / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
+        p = p + dt / 6 * (k1[2] + 2 * k2[2] + 2 * k3[2] + k4[2])
+        v = v + dt / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
+        u, _, vt = np.linalg.svd(R)
+        R = u @ vt
+    i = int(np.searchsorted(gt_t, t_ns[end]))
+    assert gt_t[i] == t_ns[end]
+    assert np.linalg.norm(gt_p[i]) > 5.0
+    pos_err = np.linalg.norm(p - gt_p[i])
+    rot_err = np.degrees(np.linalg.norm(
+        Rotation.from_matrix(gt_R[i].as_matrix().T @ R).as_rotvec()))
+    assert pos_err < 0.01, pos_err
+    assert rot_err < 0.05, rot_err
+
+
+def test_static_start_is_exactly_static(perfect_hall):
+    meta = json.loads(perfect_hall.meta_path.read_text())
+    t_ns, gyro, acc, _ = _read_bag(perfect_hall.bag_path)
+    static = (t_ns - t_ns[0]) * 1e-9 <= meta["static_s"]
+    assert static.sum() >= 2.0 * 400
+    assert np.all(gyro[static] == 0.0)
+    assert np.all(acc[static] == acc[0])
+    assert abs(np.linalg.norm(acc[0]) - GRAVITY_M_S2) < 1e-9
+    moving = (t_ns - t_ns[0]) * 1e-9 > meta["static_s"] + 0.5
+    assert np.abs(gyro[moving]).max() > 0.05
+    gt_t, gt_p, gt_R = _read_tum(perfect_hall.gt_path)
+    gs = (gt_t - gt_t[0]) * 1e-9 <= meta["static_s"]
+    assert np.all(gt_p[gs] == 0.0)
+    assert np.all(gt_R[gs].as_quat()[:, :3] == 0.0)
+    traj = build_trajectory(build_scene("hall", 3), np.asarray(T_IMU_LIDAR_HILTI), 3)
+    s = traj.sample(np.linspace(0.0, traj.static_s, 50))
+    assert np.all(s.v_world_m_s == 0) and np.all(s.a_world_m_s2 == 0)
+    assert np.all(s.p_world_imu_m == s.p_world_imu_m[0])
+    # C2 at the start of the motion: velocity and acceleration continuous
+    s2 = traj.sample(traj.static_s + np.array([1e-4]))
+    assert np.linalg.norm(s2.a_world_m_s2) < 0.05
+
+
+def test_trajectory_derivatives_match_finite_differences():
+    traj = build_trajectory(build_scene("corridor", 1), np.asarray(T_IMU_LIDAR_HILTI), 1)
+    t = np.array([4.0, 9.37, 20.1, 33.3])
+    h = 1e-5
+    sp, sm, s0 = traj.sample(t + h), traj.sample(t - h), traj.sample(t)
+    np.testing.assert_allclose((sp.p_world_imu_m - sm.p_world_imu_m) / (2 * h), s0.v_world_m_s,
+                               atol=1e-6)
+    np.testing.assert_allclose((sp.v_world_m_s - sm.v_world_m_s) / (2 * h), s0.a_world_m_s2,
+                               atol=1e-5)
+    dR = np.einsum("nji,njk->nik", s0.R_world_imu, (sp.R_world_imu - sm.R_world_imu) / (2 * h))
+    w = np.column_stack([dR[:, 2, 1], dR[:, 0, 2], dR[:, 1, 0]])
+    np.testing.assert_allclose(w, s0.omega_imu_rad_s, atol=1e-6)
+    np.testing.assert_allclose((sp.omega_imu_rad_s - sm.omega_imu_rad_s) / (2 * h),
+                               s0.alpha_imu_rad_s2, atol=1e-5)
+
+
+@pytest.mark.parametrize("scene", SCENES)
+def test_walk_is_human_and_keeps_clear_of_the_mesh(scene):
+    scn = build_scene(scene, 0)
+    traj = build_trajectory(scn, np.asarray(T_IMU_LIDAR_HILTI), 0)
+    t = np.arange(0.0, traj.duration_s, 0.01)
+    s = traj.sample(t)
+    speed = np.linalg.norm(s.v_world_m_s, axis=1)
+    assert speed.max() < 1.5
+    assert np.median(speed[t > traj.static_s + 3]) > 0.4
+    yaw_rate = np.abs(s.omega_imu_rad_s @ (T_IMU_LIDAR_HILTI_np()[:3, :3] @ [0, 0, 1.0]))
+    assert np.degrees(yaw_rate.max()) < 100.0
+    caster = RayCaster(scn.mesh)
+    d = mesh_distance_m(caster, s.p_world_imu_m[::10])
+    assert d.min() > 0.25, d.min()
+
+
+def T_IMU_LIDAR_HILTI_np():
+    return np.asarray(T_IMU_LIDAR_HILTI)
+
+
+def test_points_lie_on_the_mesh_only_with_per_point_poses(tmp_path):
+    res = simulate("hall", tmp_path, duration_s=9.0, columns=400, seed=5)
+    meta = json.loads(res.meta_path.read_text())
+    _, _, _, scans = _read_bag(res.bag_path)
+    gt_t, gt_p, gt_R = _read_tum(res.gt_path)
+    gt_s = (gt_t - gt_t[0]) * 1e-9
+    slerp = Slerp(gt_s, gt_R)
+    T_il = np.asarray(meta["T_imu_lidar"])
+    T_sw = np.asarray(meta["T_scene_world"])
+    mesh = trimesh.load(res.bag_path.parent / "scene.ply")
+    caster = RayCaster(mesh)
+    msg = scans[70]
+    xyz, t_abs = _cloud_xyzt(msg)
+    keep = np.linalg.norm(xyz, axis=1) > 0.5
+    xyz, t_abs = xyz[keep][::7], t_abs[keep][::7]
+    ts = t_abs - gt_t[0] * 1e-9
+    assert np.ptp(ts) > 0.09
+
+    def to_scene(R_w_i, p_w_i):
+        p_imu = xyz @ T_il[:3, :3].T + T_il[:3, 3]
+        p_w = np.einsum("nij,nj->ni", R_w_i, p_imu) + p_w_i
+        return p_w @ T_sw[:3, :3].T + T_sw[:3, 3]
+
+    p_i = np.column_stack([np.interp(ts, gt_s, gt_p[:, k]) for k in range(3)])
+    per_point = mesh_distance_m(caster, to_scene(slerp(ts).as_matrix(), p_i))
+    n = len(ts)
+    one = mesh_distance_m(caster, to_scene(np.repeat(slerp([ts.max()]).as_matrix(), n, 0),
+                                           np.repeat(p_i[ts.argmax()][None], n, 0)))
+    sigma = meta["range_noise_m"]
+    assert np.median(per_point) < 1.2 * sigma, np.median(per_point)
+    assert np.mean(per_point > 4 * sigma) < 0.01
+    assert np.mean(one > 4 * sigma) > 0.15
