@@ -127,6 +127,25 @@ def test_non_monotonic_imu_stamps(monkeypatch, capsys, tmp_path):
                           "re-stamp")
 
 
+def test_non_monotonic_scan_stamps(monkeypatch, capsys, tmp_path):
+    path = tmp_path / "scans_back.bag"
+    pts, t_rel, _ = bf.box_scan(columns=30)
+    cols = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "t": t_rel}
+    layout = [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("t", 12, "u4")]
+    with BagWriter(path) as w:
+        for k in range(600):
+            t = bf.T0_NS + k * 5_000_000
+            w.add_imu("/imu", t, [0, 0, 0], [0, 0, 9.81])
+            if k % 20 == 0 and k:
+                stamp = t - 100_000_000 - (500_000_000 if k == 400 else 0)
+                w.add_cloud("/points", stamp, cols, layout, 16, t_recv_ns=t + 1)
+    code, _, err = run_cli(monkeypatch, capsys, "run", path, "--out", tmp_path / "o",
+                           "--no-progress")
+    assert_one_line_error(code, err, "scan end times on /points go backwards",
+                          "sensor.point_time_*")
+    assert (tmp_path / "o" / "trajectory.tum").is_file()
+
+
 @pytest.mark.parametrize("args,frag", [
     (["--extrinsic", "0 0 0 0.5 0.5 0.5 0.1"], "is not a rotation"),
     (["--extrinsic", "0 0 0 1 0"], "must be 7 numbers"),
@@ -149,7 +168,7 @@ def test_info_reports_topics_and_time_format(monkeypatch, capsys, rig):
     code, out, err = run_cli(monkeypatch, capsys, "info", rig)
     assert code == 0, err
     assert "would use: lidar /points, imu /imu" in out
-    assert "per-point time: 't' in ns, relative" in out
+    assert "per-point time: 't' in ns, relative (detected)" in out
     n = 180 * 16
     assert f"min {n}, median {n}, max {n}" in out
     assert "accelerometer in m/s^2" in out

@@ -178,6 +178,11 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
                           f"{100 * ms / max(total, 1e-9):.0f}%")
         if profile:
             con.print(table)
+            sq = res.sequencer
+            if sq is not None:
+                con.print(f"sequencer: {sq.imu_samples} IMU samples ({sq.imu_duplicates} "
+                          f"duplicate, {sq.imu_reordered} reordered), {sq.scans_in} scans in, "
+                          f"{sq.scans_out} out", highlight=False, soft_wrap=True)
         else:
             con.print("stages (ms/scan): " + ", ".join(
                 f"{stage} {ms / n:.1f}" for stage, ms in res.stage_ms.items()),

@@ -169,7 +169,8 @@ class TimeSpec:
     def describe(self) -> str:
         if self.field is None:
             return "none (reconstructed from azimuth)"
-        return f"'{self.field}' in {self.unit}, {self.reference}"
+        how = "detected" if self.detected else "from config"
+        return f"'{self.field}' in {self.unit}, {self.reference} ({how})"
 
 
 def _is_float(dt: int) -> bool:
