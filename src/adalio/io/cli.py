@@ -165,7 +165,7 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
               + (f" at {ranges}{more}" if ranges else ""), highlight=False, soft_wrap=True)
     if res.sequencer is not None:
         for msg in res.sequencer.messages:
-            if msg.startswith("skipped"):
+            if msg.startswith(("skipped", "re-sorted")):
                 con.print(f"[yellow]note:[/] {msg}", highlight=False, soft_wrap=True)
     if res.stage_ms:
         n = max(res.n_scans_in, 1)

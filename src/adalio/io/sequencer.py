@@ -197,6 +197,8 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
                     (st.scans_late, "scans arriving later than the IMU window")):
         if n:
             st.messages.append(f"skipped {n} {what}")
+    if st.imu_reordered:
+        st.messages.append(f"re-sorted {st.imu_reordered} out-of-order IMU samples on {imu_topic}")
 
 
 def imu_msg_arrays(msgs: list[Any]) -> ImuBatch:

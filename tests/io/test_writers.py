@@ -1,0 +1,87 @@
+"""Writers: exact TUM stamps, PLY read back by trimesh (independent reader), PCD, scans.csv."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from adalio.io.writers import (
+    SCANS_CSV_COLUMNS,
+    ScansCsvWriter,
+    TumWriter,
+    ns_to_s_str,
+    read_pcd_points,
+    read_tum,
+    write_pcd,
+    write_ply,
+)
+from adalio.pipeline import _degenerate_ranges, default_out_dir
+from adalio.types import ScanStats
+
+
+def test_tum_rows_exact_stamps_and_poses(tmp_path):
+    rng = np.random.default_rng(0)
+    stamps = [1_646_304_541_527_137_041, 5, 1_700_000_000_999_999_999]
+    poses = []
+    with TumWriter(tmp_path / "t.tum") as w:
+        for k, t in enumerate(stamps):
+            T = np.eye(4)
+            T[:3, :3] = Rotation.random(random_state=k).as_matrix()
+            T[:3, 3] = rng.normal(size=3) * 100
+            poses.append(T)
+            w.write(t, T)
+            assert len((tmp_path / "t.tum").read_text().splitlines()) == k + 1  # flushed
+    t_ns, vals = read_tum(tmp_path / "t.tum")
+    assert t_ns.tolist() == stamps
+    assert (tmp_path / "t.tum").read_text().split()[0] == "1646304541.527137041"
+    for T, v in zip(poses, vals, strict=True):
+        np.testing.assert_allclose(v[:3], T[:3, 3], atol=1e-8)
+        R = Rotation.from_quat(v[3:]).as_matrix()
+        np.testing.assert_allclose(R, T[:3, :3], atol=1e-8)
+    assert ns_to_s_str(-1_500_000_000) == "-1.500000000"
+
+
+def test_ply_and_pcd_read_back(tmp_path):
+    pts = np.random.default_rng(1).normal(size=(1000, 3)) * 10
+    pts[5] = np.nan
+    write_ply(tmp_path / "m.ply", pts)
+    mesh = trimesh.load(tmp_path / "m.ply")
+    finite = pts[np.isfinite(pts).all(axis=1)]
+    np.testing.assert_array_equal(np.asarray(mesh.vertices), finite.astype(np.float32))
+    write_pcd(tmp_path / "m.pcd", pts)
+    np.testing.assert_array_equal(read_pcd_points(tmp_path / "m.pcd"), finite.astype(np.float32))
+    write_ply(tmp_path / "empty.ply", np.zeros((0, 3)))
+    assert "element vertex 0" in (tmp_path / "empty.ply").read_text()
+
+
+def test_scans_csv_columns_and_values(tmp_path):
+    w = ScansCsvWriter(tmp_path / "s.csv")
+    st = ScanStats(t_ns=1_000_000_001, n_raw=10, n_down=5, degenerate=True, trigger="count",
+                   voxel_size_m=0.1, eigenvalues=np.arange(6.0),
+                   weakest_direction=np.eye(6)[3], degeneracy_score=0.25)
+    w.write(st)
+    w.close()
+    rows = list(csv.DictReader(open(tmp_path / "s.csv")))
+    assert list(rows[0]) == list(SCANS_CSV_COLUMNS)
+    r = rows[0]
+    assert (r["t_s"], r["n_raw"], r["degenerate"], r["trigger"]) == ("1.000000001", "10", "1",
+                                                                     "count")
+    assert [float(r[f"eig{i}"]) for i in range(6)] == list(range(6))
+    assert float(r["weak_tx"]) == 1.0 and float(r["degeneracy_score"]) == 0.25
+
+
+def test_default_out_dir_is_auto_indexed(tmp_path):
+    assert default_out_dir("/data/exp04.bag", tmp_path) == tmp_path / "exp04"
+    (tmp_path / "exp04").mkdir()
+    (tmp_path / "exp04_1").mkdir()
+    assert default_out_dir("/data/exp04.bag", tmp_path) == tmp_path / "exp04_2"
+    assert default_out_dir("/data/ros2_bag/", tmp_path) == tmp_path / "ros2_bag"
+
+
+def test_degenerate_ranges():
+    t = [0, 10**8, 2 * 10**8, 3 * 10**8, 4 * 10**8, 5 * 10**8]
+    f = [False, True, True, False, True, True]
+    assert _degenerate_ranges(t, f) == [(0.1, 0.2), (0.4, 0.5)]
