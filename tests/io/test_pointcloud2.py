@@ -154,13 +154,27 @@ def test_azimuth_reconstruction_matches_true_times(real):
     t_true = real.t[valid]
     stamp_ns = real.stamp_ns + int(round(t_true[0] * 1e9))
     dec = CloudDecoder(SensorConfig(lidar_rate_hz=10.0), "/hesai/pandar")
-    with pytest.warns(UserWarning, match="no per-point time field"):
+    with pytest.warns(UserWarning, match="has no per-point time field"):
         scan = dec.decode(msg_from(cols, layout, 16, stamp_ns))
     err_s = (scan.t_ns - stamp_ns) * 1e-9 - (t_true - t_true[0])
     assert np.percentile(np.abs(err_s), 99) < 2e-4
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         dec.decode(msg_from(cols, layout, 16, stamp_ns))  # warns only once
+
+
+def test_constant_time_field_falls_back_to_azimuth(real):
+    valid = real.rng > 0
+    cols = {k: getattr(real, k)[valid] for k in ("x", "y", "z", "intensity", "ring")}
+    cols["t"] = np.zeros(valid.sum(), np.uint32)
+    cols["reflectivity"] = cols["ring"]
+    dec = CloudDecoder(SensorConfig(lidar_rate_hz=10.0), "/os")
+    with pytest.warns(UserWarning, match="time field 't' is constant"):
+        scan = dec.decode(msg_from(cols, *OUSTER, real.stamp_ns))
+    assert dec.time_spec.field is None
+    t_true = real.t[valid]
+    err_s = (scan.t_ns - real.stamp_ns) * 1e-9 - (t_true - t_true[0])
+    assert np.percentile(np.abs(err_s), 99) < 2e-4
 
 
 @pytest.mark.parametrize("unit,kind,ref", [("ms", "f4", "relative"), ("us", "u4", "relative"),

@@ -294,6 +294,7 @@ class CloudDecoder:
         self.topic = topic
         self.time_spec: TimeSpec | None = None
         self._warned_azimuth = False
+        self._constant_fields: set[str] = set()
 
     def decode(self, msg: Any) -> Scan:
         """One message → Scan (may have 0 points). Raises BagError on unusable layouts."""
@@ -322,30 +323,35 @@ class CloudDecoder:
         cols = decode_fields(data, layout, want + list(extras.values()), self.topic)
         pts = np.stack([cols["x"], cols["y"], cols["z"]], axis=1).astype(np.float64)
         ok = np.isfinite(pts).all(axis=1)
-        if tfield is not None:
+        t_ns = None
+        if tfield is not None and tfield not in self._constant_fields:
             raw_t = cols[tfield]
             if self.time_spec is None or self.time_spec.field != tfield:
-                tf = layout.find(tfield)
-                finite = raw_t[ok] if raw_t.dtype.kind == "f" else raw_t
-                if finite.size:
-                    self.time_spec = detect_time_spec(finite, tf[2], tfield, stamp_ns,
-                                                      self.sensor, self.topic)
-            spec = self.time_spec
-            if spec is None:
-                t_ns = np.zeros(pts.shape[0], dtype=np.int64)
-            else:
-                t_ns = times_to_ns(raw_t, spec, stamp_ns)
-                ok &= t_ns != np.iinfo(np.int64).min
-        else:
-            if self.time_spec is None:
+                finite = raw_t[ok & np.isfinite(raw_t)] if raw_t.dtype.kind == "f" else raw_t
+                if (self.sensor.point_time_field == "auto" and finite.size >= MIN_POINTS_FOR_SPAN
+                        and finite.min() == finite.max()):
+                    self._constant_fields.add(tfield)
+                elif finite.size:
+                    self.time_spec = detect_time_spec(finite, layout.find(tfield)[2], tfield,
+                                                      stamp_ns, self.sensor, self.topic)
+            if tfield not in self._constant_fields:
+                spec = self.time_spec
+                if spec is None:
+                    t_ns = np.zeros(pts.shape[0], dtype=np.int64)
+                else:
+                    t_ns = times_to_ns(raw_t, spec, stamp_ns)
+                    ok &= t_ns != np.iinfo(np.int64).min
+        if t_ns is None:
+            if self.time_spec is None or self.time_spec.field is not None:
                 self.time_spec = TimeSpec(None, "ns", "relative",
                                           detected=self.sensor.point_time_field == "auto")
             if not self._warned_azimuth:
                 self._warned_azimuth = True
-                warnings.warn(f"PointCloud2 on {self.topic or '?'} has no per-point time field; "
-                              f"times reconstructed from azimuth at {self.sensor.lidar_rate_hz} "
-                              "Hz (set sensor.point_time_field if it has one)", stacklevel=2)
-            t_ns = None
+                why = f"its time field '{tfield}' is constant" if tfield else \
+                    "it has no per-point time field"
+                warnings.warn(f"PointCloud2 on {self.topic or '?'}: {why}; times reconstructed "
+                              f"from azimuth at {self.sensor.lidar_rate_hz} Hz (set "
+                              "sensor.point_time_field if it has one)", stacklevel=2)
         pts = pts[ok]
         if t_ns is None:
             t_ns = azimuth_times_ns(pts, stamp_ns, self.sensor.lidar_rate_hz)
