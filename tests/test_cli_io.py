@@ -72,6 +72,22 @@ def test_truncated_bag(monkeypatch, capsys, tmp_path, fmt, name):
     assert_one_line_error(code, err, f"cannot read bag {bad}", "truncated or corrupted")
 
 
+@pytest.mark.slow
+def test_bag_corrupted_mid_run_keeps_rows(monkeypatch, capsys, tmp_path):
+    folder = bf.write_static_rig(tmp_path / "db", "sqlite3", duration_s=2.0, columns=180)
+    db = next(folder.glob("*.db3"))
+    data = bytearray(db.read_bytes())
+    page = int(len(data) * 0.6) // 4096 * 4096
+    data[page:page + 4096] = b"\xff" * 4096
+    db.write_bytes(bytes(data))
+    out = tmp_path / "o"
+    code, _, err = run_cli(monkeypatch, capsys, "run", folder, "--out", out, "--no-progress")
+    assert_one_line_error(code, err, f"cannot read bag {folder} after", "rows written so far")
+    poses = check_outputs(out)
+    assert len(poses) >= 1
+    assert len(read_ply_points(out / "map.ply")) > 0
+
+
 def test_missing_and_ambiguous_topics(monkeypatch, capsys, tmp_path, rig):
     code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--lidar-topic", "/nope")
     assert_one_line_error(code, err, "topic /nope is not in", "/points", "--lidar-topic")

@@ -206,13 +206,18 @@ class Bag:
         return lidar, imu
 
     # -------------------------------------------------------------- messages
-    def messages(self, topics: list[str], limit: int | None = None
-                 ) -> Iterator[tuple[str, int, Any]]:
-        """Deserialized ``(topic, receive_time_ns, msg)`` in bag order (``limit`` per topic)."""
+    def messages(self, topics: list[str], limit: int | None = None,
+                 start_ns: int | None = None) -> Iterator[tuple[str, int, Any]]:
+        """Deserialized ``(topic, receive_time_ns, msg)`` in bag order (``limit`` per topic),
+        from receive time ``start_ns`` on."""
         reader = self.reader
         conns = [c for c in reader.connections if c.topic in topics]
         left = {t: limit for t in topics} if limit is not None else None
-        it = reader.messages(connections=conns)
+        try:
+            it = reader.messages(connections=conns, start=start_ns)
+        except Exception as exc:
+            raise BagError(f"cannot read bag {self.path}: {_reason(exc)}; it is truncated or "
+                           "corrupted") from None
         while True:
             try:
                 conn, t_ns, raw = next(it)

@@ -89,18 +89,23 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
         dec = CloudDecoder(cfg.sensor, lidar)
         counts = []
         layout = ""
-        for _, _, msg in b.messages([lidar], limit=max(sample, 1)):
-            if not layout:
-                layout = ", ".join(f"{f.name}@{f.offset}:{f.datatype}" for f in msg.fields) + \
-                    f" (point_step {msg.point_step}, {msg.height}x{msg.width}, " \
-                    f"{'big' if msg.is_bigendian else 'little'}-endian)"
-                frame = msg.header.frame_id
-            counts.append(len(dec.decode(msg)))
+        n_sample = max(sample, 1)
+        span = b.end_ns - b.start_ns
+        frame = ""
+        for k in range(n_sample):
+            start = b.start_ns + span * k // n_sample
+            for _, _, msg in b.messages([lidar], limit=1, start_ns=start):
+                if not layout:
+                    layout = ", ".join(f"{f.name}@{f.offset}:{f.datatype}" for f in msg.fields) \
+                        + f" (point_step {msg.point_step}, {msg.height}x{msg.width}, " \
+                        f"{'big' if msg.is_bigendian else 'little'}-endian)"
+                    frame = msg.header.frame_id
+                counts.append(len(dec.decode(msg)))
         out.print(f"cloud fields: {layout}  frame '{frame}'", highlight=False, soft_wrap=True)
         spec = dec.time_spec.describe() if dec.time_spec else "unknown"
         out.print(f"per-point time: {spec}", highlight=False, soft_wrap=True)
         if counts:
-            out.print(f"points per scan (first {len(counts)}): min {min(counts)}, "
+            out.print(f"points per scan ({len(counts)} sampled): min {min(counts)}, "
                       f"median {statistics.median(counts):.0f}, max {max(counts)}")
         imu_msgs = [m for _, _, m in b.messages([imu], limit=50)]
         if imu_msgs:
