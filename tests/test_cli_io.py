@@ -285,3 +285,30 @@ def test_run_bag_api_max_scans_and_hook(tmp_path, rig):
     assert seen == list(range(1, 10)) and res.n_scans_in == 9
     assert res.n_scans == len(read_tum(res.trajectory_path)[0]) and not res.interrupted
     assert res.map_path.name == "map.ply" and res.config_path.is_file()
+
+
+@pytest.mark.slow
+def test_run_extrinsic_from_tf_static_or_flag(monkeypatch, capsys, tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_euler("xyz", [0.1, -0.2, 0.3])
+    T = np.eye(4)
+    T[:3, :3] = R.as_matrix()
+    T[:3, 3] = [0.05, -0.02, 0.1]
+    path = bf.write_static_rig(tmp_path / "tf.bag", duration_s=1.0, columns=120,
+                               tf_static=[("imu", "lidar", T)])
+    out = tmp_path / "a"
+    code, _, err = run_cli(monkeypatch, capsys, "run", path, "--out", out, "--no-progress",
+                           "--max-scans", "3")
+    assert code == 0, err
+    assert "extrinsic from tf_static (imu <- lidar)" in err
+    used = yaml.safe_load((out / "config.yaml").read_text())["sensor"]["T_imu_lidar"]
+    np.testing.assert_allclose(used, T, atol=1e-9)
+    q = R.as_quat()
+    flag = f"1 2 3 {q[0]} {q[1]} {q[2]} {q[3]}"
+    code, _, err = run_cli(monkeypatch, capsys, "run", path, "--out", tmp_path / "b",
+                           "--no-progress", "--max-scans", "3", "--extrinsic", flag)
+    assert code == 0, err
+    used = yaml.safe_load((tmp_path / "b" / "config.yaml").read_text())["sensor"]["T_imu_lidar"]
+    np.testing.assert_allclose(np.asarray(used)[:3, 3], [1, 2, 3])
+    np.testing.assert_allclose(np.asarray(used)[:3, :3], R.as_matrix(), atol=1e-9)

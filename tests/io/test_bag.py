@@ -80,7 +80,7 @@ def test_folder_of_split_ros1_bags(tmp_path):
     assert got == [bf.T0_NS + k * 5_000_000 for k in range(100)]
 
 
-@pytest.mark.parametrize("fmt,name", FORMATS[:2])
+@pytest.mark.parametrize("fmt,name", FORMATS)
 def test_tf_static_chain_gives_T_imu_lidar(tmp_path, fmt, name):
     T_base_imu, T_base_mid, T_mid_lidar = random_T(1), random_T(2), random_T(3)
     tf = [("base_link", "imu_link", T_base_imu), ("base_link", "mid", T_base_mid),
