@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.interpolate import BSpline, make_interp_spline
-from scipy.ndimage import gaussian_filter1d
+from scipy.ndimage import gaussian_filter1d, minimum_filter1d
 
 SAMPLE_HZ = 100.0
 YAW_RATE_MAX_RAD_S = 0.9
@@ -94,7 +94,8 @@ class Trajectory:
         self.R_rig_imu = np.asarray(R_rig_imu, dtype=np.float64)
         dense, widx = _fillet(np.asarray(waypoints_m, dtype=np.float64), fillet_m)
         speed_dense = np.interp(widx, np.arange(len(speed_limit_m_s)), speed_limit_m_s)
-        route, s_grid = _resample(dense, 0.1)
+        route, _ = _resample(dense, 0.1)
+        route, s_grid = _resample(gaussian_filter1d(route, 2.5, axis=0, mode="nearest"), 0.1)
         dense_s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense, axis=0),
                                                                   axis=1))])
         dense_s *= s_grid[-1] / max(dense_s[-1], 1e-12)
@@ -104,7 +105,8 @@ class Trajectory:
         dpsi_ds = np.abs(np.gradient(gaussian_filter1d(heading, 3.0, mode="nearest"), s_grid))
         v_lim = np.minimum(np.interp(s_grid, dense_s, speed_dense),
                            YAW_RATE_MAX_RAD_S / np.maximum(dpsi_ds, 1e-6))
-        v_lim = gaussian_filter1d(v_lim, 5.0, mode="nearest")
+        v_lim = gaussian_filter1d(minimum_filter1d(v_lim, 15, mode="nearest"), 5.0,
+                                  mode="nearest")
         ds = np.diff(s_grid)
         for i in range(1, len(v_lim)):
             v_lim[i] = min(v_lim[i], np.sqrt(v_lim[i - 1] ** 2 + 2 * ACCEL_MAX_M_S2 * ds[i - 1]))
