@@ -142,7 +142,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     t0 = START_NS
 
     caster = RayCaster(scn.mesh, seed)
-    t_check = np.arange(traj.static_s, dur, 0.1)
+    t_check = np.arange(0.0, dur + 1e-9, 0.1)
     clearance = float(mesh_distance_m(caster, traj.sample(t_check).p_world_imu_m).min())
     if clearance < MIN_CLEARANCE_M:
         raise InputError(f"scene {scene} seed {seed}: route passes {clearance:.2f} m from the "
