@@ -232,27 +232,70 @@ def propagate(state: State, P: np.ndarray, imu_tau_s: np.ndarray, gyro_rad_s: np
 
 
 # --------------------------------------------------------------------------- undistortion (§5.3)
+@njit(cache=True)
+def _undistort_kernel(points_lidar, tau_s, rec_tau, rec_R, rec_p, rec_v, rec_w, rec_a, R_end,
+                      p_end, R_LI, t_LI):
+    n = points_lidar.shape[0]
+    m = rec_tau.shape[0]
+    out = np.empty((n, 3))
+    M = R_end.T
+    for i in range(n):
+        tau = tau_s[i]
+        lo, hi = 0, m
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if rec_tau[mid] <= tau:
+                lo = mid + 1
+            else:
+                hi = mid
+        k = max(lo - 1, 0)
+        dt = tau - rec_tau[k]
+        x, y, z = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
+        px = R_LI[0, 0] * x + R_LI[0, 1] * y + R_LI[0, 2] * z + t_LI[0]
+        py = R_LI[1, 0] * x + R_LI[1, 1] * y + R_LI[1, 2] * z + t_LI[1]
+        pz = R_LI[2, 0] * x + R_LI[2, 1] * y + R_LI[2, 2] * z + t_LI[2]
+        wx, wy, wz = rec_w[k, 0] * dt, rec_w[k, 1] * dt, rec_w[k, 2] * dt
+        th2 = wx * wx + wy * wy + wz * wz
+        if th2 < 1e-4:
+            a = 1.0 - th2 / 6.0 + th2 * th2 / 120.0
+            b = 0.5 - th2 / 24.0 + th2 * th2 / 720.0
+        else:
+            th = np.sqrt(th2)
+            a = np.sin(th) / th
+            b = (1.0 - np.cos(th)) / th2
+        c1x = wy * pz - wz * py
+        c1y = wz * px - wx * pz
+        c1z = wx * py - wy * px
+        c2x = wy * c1z - wz * c1y
+        c2y = wz * c1x - wx * c1z
+        c2z = wx * c1y - wy * c1x
+        qx = px + a * c1x + b * c2x
+        qy = py + a * c1y + b * c2y
+        qz = pz + a * c1z + b * c2z
+        half = 0.5 * dt * dt
+        w0 = (rec_R[k, 0, 0] * qx + rec_R[k, 0, 1] * qy + rec_R[k, 0, 2] * qz + rec_p[k, 0]
+              + rec_v[k, 0] * dt + rec_a[k, 0] * half - p_end[0])
+        w1 = (rec_R[k, 1, 0] * qx + rec_R[k, 1, 1] * qy + rec_R[k, 1, 2] * qz + rec_p[k, 1]
+              + rec_v[k, 1] * dt + rec_a[k, 1] * half - p_end[1])
+        w2 = (rec_R[k, 2, 0] * qx + rec_R[k, 2, 1] * qy + rec_R[k, 2, 2] * qz + rec_p[k, 2]
+              + rec_v[k, 2] * dt + rec_a[k, 2] * half - p_end[2])
+        ex = M[0, 0] * w0 + M[0, 1] * w1 + M[0, 2] * w2 - t_LI[0]
+        ey = M[1, 0] * w0 + M[1, 1] * w1 + M[1, 2] * w2 - t_LI[1]
+        ez = M[2, 0] * w0 + M[2, 1] * w1 + M[2, 2] * w2 - t_LI[2]
+        for r in range(3):
+            out[i, r] = R_LI[0, r] * ex + R_LI[1, r] * ey + R_LI[2, r] * ez
+    return out
+
+
 def undistort(points_lidar: np.ndarray, tau_s: np.ndarray, rec: PoseRecords, R_end: np.ndarray,
               p_end: np.ndarray, R_LI: np.ndarray, t_LI: np.ndarray) -> np.ndarray:
-    """Backward compensation of every point to the scan end (§5.3), vectorized.
+    """Backward compensation of every point to the scan end (§5.3), one numba pass.
 
-    ``R_j = R_k Exp(ω_k Δ)``, ``p_j = p_k + v_k Δ + ½ a_k Δ²`` with k the last record at or before
-    the point time (the first record for earlier points); returns
-    ``R_LIᵀ(R_eᵀ(R_j p_I + p_j − p_e) − t_LI)`` in the LiDAR frame at scan end.
+    k = last record at or before the point time (binary search; the first record for earlier
+    points, the last one extrapolates), ``Δ = τ − τ_k``, ``R_j = R_k Exp(ω_k Δ)`` (Rodrigues),
+    ``p_j = p_k + v_k Δ + ½ a_k Δ²``; returns ``R_LIᵀ(R_eᵀ(R_j p_I + p_j − p_e) − t_LI)``,
+    ``p_I = R_LI p_L + t_LI``: the points in the LiDAR frame at the scan end.
     """
-    idx = np.searchsorted(rec.tau_s, tau_s, side="right") - 1
-    np.clip(idx, 0, rec.tau_s.shape[0] - 1, out=idx)
-    dt = tau_s - rec.tau_s[idx]
-    p_imu = points_lidar @ R_LI.T + t_LI
-    phi = rec.omega[idx] * dt[:, None]
-    theta2 = np.einsum("ij,ij->i", phi, phi)
-    small = theta2 < 1e-10
-    safe = np.where(small, 1.0, np.sqrt(theta2))
-    a = np.where(small, 1.0 - theta2 / 6.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
-    c1 = np.cross(phi, p_imu)
-    rotated = p_imu + a[:, None] * c1 + b[:, None] * np.cross(phi, c1)
-    p_world = np.einsum("nij,nj->ni", rec.R[idx], rotated)
-    p_world += rec.p[idx] + rec.v[idx] * dt[:, None] + 0.5 * rec.acc_world[idx] * (dt * dt)[:, None]
-    p_end_imu = (p_world - p_end) @ R_end
-    return (p_end_imu - t_LI) @ R_LI
+    return _undistort_kernel(np.ascontiguousarray(points_lidar, dtype=np.float64),
+                             np.ascontiguousarray(tau_s, dtype=np.float64), rec.tau_s, rec.R,
+                             rec.p, rec.v, rec.omega, rec.acc_world, R_end, p_end, R_LI, t_LI)

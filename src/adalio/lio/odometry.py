@@ -18,6 +18,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from adalio.config import Config
 from adalio.errors import InputError
@@ -43,6 +44,35 @@ KNN_MAX_RANGE_M = 5.0
 """Range of the iVox neighbour query (Faster-LIO's ``GetClosestPoint`` default, §7)."""
 MIN_POINTS_FOR_UPDATE = 5
 """Fewer downsampled points than this: the scan is not used for an update (§6.1)."""
+
+
+@njit(cache=True)
+def _range_gate(points, t_ns, blind_m, max_range_m, point_filter_num):
+    """§6.1 steps 1-2: keep every ``point_filter_num``-th point (message index) whose range is in
+    ``[blind_m, max_range_m]``; non-finite points dropped. Returns (points, t_ns, n_finite)."""
+    n = points.shape[0]
+    keep = np.zeros(n, np.bool_)
+    n_finite = 0
+    n_keep = 0
+    lo2, hi2 = blind_m * blind_m, max_range_m * max_range_m
+    for i in range(n):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+            continue
+        n_finite += 1
+        r2 = x * x + y * y + z * z
+        if i % point_filter_num == 0 and lo2 <= r2 <= hi2:
+            keep[i] = True
+            n_keep += 1
+    out = np.empty((n_keep, 3))
+    t_out = np.empty(n_keep, np.int64)
+    j = 0
+    for i in range(n):
+        if keep[i]:
+            out[j, 0], out[j, 1], out[j, 2] = points[i, 0], points[i, 1], points[i, 2]
+            t_out[j] = t_ns[i]
+            j += 1
+    return out, t_out, n_finite
 
 
 class _Association:
@@ -243,7 +273,7 @@ class Odometry:
         s = self._state
         p_world = points_to_world(down, s.R, s.p, s.R_LI, s.t_LI)
         insert_all = t_e - self._t_first_map_ns < INIT_TIME_NS
-        if down.shape[0]:
+        if down.shape[0] >= MIN_POINTS_FOR_UPDATE:
             add = select_for_insertion(p_world, assoc.nbrs, assoc.counts, cfg.map.map_leaf_m,
                                        insert_all)
             self._ivox.add_points(p_world[add])
@@ -265,15 +295,11 @@ class Odometry:
         if t.shape != (pts.shape[0],) or not np.issubdtype(t.dtype, np.integer):
             raise InputError(f"add_scan: t_ns must be (N,) int64 absolute nanoseconds matching "
                              f"the {pts.shape[0]} points, got dtype {t.dtype} shape {t.shape}")
-        pts = pts.astype(np.float64, copy=False)
-        finite = np.isfinite(pts).all(axis=1)
-        n_raw = int(np.count_nonzero(finite))
         pre = self.cfg.preprocess
-        r2 = np.einsum("ij,ij->i", pts, pts)
-        keep = finite & (r2 >= pre.blind_m ** 2) & (r2 <= pre.max_range_m ** 2)
-        if pre.point_filter_num > 1:
-            keep[np.arange(keep.size) % pre.point_filter_num != 0] = False
-        return pts[keep], t[keep].astype(np.int64), n_raw
+        pts_out, t_out, n_raw = _range_gate(np.ascontiguousarray(pts, dtype=np.float64),
+                                            np.ascontiguousarray(t, dtype=np.int64),
+                                            pre.blind_m, pre.max_range_m, pre.point_filter_num)
+        return pts_out, t_out, int(n_raw)
 
     def _merge_imu(self) -> None:
         if not self._pending:
