@@ -11,12 +11,12 @@ import pytest
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "io"))
-import bagfactory as bf  # noqa: E402
+import bagfactory as bf
 
-from adalio import cli  # noqa: E402
-from adalio.config import config_from_dict, load_config  # noqa: E402
-from adalio.io.bagwrite import BagWriter  # noqa: E402
-from adalio.io.writers import SCANS_CSV_COLUMNS, read_ply_points, read_tum  # noqa: E402
+from adalio import cli
+from adalio.config import config_from_dict, load_config
+from adalio.io.bagwrite import BagWriter
+from adalio.io.writers import SCANS_CSV_COLUMNS, read_ply_points, read_tum
 
 
 def run_cli(monkeypatch, capsys, *argv: str) -> tuple[int, str, str]:
@@ -253,7 +253,7 @@ def test_run_pcd_map_and_empty_scans_counted(monkeypatch, capsys, tmp_path):
 
 @pytest.mark.slow
 def test_ctrl_c_leaves_valid_partial_outputs(monkeypatch, capsys, tmp_path, rig):
-    import adalio.pipeline as pipeline
+    from adalio import pipeline
 
     class Interrupting(pipeline.Sequencer):
         def __iter__(self):

@@ -9,6 +9,7 @@ extrinsic actually used). The map and config are also written when the run stops
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import statistics
 import time
@@ -57,8 +58,7 @@ def default_out_dir(bag_path: str | Path, root: str | Path = "runs") -> Path:
     """``runs/<bag-stem>``, or ``runs/<bag-stem>_<k>`` with the first free k."""
     stem = Path(str(bag_path).rstrip("/")).name
     for suffix in (".bag", ".mcap", ".db3"):
-        if stem.endswith(suffix):
-            stem = stem[: -len(suffix)]
+        stem = stem.removesuffix(suffix)
     base = Path(root) / (stem or "run")
     if not base.exists():
         return base
@@ -163,8 +163,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         n_clouds = next((t.count for t in bag.topics() if t.name == lidar_topic), 0)
         total = min(n_clouds, max_scans) if max_scans else n_clouds
         out.mkdir(parents=True, exist_ok=True)
-        paths = dict(trajectory=out / "trajectory.tum", scans=out / "scans.csv",
-                     map=out / f"map.{cfg.output.map_format}", config=out / "config.yaml")
+        paths = {"trajectory": out / "trajectory.tum", "scans": out / "scans.csv",
+                     "map": out / f"map.{cfg.output.map_format}", "config": out / "config.yaml"}
         paths["config"].write_text(cfg.to_yaml())
         odom = Odometry(cfg)
         seq = Sequencer(bag, lidar_topic, imu_topic, cfg.sensor)
@@ -210,16 +210,14 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
             csvw.close()
             try:
                 pts = odom.map_points()
-            except Exception:
+            except Exception:  # noqa: BLE001  (never mask the error that stopped the run)
                 pts = np.zeros((0, 3))
             leaf = cfg.output.map_voxel_m
             if leaf > 0 and len(pts):
-                try:
-                    from adalio.lio.voxel import voxel_downsample
+                from adalio.lio.voxel import voxel_downsample
 
+                with contextlib.suppress(Exception):
                     pts = voxel_downsample(np.asarray(pts, dtype=np.float64), leaf)
-                except Exception:
-                    pass
             write_map(paths["map"], pts, cfg.output.map_format)
             paths["config"].write_text(cfg.to_yaml())
         wall_s = time.perf_counter() - t_start

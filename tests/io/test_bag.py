@@ -10,16 +10,16 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bagfactory as bf  # noqa: E402
+import bagfactory as bf
 
-from adalio.config import Config, SensorConfig  # noqa: E402
-from adalio.errors import BagError  # noqa: E402
-from adalio.io.bag import Bag, chain_transform  # noqa: E402
-from adalio.io.bagwrite import BagWriter  # noqa: E402
-from adalio.io.pointcloud2 import stamp_to_ns  # noqa: E402
-from adalio.io.sequencer import Sequencer  # noqa: E402
-from adalio.pipeline import resolve_extrinsic  # noqa: E402
-from adalio.types import ImuBatch, Scan  # noqa: E402
+from adalio.config import Config, SensorConfig
+from adalio.errors import BagError
+from adalio.io.bag import Bag, chain_transform
+from adalio.io.bagwrite import BagWriter
+from adalio.io.pointcloud2 import stamp_to_ns
+from adalio.io.sequencer import Sequencer
+from adalio.pipeline import resolve_extrinsic
+from adalio.types import ImuBatch, Scan
 
 FORMATS = [("ros1", "rig.bag"), ("sqlite3", "rig_db3"), ("mcap", "rig_mcap"),
            ("mcap_file", "rig.mcap")]
@@ -115,9 +115,11 @@ def test_chain_transform_unconnected_is_none():
 def test_accel_in_g_is_converted_once(tmp_path):
     path = bf.write_static_rig(tmp_path / "g.bag", duration_s=1.0, accel_scale=1 / 9.81,
                                columns=30)
-    with Bag(path) as bag, pytest.warns(UserWarning, match="reports in g"):
+    with Bag(path) as bag:
         seq = Sequencer(bag, "/points", "/imu")
-        acc = np.concatenate([i.accel_m_s2 for i in seq if isinstance(i, ImuBatch)])
+        with pytest.warns(UserWarning, match="reports in g"):
+            items = list(seq)
+    acc = np.concatenate([i.accel_m_s2 for i in items if isinstance(i, ImuBatch)])
     assert seq.stats.accel_in_g
     np.testing.assert_allclose(acc[:, 2], 9.80665, rtol=1e-6)
     with Bag(path) as bag:
@@ -135,6 +137,5 @@ def test_damaged_bags_are_bag_errors(tmp_path, content, match):
         path.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
     else:
         path.write_bytes(content)
-    with pytest.raises(BagError, match=match):
-        with Bag(path) as bag:
-            list(bag.messages([t.name for t in bag.topics()]))
+    with pytest.raises(BagError, match=match), Bag(path) as bag:
+        list(bag.messages([t.name for t in bag.topics()]))

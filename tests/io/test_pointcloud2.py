@@ -77,8 +77,8 @@ def xyz_equal(scan, r):
 @pytest.mark.parametrize("height,row_pad", [(1, 0), (32, 16)])
 def test_hesai_layout_roundtrip(real, big, height, row_pad):
     absolute = real.stamp_sec + real.t
-    cols = dict(x=real.x, y=real.y, z=real.z, intensity=real.intensity, timestamp=absolute,
-                ring=real.ring)
+    cols = {"x": real.x, "y": real.y, "z": real.z, "intensity": real.intensity, "timestamp": absolute,
+                "ring": real.ring}
     msg = msg_from(cols, *HESAI, real.stamp_ns, big, height, row_pad)
     dec = CloudDecoder(SensorConfig(), "/hesai/pandar")
     scan = dec.decode(msg)
@@ -96,8 +96,8 @@ def test_hesai_layout_roundtrip(real, big, height, row_pad):
 @pytest.mark.parametrize("big", [False, True])
 def test_ouster_layout_roundtrip(real, big):
     t_u32 = np.rint(real.t * 1e9).astype(np.uint32)
-    cols = dict(x=real.x, y=real.y, z=real.z, intensity=real.intensity, t=t_u32,
-                reflectivity=np.zeros_like(real.ring), ring=real.ring)
+    cols = {"x": real.x, "y": real.y, "z": real.z, "intensity": real.intensity, "t": t_u32,
+                "reflectivity": np.zeros_like(real.ring), "ring": real.ring}
     dec = CloudDecoder(SensorConfig(), "/os_cloud_node/points")
     scan = dec.decode(msg_from(cols, *OUSTER, real.stamp_ns, big))
     assert dec.time_spec == TimeSpec("t", "ns", "relative")
@@ -109,9 +109,9 @@ def test_ouster_layout_roundtrip(real, big):
 def test_velodyne_layout_roundtrip_header_at_sweep_end(real, big):
     sweep = float(real.t.max())
     t_f32 = (real.t - sweep).astype(np.float32)
-    stamp_ns = real.stamp_ns + int(round(sweep * 1e9))
-    cols = dict(x=real.x, y=real.y, z=real.z, intensity=real.intensity, ring=real.ring,
-                time=t_f32)
+    stamp_ns = real.stamp_ns + round(sweep * 1e9)
+    cols = {"x": real.x, "y": real.y, "z": real.z, "intensity": real.intensity, "ring": real.ring,
+                "time": t_f32}
     dec = CloudDecoder(SensorConfig(), "/velodyne_points")
     scan = dec.decode(msg_from(cols, *VELODYNE, stamp_ns, big))
     assert dec.time_spec == TimeSpec("time", "s", "relative")
@@ -126,8 +126,8 @@ def test_nonfinite_points_dropped_with_their_times(real):
     bad = rng.choice(x.size, 500, replace=False)
     x[bad[:250]] = np.nan
     x[bad[250:]] = np.inf
-    cols = dict(x=x, y=real.y, z=real.z, intensity=real.intensity, t=t_u32,
-                reflectivity=np.zeros_like(real.ring), ring=real.ring)
+    cols = {"x": x, "y": real.y, "z": real.z, "intensity": real.intensity, "t": t_u32,
+                "reflectivity": np.zeros_like(real.ring), "ring": real.ring}
     scan = CloudDecoder().decode(msg_from(cols, *OUSTER, real.stamp_ns))
     keep = np.ones(x.size, bool)
     keep[bad] = False
@@ -140,19 +140,19 @@ def test_nan_time_drops_point(real):
     n = 1000
     t = real.t[:n].copy()
     t[[3, 500]] = np.nan
-    cols = dict(x=real.x[:n], y=real.y[:n], z=real.z[:n], intensity=real.intensity[:n],
-                ring=real.ring[:n], time=t.astype(np.float32))
+    cols = {"x": real.x[:n], "y": real.y[:n], "z": real.z[:n], "intensity": real.intensity[:n],
+                "ring": real.ring[:n], "time": t.astype(np.float32)}
     scan = CloudDecoder().decode(msg_from(cols, *VELODYNE, real.stamp_ns))
     assert len(scan) == n - 2 and scan.t_ns.min() >= real.stamp_ns
 
 
 def test_azimuth_reconstruction_matches_true_times(real):
-    cols = dict(x=real.x, y=real.y, z=real.z, intensity=real.intensity)
+    cols = {"x": real.x, "y": real.y, "z": real.z, "intensity": real.intensity}
     layout = [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("intensity", 12, "f4")]
     valid = real.rng > 0
     cols = {k: v[valid] for k, v in cols.items()}
     t_true = real.t[valid]
-    stamp_ns = real.stamp_ns + int(round(t_true[0] * 1e9))
+    stamp_ns = real.stamp_ns + round(t_true[0] * 1e9)
     dec = CloudDecoder(SensorConfig(lidar_rate_hz=10.0), "/hesai/pandar")
     with pytest.warns(UserWarning, match="has no per-point time field"):
         scan = dec.decode(msg_from(cols, layout, 16, stamp_ns))
@@ -203,7 +203,7 @@ def test_undetectable_time_is_a_clear_error(real):
 
 
 def test_missing_xyz_names_topic_and_fields():
-    cols = dict(a=np.zeros(3, np.float32), b=np.zeros(3, np.float32))
+    cols = {"a": np.zeros(3, np.float32), "b": np.zeros(3, np.float32)}
     msg = msg_from({"x": cols["a"], **cols}, [("x", 0, "f4"), ("a", 4, "f4"), ("b", 8, "f4")],
                    12, 0)
     with pytest.raises(BagError, match=r"/cloud has no y/z field \(fields: x, a, b\)"):
@@ -223,7 +223,7 @@ def test_count_gt_one_coordinate_is_error_other_fields_ignored():
 
 
 def test_truncated_data_is_error(real):
-    cols = dict(x=real.x[:100], y=real.y[:100], z=real.z[:100])
+    cols = {"x": real.x[:100], "y": real.y[:100], "z": real.z[:100]}
     msg = msg_from(cols, [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4")], 12, 0)
     msg.data = msg.data[:-5]
     with pytest.raises(BagError, match="truncated"):

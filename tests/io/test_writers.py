@@ -64,7 +64,8 @@ def test_scans_csv_columns_and_values(tmp_path):
                    weakest_direction=np.eye(6)[3], degeneracy_score=0.25)
     w.write(st)
     w.close()
-    rows = list(csv.DictReader(open(tmp_path / "s.csv")))
+    with open(tmp_path / "s.csv") as fh:
+        rows = list(csv.DictReader(fh))
     assert list(rows[0]) == list(SCANS_CSV_COLUMNS)
     r = rows[0]
     assert (r["t_s"], r["n_raw"], r["degenerate"], r["trigger"]) == ("1.000000001", "10", "1",

@@ -9,11 +9,12 @@ underlying reader becomes a one-line :class:`~adalio.errors.BagError`.
 
 from __future__ import annotations
 
+import contextlib
 from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 
@@ -123,7 +124,7 @@ class Bag:
         try:
             reader = AnyReader(self.paths, default_typestore=store)
             reader.open()
-        except Exception as exc:  # rosbags raises many types for damaged files
+        except Exception as exc:  # noqa: BLE001  (rosbags raises many types on damaged files)
             raise BagError(f"cannot read bag {self.path}: {_reason(exc)}; it may be truncated "
                            "or corrupted (re-copy it, or reindex a ROS1 bag)") from None
         self._reader = reader
@@ -131,13 +132,11 @@ class Bag:
 
     def close(self) -> None:
         if self._reader is not None:
-            try:
+            with contextlib.suppress(Exception):
                 self._reader.close()
-            except Exception:
-                pass
             self._reader = None
 
-    def __enter__(self) -> Bag:
+    def __enter__(self) -> Self:
         return self.open()
 
     def __exit__(self, *exc: object) -> None:
@@ -215,7 +214,7 @@ class Bag:
         left = {t: limit for t in topics} if limit is not None else None
         try:
             it = reader.messages(connections=conns, start=start_ns)
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001
             raise BagError(f"cannot read bag {self.path}: {_reason(exc)}; it is truncated or "
                            "corrupted") from None
         while True:
@@ -230,7 +229,7 @@ class Bag:
                 msg = reader.deserialize(raw, conn.msgtype)
             except StopIteration:
                 return
-            except Exception as exc:
+            except Exception as exc:  # noqa: BLE001  (damaged data surfaces as any type)
                 done_s = (getattr(self, "_last_t", self.start_ns) - self.start_ns) * 1e-9
                 raise BagError(f"cannot read bag {self.path} after {done_s:.3f} s of it: "
                                f"{_reason(exc)}; it is truncated or corrupted (rows written so "

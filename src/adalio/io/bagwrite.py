@@ -11,7 +11,7 @@ from __future__ import annotations
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 
@@ -55,7 +55,7 @@ class BagWriter:
             plugin = StoragePlugin.SQLITE3 if fmt in ("ros2", "sqlite3") else StoragePlugin.MCAP
             self._writer = Writer(target, version=9, storage_plugin=plugin)
 
-    def __enter__(self) -> BagWriter:
+    def __enter__(self) -> Self:
         self._writer.open()
         return self
 

@@ -215,4 +215,4 @@ def register(app: typer.Typer) -> None:
     app.add_typer(config_app, name="config")
 
 
-__all__ = ["register", "AdalioError", "ConfigError"]
+__all__ = ["AdalioError", "ConfigError", "register"]

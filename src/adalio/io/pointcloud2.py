@@ -134,7 +134,7 @@ def decode_fields(data: Any, layout: CloudLayout, names: list[str],
     buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) \
         else data.reshape(-1).view(np.uint8)
     row_bytes = width * step
-    row_step = layout.row_step if layout.row_step >= row_bytes else row_bytes
+    row_step = max(layout.row_step, row_bytes)
     if n_rows > 1 and layout.row_step < row_bytes:
         raise BagError(f"{where}: row_step {layout.row_step} < width*point_step {row_bytes}; "
                        "the message is corrupted")

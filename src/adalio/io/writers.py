@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import csv
 from pathlib import Path
-from typing import IO
+from typing import IO, Self
 
 import numpy as np
 
@@ -46,7 +46,7 @@ class TumWriter:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self._fh: IO[str] | None = open(self.path, "w", encoding="utf-8")
+        self._fh: IO[str] | None = open(self.path, "w", encoding="utf-8")  # noqa: SIM115
         self.rows = 0
 
     def write(self, t_ns: int, T_world_imu: np.ndarray) -> None:
@@ -61,7 +61,7 @@ class TumWriter:
             self._fh.close()
             self._fh = None
 
-    def __enter__(self) -> TumWriter:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -89,7 +89,8 @@ class ScansCsvWriter:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self._fh: IO[str] | None = open(self.path, "w", encoding="utf-8", newline="")
+        self._fh: IO[str] | None = open(  # noqa: SIM115
+            self.path, "w", encoding="utf-8", newline="")
         self._csv = csv.writer(self._fh)
         self._csv.writerow(SCANS_CSV_COLUMNS)
         self._fh.flush()
