@@ -5,7 +5,7 @@ import pytest
 
 from adalio.config import MapConfig
 from adalio.errors import ConfigError, InputError
-from adalio.lio.ivox import IVox, nearby_offsets, select_for_insertion
+from adalio.lio.ivox import PARALLEL_MIN_ROWS, IVox, nearby_offsets, select_for_insertion
 
 
 def voxel_keys(points: np.ndarray, resolution_m: float) -> np.ndarray:
@@ -213,9 +213,9 @@ def test_random_insert_evict_sequence_matches_reference_model() -> None:
         np.testing.assert_array_equal(dist2[i, : counts[i]], e)
 
 
-def test_deterministic_outputs() -> None:
+def test_deterministic_outputs_serial_and_parallel_paths() -> None:
     rng, pts = random_map(9, n=3000)
-    queries = rng.uniform(-2, 2, size=(500, 3))
+    queries = rng.uniform(-2, 2, size=(PARALLEL_MIN_ROWS + 500, 3))
     runs = []
     for _ in range(2):
         ivox = IVox(0.4, 18, 200, 6)
@@ -227,6 +227,13 @@ def test_deterministic_outputs() -> None:
     reversed_rows = ivox.knn(queries[::-1], 5, 1.0)
     for a, b in zip(runs[1][1:], reversed_rows, strict=True):
         np.testing.assert_array_equal(a, b[::-1])
+    half = len(queries) // 2
+    serial_parts = [ivox.knn(part, 5, 1.0) for part in (queries[:half], queries[half:])]
+    for i, whole in enumerate(runs[1][1:]):
+        np.testing.assert_array_equal(whole, np.concatenate([p[i] for p in serial_parts]))
+    expected = brute_knn_in_neighbourhood(runs[1][0], queries[:50], 5, 1.0, 0.4, 18)
+    for i, e in enumerate(expected):
+        np.testing.assert_array_equal(runs[1][3][i, : len(e)], e)
 
 
 def nbr_rows(rows: list[list[float]], k: int = 5) -> tuple[np.ndarray, np.ndarray]:

@@ -5,7 +5,7 @@ import pytest
 
 from adalio.errors import ConfigError, InputError
 from adalio.lio.ivox import IVox
-from adalio.lio.plane import fit_planes
+from adalio.lio.plane import PARALLEL_MIN_ROWS, fit_planes
 
 PENTAGON = np.array([[np.cos(a), np.sin(a)] for a in 2 * np.pi * np.arange(5) / 5])
 
@@ -146,6 +146,24 @@ def test_fit_on_ivox_neighbours_of_a_wall() -> None:
         assert valid.all()
         np.testing.assert_allclose(normals, np.tile([-1.0, 0.0, 0.0], (200, 1)), atol=tol_m)
         np.testing.assert_allclose(dist, 4.0, atol=tol_m)
+
+
+@pytest.mark.parametrize("method", ["ls", "pca"])
+def test_parallel_path_equals_serial_rows(method: str) -> None:
+    rng = np.random.default_rng(6)
+    m = PARALLEL_MIN_ROWS + 300
+    n, _, nbrs = random_planes(rng, m, noise_m=0.01)
+    counts = rng.integers(2, 6, size=m)
+    whole = fit_planes(nbrs, counts, 3, 0.02, method)
+    half = m // 2
+    parts = [
+        fit_planes(nbrs[sl], counts[sl], 3, 0.02, method) for sl in (np.s_[:half], np.s_[half:])
+    ]
+    for i in range(3):
+        np.testing.assert_array_equal(whole[i], np.concatenate([p[i] for p in parts]))
+    fitted = counts >= 3
+    assert 0.2 < whole[2][fitted].mean() < 1.0
+    assert np.median(angle_deg(whole[0][fitted], n[fitted])) < 3.0
 
 
 def test_bad_arguments() -> None:

@@ -30,9 +30,13 @@ from adalio.lio.voxel import hash_key3, table_size_for
 
 BLOCK_POINTS = 8
 """Points per storage block of a voxel (memory granularity, not an algorithm constant)."""
+_BLOCK_SHIFT = 3
+_BOX_SLACK = 1e-6
 INSERTION_NUM_NEIGHBORS = 5
 """Neighbours compared by the §7 insertion rule (Faster-LIO NUM_MATCH_POINTS)."""
 NEARBY_TYPES = (0, 6, 18, 26)
+PARALLEL_MIN_ROWS = 1024
+"""Batches with fewer queries run single-threaded (thread start-up would dominate)."""
 
 _MAX_ABS_KEY = 4.0e15
 _S_NV, _S_NP, _S_NBLOCKS, _S_NFREE, _S_SEQ = range(5)
@@ -140,12 +144,12 @@ def _insert_points(
                 else:
                     b = n_blocks
                     n_blocks += 1
-                vblocks[v, slot // BLOCK_POINTS] = b
+                vblocks[v, slot >> _BLOCK_SHIFT] = b
             n_points += 1
         else:
             slot = t % cap
-        b = vblocks[v, slot // BLOCK_POINTS]
-        j = slot % BLOCK_POINTS
+        b = vblocks[v, slot >> _BLOCK_SHIFT]
+        j = slot & (BLOCK_POINTS - 1)
         pool[b, j, 0] = points[i, 0]
         pool[b, j, 1] = points[i, 1]
         pool[b, j, 2] = points[i, 2]
@@ -196,69 +200,97 @@ def _evict(
     _rebuild_table(table, vkeys, w)
 
 
-@njit(cache=True, parallel=True)
-def _knn(
+@njit(cache=True)
+def _knn_row(
+    qi: int,
     queries: np.ndarray,
     k: int,
     max_d2: float,
     resolution_m: float,
     offsets: np.ndarray,
     cap: int,
-    table: np.ndarray,
-    vkeys: np.ndarray,
-    vtotal: np.ndarray,
-    vblocks: np.ndarray,
-    pool: np.ndarray,
+    store: tuple,
     out_nbrs: np.ndarray,
     out_d2: np.ndarray,
-    out_counts: np.ndarray,
-) -> None:
-    """k nearest map points of each query among its neighbourhood voxels (§7 "kNN").
+) -> int:
+    """k nearest map points of query ``qi`` among its neighbourhood voxels (§7 "kNN").
 
     Candidates are the points of the query voxel round(q/s) and its ``offsets`` neighbours with
-    squared distance < max_d2; each output row is kept sorted ascending by insertion (ties keep the
-    first candidate in offset/slot order). Rows are independent, so the parallel loop is
-    deterministic. ``out_nbrs`` must be NaN-filled and ``out_d2`` inf-filled by the caller.
+    squared distance < max_d2; the output row is kept sorted ascending by insertion (ties keep the
+    first candidate in offset/slot order). A neighbour voxel whose (slightly inflated) box is no
+    closer than the current bound is skipped, which cannot change the result. ``out_nbrs[qi]``
+    must be NaN-filled and ``out_d2[qi]`` inf-filled. ``store`` = (table, vkeys, vtotal, vblocks,
+    pool) of the map. Returns the number of neighbours found.
     """
+    table, vkeys, vtotal, vblocks, pool = store
+    half = 0.5 * resolution_m * (1.0 + _BOX_SLACK)
+    qx = queries[qi, 0]
+    qy = queries[qi, 1]
+    qz = queries[qi, 2]
+    ok, kx, ky, kz = _key_of(qx, qy, qz, resolution_m)
+    if not ok:
+        return 0
+    cnt = 0
+    bound = max_d2
+    for o in range(offsets.shape[0]):
+        vx = kx + offsets[o, 0]
+        vy = ky + offsets[o, 1]
+        vz = kz + offsets[o, 2]
+        bx = max(abs(qx - vx * resolution_m) - half, 0.0)
+        by = max(abs(qy - vy * resolution_m) - half, 0.0)
+        bz = max(abs(qz - vz * resolution_m) - half, 0.0)
+        if not bx * bx + by * by + bz * bz < bound:
+            continue
+        v = _lookup(table, vkeys, vx, vy, vz)
+        if v < 0:
+            continue
+        for j in range(min(vtotal[v], cap)):
+            b = vblocks[v, j >> _BLOCK_SHIFT]
+            s = j & (BLOCK_POINTS - 1)
+            px = pool[b, s, 0]
+            py = pool[b, s, 1]
+            pz = pool[b, s, 2]
+            d2 = (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2
+            if not d2 < bound:
+                continue
+            pos = cnt if cnt < k else k - 1
+            while pos > 0 and d2 < out_d2[qi, pos - 1]:
+                out_d2[qi, pos] = out_d2[qi, pos - 1]
+                out_nbrs[qi, pos, 0] = out_nbrs[qi, pos - 1, 0]
+                out_nbrs[qi, pos, 1] = out_nbrs[qi, pos - 1, 1]
+                out_nbrs[qi, pos, 2] = out_nbrs[qi, pos - 1, 2]
+                pos -= 1
+            out_d2[qi, pos] = d2
+            out_nbrs[qi, pos, 0] = px
+            out_nbrs[qi, pos, 1] = py
+            out_nbrs[qi, pos, 2] = pz
+            if cnt < k:
+                cnt += 1
+            if cnt == k:
+                bound = out_d2[qi, k - 1]
+    return cnt
+
+
+@njit(cache=True)
+def _knn_serial(
+    queries, k, max_d2, resolution_m, offsets, cap, store, out_nbrs, out_d2, out_counts
+):
+    """kNN of every query row (§7), one thread."""
+    for qi in range(queries.shape[0]):
+        out_counts[qi] = _knn_row(
+            qi, queries, k, max_d2, resolution_m, offsets, cap, store, out_nbrs, out_d2
+        )
+
+
+@njit(cache=True, parallel=True)
+def _knn_parallel(
+    queries, k, max_d2, resolution_m, offsets, cap, store, out_nbrs, out_d2, out_counts
+):
+    """kNN of every query row (§7); rows are independent, so the result is deterministic."""
     for qi in prange(queries.shape[0]):
-        qx = queries[qi, 0]
-        qy = queries[qi, 1]
-        qz = queries[qi, 2]
-        ok, kx, ky, kz = _key_of(qx, qy, qz, resolution_m)
-        cnt = 0
-        if ok:
-            for o in range(offsets.shape[0]):
-                v = _lookup(
-                    table, vkeys, kx + offsets[o, 0], ky + offsets[o, 1], kz + offsets[o, 2]
-                )
-                if v < 0:
-                    continue
-                n_in = min(vtotal[v], cap)
-                for j in range(n_in):
-                    b = vblocks[v, j // BLOCK_POINTS]
-                    s = j % BLOCK_POINTS
-                    px = pool[b, s, 0]
-                    py = pool[b, s, 1]
-                    pz = pool[b, s, 2]
-                    d2 = (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2
-                    if not d2 < max_d2:
-                        continue
-                    if cnt == k and not d2 < out_d2[qi, k - 1]:
-                        continue
-                    pos = cnt if cnt < k else k - 1
-                    while pos > 0 and d2 < out_d2[qi, pos - 1]:
-                        out_d2[qi, pos] = out_d2[qi, pos - 1]
-                        out_nbrs[qi, pos, 0] = out_nbrs[qi, pos - 1, 0]
-                        out_nbrs[qi, pos, 1] = out_nbrs[qi, pos - 1, 1]
-                        out_nbrs[qi, pos, 2] = out_nbrs[qi, pos - 1, 2]
-                        pos -= 1
-                    out_d2[qi, pos] = d2
-                    out_nbrs[qi, pos, 0] = px
-                    out_nbrs[qi, pos, 1] = py
-                    out_nbrs[qi, pos, 2] = pz
-                    if cnt < k:
-                        cnt += 1
-        out_counts[qi] = cnt
+        out_counts[qi] = _knn_row(
+            qi, queries, k, max_d2, resolution_m, offsets, cap, store, out_nbrs, out_d2
+        )
 
 
 @njit(cache=True)
@@ -269,7 +301,7 @@ def _gather_points(
     w = 0
     for v in range(nv):
         for j in range(min(vtotal[v], cap)):
-            out[w] = pool[vblocks[v, j // BLOCK_POINTS], j % BLOCK_POINTS]
+            out[w] = pool[vblocks[v, j >> _BLOCK_SHIFT], j & (BLOCK_POINTS - 1)]
             w += 1
     return out
 
@@ -406,18 +438,15 @@ class IVox:
         counts = np.zeros(m, np.int64)
         if m == 0 or self.num_voxels == 0:
             return nbrs, counts, dist2
-        _knn(
+        kernel = _knn_parallel if m >= PARALLEL_MIN_ROWS else _knn_serial
+        kernel(
             q,
             k,
             float(max_range_m) ** 2,
             self.resolution_m,
             self._offsets,
             self.max_points_per_voxel,
-            self._table,
-            self._vkeys,
-            self._vtotal,
-            self._vblocks,
-            self._pool,
+            (self._table, self._vkeys, self._vtotal, self._vblocks, self._pool),
             nbrs,
             dist2,
             counts,

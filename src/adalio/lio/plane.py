@@ -32,16 +32,21 @@ PCA_MIN_REL_SPREAD = 1e-12
 """PCA fit rejected when the middle covariance eigenvalue is below this fraction of the largest
 (collinear or coincident neighbours: the normal is undefined)."""
 PLANE_METHODS = ("ls", "pca")
+PARALLEL_MIN_ROWS = 2048
+"""Batches with fewer rows run single-threaded (thread start-up would dominate)."""
 _JACOBI_SWEEPS = 12
 
 
 @njit(cache=True)
-def _jacobi_smallest(c: np.ndarray):
-    """Smallest eigenpair of a symmetric 3x3 matrix by cyclic Jacobi rotations (§6.2 PCA).
+def _jacobi_eigen(c: np.ndarray, v: np.ndarray):
+    """Eigen-decomposition of a symmetric 3x3 matrix by cyclic Jacobi rotations (§6.2 PCA).
 
-    Returns (lambda_min, lambda_mid, lambda_max, v (3,)); ``c`` is overwritten.
+    ``c`` becomes diagonal (the eigenvalues), ``v`` receives the eigenvectors as columns.
+    Returns the column indices of the (smallest, middle, largest) eigenvalue.
     """
-    v = np.eye(3)
+    for r in range(3):
+        for col in range(3):
+            v[r, col] = 1.0 if r == col else 0.0
     for _ in range(_JACOBI_SWEEPS):
         off = abs(c[0, 1]) + abs(c[0, 2]) + abs(c[1, 2])
         scale = abs(c[0, 0]) + abs(c[1, 1]) + abs(c[2, 2])
@@ -81,13 +86,15 @@ def _jacobi_smallest(c: np.ndarray):
             i2 = i
     if i0 == i2:
         i2 = (i0 + 1) % 3
-    i1 = 3 - i0 - i2
-    return c[i0, i0], c[i1, i1], c[i2, i2], v[:, i0].copy()
+    return i0, 3 - i0 - i2, i2
 
 
 @njit(cache=True)
-def _fit_pca(nbrs: np.ndarray, cnt: int, out_n: np.ndarray) -> float:
-    """PCA plane through the neighbour mean (§6.2 option); returns d, or NaN if degenerate."""
+def _fit_pca(nbrs: np.ndarray, cnt: int, c: np.ndarray, v: np.ndarray, out_n: np.ndarray) -> float:
+    """PCA plane through the neighbour mean (§6.2 option); returns d, or NaN if degenerate.
+
+    ``c``, ``v`` are 3x3 scratch arrays; the unit normal is written to ``out_n``.
+    """
     mx = 0.0
     my = 0.0
     mz = 0.0
@@ -98,7 +105,7 @@ def _fit_pca(nbrs: np.ndarray, cnt: int, out_n: np.ndarray) -> float:
     mx /= cnt
     my /= cnt
     mz /= cnt
-    c = np.zeros((3, 3))
+    c[:, :] = 0.0
     for j in range(cnt):
         dx = nbrs[j, 0] - mx
         dy = nbrs[j, 1] - my
@@ -112,13 +119,13 @@ def _fit_pca(nbrs: np.ndarray, cnt: int, out_n: np.ndarray) -> float:
     c[1, 0] = c[0, 1]
     c[2, 0] = c[0, 2]
     c[2, 1] = c[1, 2]
-    _lam_min, lam_mid, lam_max, v = _jacobi_smallest(c)
-    if not (lam_mid > PCA_MIN_REL_SPREAD * lam_max):
+    i_min, i_mid, i_max = _jacobi_eigen(c, v)
+    if not (c[i_mid, i_mid] > PCA_MIN_REL_SPREAD * c[i_max, i_max]):
         return np.nan
-    norm = np.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2)
-    nx = v[0] / norm
-    ny = v[1] / norm
-    nz = v[2] / norm
+    norm = np.sqrt(v[0, i_min] ** 2 + v[1, i_min] ** 2 + v[2, i_min] ** 2)
+    nx = v[0, i_min] / norm
+    ny = v[1, i_min] / norm
+    nz = v[2, i_min] / norm
     d = -(nx * mx + ny * my + nz * mz)
     flip = d < 0.0
     if d == 0.0:
@@ -183,39 +190,54 @@ def _fit_ls(nbrs: np.ndarray, cnt: int, out_n: np.ndarray) -> float:
     return d
 
 
+@njit(cache=True)
+def _fit_row(
+    i: int,
+    nbrs: np.ndarray,
+    counts: np.ndarray,
+    min_count: int,
+    margin_m: float,
+    use_ls: bool,
+    scratch: np.ndarray,
+    normals: np.ndarray,
+    dist: np.ndarray,
+    valid: np.ndarray,
+) -> None:
+    """Plane fit of row i and the all-neighbours margin test of lio-design.md §6.2."""
+    cnt = min(counts[i], nbrs.shape[1])
+    if cnt < min_count:
+        return
+    nrm = normals[i]
+    d = np.nan
+    if use_ls:
+        d = _fit_ls(nbrs[i], cnt, nrm)
+    if not np.isfinite(d):
+        d = _fit_pca(nbrs[i], cnt, scratch[0], scratch[1], nrm)
+    if not np.isfinite(d):
+        nrm[:] = np.nan
+        return
+    dist[i] = d
+    for j in range(cnt):
+        r = nrm[0] * nbrs[i, j, 0] + nrm[1] * nbrs[i, j, 1] + nrm[2] * nbrs[i, j, 2] + d
+        if not abs(r) <= margin_m:
+            return
+    valid[i] = True
+
+
+@njit(cache=True)
+def _fit_planes_serial(nbrs, counts, min_count, margin_m, use_ls, normals, dist, valid):
+    """All rows, one thread."""
+    scratch = np.empty((2, 3, 3))
+    for i in range(nbrs.shape[0]):
+        _fit_row(i, nbrs, counts, min_count, margin_m, use_ls, scratch, normals, dist, valid)
+
+
 @njit(cache=True, parallel=True)
-def _fit_planes(
-    nbrs: np.ndarray, counts: np.ndarray, min_count: int, margin_m: float, use_ls: bool
-):
-    """Per-row plane fit and the all-neighbours margin test of lio-design.md §6.2."""
-    m = nbrs.shape[0]
-    normals = np.full((m, 3), np.nan)
-    dist = np.full(m, np.nan)
-    valid = np.zeros(m, np.bool_)
-    for i in prange(m):
-        cnt = min(counts[i], nbrs.shape[1])
-        if cnt < min_count:
-            continue
-        nrm = np.empty(3)
-        d = np.nan
-        if use_ls:
-            d = _fit_ls(nbrs[i], cnt, nrm)
-        if not np.isfinite(d):
-            d = _fit_pca(nbrs[i], cnt, nrm)
-        if not np.isfinite(d):
-            continue
-        normals[i, 0] = nrm[0]
-        normals[i, 1] = nrm[1]
-        normals[i, 2] = nrm[2]
-        dist[i] = d
-        ok = True
-        for j in range(cnt):
-            r = nrm[0] * nbrs[i, j, 0] + nrm[1] * nbrs[i, j, 1] + nrm[2] * nbrs[i, j, 2] + d
-            if not abs(r) <= margin_m:
-                ok = False
-                break
-        valid[i] = ok
-    return normals, dist, valid
+def _fit_planes_parallel(nbrs, counts, min_count, margin_m, use_ls, normals, dist, valid):
+    """All rows; rows are independent (own scratch), so the result is deterministic."""
+    scratch = np.empty((nbrs.shape[0], 2, 3, 3))
+    for i in prange(nbrs.shape[0]):
+        _fit_row(i, nbrs, counts, min_count, margin_m, use_ls, scratch[i], normals, dist, valid)
 
 
 def fit_planes(
@@ -238,5 +260,12 @@ def fit_planes(
         raise InputError(
             f"nbrs must be (M, k, 3) and counts (M,), got {np.shape(nbrs)}, {np.shape(counts)}"
         )
-    min_count = max(int(min_neighbors), 3)
-    return _fit_planes(nb, cn, min_count, float(margin_m), method == "ls")
+    m = nb.shape[0]
+    normals = np.full((m, 3), np.nan)
+    dist = np.full(m, np.nan)
+    valid = np.zeros(m, np.bool_)
+    kernel = _fit_planes_parallel if m >= PARALLEL_MIN_ROWS else _fit_planes_serial
+    kernel(
+        nb, cn, max(int(min_neighbors), 3), float(margin_m), method == "ls", normals, dist, valid
+    )
+    return normals, dist, valid
