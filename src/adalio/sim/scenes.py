@@ -149,8 +149,9 @@ def build_hall(seed: int = 0, size_m: tuple[float, float, float] = (20.0, 15.0, 
 
 
 # ----------------------------------------------------------------------- corridor
-def build_corridor(seed: int = 0, length_a_m: float = 36.0, length_b_m: float = 16.0,
-                   width_m: float = 1.6, height_m: float = 2.5, n_doors: int = 6) -> Scene:
+def build_corridor(seed: int = 0, length_a_m: float = 48.0, length_b_m: float = 14.0,
+                   width_m: float = 1.6, height_m: float = 2.5, n_doors: int = 5,
+                   recess_m: float = 0.1) -> Scene:
     """L-shaped corridor: smooth walls, a few door recesses, ceiling lights, one 90 deg turn."""
     rng = np.random.default_rng([seed, 2])
     w = width_m
@@ -159,18 +160,18 @@ def build_corridor(seed: int = 0, length_a_m: float = 36.0, length_b_m: float = 
          np.array([length_a_m, length_b_m, height_m]))
     free = [a, b]
     along = []
-    xs = np.sort(rng.uniform(3.0, length_a_m - 4.0, 64))
+    xs = rng.uniform(3.0, length_a_m - 4.0, 64)
     for x in xs:
-        if all(abs(x - q) > 6.0 for q in along):
+        if all(abs(x - q) > 10.0 for q in along):
             along.append(x)
         if len(along) == n_doors - 2:
             break
     for i, x in enumerate(along):
         side = 1 if i % 2 == 0 else -1
-        y0, y1 = (w / 2, w / 2 + 0.15) if side > 0 else (-w / 2 - 0.15, -w / 2)
+        y0, y1 = (w / 2, w / 2 + recess_m) if side > 0 else (-w / 2 - recess_m, -w / 2)
         free.append((np.array([x - 0.5, y0, 0.0]), np.array([x + 0.5, y1, 2.1])))
     for y in (0.45 * length_b_m, 0.8 * length_b_m):
-        free.append((np.array([length_a_m - w - 0.15, y - 0.5, 0.0]),
+        free.append((np.array([length_a_m - w - recess_m, y - 0.5, 0.0]),
                      np.array([length_a_m - w, y + 0.5, 2.1])))
     parts = g.solid_complement(free)
     for x in np.arange(2.5, length_a_m - 1.0, 5.0):
