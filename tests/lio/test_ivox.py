@@ -5,7 +5,13 @@ import pytest
 
 from adalio.config import MapConfig
 from adalio.errors import ConfigError, InputError
-from adalio.lio.ivox import PARALLEL_MIN_ROWS, IVox, nearby_offsets, select_for_insertion
+from adalio.lio.ivox import (
+    EVICT_SLACK_DIVISOR,
+    PARALLEL_MIN_ROWS,
+    IVox,
+    nearby_offsets,
+    select_for_insertion,
+)
 
 
 def voxel_keys(points: np.ndarray, resolution_m: float) -> np.ndarray:
@@ -173,7 +179,8 @@ def test_per_voxel_cap_replaces_oldest() -> None:
 def reference_model_points(
     batches: list[np.ndarray], resolution_m: float, capacity: int, cap: int
 ) -> dict[tuple, set[tuple]]:
-    """Plain-Python iVox: per-voxel FIFO of `cap` points, LRU by last insertion, batch eviction."""
+    """Plain-Python iVox: per-voxel FIFO of `cap` points, LRU by last insertion; over capacity,
+    evict oldest down to capacity minus the documented slack."""
     voxels: dict[tuple, list[tuple]] = {}
     stamp: dict[tuple, int] = {}
     seq = 0
@@ -184,16 +191,19 @@ def reference_model_points(
             voxels[key] = voxels[key][-cap:]
             stamp[key] = seq
             seq += 1
-        while len(voxels) > capacity:
+        if len(voxels) <= capacity:
+            continue
+        while len(voxels) > capacity - capacity // EVICT_SLACK_DIVISOR:
             oldest = min(voxels, key=stamp.__getitem__)
             del voxels[oldest]
             del stamp[oldest]
     return {k: set(v) for k, v in voxels.items()}
 
 
-def test_random_insert_evict_sequence_matches_reference_model() -> None:
+@pytest.mark.parametrize("capacity", [40, 100])
+def test_random_insert_evict_sequence_matches_reference_model(capacity: int) -> None:
     rng = np.random.default_rng(7)
-    ivox = IVox(0.5, 18, 40, 10)
+    ivox = IVox(0.5, 18, capacity, 10)
     batches = []
     centre = np.zeros(3)
     for _ in range(30):
@@ -201,10 +211,12 @@ def test_random_insert_evict_sequence_matches_reference_model() -> None:
         batch = centre + rng.normal(scale=0.8, size=(int(rng.integers(1, 60)), 3))
         batches.append(batch)
         ivox.add_points(batch)
-        expected = reference_model_points(batches, 0.5, 40, 10)
+        expected = reference_model_points(batches, 0.5, capacity, 10)
         assert voxel_sets(ivox) == expected
         assert ivox.num_points == sum(len(v) for v in expected.values())
         assert ivox.num_voxels == len(expected)
+    all_keys = voxel_keys(np.vstack(batches), 0.5)
+    assert len(np.unique(all_keys, axis=0)) > 2 * capacity
     queries = centre + rng.normal(scale=1.0, size=(200, 3))
     pts = ivox.points()
     _, counts, dist2 = ivox.knn(queries, 5, 5.0)

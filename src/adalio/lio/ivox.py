@@ -12,7 +12,9 @@ Deviations from upstream, documented in lio-design.md §7:
 * Recency: every inserted point stamps its voxel with a global, strictly increasing sequence
   number (queries never refresh it). After each ``add_points`` call, if more than
   ``capacity_voxels`` voxels exist, the voxels with the oldest stamps are evicted in one batch
-  until exactly ``capacity_voxels`` remain (upstream evicts one voxel per insertion).
+  until ``capacity_voxels - capacity_voxels // EVICT_SLACK_DIVISOR`` remain (upstream evicts one
+  voxel per insertion and keeps exactly ``capacity``). The slack makes the O(voxels) compaction
+  and rehash happen once per many scans instead of every scan once the map is full.
 * kNN returns the exact k nearest of all points of the searched voxels with squared distance
   < max_range_m**2, sorted ascending (upstream only guarantees element 0 is the nearest).
 
@@ -35,6 +37,8 @@ _BOX_SLACK = 1e-6
 INSERTION_NUM_NEIGHBORS = 5
 """Neighbours compared by the §7 insertion rule (Faster-LIO NUM_MATCH_POINTS)."""
 NEARBY_TYPES = (0, 6, 18, 26)
+EVICT_SLACK_DIVISOR = 16
+"""A batch eviction frees capacity // EVICT_SLACK_DIVISOR extra voxels (amortises compaction)."""
 PARALLEL_MIN_ROWS = 1024
 """Batches with fewer queries run single-threaded (thread start-up would dominate)."""
 
@@ -404,7 +408,8 @@ class IVox:
         )
         nv = self.num_voxels
         if nv > self.capacity_voxels:
-            n_evict = nv - self.capacity_voxels
+            keep = self.capacity_voxels - self.capacity_voxels // EVICT_SLACK_DIVISOR
+            n_evict = nv - keep
             oldest = np.argpartition(self._vstamp[:nv], n_evict - 1)[:n_evict]
             evict = np.zeros(nv, np.bool_)
             evict[oldest] = True
