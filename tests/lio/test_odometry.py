@@ -216,3 +216,53 @@ def test_end_to_end_box_room_ate_below_2cm(mode):
         rel_e = R0e.T @ e.T_world_imu[:3, :3]
         rel_g = R0g.T @ Rg
         assert np.linalg.norm(so3.log(rel_g.T @ rel_e)) < np.deg2rad(1.0)
+
+
+def test_adaptive_switch_uses_degenerate_parameter_set():
+    cfg = _config()
+    cfg.adaptive.mode = "adaptive"
+    cfg.adaptive.tau_n = 10**9
+    _, est = _run(cfg, 1.0, 300)
+    deg = cfg.adaptive.degenerate
+    updates = [e.stats for e in est if e.stats.iterations > 0]
+    assert updates
+    for st in updates:
+        assert st.degenerate and st.trigger == "count"
+        assert (st.voxel_size_m, st.search_radius_m, st.plane_margin_m) == (
+            deg.voxel_size_m, deg.search_radius_m, deg.plane_margin_m)
+        assert st.n_down > st.n_down_general
+
+
+def test_weak_geometry_flag_triggers_next_scan():
+    cfg = _config()
+    cfg.adaptive.mode = "adaptive"
+    cfg.adaptive.tau_n = 0
+    cfg.adaptive.tau_near = 0
+    cfg.adaptive.min_eigen_ratio = 1.01
+    _, est = _run(cfg, 1.0, 300)
+    updates = [e.stats for e in est if e.stats.iterations > 0]
+    assert len(updates) >= 3
+    assert not updates[0].degenerate
+    assert all(st.degenerate and st.trigger == "eigen" for st in updates[1:])
+    cfg.adaptive.use_localizability_trigger = False
+    _, est = _run(cfg, 1.0, 300)
+    assert not any(e.stats.degenerate for e in est)
+
+
+def test_adaptive_plus_refines_leaf_within_budget():
+    cfg = _config()
+    cfg.adaptive.mode = "adaptive+"
+    cfg.adaptive.tau_n = 10**9
+    cfg.adaptive.min_eigen_ratio = 1.01
+    cfg.adaptive.min_voxel_size_m = 0.025
+    cfg.adaptive.point_budget = 20000
+    _, est = _run(cfg, 1.0, 300)
+    updates = [e.stats for e in est if e.stats.iterations > 0]
+    assert updates
+    for st in updates:
+        assert st.voxel_size_m == 0.025
+        assert st.n_down <= cfg.adaptive.point_budget and st.n_matched > 100
+    cfg.adaptive.point_budget = 1000
+    _, est = _run(cfg, 1.0, 300)
+    for st in (e.stats for e in est if e.stats.iterations > 0):
+        assert st.voxel_size_m == cfg.adaptive.degenerate.voxel_size_m
