@@ -166,6 +166,27 @@ def test_eviction_is_least_recently_inserted_first() -> None:
     assert set(voxel_sets(batch)) == {(20, 0, 0), (30, 0, 0), (40, 0, 0)}
 
 
+@pytest.mark.parametrize("n_batches", [1, 13])
+def test_storage_growth_keeps_every_point(n_batches: int) -> None:
+    rng = np.random.default_rng(11)
+    grid = np.stack(np.meshgrid(*[np.arange(12.0)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    crowded = rng.uniform(-0.2, 0.2, size=(3000, 3)) + 20.0
+    pts = np.vstack([grid + rng.uniform(-0.3, 0.3, size=grid.shape), crowded])
+    pts = pts[rng.permutation(len(pts))]
+    ivox = IVox(1.0, 6, 10**6, 4096)
+    for chunk in np.array_split(pts, n_batches):
+        ivox.add_points(chunk)
+    assert ivox.num_voxels == len(grid) + 1
+    assert ivox.num_points == len(pts)
+    stored = ivox.points()
+    np.testing.assert_array_equal(np.unique(stored, axis=0), np.unique(pts, axis=0))
+    queries = np.vstack([grid[:100] + 0.1, crowded[:100] + 0.01])
+    _, counts, dist2 = ivox.knn(queries, 5, 5.0)
+    expected = brute_knn_in_neighbourhood(pts, queries, 5, 5.0, 1.0, 6)
+    for i, e in enumerate(expected):
+        np.testing.assert_array_equal(dist2[i, : counts[i]], e)
+
+
 def test_per_voxel_cap_replaces_oldest() -> None:
     for cap in (4, 10, 16):
         ivox = IVox(1.0, 18, 100, cap)

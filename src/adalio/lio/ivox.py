@@ -28,7 +28,6 @@ from numba import njit, prange
 
 from adalio.config import MapConfig
 from adalio.errors import ConfigError, InputError
-from adalio.lio.voxel import hash_key3, table_size_for
 
 BLOCK_POINTS = 8
 """Points per storage block of a voxel (memory granularity, not an algorithm constant)."""
@@ -43,7 +42,27 @@ PARALLEL_MIN_ROWS = 1024
 """Batches with fewer queries run single-threaded (thread start-up would dominate)."""
 
 _MAX_ABS_KEY = 4.0e15
+_MIN_ROWS = 1024
 _S_NV, _S_NP, _S_NBLOCKS, _S_NFREE, _S_SEQ = range(5)
+
+
+def _as_int64(value: int) -> np.int64:
+    return np.int64(value - (1 << 64) if value >= (1 << 63) else value)
+
+
+_HASH_X = _as_int64(0x9E3779B97F4A7C15)
+_HASH_Y = _as_int64(0xC2B2AE3D27D4EB4F)
+_HASH_Z = _as_int64(0x165667B19E3779F9)
+
+
+@njit(cache=True, inline="always")
+def hash_key3(kx: int, ky: int, kz: int, mask: int) -> int:
+    """Slot of an integer voxel key in a power-of-two open-addressing table (§7 "Hash")."""
+    h = kx * _HASH_X + ky * _HASH_Y + kz * _HASH_Z
+    h ^= h >> 29
+    h *= _HASH_Z
+    h ^= h >> 32
+    return h & mask
 
 
 def nearby_offsets(nearby_type: int) -> np.ndarray:
@@ -97,6 +116,7 @@ def _rebuild_table(table: np.ndarray, vkeys: np.ndarray, nv: int) -> None:
 @njit(cache=True)
 def _insert_points(
     points: np.ndarray,
+    start: int,
     resolution_m: float,
     cap: int,
     table: np.ndarray,
@@ -107,11 +127,13 @@ def _insert_points(
     pool: np.ndarray,
     free_blocks: np.ndarray,
     state: np.ndarray,
-) -> None:
+) -> int:
     """Sequential, deterministic insertion of world points into their round(p/s) voxels (§7).
 
-    A voxel holding ``cap`` points overwrites its oldest point (ring order). Arrays must have room
-    for ``len(points)`` new voxels and blocks; ``state`` = [nv, n_points, n_blocks, n_free, seq].
+    Processes rows from ``start`` on; a voxel holding ``cap`` points overwrites its oldest point
+    (ring order). Stops before a row that might need a voxel, table slot or block the arrays do
+    not have, and returns that row (``len(points)`` when done) so the caller can grow them.
+    ``state`` = [nv, n_points, n_blocks, n_free, seq] is updated in place.
     """
     mask = table.shape[0] - 1
     nv = state[_S_NV]
@@ -119,8 +141,15 @@ def _insert_points(
     n_blocks = state[_S_NBLOCKS]
     n_free = state[_S_NFREE]
     seq = state[_S_SEQ]
-    for i in range(points.shape[0]):
-        ok, kx, ky, kz = _key_of(points[i, 0], points[i, 1], points[i, 2], resolution_m)
+    i = start
+    while i < points.shape[0]:
+        if nv >= vkeys.shape[0] or 2 * (nv + 1) > table.shape[0]:
+            break
+        if n_free == 0 and n_blocks >= pool.shape[0]:
+            break
+        row = i
+        i += 1
+        ok, kx, ky, kz = _key_of(points[row, 0], points[row, 1], points[row, 2], resolution_m)
         if not ok:
             continue
         h = hash_key3(kx, ky, kz, mask)
@@ -154,9 +183,9 @@ def _insert_points(
             slot = t % cap
         b = vblocks[v, slot >> _BLOCK_SHIFT]
         j = slot & (BLOCK_POINTS - 1)
-        pool[b, j, 0] = points[i, 0]
-        pool[b, j, 1] = points[i, 1]
-        pool[b, j, 2] = points[i, 2]
+        pool[b, j, 0] = points[row, 0]
+        pool[b, j, 1] = points[row, 1]
+        pool[b, j, 2] = points[row, 2]
         vtotal[v] = t + 1
         vstamp[v] = seq
         seq += 1
@@ -165,6 +194,7 @@ def _insert_points(
     state[_S_NBLOCKS] = n_blocks
     state[_S_NFREE] = n_free
     state[_S_SEQ] = seq
+    return i
 
 
 @njit(cache=True)
@@ -310,13 +340,10 @@ def _gather_points(
     return out
 
 
-def _grow(arr: np.ndarray, n_rows: int, fill=None) -> np.ndarray:
+def _grow(arr: np.ndarray, n_rows: int) -> np.ndarray:
     if arr.shape[0] >= n_rows:
         return arr
-    new_rows = max(n_rows, 2 * arr.shape[0])
-    out = np.empty((new_rows,) + arr.shape[1:], arr.dtype)
-    if fill is not None:
-        out.fill(fill)
+    out = np.empty((n_rows,) + arr.shape[1:], arr.dtype)
     out[: arr.shape[0]] = arr
     return out
 
@@ -381,31 +408,23 @@ class IVox:
         n = pts.shape[0]
         if n == 0:
             return
-        nv = self.num_voxels
-        n_blocks = int(self._state[_S_NBLOCKS])
-        self._vkeys = _grow(self._vkeys, nv + n)
-        self._vstamp = _grow(self._vstamp, nv + n)
-        self._vtotal = _grow(self._vtotal, nv + n)
-        self._vblocks = _grow(self._vblocks, nv + n)
-        self._pool = _grow(self._pool, n_blocks + n)
-        self._free = _grow(self._free, n_blocks + n)
-        size = table_size_for(nv + n)
-        if size > self._table.shape[0]:
-            self._table = np.full(size, -1, np.int64)
-            _rebuild_table(self._table, self._vkeys, nv)
-        _insert_points(
-            pts,
-            self.resolution_m,
-            self.max_points_per_voxel,
-            self._table,
-            self._vkeys,
-            self._vstamp,
-            self._vtotal,
-            self._vblocks,
-            self._pool,
-            self._free,
-            self._state,
-        )
+        start = 0
+        while start < n:
+            self._make_room()
+            start = _insert_points(
+                pts,
+                start,
+                self.resolution_m,
+                self.max_points_per_voxel,
+                self._table,
+                self._vkeys,
+                self._vstamp,
+                self._vtotal,
+                self._vblocks,
+                self._pool,
+                self._free,
+                self._state,
+            )
         nv = self.num_voxels
         if nv > self.capacity_voxels:
             keep = self.capacity_voxels - self.capacity_voxels // EVICT_SLACK_DIVISOR
@@ -424,6 +443,23 @@ class IVox:
                 self._free,
                 self._state,
             )
+
+    def _make_room(self) -> None:
+        """Double whichever store is full (voxel rows, hash table at load 1/2, block pool)."""
+        nv = self.num_voxels
+        if nv >= self._vkeys.shape[0]:
+            rows = max(_MIN_ROWS, 2 * self._vkeys.shape[0])
+            self._vkeys = _grow(self._vkeys, rows)
+            self._vstamp = _grow(self._vstamp, rows)
+            self._vtotal = _grow(self._vtotal, rows)
+            self._vblocks = _grow(self._vblocks, rows)
+        if 2 * (nv + 1) > self._table.shape[0]:
+            self._table = np.full(2 * self._table.shape[0], -1, np.int64)
+            _rebuild_table(self._table, self._vkeys, nv)
+        if self._state[_S_NFREE] == 0 and self._state[_S_NBLOCKS] >= self._pool.shape[0]:
+            rows = max(_MIN_ROWS, 2 * self._pool.shape[0])
+            self._pool = _grow(self._pool, rows)
+            self._free = _grow(self._free, rows)
 
     def knn(
         self, queries: np.ndarray, k: int, max_range_m: float

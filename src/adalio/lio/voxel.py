@@ -5,8 +5,6 @@ LiDAR frame after undistortion in the odometry). PCL VoxelGrid semantics: the gr
 integer multiples of the leaf, voxel key = floor(p / leaf_m) per axis, and each occupied voxel
 yields the centroid of its points. Output rows are ordered by ascending (kx, ky, kz), so the result
 does not depend on the input order. Non-finite points are ignored.
-
-Also holds the integer-key hash and packing helpers shared with the iVox map (lio-design.md §7).
 """
 
 from __future__ import annotations
@@ -16,34 +14,7 @@ from numba import njit
 
 from adalio.errors import InputError
 
-
-def _as_int64(value: int) -> np.int64:
-    return np.int64(value - (1 << 64) if value >= (1 << 63) else value)
-
-
-_HASH_X = _as_int64(0x9E3779B97F4A7C15)
-_HASH_Y = _as_int64(0xC2B2AE3D27D4EB4F)
-_HASH_Z = _as_int64(0x165667B19E3779F9)
 _MAX_ABS_KEY = 4.0e15
-
-
-@njit(cache=True, inline="always")
-def hash_key3(kx: int, ky: int, kz: int, mask: int) -> int:
-    """Slot of an integer voxel key in a power-of-two open-addressing table (§7 "Hash")."""
-    h = kx * _HASH_X + ky * _HASH_Y + kz * _HASH_Z
-    h ^= h >> 29
-    h *= _HASH_Z
-    h ^= h >> 32
-    return h & mask
-
-
-@njit(cache=True)
-def table_size_for(n: int) -> int:
-    """Smallest power of two >= 2 n (load factor <= 0.5), at least 16."""
-    size = 16
-    while size < 2 * n:
-        size <<= 1
-    return size
 
 
 @njit(cache=True)
