@@ -266,3 +266,15 @@ def test_adaptive_plus_refines_leaf_within_budget():
     _, est = _run(cfg, 1.0, 300)
     for st in (e.stats for e in est if e.stats.iterations > 0):
         assert st.voxel_size_m == cfg.adaptive.degenerate.voxel_size_m
+
+
+def test_gravity_aligned_world():
+    cfg = _config()
+    cfg.imu.gravity_align_world = True
+    _, est = _run(cfg, 0.65, 300)
+    first = est[0]
+    assert np.allclose(first.gravity_world_m_s2, [0.0, 0.0, -9.81], atol=1e-9)
+    _, R, *_ = trajectory(0.5)
+    up_body_est = first.T_world_imu[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    up_body_gt = R[0].T @ np.array([0.0, 0.0, 1.0])
+    assert np.linalg.norm(up_body_est - up_body_gt) < 2e-3

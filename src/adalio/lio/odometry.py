@@ -96,10 +96,18 @@ class _Association:
         self.d = np.zeros(n)
         self.selected = np.zeros(n, np.bool_)
         self.H = np.zeros((0, 12))
+        self._searched_at: tuple[np.ndarray, ...] | None = None
+
+    def _same_pose(self, x: State) -> bool:
+        last = self._searched_at
+        return last is not None and all(np.array_equal(a, b) for a, b in
+                                        zip(last, (x.R, x.p, x.R_LI, x.t_LI)))
 
     def measure(self, x: State, research: bool) -> tuple[np.ndarray, np.ndarray]:
         f = self.cfg
-        if research:
+        if research and self._same_pose(x):
+            self.selected = self._valid_after_search.copy()
+        elif research:
             p_world = points_to_world(self.points_lidar, x.R, x.p, x.R_LI, x.t_LI)
             self.nbrs, self.counts, dist2 = self.ivox.knn(p_world, f.knn_k, KNN_MAX_RANGE_M)
             n = self.counts.shape[0]
@@ -108,6 +116,8 @@ class _Association:
             self.normals, self.d, valid = fit_planes(self.nbrs, self.counts, f.min_neighbors,
                                                      self.margin_m, f.plane_fit)
             self.selected = valid & near_enough
+            self._valid_after_search = self.selected.copy()
+            self._searched_at = (x.R.copy(), x.p.copy(), x.R_LI.copy(), x.t_LI.copy())
         H, r, accepted = point_to_plane(self.points_lidar, x.R, x.p, x.R_LI, x.t_LI, self.normals,
                                         self.d, self.selected, f.estimate_extrinsic)
         self.selected = accepted
