@@ -312,3 +312,32 @@ def test_run_extrinsic_from_tf_static_or_flag(monkeypatch, capsys, tmp_path):
     used = yaml.safe_load((tmp_path / "b" / "config.yaml").read_text())["sensor"]["T_imu_lidar"]
     np.testing.assert_allclose(np.asarray(used)[:3, 3], [1, 2, 3])
     np.testing.assert_allclose(np.asarray(used)[:3, :3], R.as_matrix(), atol=1e-9)
+
+
+@pytest.mark.slow
+def test_real_sigint_in_subprocess(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import time
+
+    path = bf.write_static_rig(tmp_path / "long.bag", duration_s=12.0, columns=360)
+    out = tmp_path / "run"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "adalio.cli", "run", str(path), "--out",
+                             str(out), "--no-progress"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+    tum = out / "trajectory.tum"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if tum.is_file() and len(tum.read_text().splitlines()) >= 3:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "run finished before it could be interrupted"
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "interrupted" in err
+    poses = check_outputs(out)
+    assert 3 <= len(poses) < 110
+    assert len(read_ply_points(out / "map.ply")) > 0

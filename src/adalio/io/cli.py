@@ -147,11 +147,16 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
     cfg = _build_config(preset, config, lidar_topic, imu_topic, extrinsic, mode, map_format)
     out_dir = out if out is not None else default_out_dir(bag)
     con = Console(stderr=True)
-    with _warnings_to(con):
-        res = run_bag(bag, cfg, out_dir, gt_path=gt, progress=not no_progress and con.is_terminal,
-                      max_scans=max_scans)
-    _summary(con, res, profile)
-    if res.interrupted:
+    try:
+        with _warnings_to(con):
+            res = run_bag(bag, cfg, out_dir, gt_path=gt,
+                          progress=not no_progress and con.is_terminal, max_scans=max_scans)
+        _summary(con, res, profile)
+    except KeyboardInterrupt:
+        res = None
+    if res is None or res.interrupted:
+        if res is None:
+            con.print("[yellow]interrupted[/]: outputs written so far are kept")
         raise typer.Exit(130)
 
 

@@ -132,7 +132,7 @@ def decode_fields(data: Any, layout: CloudLayout, names: list[str],
         return {name: np.zeros(0, dtype=np.dtype(fmt).newbyteorder("=")) for name, fmt in
                 zip(names, fmts, strict=True)}
     buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) \
-        else data.reshape(-1).view(np.uint8)
+        else np.ascontiguousarray(data).reshape(-1).view(np.uint8)
     row_bytes = width * step
     row_step = max(layout.row_step, row_bytes)
     if n_rows > 1 and layout.row_step < row_bytes:
