@@ -191,6 +191,19 @@ def test_input_validation_raises_input_error():
         odom.add_scan(np.zeros((5, 3)), np.zeros(4, np.int64))
     with pytest.raises(InputError):
         odom.add_scan(np.zeros((5, 3)), np.zeros(5))
+    with pytest.raises(InputError):
+        odom.add_scan(np.ones((5, 3)), np.array([0, 1, 2, 3, 2_000_000_000], np.int64))
+
+
+def test_out_of_order_scan_is_skipped():
+    cfg = _config()
+    rng = np.random.default_rng(5)
+    odom, est = _run(cfg, 0.75, 300)
+    state = odom.state
+    pts, t_ns = lidar_scan(0.6, 300, rng)
+    assert odom.add_scan(pts, t_ns) is None
+    assert odom.n_skipped_scans == 1
+    assert np.array_equal(odom.state.p, state.p)
 
 
 @pytest.mark.slow

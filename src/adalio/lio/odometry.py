@@ -42,6 +42,8 @@ INIT_TIME_NS = 100_000_000
 """After the first map scan, scans within this time insert all points (Faster-LIO INIT_TIME)."""
 KNN_MAX_RANGE_M = 5.0
 """Range of the iVox neighbour query (Faster-LIO's ``GetClosestPoint`` default, §7)."""
+MAX_SCAN_SPAN_NS = 1_000_000_000
+"""Per-point times of one sweep spanning more than this are rejected as malformed (units?)."""
 MIN_POINTS_FOR_UPDATE = 5
 """Fewer downsampled points than this: the scan is not used for an update (§6.1)."""
 
@@ -153,6 +155,8 @@ class Odometry:
         self.initialized = False
         self.stage_ms_total: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         self.n_scans = 0
+        self.n_skipped_scans = 0
+        """Scans ending at or before the previous scan end (out of order): not processed."""
         self._pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._buf = _ImuBuffer(np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)))
         self._last_imu_t_ns: int | None = None
@@ -207,7 +211,12 @@ class Odometry:
         return self._ivox.points()
 
     def add_scan(self, points_lidar: np.ndarray, t_ns: np.ndarray) -> Estimate | None:
-        """Process one sweep (§10); None while initializing (or for an empty scan)."""
+        """Process one sweep (§10) and return the IMU pose at the scan end.
+
+        Returns None while initializing, for a scan with no point left after preprocessing, and
+        for a scan ending at or before the previous one (counted in ``n_skipped_scans``).
+        Raises InputError for malformed arrays or per-point times spanning > 1 s.
+        """
         t_start = time.perf_counter()
         stage_ms: dict[str, float] = {}
         cfg = self.cfg
@@ -221,6 +230,12 @@ class Odometry:
         if pts.shape[0] == 0:
             return None
         t_b, t_e = int(t_pts.min()), int(t_pts.max())
+        if t_e - t_b > MAX_SCAN_SPAN_NS:
+            raise InputError(f"add_scan: per-point times span {(t_e - t_b) * 1e-9:.3f} s in one "
+                             "sweep: check the point time unit/reference (sensor.point_time_*)")
+        if self.initialized and t_e <= self._t_state_ns:
+            self.n_skipped_scans += 1
+            return None
         stats.t_ns = t_e
 
         # 2. static initialization (§4)
