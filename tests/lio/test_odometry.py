@@ -199,6 +199,7 @@ def test_out_of_order_scan_is_skipped():
     cfg = _config()
     rng = np.random.default_rng(5)
     odom, est = _run(cfg, 0.75, 300)
+    assert est
     state = odom.state
     pts, t_ns = lidar_scan(0.6, 300, rng)
     assert odom.add_scan(pts, t_ns) is None
