@@ -468,11 +468,19 @@ class IVox:
 
         Returns ``(nbrs (M,k,3), counts (M,) int64, dist2 (M,k))``: rows sorted by ascending
         squared distance, only points with dist2 < max_range_m**2, unused slots NaN / inf.
+        Batches of at least ``PARALLEL_MIN_ROWS`` queries run on all numba threads.
+
+        ``max_range_m`` gates every candidate (upstream ``GetClosestPoint(max_range=5.0)``). With
+        NEARBY18 no candidate lies farther than about 3 * resolution_m from the query, so a larger
+        range is inert; to apply AdaLIO's search radius, gate on ``dist2[:, k-1]`` (farthest of the
+        k neighbours) as §9.4 recommends, or pass the radius here to drop far candidates.
         """
         q = _as_points(queries, "queries")
         k = int(k)
         if k < 1:
             raise InputError(f"knn k must be >= 1, got {k}")
+        if not max_range_m > 0.0:
+            raise InputError(f"knn max_range_m must be > 0 metres, got {max_range_m!r}")
         m = q.shape[0]
         nbrs = np.full((m, k, 3), np.nan)
         dist2 = np.full((m, k), np.inf)

@@ -32,8 +32,9 @@ PCA_MIN_REL_SPREAD = 1e-12
 """PCA fit rejected when the middle covariance eigenvalue is below this fraction of the largest
 (collinear or coincident neighbours: the normal is undefined)."""
 PLANE_METHODS = ("ls", "pca")
-PARALLEL_MIN_ROWS = 2048
-"""Batches with fewer rows run single-threaded (thread start-up would dominate)."""
+PARALLEL_MIN_ROWS = 8192
+"""Batches with fewer rows run single-threaded: an LS fit costs ~0.1 us per row, so thread
+start-up and scheduling would dominate below this size."""
 _JACOBI_SWEEPS = 12
 
 
