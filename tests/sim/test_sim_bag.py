@@ -66,7 +66,7 @@ def test_bag_reads_back_with_the_right_counts(tmp_path, fmt, lidar):
 
 
 def test_same_seed_same_bytes_other_seed_other_bytes(tmp_path):
-    kw = dict(duration_s=1.2, columns=60)
+    kw = {"duration_s": 1.2, "columns": 60}
     a = simulate("hall", tmp_path / "a", seed=4, **kw)
     b = simulate("hall", tmp_path / "b", seed=4, **kw)
     c = simulate("hall", tmp_path / "c", seed=5, **kw)

@@ -12,7 +12,7 @@ from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, Slerp
 
 from adalio.sim import SCENES, simulate
-from adalio.sim.generate import build_trajectory, mesh_distance_m, T_IMU_LIDAR_HILTI
+from adalio.sim.generate import T_IMU_LIDAR_HILTI, build_trajectory, mesh_distance_m
 from adalio.sim.imu import GRAVITY_M_S2
 from adalio.sim.lidar import RayCaster
 from adalio.sim.scenes import build_scene
@@ -36,7 +36,8 @@ def _read_bag(bag_path, lidar_topic="/hesai/pandar", max_scans=None):
 
 
 def _read_tum(path):
-    rows = [line.split() for line in open(path) if not line.startswith("#")]
+    with open(path) as f:
+        rows = [line.split() for line in f if not line.startswith("#")]
     t_ns = np.array([int(r[0].replace(".", "")) for r in rows], dtype=np.int64)
     vals = np.array([[float(v) for v in r[1:]] for r in rows])
     return t_ns, vals[:, :3], Rotation.from_quat(vals[:, 3:])
@@ -74,7 +75,7 @@ def test_noise_free_imu_integrates_to_ground_truth(perfect_hall):
 
     R, v, p = np.eye(3), np.zeros(3), np.zeros(3)
     dt = ts[1] - ts[0]
-    end = int(round(12.5 / dt))
+    end = round(12.5 / dt)
     for k in range(end):
         t = ts[k]
         k1 = deriv(t, R, v)
@@ -144,15 +145,12 @@ def test_walk_is_human_and_keeps_clear_of_the_mesh(scene):
     speed = np.linalg.norm(s.v_world_m_s, axis=1)
     assert speed.max() < 1.5
     assert np.median(speed[t > traj.static_s + 3]) > 0.4
-    yaw_rate = np.abs(s.omega_imu_rad_s @ (T_IMU_LIDAR_HILTI_np()[:3, :3] @ [0, 0, 1.0]))
+    up_imu = np.asarray(T_IMU_LIDAR_HILTI)[:3, :3] @ [0.0, 0.0, 1.0]
+    yaw_rate = np.abs(s.omega_imu_rad_s @ up_imu)
     assert np.degrees(yaw_rate.max()) < 100.0
     caster = RayCaster(scn.mesh)
     d = mesh_distance_m(caster, s.p_world_imu_m[::10])
     assert d.min() > 0.25, d.min()
-
-
-def T_IMU_LIDAR_HILTI_np():
-    return np.asarray(T_IMU_LIDAR_HILTI)
 
 
 def test_points_lie_on_the_mesh_only_with_per_point_poses(tmp_path):

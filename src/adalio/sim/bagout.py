@@ -13,6 +13,7 @@ sweep start; the bag record time of a sweep is its end. sensor_msgs/Imu: orienta
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Self
 
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
@@ -55,7 +56,7 @@ class SimBagWriter:
         self.n_imu = 0
         self.n_scans = 0
 
-    def __enter__(self) -> SimBagWriter:
+    def __enter__(self) -> Self:
         if self.ros1:
             from rosbags.rosbag1 import Writer
 

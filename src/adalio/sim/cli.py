@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
@@ -12,17 +13,18 @@ def register(app: typer.Typer) -> None:
 
     @app.command()
     def simulate(
-        scene: str = typer.Option(..., "--scene", help="hall, corridor, spiral or stairs_garage"),
-        out: Path = typer.Option(..., "--out", help="Output folder (created)."),
-        seed: int = typer.Option(0, "--seed", help="Seed of clutter, motion and noise."),
-        duration: float | None = typer.Option(None, "--duration",
-                                              help="Seconds (default: the whole route)."),
-        lidar: str = typer.Option("xt32", "--lidar", help="xt32 or ouster64"),
-        fmt: str = typer.Option("ros1", "--format", help="ros1, ros2 (sqlite3) or mcap"),
-        columns: int | None = typer.Option(None, "--columns",
-                                           help="Columns per sweep (default: the model's)."),
-        noise_scale: float = typer.Option(1.0, "--noise-scale",
-                                          help="Multiplier of all sensor noise (0 = perfect)."),
+        scene: Annotated[str, typer.Option("--scene",
+                                           help="hall, corridor, spiral or stairs_garage")],
+        out: Annotated[Path, typer.Option("--out", help="Output folder (created).")],
+        seed: Annotated[int, typer.Option("--seed", help="Seed of clutter, motion, noise.")] = 0,
+        duration: Annotated[float | None, typer.Option(
+            "--duration", help="Seconds (default: the whole route).")] = None,
+        lidar: Annotated[str, typer.Option("--lidar", help="xt32 or ouster64")] = "xt32",
+        fmt: Annotated[str, typer.Option("--format", help="ros1, ros2 (sqlite3) or mcap")] = "ros1",
+        columns: Annotated[int | None, typer.Option(
+            "--columns", help="Columns per sweep (default: the model's).")] = None,
+        noise_scale: Annotated[float, typer.Option(
+            "--noise-scale", help="Multiplier of all sensor noise (0 = perfect).")] = 1.0,
     ) -> None:
         """Simulate a handheld LiDAR + IMU walk through an indoor scene into a ROS bag."""
         import json

@@ -46,7 +46,7 @@ class LidarModel:
 
     @property
     def period_ns(self) -> int:
-        return int(round(1e9 / self.rate_hz))
+        return round(1e9 / self.rate_hz)
 
 
 XT32 = LidarModel(name="xt32", elevations_deg=tuple(15.0 - np.arange(32.0)), columns=2000)

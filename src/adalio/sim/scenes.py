@@ -8,6 +8,7 @@ waypoint (slower on stairs). Clutter is placed from a seeded generator, away fro
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -211,17 +212,16 @@ def build_spiral(seed: int = 0, shaft_radius_m: float = 1.3, column_radius_m: fl
     n_wall = 48
     edges = np.linspace(0.0, 2 * np.pi, n_wall + 1) + np.pi
     door_z = [(0.0, 2.1), (-depth, -depth + 2.1)]
-    z_bands = [-depth, -depth + 2.1] + [-depth + 2.1 + k * 0.0 for k in []] + [0.0, 2.1, H]
-    z_bands = sorted(set(z_bands))
-    for a0, a1 in zip(edges[:-1], edges[1:], strict=True):
+    z_bands = sorted({-depth, -depth + 2.1, 0.0, 2.1, H})
+    for a0, a1 in itertools.pairwise(edges):
         mid = 0.5 * (a0 + a1)
         in_door_angle = abs(np.angle(np.exp(1j * (mid - np.pi)))) < door_half
-        for z0, z1 in zip(z_bands[:-1], z_bands[1:], strict=True):
+        for z0, z1 in itertools.pairwise(z_bands):
             if in_door_angle and any(abs(z0 - d0) < 1e-9 for d0, _ in door_z):
                 continue
             parts += g.annulus_sector(R, wall_out, a0, a1, z0, z1)
     parts.append(g.cylinder([0.0, 0.0], rc, -depth, H, sections=20))
-    n_steps = int(round(H / riser_m)) - 1
+    n_steps = round(H / riser_m) - 1
     riser = H / (n_steps + 1)
     land = np.pi / 2
     step_a = (2 * np.pi - land) / n_steps
@@ -229,10 +229,7 @@ def build_spiral(seed: int = 0, shaft_radius_m: float = 1.3, column_radius_m: fl
     for k in range(n_storeys):
         z_top = -k * H
         a = a_start + k * 2 * np.pi
-        if k > 0:
-            parts += g.annulus_sector(rc, R, a, a + land, z_top - 0.25, z_top)
-        else:
-            parts += g.annulus_sector(rc, R, a, a + land, z_top - 0.25, z_top)
+        parts += g.annulus_sector(rc, R, a, a + land, z_top - 0.25, z_top)
         a += land
         for i in range(n_steps):
             zt = z_top - (i + 1) * riser
@@ -249,7 +246,7 @@ def build_spiral(seed: int = 0, shaft_radius_m: float = 1.3, column_radius_m: fl
         return -k * H - frac * H
 
     pts = np.column_stack([r_rail * np.cos(angs), r_rail * np.sin(angs), tread_z(angs) + 0.9])
-    for p0, p1 in zip(pts[:-1], pts[1:], strict=True):
+    for p0, p1 in itertools.pairwise(pts):
         parts.append(g.rod(p0, p1, 0.025, sections=6))
     for p in pts[::4]:
         parts.append(g.rod(p, p - np.array([0, 0, 0.9]), 0.015, sections=6))
@@ -308,7 +305,7 @@ def build_stairs_garage(seed: int = 0, flight_width_m: float = 1.2, storey_m: fl
     rng = np.random.default_rng([seed, 4])
     w, H = flight_width_m, storey_m
     depth = n_storeys * H
-    n_rise = int(round(H / 2 / riser_m))
+    n_rise = round(H / 2 / riser_m)
     riser = H / 2 / n_rise
     run = (n_rise - 1) * tread_m
     land = 1.4
