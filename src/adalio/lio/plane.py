@@ -2,7 +2,7 @@
 
 Neighbours are world-frame points in metres, as returned by :meth:`adalio.lio.ivox.IVox.knn`
 (``nbrs (M,k,3)``, first ``counts[i]`` rows valid). A plane is ``{x : n . x + d = 0}`` with
-``|n| = 1``; both methods return ``d >= 0`` (normal pointing away from the world origin).
+``|n| = 1``; both methods return ``d >= 0`` (n points from the plane towards the world origin).
 
 * ``'ls'`` (Faster-LIO parity): least squares on ``a^T x = -1`` through the 3x3 normal equations
   ``(A^T A) a = -A^T 1``, ``n = a/|a|``, ``d = 1/|a|``. This parameterisation cannot represent a
