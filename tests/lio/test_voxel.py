@@ -4,6 +4,9 @@ from collections import defaultdict
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
 from adalio.errors import InputError
 from adalio.lio.voxel import voxel_downsample, voxel_downsample_with_index
@@ -33,6 +36,24 @@ def test_matches_reference_on_random_clouds(seed: int, leaf_m: float) -> None:
     assert got.dtype == np.float64
     assert got.shape == expected.shape
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    points=arrays(
+        np.float64,
+        st.tuples(st.integers(0, 60), st.just(3)),
+        elements=st.floats(-50.0, 50.0, allow_nan=False, width=64),
+    ),
+    leaf_m=st.floats(0.05, 5.0),
+)
+def test_matches_reference_property(points: np.ndarray, leaf_m: float) -> None:
+    _, expected = reference_downsample(points, leaf_m)
+    centroids, idx = voxel_downsample_with_index(points, leaf_m)
+    np.testing.assert_allclose(centroids, expected, rtol=1e-12, atol=1e-12)
+    keys = np.floor(points / leaf_m).astype(np.int64)
+    for j in range(len(centroids)):
+        assert len(np.unique(keys[idx == j], axis=0)) == 1
 
 
 def test_output_order_independent_of_input_order() -> None:
