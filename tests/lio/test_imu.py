@@ -112,6 +112,20 @@ def test_sparse_covariance_propagation_matches_dense():
     assert np.allclose(imu.propagate_covariance(P, F, G, q), dense, atol=1e-12)
 
 
+def test_block_covariance_propagation_matches_dense():
+    for _ in range(5):
+        x = _random_state()
+        gyro, acc, dt = rng.normal(size=3), rng.normal(size=3) * 3, 0.004
+        F, G = imu.jacobians_fg(x.R, x.b_g, x.b_a, x.g, x.g_anchor, gyro, acc, dt)
+        A = rng.normal(size=(DIM, DIM))
+        P = A @ A.T
+        q = imu.process_noise(ImuConfig())
+        dense = F @ P @ F.T + G @ np.diag(q) @ G.T
+        fast = imu.propagate_covariance_fast(P, x.R, x.b_g, x.b_a, x.g, x.g_anchor, gyro, acc,
+                                             dt, q)
+        assert np.allclose(fast, dense, atol=1e-12)
+
+
 def test_propagate_scan_equals_stepwise_midpoint_integration():
     x = _random_state()
     P = np.eye(DIM)

@@ -147,6 +147,52 @@ def propagate_covariance(P, F, Gm, q_diag):
 
 
 @njit(cache=True)
+def _left_mul_F(M, E_th, J_bg, A_vth, B_vba, C_vg, dt):
+    """``F @ M`` using the block structure of F (§3.2); rows not listed are identity rows."""
+    out = M.copy()
+    n = M.shape[1]
+    for c in range(n):
+        for i in range(3):
+            out[i, c] = M[i, c] + dt * M[12 + i, c]
+            th = 0.0
+            v = M[12 + i, c]
+            for k in range(3):
+                th += E_th[i, k] * M[3 + k, c] + J_bg[i, k] * M[15 + k, c]
+                v += A_vth[i, k] * M[3 + k, c] + B_vba[i, k] * M[18 + k, c]
+            v += C_vg[i, 0] * M[21, c] + C_vg[i, 1] * M[22, c]
+            out[3 + i, c] = th
+            out[12 + i, c] = v
+    return out
+
+
+@njit(cache=True)
+def propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s2, dt, q_diag):
+    """``F P Fᵀ + G diag(q) Gᵀ`` (§3.2) from the blocks of F and G, without forming them.
+
+    Requires isotropic accel noise (``q_diag[3:6]`` equal), so that ``R σ_a² Rᵀ = σ_a² I``.
+    """
+    omega = gyro_rad_s - b_g
+    acc = accel_m_s2 - b_a
+    Jr = so3.jr(omega * dt)
+    E_th = so3.exp(-omega * dt)
+    J_bg = -Jr * dt
+    A_vth = -(R @ so3.hat(acc)) * dt
+    B_vba = -R * dt
+    C_vg = -(so3.hat(g) @ so3.s2_basis(g, g_anchor)) * dt
+    FP = _left_mul_F(P, E_th, J_bg, A_vth, B_vba, C_vg, dt)
+    out = _left_mul_F(FP.T.copy(), E_th, J_bg, A_vth, B_vba, C_vg, dt).T.copy()
+    JJt = Jr @ Jr.T
+    dt2 = dt * dt
+    for i in range(3):
+        for k in range(3):
+            out[3 + i, 3 + k] += q_diag[i] * JJt[i, k] * dt2
+        out[12 + i, 12 + i] += q_diag[3 + i] * dt2
+        out[15 + i, 15 + i] += q_diag[6 + i] * dt2
+        out[18 + i, 18 + i] += q_diag[9 + i] * dt2
+    return out
+
+
+@njit(cache=True)
 def propagate_scan(p, R, v, b_g, b_a, g, g_anchor, P, imu_tau, gyro, accel, tau_start, tau_end,
                    q_diag, noise_dt):
     """Forward propagation over one scan with pose records (§5.2).
@@ -184,9 +230,8 @@ def propagate_scan(p, R, v, b_g, b_a, g, g_anchor, P, imu_tau, gyro, accel, tau_
         rec_w[m] = gyro_in - b_g
         rec_a[m] = R @ (acc_in - b_a) + g
         m += 1
-        F, Gm = jacobians_fg(R, b_g, b_a, g, g_anchor, gyro_in, acc_in, dt)
         q = q_diag if not noise_dt else q_diag / dt
-        P = propagate_covariance(P, F, Gm, q)
+        P = propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_in, acc_in, dt, q)
         p, R, v = discrete_step(p, R, v, b_g, b_a, g, gyro_in, acc_in, dt)
         tau = t1
     rec_tau[m] = tau
@@ -198,9 +243,8 @@ def propagate_scan(p, R, v, b_g, b_a, g, g_anchor, P, imu_tau, gyro, accel, tau_
     m += 1
     dt = tau_end - tau
     if dt > 0.0:
-        F, Gm = jacobians_fg(R, b_g, b_a, g, g_anchor, gyro_in, acc_in, dt)
         q = q_diag if not noise_dt else q_diag / dt
-        P = propagate_covariance(P, F, Gm, q)
+        P = propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_in, acc_in, dt, q)
         p, R, v = discrete_step(p, R, v, b_g, b_a, g, gyro_in, acc_in, dt)
     return (p, R, v, P, rec_tau[:m].copy(), rec_R[:m].copy(), rec_p[:m].copy(),
             rec_v[:m].copy(), rec_w[:m].copy(), rec_a[:m].copy())
