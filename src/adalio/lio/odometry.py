@@ -10,6 +10,14 @@ Search radius (§9.4): the kNN query returns up to k neighbours within ``KNN_MAX
 correspondence is rejected when fewer than ``filter.min_neighbors`` were found or when the
 farthest of the found neighbours lies beyond the active ``search_radius_m`` (FAST-LIO2-style gate
 on the k-th neighbour). The plane margin of the active set is the §6.2 validity threshold.
+
+AdaLIO hooks (§9, degeneracy.py): the detector sees the general-leaf cloud and a "weak geometry"
+flag from the previous scan's localizability (translation eigenvalue ratio below
+``adaptive.min_eigen_ratio``, if ``use_localizability_trigger``). In mode ``adaptive+`` a
+degenerate scan is refined (leaf halved down to ``min_voxel_size_m`` within ``point_budget``)
+while its translation information stays weak, and the update is restricted to the observable pose
+directions (``observable_projector``). Stage timers: ``degeneracy`` includes those refinement
+searches; ``undistort`` includes the IMU propagation.
 """
 
 from __future__ import annotations
