@@ -14,6 +14,21 @@ from adalio.lio.ivox import (
 )
 
 
+def searched_offsets(nearby_type: int) -> np.ndarray:
+    """NEARBY sets of lio-design.md §7: centre (+ faces, + edges, + corners), by L1 norm."""
+    max_l1 = {0: 0, 6: 1, 18: 2, 26: 3}[nearby_type]
+    cube = np.stack(np.meshgrid(*[[-1, 0, 1]] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    return cube[np.abs(cube).sum(axis=1) <= max_l1]
+
+
+def test_nearby_offsets_are_the_documented_sets() -> None:
+    for nearby_type, size in ((0, 1), (6, 7), (18, 19), (26, 27)):
+        offsets = nearby_offsets(nearby_type)
+        assert offsets.shape == (size, 3)
+        assert {tuple(o) for o in offsets} == {tuple(o) for o in searched_offsets(nearby_type)}
+        np.testing.assert_array_equal(offsets[0], [0, 0, 0])
+
+
 def voxel_keys(points: np.ndarray, resolution_m: float) -> np.ndarray:
     return np.floor(points / resolution_m + 0.5).astype(np.int64)
 
@@ -27,7 +42,7 @@ def brute_knn_in_neighbourhood(
     nearby_type: int,
 ) -> list[np.ndarray]:
     """Sorted squared distances of the k nearest points whose voxel is in the searched set."""
-    offset_codes = nearby_offsets(nearby_type) @ np.array([9, 3, 1]) + 13
+    offset_codes = searched_offsets(nearby_type) @ np.array([9, 3, 1]) + 13
     pkeys = voxel_keys(map_points, resolution_m)
     out = []
     for q, qk in zip(queries, voxel_keys(queries, resolution_m), strict=True):
@@ -84,7 +99,7 @@ def test_knn_recall_and_exact_nearest_against_global_brute_force() -> None:
             for i in np.flatnonzero(within_voxel)
         ]
         recall[nearby_type] = float(round(np.sum(hits) / (5.0 * within_voxel.sum()), 4))
-        searched = {tuple(o) for o in nearby_offsets(nearby_type)}
+        searched = {tuple(o) for o in searched_offsets(nearby_type)}
         nearest_key = voxel_keys(pts[true_idx[:, 0]], s) - voxel_keys(queries, s)
         nearest_inside = np.array([tuple(r) in searched for r in nearest_key])
         np.testing.assert_array_equal(dist2[nearest_inside, 0], true_d2[nearest_inside, 0])
