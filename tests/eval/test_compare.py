@@ -12,12 +12,9 @@ from typer.testing import CliRunner
 
 from adalio.errors import ConfigError
 from adalio.eval.compare import DIVERGED_MAX_ERROR_M, parse_modes
+from adalio.eval.demo import DEMO_SCENE, SHORT_COLUMNS, SHORT_DURATION_S  # shares the demo's cache
 from adalio.eval.files import read_scans_csv
 from adalio.eval.metrics import ate
-
-SIM_SCENE = "spiral"
-SIM_DURATION_S = 6.0
-SIM_COLUMNS = 400
 
 
 def assert_png_image(path: Path, min_px: int = 200) -> None:
@@ -39,11 +36,12 @@ def test_compare_cli_on_simulated_run(tmp_path):
     from adalio.cli import app
     from adalio.sim import cached_sequence
 
-    sim = cached_sequence(SIM_SCENE, seed=0, duration_s=SIM_DURATION_S, columns=SIM_COLUMNS)
+    sim = cached_sequence(DEMO_SCENE, seed=0, duration_s=SHORT_DURATION_S,
+                          columns=SHORT_COLUMNS)
     out = tmp_path / "cmp"
     res = CliRunner().invoke(app, ["compare", str(sim.bag_path), "--modes", "fixed,adaptive",
                                    "--gt", str(sim.gt_path), "--config", str(sim.config_path),
-                                   "--out", str(out)])
+                                   "--out", str(out), "--max-scans", "40"])
     assert res.exit_code == 0, res.output + repr(res.exception)
     assert "ATE rmse" in res.output and "adaptive" in res.output
     data = json.loads((out / "compare.json").read_text())

@@ -88,7 +88,7 @@ def plot_error_over_time(series: dict[str, tuple[np.ndarray, np.ndarray]], path:
 
 
 def plot_degeneracy(scans: dict[str, np.ndarray], path: Path, t0_s: float | None = None,
-                    tau_n: float | None = None) -> Path:
+                    tau_n: float | None = None, tau_near: float | None = None) -> Path:
     """Timeline of ``scans.csv``: point counts, weakest eigenvalue(s), triggers, degenerate mode."""
     t = np.asarray(scans["t_s"], dtype=np.float64)
     t = t - (t0_s if t0_s is not None else (t[0] if t.size else 0.0))
@@ -99,11 +99,14 @@ def plot_degeneracy(scans: dict[str, np.ndarray], path: Path, t0_s: float | None
     _shade_intervals(ax, t, degen, "degenerate set active")
     for name, style in (("n_down_general", "-"), ("n_down", ":"), ("n_near", "--")):
         if name in scans:
-            ax.plot(t, scans[name], style, lw=1.1, label=name)
+            counts = np.asarray(scans[name], dtype=np.float64)
+            ax.plot(t, np.where(counts > 0, counts, np.nan), style, lw=1.1, label=name)
     if tau_n is not None:
         ax.axhline(tau_n, color="red", lw=0.8, label="tau_n")
-    ax.set_ylabel("points")
-    ax.set_yscale("symlog", linthresh=10)
+    if tau_near is not None:
+        ax.axhline(tau_near, color="green", lw=0.8, ls="-.", label="tau_near")
+    ax.set_ylabel("points (downsampled)")
+    ax.set_yscale("log")
     ax.legend(loc="upper right", fontsize=7, ncol=2)
     ax.grid(True, alpha=0.3)
     ax.set_title("degeneracy timeline")

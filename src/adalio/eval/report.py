@@ -117,8 +117,8 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *, hilti: boo
         else:
             pair = align_pair(est_path, gt, "se3", max_diff_s)
             metrics["ate_se3"] = ate_from_pair(pair, max_diff_s)
-            metrics["ate_first"] = ate_from_pair(align_pair(est_path, gt, "first", max_diff_s),
-                                                 max_diff_s)
+            pair_first = align_pair(est_path, gt, "first", max_diff_s)
+            metrics["ate_first"] = ate_from_pair(pair_first, max_diff_s)
             metrics["rpe"] = rpe(est_path, gt, rpe_deltas_m, max_diff_s)
             aligned_xyz = full_aligned_xyz(est_path, pair.T_gt_est)
     label = f"adalio ({mode})"
@@ -134,12 +134,14 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *, hilti: boo
         metrics["scans"] = scan_summary(scans)
     if pair is not None:
         figures.append(("Position error over time", plots.plot_error_over_time(
-            {label: (pair.t_s - t0, pair.errors_m)}, run_dir / "error.png",
-            degenerate=degen_series)))
+            {f"{label}, SE(3)-aligned": (pair.t_s - t0, pair.errors_m),
+             f"{label}, first-pose-aligned": (pair_first.t_s - t0, pair_first.errors_m)},
+            run_dir / "error.png", degenerate=degen_series)))
     if scans is not None:
-        tau_n = config.get("adaptive", {}).get("tau_n") if config else None
+        adaptive = config.get("adaptive", {}) if config else {}
         figures.append(("Degeneracy timeline", plots.plot_degeneracy(
-            scans, run_dir / "degeneracy.png", t0_s=t0, tau_n=tau_n)))
+            scans, run_dir / "degeneracy.png", t0_s=t0, tau_n=adaptive.get("tau_n"),
+            tau_near=adaptive.get("tau_near"))))
     map_path = _find_map(run_dir)
     if map_path is not None:
         pts = read_map_points(map_path)
