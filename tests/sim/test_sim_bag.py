@@ -74,9 +74,10 @@ def test_same_seed_same_bytes_other_seed_other_bytes(tmp_path):
     assert a.gt_path.read_bytes() == b.gt_path.read_bytes()
     assert a.meta_path.read_bytes() == b.meta_path.read_bytes()
     assert _digest(a.bag_path) != _digest(c.bag_path)
-    m1 = simulate("hall", tmp_path / "m1", seed=4, fmt="mcap", **kw)
-    m2 = simulate("hall", tmp_path / "m2", seed=4, fmt="mcap", **kw)
-    assert _digest(m1.bag_path) == _digest(m2.bag_path)
+    for fmt in ("mcap", "ros2"):
+        m1 = simulate("hall", tmp_path / f"{fmt}1", seed=4, fmt=fmt, **kw)
+        m2 = simulate("hall", tmp_path / f"{fmt}2", seed=4, fmt=fmt, **kw)
+        assert _digest(m1.bag_path) == _digest(m2.bag_path)
 
 
 def test_config_is_accepted_and_meta_is_complete(tmp_path):

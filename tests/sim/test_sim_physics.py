@@ -185,3 +185,22 @@ def test_points_lie_on_the_mesh_only_with_per_point_poses(tmp_path):
     assert np.median(per_point) < 1.2 * sigma, np.median(per_point)
     assert np.mean(per_point > 4 * sigma) < 0.01
     assert np.mean(one > 4 * sigma) > 0.15
+
+
+def test_imu_noise_matches_the_bmi085_densities(tmp_path):
+    res = simulate("hall", tmp_path, duration_s=2.4, columns=36, seed=8)
+    meta = json.loads(res.meta_path.read_text())
+    _, gyro, acc, _ = _read_bag(res.bag_path)
+    noise = meta["imu_noise"]
+    fs = 400.0
+    for x, density, bias0 in ((gyro, noise["gyro_noise_rad_s_sqrt_hz"], meta["gyro_bias0_rad_s"]),
+                              (acc, noise["accel_noise_m_s2_sqrt_hz"], None)):
+        sigma = np.std(np.diff(x, axis=0), axis=0) / np.sqrt(2.0)
+        np.testing.assert_allclose(sigma, density * np.sqrt(fs), rtol=0.08)
+        if bias0 is not None:
+            err = np.abs(x.mean(axis=0) - np.asarray(bias0))
+            assert np.all(err < 4 * density * np.sqrt(fs) / np.sqrt(len(x)) + 8e-4)
+            assert np.linalg.norm(bias0) > 1e-4
+    assert np.linalg.norm(meta["accel_bias0_m_s2"]) > 1e-3
+    g = np.linalg.norm(acc.mean(axis=0))
+    assert abs(g - GRAVITY_M_S2) < 0.1
