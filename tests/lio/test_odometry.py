@@ -1,5 +1,7 @@
 """End-to-end tests of the estimator on a synthetic box room generated here (ray-box casting)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -292,3 +294,42 @@ def test_gravity_aligned_world():
     up_body_est = first.T_world_imu[:3, :3].T @ np.array([0.0, 0.0, 1.0])
     up_body_gt = R[0].T @ np.array([0.0, 0.0, 1.0])
     assert np.linalg.norm(up_body_est - up_body_gt) < 2e-3
+
+
+REAL_SCAN = Path("/work/shared/data/real/hilti2022_evalio_scan/exp04_first_scan.npz")
+
+
+@pytest.mark.skipif(not REAL_SCAN.is_file(), reason="real HILTI scan not available")
+def test_real_hilti_scan_registers_a_known_displacement():
+    """Real XT-32 geometry: map from the scan, then the same scan seen from a displaced sensor."""
+    d = np.load(REAL_SCAN)
+    valid = d["range"] > 0
+    pts = np.stack([d["x"], d["y"], d["z"]], axis=1)[valid].astype(np.float64)
+    rel_ns = np.round(d["t"][valid] * 1e9).astype(np.int64)
+    cfg = Config()
+    cfg.sensor.T_imu_lidar = [[0.0, -1.0, 0.0, -0.001], [-1.0, 0.0, 0.0, -0.00855],
+                              [0.0, 0.0, -1.0, 0.055], [0.0, 0.0, 0.0, 1.0]]
+    cfg.adaptive.mode = "fixed"
+    cfg.validate()
+    T_il = cfg.T_imu_lidar()
+    odom = Odometry(cfg)
+    t0 = 1_000_000_000
+    t_imu = np.arange(0, t0 + 400_000_000, 2_500_000, dtype=np.int64)
+    gyro = np.tile([0.003835, 0.003835, -0.002876], (t_imu.size, 1))
+    acc = np.tile([0.2145, 0.0464, -9.7292], (t_imu.size, 1))
+    odom.add_imu(t_imu, gyro, acc)
+    first = odom.add_scan(pts, t0 + rel_ns)
+    assert first is not None and np.allclose(first.T_world_imu, np.eye(4))
+
+    T_motion = np.eye(4)
+    T_motion[:3, :3] = so3.exp(np.deg2rad([0.3, -0.2, 1.0]))
+    T_motion[:3, 3] = [0.06, -0.04, 0.02]
+    moved = (pts - T_motion[:3, 3]) @ T_motion[:3, :3]
+    est = odom.add_scan(moved, t0 + 100_000_000 + rel_ns)
+    expected = T_il @ T_motion @ np.linalg.inv(T_il)
+    err_t = np.linalg.norm(est.T_world_imu[:3, 3] - expected[:3, 3])
+    err_r = np.linalg.norm(so3.log(expected[:3, :3].T @ est.T_world_imu[:3, :3]))
+    print(f"real scan: err {err_t * 1000:.2f} mm {np.rad2deg(err_r):.4f} deg")
+    assert est.stats.n_matched > 1000
+    assert err_t < 0.01, err_t
+    assert err_r < np.deg2rad(0.1), np.rad2deg(err_r)
