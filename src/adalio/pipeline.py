@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import signal
 import statistics
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -116,6 +118,30 @@ def _degenerate_ranges(times_ns: list[int], flags: list[bool]) -> list[tuple[flo
     return out
 
 
+class _GracefulStop:
+    """First Ctrl-C sets ``requested`` (the run stops after the current scan, so no interrupt
+    lands inside a numba kernel); a second one raises KeyboardInterrupt at once."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._old: Any = None
+
+    def _handler(self, signum: int, frame: Any) -> None:
+        if self.requested:
+            signal.default_int_handler(signum, frame)
+        self.requested = True
+
+    def __enter__(self) -> _GracefulStop:
+        if threading.current_thread() is threading.main_thread():
+            self._old = signal.signal(signal.SIGINT, self._handler)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+            self._old = None
+
+
 def _progress(enabled: bool, total: int | None) -> Any:
     from rich.progress import (
         BarColumn,
@@ -176,10 +202,14 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         n_in = 0
         interrupted = False
         t_start = time.perf_counter()
+        stop = _GracefulStop()
         try:
-            with _progress(progress, total) as bar:
+            with stop, _progress(progress, total) as bar:
                 task = bar.add_task("scans", total=total or None, rate="")
                 for item in seq:
+                    if stop.requested:
+                        interrupted = True
+                        break
                     if isinstance(item, ImuBatch):
                         odom.add_imu(item.t_ns, item.gyro_rad_s, item.accel_m_s2)
                         continue
