@@ -114,3 +114,24 @@ def test_report_without_gt_and_cli(run_dir):
         assert_png_image(out / name)
     res = CliRunner().invoke(app, ["report", str(out.parent / "nope")])
     assert isinstance(res.exception, InputError)
+
+
+def test_report_detects_hilti_control_points(tmp_path):
+    from adalio.eval.hilti import hilti_score
+
+    gt_dir = Path(__file__).resolve().parents[2].parent / "shared/data/real/hilti2022_gt"
+    dense = sorted(gt_dir.glob("exp_05_*_imu.txt"))
+    if not dense:
+        pytest.fail(f"HILTI ground truth missing in {gt_dir} (<repo>/../shared must exist)")
+    sparse = gt_dir / "exp05_construction_upper_level_2.txt"
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "trajectory.tum").write_text(dense[0].read_text())
+    make_report(run, sparse)
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["hilti"] == hilti_score(dense[0], sparse)
+    assert "ate_se3" not in metrics
+    assert f"{metrics['hilti']['score']:.1f} / 100" in (run / "report.md").read_text()
+    assert_png_image(run / "trajectory_top.png")
+    with pytest.raises(InputError, match="--hilti"):
+        ate(dense[0], sparse)

@@ -59,6 +59,9 @@ def eval_command(
     if hilti:
         from adalio.eval.hilti import MAX_DIFF_S, hilti_score
 
+        if align != "se3":
+            raise InputError("--hilti always aligns with se3 (the official rule): drop --align")
+
         res = hilti_score(est, gt, max_diff_s=max_diff if max_diff is not None else MAX_DIFF_S)
         if json_out:
             print(json.dumps(res))
@@ -101,8 +104,8 @@ def eval_command(
 def report_command(
     run_dir: Annotated[Path, typer.Argument(help="Output folder of `adalio run`.")],
     gt: Annotated[Path | None, typer.Option(help="Ground-truth TUM trajectory.")] = None,
-    hilti: Annotated[bool, typer.Option("--hilti", help="GT is HILTI 2022 control points.")
-                     ] = False,
+    hilti: Annotated[bool | None, typer.Option(
+        "--hilti/--no-hilti", help="GT is HILTI 2022 control points [default: detect]")] = None,
 ) -> None:
     """Figures (trajectory, error, degeneracy timeline, map) and report.md for a run folder."""
     from adalio.eval.report import make_report

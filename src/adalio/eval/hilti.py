@@ -41,6 +41,15 @@ BAND_POINTS = (10, 6, 3, 1, 0)
 """Points of each band, the last one for errors >= 10 cm."""
 
 
+def looks_like_control_points(gt_tum: TrajectoryLike) -> bool:
+    """True for a HILTI-style control-point file: identity quaternions, >= 1 s apart (median)."""
+    gt = read_trajectory(gt_tum, "ground-truth")
+    q = np.asarray(gt.orientations_quat_wxyz)
+    identity = bool(np.all(np.abs(np.abs(q[:, 0]) - 1.0) < 1e-9))
+    spacing = float(np.median(np.diff(gt.timestamps))) if gt.num_poses > 1 else 0.0
+    return identity and spacing >= 1.0
+
+
 def points_for_error(error_m: float) -> int:
     """Points of one control point with position error ``error_m`` (NaN = unmatched -> 0)."""
     if not np.isfinite(error_m):

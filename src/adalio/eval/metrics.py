@@ -66,10 +66,13 @@ def associate(est: TrajectoryLike, gt: TrajectoryLike,
     try:
         gt_s, est_s = sync.associate_trajectories(gt_t, est_t, max_diff=max_diff_s)
     except sync.SyncException:
+        from adalio.eval.hilti import looks_like_control_points
+
+        hint = " (sparse control points? use --hilti)" if looks_like_control_points(gt_t) else \
+            "; are both in seconds on the same clock?"
         raise InputError(
             f"no estimate/GT pose pairs within {max_diff_s} s: the estimate spans "
-            f"{_span(est_t)} and the GT {_span(gt_t)}; are both in seconds on the same clock?"
-        ) from None
+            f"{_span(est_t)} and the GT {_span(gt_t)}{hint}") from None
     return gt_s, est_s
 
 
@@ -88,8 +91,12 @@ def align_pair(est: TrajectoryLike, gt: TrajectoryLike, align: str = "se3",
     T = np.eye(4)
     if align == "se3":
         if gt_s.num_poses < 3:
+            from adalio.eval.hilti import looks_like_control_points
+
+            hint = "sparse control points? use --hilti" if looks_like_control_points(gt) else \
+                "use --align first or a larger --max-diff"
             raise InputError(f"only {gt_s.num_poses} associated poses: se3 alignment needs >= 3 "
-                             "(use --align first or a larger --max-diff)")
+                             f"({hint})")
         try:
             r, t, _ = est_a.align(gt_s, correct_scale=False)
         except Exception as exc:  # noqa: BLE001 - evo GeometryException on degenerate input

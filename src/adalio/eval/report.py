@@ -75,13 +75,15 @@ def _fmt(value: Any, digits: int = 3) -> str:
     return str(value)
 
 
-def make_report(run_dir: str | Path, gt: str | Path | None = None, *, hilti: bool = False,
+def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
+                hilti: bool | None = None,
                 max_diff_s: float = DEFAULT_MAX_DIFF_S,
                 rpe_deltas_m: tuple[float, ...] = DEFAULT_RPE_DELTAS_M) -> Path:
     """Write figures, ``metrics.json`` and ``report.md`` into ``run_dir``; return the report path.
 
     ``hilti=True`` treats ``gt`` as HILTI 2022 control points and adds the HILTI score
-    (:func:`adalio.eval.hilti.hilti_score`) instead of the dense ATE/RPE.
+    (:func:`adalio.eval.hilti.hilti_score`) instead of the dense ATE/RPE; ``None`` decides from
+    the file (identity quaternions, >= 1 s between poses: control points).
     """
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -109,6 +111,10 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *, hilti: boo
         gt_t = np.asarray(gt_traj.timestamps, dtype=np.float64)
         in_span = (gt_t >= est.timestamps[0] - 1.0) & (gt_t <= est.timestamps[-1] + 1.0)
         gt_xyz = np.asarray(gt_traj.positions_xyz, dtype=np.float64)[in_span]
+        if hilti is None:
+            from adalio.eval.hilti import looks_like_control_points
+
+            hilti = looks_like_control_points(gt_traj)
         if hilti:
             from adalio.eval.hilti import hilti_score
 
