@@ -10,6 +10,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any
 
+import numpy as np
 import typer
 from rich.console import Console
 from rich.table import Table
@@ -114,6 +115,14 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
             out.print(f"imu frame '{imu_msgs[0].header.frame_id}', accelerometer in {unit}")
         tf = b.static_transforms()
         out.print(f"/tf_static: {len(tf)} transforms" if tf else "/tf_static: none")
+        from scipy.spatial.transform import Rotation
+
+        from adalio.pipeline import resolve_extrinsic
+
+        T, source = resolve_extrinsic(b, lidar, imu, cfg)
+        q = Rotation.from_matrix(T[:3, :3]).as_quat()
+        out.print(f"T_imu_lidar from {source}: t = {np.round(T[:3, 3], 6).tolist()} m, "
+                  f"q xyzw = {np.round(q, 6).tolist()}", highlight=False, soft_wrap=True)
 
 
 # ------------------------------------------------------------------------------------ run
