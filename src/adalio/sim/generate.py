@@ -118,11 +118,13 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
              lidar: str = "xt32", fmt: str = "ros1", columns: int | None = None,
              noise_scale: float = 1.0, progress: bool = False,
              T_imu_lidar: list[list[float]] | np.ndarray | None = None,
-             occluder: bool = True) -> SimResult:
+             occluder: bool = True, scene_params: dict | None = None) -> SimResult:
     """Generate one sequence of ``scene`` into ``out_dir`` (created; the bag must not exist).
 
     ``duration_s`` None walks the whole route; shorter values truncate it (static start kept).
     ``noise_scale`` multiplies all sensor noise, dropouts and initial IMU biases (0 = perfect).
+    ``T_imu_lidar`` overrides the HILTI mounting, ``occluder`` toggles the operator's body,
+    ``scene_params`` overrides the scene builder's sizes (see :mod:`adalio.sim.scenes`).
     """
     _check_args(scene, duration_s, lidar, fmt, noise_scale)
     T_il = validate_transform(T_IMU_LIDAR_HILTI if T_imu_lidar is None else T_imu_lidar,
@@ -133,7 +135,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     bag_path = bag_path_for(out_dir, scene, fmt)
     if bag_path.exists():
         raise InputError(f"{bag_path} already exists: delete it or choose another --out")
-    scn = build_scene(scene, seed)
+    scn = build_scene(scene, seed, **(scene_params or {}))
     traj = build_trajectory(scn, T_il, seed)
     dur = math.floor(traj.duration_s * 10.0) / 10.0 if duration_s is None else float(duration_s)
     dur_ns = round(dur * 1e9)
@@ -207,7 +209,8 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     T_scene_world[:3, 3] = p0
     scn.mesh.export(out_dir / "scene.ply")
     meta = {
-        "scene": scene, "seed": int(seed), "duration_s": dur, "lidar": model.name,
+        "scene": scene, "seed": int(seed), "scene_params": dict(scene_params or {}),
+        "duration_s": dur, "lidar": model.name,
         "format": fmt, "columns": model.columns, "channels": model.channels,
         "noise_scale": float(noise_scale), "occluder": bool(occluder),
         "topics": {"lidar": model.lidar_topic, "imu": model.imu_topic},

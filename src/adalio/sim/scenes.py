@@ -8,6 +8,7 @@ waypoint (slower on stairs). Clutter is placed from a seeded generator, away fro
 
 from __future__ import annotations
 
+import inspect
 import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -398,8 +399,15 @@ SCENE_BUILDERS: dict[str, Callable[..., Scene]] = {
 }
 
 
-def build_scene(name: str, seed: int = 0) -> Scene:
-    """Build a scene by name with its default sizes and the clutter of ``seed``."""
+def build_scene(name: str, seed: int = 0, **params: object) -> Scene:
+    """Build a scene by name with the clutter of ``seed``; ``params`` override the builder's
+    size parameters (e.g. ``length_a_m`` of the corridor)."""
     if name not in SCENE_BUILDERS:
         raise InputError(f"unknown scene '{name}': choose one of {', '.join(SCENE_BUILDERS)}")
-    return SCENE_BUILDERS[name](seed=seed)
+    builder = SCENE_BUILDERS[name]
+    allowed = set(inspect.signature(builder).parameters) - {"seed"}
+    unknown = sorted(set(params) - allowed)
+    if unknown:
+        raise InputError(f"unknown parameter(s) {', '.join(unknown)} of scene '{name}': "
+                         f"valid are {', '.join(sorted(allowed))}")
+    return builder(seed=seed, **params)
