@@ -93,6 +93,8 @@ def test_noise_free_imu_integrates_to_ground_truth(perfect_hall):
     pos_err = np.linalg.norm(p - gt_p[i])
     rot_err = np.degrees(np.linalg.norm(
         Rotation.from_matrix(gt_R[i].as_matrix().T @ R).as_rotvec()))
+    print(f"\nIMU dead-reckoning over 12.5 s: {pos_err * 1e6:.1f} um, {rot_err:.2e} deg, "
+          f"travelled {np.linalg.norm(gt_p[i]):.1f} m")
     assert pos_err < 0.01, pos_err
     assert rot_err < 0.05, rot_err
 
