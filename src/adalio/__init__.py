@@ -13,7 +13,24 @@ from adalio.types import Estimate, ImuBatch, Scan, ScanStats
 
 __version__ = "0.1.0"
 
+_LAZY = {
+    "Odometry": "adalio.lio",
+    "Bag": "adalio.io", "BagWriter": "adalio.io", "Sequencer": "adalio.io",
+    "CloudDecoder": "adalio.io", "decode_pointcloud2": "adalio.io",
+    "run_bag": "adalio.pipeline", "RunResult": "adalio.pipeline",
+    "simulate": "adalio.sim", "cached_sequence": "adalio.sim",
+}
+
+
+def __getattr__(name: str):
+    """Heavy parts (numba kernels, rosbags) are imported on first use."""
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'adalio' has no attribute {name!r}")
+
 __all__ = [
     "AdalioError", "BagError", "Config", "ConfigError", "Estimate", "ImuBatch", "InputError",
-    "Scan", "ScanStats", "config_from_dict", "load_config", "__version__",
+    "Scan", "ScanStats", *_LAZY, "config_from_dict", "load_config", "__version__",
 ]

@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib
 import sys
 
+import click
 import typer
 from rich.console import Console
 
@@ -55,11 +56,11 @@ def main() -> None:
 
     err = Console(stderr=True)
     try:
-        app()
+        app(standalone_mode=True)
     except AdalioError as exc:
         err.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
         sys.exit(exc.exit_code)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, click.exceptions.Abort):
         err.print("[yellow]interrupted[/]: partial outputs were flushed")
         sys.exit(130)
 
