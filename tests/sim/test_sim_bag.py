@@ -61,6 +61,20 @@ def test_bag_reads_back_with_the_right_counts(tmp_path, fmt, lidar):
     np.testing.assert_allclose(cfg.T_imu_lidar(), np.asarray(meta["T_imu_lidar"]))
     assert cfg.sensor.lidar_topic == meta["topics"]["lidar"]
     assert cfg.sensor.imu_topic == meta["topics"]["imu"]
+    if lidar == "ouster64":
+        from rosbags.highlevel import AnyReader
+
+        with AnyReader([res.bag_path]) as reader:
+            conn = next(c for c in reader.connections if c.topic == "/ouster/points")
+            msg = reader.deserialize(next(reader.messages([conn]))[2], conn.msgtype)
+        assert (msg.height, msg.width, msg.point_step) == (64, 90, 48)
+        fields = {f.name: (f.offset, f.datatype) for f in msg.fields}
+        assert fields["t"] == (20, 6) and fields["ring"] == (26, 4)
+        rec = np.frombuffer(msg.data.tobytes(), dtype=np.dtype(
+            {"names": ["x", "t", "ring"], "formats": ["<f4", "<u4", "<u2"],
+             "offsets": [0, 20, 26], "itemsize": 48})).reshape(64, 90)
+        assert np.all(np.diff(rec["t"].astype(np.int64), axis=1) > 0)
+        assert rec["t"].max() < 100_000_000 and np.all(rec["ring"] == np.arange(64)[:, None])
     acc = np.concatenate([b.accel_m_s2 for b in imus])
     assert abs(np.linalg.norm(acc[:400].mean(axis=0)) - 9.81) < 0.1
 

@@ -206,3 +206,15 @@ def test_imu_noise_matches_the_bmi085_densities(tmp_path):
     assert np.linalg.norm(meta["accel_bias0_m_s2"]) > 1e-3
     g = np.linalg.norm(acc.mean(axis=0))
     assert abs(g - GRAVITY_M_S2) < 0.1
+
+
+def test_mesh_distance_matches_brute_force():
+    scn = build_scene("spiral", 0)
+    caster = RayCaster(scn.mesh)
+    rng = np.random.default_rng(0)
+    lo, hi = scn.mesh.bounds
+    pts = rng.uniform(lo, hi, (40, 3))
+    tris = scn.mesh.triangles
+    brute = np.array([np.linalg.norm(trimesh.triangles.closest_point(
+        tris, np.repeat(p[None], len(tris), 0)) - p, axis=1).min() for p in pts])
+    np.testing.assert_allclose(mesh_distance_m(caster, pts), brute, atol=1e-9)
