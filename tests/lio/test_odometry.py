@@ -101,10 +101,11 @@ def _config() -> Config:
     return cfg.validate()
 
 
-def _run(cfg: Config, duration: float, n_cols: int, seed: int = 0):
+def _run(cfg: Config, duration: float, n_cols: int, seed: int = 0, accel_unit: float = 1.0):
     rng = np.random.default_rng(seed)
     odom = Odometry(cfg)
     t_imu, gyro, acc = imu_samples(0.0, duration + 0.05, 400.0, rng, noise=0.01)
+    acc = acc / accel_unit
     estimates, k = [], 0
     for s in np.arange(0.0, duration, 0.1):
         pts, t_ns = lidar_scan(s, n_cols, rng)
@@ -282,6 +283,16 @@ def test_adaptive_plus_refines_leaf_within_budget():
     _, est = _run(cfg, 1.0, 300)
     for st in (e.stats for e in est if e.stats.iterations > 0):
         assert st.voxel_size_m == cfg.adaptive.degenerate.voxel_size_m
+
+
+def test_accelerometer_in_g_units_is_rescaled_at_init():
+    odom, est = _run(_config(), 2.0, 300, accel_unit=9.81)
+    assert np.isclose(np.linalg.norm(est[0].gravity_world_m_s2), 9.81)
+    t = np.array([e.t_ns for e in est]) * 1e-9
+    gt_p, _, gt_v, *_ = trajectory(t)
+    assert umeyama_ate(np.array([e.T_world_imu[:3, 3] for e in est]), gt_p) < 0.02
+    assert np.linalg.norm(gt_v[-1]) > 0.3
+    assert abs(np.linalg.norm(est[-1].velocity_world_m_s) - np.linalg.norm(gt_v[-1])) < 0.05
 
 
 def test_gravity_aligned_world():
