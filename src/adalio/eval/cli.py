@@ -169,6 +169,7 @@ def demo_command(
     for row in res.compare.rows:
         if row.report:
             console.print(f"report ({row.mode}): [bold]{row.report}[/]")
+    console.print(f"where each mode switched parameters: {Path(out) / '<mode>' / 'degeneracy.png'}")
     console.print(f"comparison: [bold]{Path(out) / 'compare.md'}[/]  "
                   f"(total {time.perf_counter() - t0:.0f} s)")
 

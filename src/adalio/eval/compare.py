@@ -139,6 +139,8 @@ def compare_modes(bag_path: str | Path, modes: list[str], out_dir: str | Path, *
         row.diverged = bool(row.aborted is not None or (
             row.max_error_m is not None and row.max_error_m > DIVERGED_MAX_ERROR_M))
         rows.append(row)
+        if res.interrupted:
+            break
     result = CompareResult(rows=rows, out_dir=out_dir)
     gt_xyz = None
     if gt is not None:
