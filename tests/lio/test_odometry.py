@@ -286,13 +286,17 @@ def test_adaptive_plus_refines_leaf_within_budget():
 
 
 def test_accelerometer_in_g_units_is_rescaled_at_init():
-    odom, est = _run(_config(), 2.0, 300, accel_unit=9.81)
-    assert np.isclose(np.linalg.norm(est[0].gravity_world_m_s2), 9.81)
-    t = np.array([e.t_ns for e in est]) * 1e-9
+    _, est_g = _run(_config(), 2.0, 300, accel_unit=9.81)
+    _, est_si = _run(_config(), 2.0, 300)
+    assert np.isclose(np.linalg.norm(est_g[0].gravity_world_m_s2), 9.81)
+    t = np.array([e.t_ns for e in est_g]) * 1e-9
     gt_p, _, gt_v, *_ = trajectory(t)
-    assert umeyama_ate(np.array([e.T_world_imu[:3, 3] for e in est]), gt_p) < 0.02
+    p_g = np.array([e.T_world_imu[:3, 3] for e in est_g])
+    p_si = np.array([e.T_world_imu[:3, 3] for e in est_si])
+    assert umeyama_ate(p_g, gt_p) < 0.02
+    assert np.abs(p_g - p_si).max() < 5e-3
     assert np.linalg.norm(gt_v[-1]) > 0.3
-    assert abs(np.linalg.norm(est[-1].velocity_world_m_s) - np.linalg.norm(gt_v[-1])) < 0.05
+    assert abs(np.linalg.norm(est_g[-1].velocity_world_m_s) - np.linalg.norm(gt_v[-1])) < 0.1
 
 
 def test_gravity_aligned_world():
