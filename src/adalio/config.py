@@ -137,6 +137,10 @@ class FilterConfig:
     """Estimate the LiDAR-IMU extrinsic online (off for calibrated rigs)."""
     plane_fit: str = "ls"
     """'ls' (a^T x = -1 least squares, Faster-LIO parity) or 'pca'."""
+    knn_max_range_m: float = 5.0
+    """Neighbours farther than this are never returned by the map search (iVox max_range)."""
+    init_time_s: float = 0.1
+    """After the first map scan, scans within this time insert all their points (INIT_TIME)."""
     refit_every_iteration: bool = False
     """Re-search and refit planes at every iteration (FAST-LIO2) instead of on convergence only."""
 

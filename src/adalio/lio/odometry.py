@@ -6,7 +6,7 @@ and runs, in paper order: preprocess → (static init) → propagate + undistort
 voxel downsample (general leaf) → degeneracy check / parameter switch → iterated ESKF update →
 map insertion, returning the IMU pose in the world frame stamped at the scan end.
 
-Search radius (§9.4): the kNN query returns up to k neighbours within ``KNN_MAX_RANGE_M``; a
+Search radius (§9.4): the kNN query returns up to k neighbours within ``filter.knn_max_range_m``; a
 correspondence is rejected when fewer than ``filter.min_neighbors`` were found or when the
 farthest of the found neighbours lies beyond the active ``search_radius_m`` (FAST-LIO2-style gate
 on the k-th neighbour). The plane margin of the active set is the §6.2 validity threshold.
@@ -46,9 +46,6 @@ from adalio.lio.voxel import voxel_downsample
 from adalio.types import Estimate, ScanStats
 
 STAGES = ("preprocess", "undistort", "downsample", "degeneracy", "update", "map")
-INIT_TIME_NS = 100_000_000
-"""After the first map scan, scans within this time insert all points (Faster-LIO INIT_TIME)."""
-KNN_MAX_RANGE_M = 5.0
 """Range of the iVox neighbour query (Faster-LIO's ``GetClosestPoint`` default, §7)."""
 MAX_SCAN_SPAN_NS = 1_000_000_000
 """Per-point times of one sweep spanning more than this are rejected as malformed (units?)."""
@@ -119,7 +116,7 @@ class _Association:
             self.selected = self._valid_after_search.copy()
         elif research:
             p_world = points_to_world(self.points_lidar, x.R, x.p, x.R_LI, x.t_LI)
-            self.nbrs, self.counts, dist2 = self.ivox.knn(p_world, f.knn_k, KNN_MAX_RANGE_M)
+            self.nbrs, self.counts, dist2 = self.ivox.knn(p_world, f.knn_k, f.knn_max_range_m)
             n = self.counts.shape[0]
             farthest2 = dist2[np.arange(n), np.maximum(self.counts - 1, 0)]
             near_enough = (self.counts >= f.min_neighbors) & (farthest2 <= self.radius2)
@@ -305,7 +302,7 @@ class Odometry:
         # 8. map insertion with the updated pose (§7)
         s = self._state
         p_world = points_to_world(down, s.R, s.p, s.R_LI, s.t_LI)
-        insert_all = t_e - self._t_first_map_ns < INIT_TIME_NS
+        insert_all = t_e - self._t_first_map_ns < int(self.cfg.filter.init_time_s * 1e9)
         if down.shape[0] >= MIN_POINTS_FOR_UPDATE:
             add = select_for_insertion(p_world, assoc.nbrs, assoc.counts, cfg.map.map_leaf_m,
                                        insert_all)
