@@ -21,7 +21,7 @@ FULL_DURATION_S: float | None = None
 """Sequence length of the full demo (None = the scene's own default length)."""
 FULL_COLUMNS: int | None = None
 """Azimuth columns per sweep of the full demo (None = the LiDAR model's default)."""
-SHORT_DURATION_S = 8.0
+SHORT_DURATION_S = 18.0
 SHORT_COLUMNS = 500
 
 
