@@ -193,6 +193,8 @@ def _markdown(result: CompareResult, gt: str | Path | None) -> str:
     lines += ["", "## Figures", ""]
     lines += [f"![{p.stem}]({p.name})\n" for p in result.figures]
     lines += ["## Per-mode reports", ""]
-    lines += [f"- `{r.mode}`: {Path(r.report).relative_to(result.out_dir)}" for r in result.rows
-              if r.report]
+    for r in result.rows:
+        if r.report:
+            rel = Path(r.report).resolve().relative_to(result.out_dir.resolve())
+            lines.append(f"- `{r.mode}`: [{rel}]({rel})")
     return "\n".join(lines) + "\n"
