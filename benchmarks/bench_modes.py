@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import shlex
 import sys
 import time
@@ -28,8 +29,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import yaml
 
-from adalio.config import MODES, load_config
+from adalio.config import MODES, config_from_dict, load_config
 from adalio.eval.metrics import ate
 from adalio.pipeline import run_bag
 from adalio.sim import SCENES, cached_sequence
@@ -48,7 +50,11 @@ class RunRow:
     pct_degenerate: float = float("nan")
     ms_per_scan: float = float("nan")
     n_scans: int = 0
+    sim_failed: bool = False
     scans: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "scans"}
 
 
 def read_scans_csv(path: Path) -> dict[str, np.ndarray]:
@@ -70,12 +76,49 @@ def gt_scan_count(gt_path: Path, lidar_rate_hz: float) -> int:
     return int((t[-1] - t[0]) * lidar_rate_hz) if t.size > 1 else 0
 
 
+def parse_overrides(items: list[str]) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise SystemExit(f"--set expects key=value (got {item!r})")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def run_dir(out_root: Path, scene: str, seed: int, mode: str) -> Path:
+    return out_root / f"{scene}_s{seed}_{mode.replace('+', 'plus')}"
+
+
+def load_row(out_root: Path, scene: str, seed: int, mode: str) -> RunRow | None:
+    path = run_dir(out_root, scene, seed, mode) / "bench_row.json"
+    if not path.is_file():
+        return None
+    row = RunRow(**json.loads(path.read_text()))
+    scans_csv = path.parent / "scans.csv"
+    if scans_csv.is_file():
+        row.scans = read_scans_csv(scans_csv)
+    return row
+
+
+def save_row(out_root: Path, row: RunRow) -> None:
+    d = run_dir(out_root, row.scene, row.seed, row.mode)
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "bench_row.json").write_text(json.dumps(row.to_json()))
+
+
 def run_one(scene: str, seed: int, mode: str, duration_s: float | None, out_root: Path,
-            diverge_m: float) -> RunRow:
+            diverge_m: float, overrides: dict[str, str] | None = None) -> RunRow:
     row = RunRow(scene, seed, mode)
-    sim = cached_sequence(scene, seed=seed, duration_s=duration_s)
-    cfg = load_config(config_file=sim.config_path, overrides={"adaptive.mode": mode})
-    out_dir = out_root / f"{scene}_s{seed}_{mode.replace('+', 'plus')}"
+    try:
+        sim = cached_sequence(scene, seed=seed, duration_s=duration_s)
+    except Exception as exc:  # noqa: BLE001 - reported in the table, not a divergence
+        row.aborted = f"simulator: {exc}".splitlines()[0][:120]
+        row.diverged, row.sim_failed = False, True
+        return row
+    cfg = load_config(config_file=sim.config_path,
+                      overrides={**(overrides or {}), "adaptive.mode": mode})
+    out_dir = run_dir(out_root, scene, seed, mode)
     try:
         res = run_bag(sim.bag_path, cfg, out_dir, progress=False)
     except Exception as exc:  # noqa: BLE001 - a crashed run is a diverged run in this table
@@ -127,6 +170,10 @@ def results_table(rows: list[RunRow]) -> str:
     keys = list(dict.fromkeys((r.scene, r.mode) for r in rows))
     for scene, mode in keys:
         rs = [r for r in rows if r.scene == scene and r.mode == mode]
+        if all(r.sim_failed for r in rs):
+            lines.append(f"| {scene} | {mode} | simulator failed |  |  |  |  |  |")
+            continue
+        rs = [r for r in rs if not r.sim_failed]
         ok = [r for r in rs if not r.aborted]
         div = sum(r.diverged for r in rs)
         pct = np.nanmean([r.pct_degenerate for r in rs]) if ok else float("nan")
@@ -180,7 +227,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--diverge-m", type=float, default=1.0,
                     help="a run diverged if its max first-pose-aligned error exceeds this")
     ap.add_argument("--out", type=Path, default=Path(".cache/bench_modes"))
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override for every run, e.g. --set adaptive.tau_n=1500")
+    ap.add_argument("--resume", action="store_true",
+                    help="reuse finished runs found in --out (same options assumed)")
     args = ap.parse_args(argv)
+    overrides = parse_overrides(args.set)
 
     rows: list[RunRow] = []
     t0 = time.perf_counter()
@@ -188,7 +240,12 @@ def main(argv: list[str] | None = None) -> int:
         for seed in range(args.seeds):
             for mode in args.modes:
                 t_run = time.perf_counter()
-                row = run_one(scene, seed, mode, args.duration, args.out, args.diverge_m)
+                row = load_row(args.out, scene, seed, mode) if args.resume else None
+                if row is None:
+                    row = run_one(scene, seed, mode, args.duration, args.out, args.diverge_m,
+                                  overrides)
+                    if not row.sim_failed:
+                        save_row(args.out, row)
                 rows.append(row)
                 print(f"[{time.perf_counter() - t0:7.0f} s] {scene} seed {seed} {mode}: "
                       f"ATE se3 {row.ate_se3_m:.3f} m first {row.ate_first_m:.3f} m max "
@@ -196,8 +253,10 @@ def main(argv: list[str] | None = None) -> int:
                       f"{row.ms_per_scan:.0f} ms/scan {triggers(row)} {row.aborted} "
                       f"({time.perf_counter() - t_run:.0f} s)", file=sys.stderr, flush=True)
 
-    sim0 = cached_sequence(args.scenes[0], seed=0, duration_s=args.duration)
-    cfg0 = load_config(config_file=sim0.config_path)
+    saved = [run_dir(args.out, r.scene, r.seed, r.mode) / "config.yaml" for r in rows]
+    saved = [p for p in saved if p.is_file()]
+    cfg0 = (config_from_dict(yaml.safe_load(saved[0].read_text())) if saved
+            else load_config(overrides=overrides))
     cmd = "python benchmarks/bench_modes.py " + " ".join(
         shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
     print(f"Command: `{cmd.strip()}`  ({args.seeds} seeds, duration "
