@@ -38,8 +38,10 @@ INSERTION_NUM_NEIGHBORS = 5
 NEARBY_TYPES = (0, 6, 18, 26)
 EVICT_SLACK_DIVISOR = 16
 """A batch eviction frees capacity // EVICT_SLACK_DIVISOR extra voxels (amortises compaction)."""
-PARALLEL_MIN_ROWS = 1024
-"""Batches with fewer queries run single-threaded (thread start-up would dominate)."""
+PARALLEL_MIN_ROWS = 16384
+"""Batches with fewer queries run single-threaded. On the shared 2-core dev machine the
+numba-parallel kNN was never faster below ~16k queries (thread wake-up and scheduling cost
+several ms); see benchmarks/bench_map_kernels.py."""
 
 _MAX_ABS_KEY = 4.0e15
 _MIN_ROWS = 1024

@@ -32,9 +32,10 @@ PCA_MIN_REL_SPREAD = 1e-12
 """PCA fit rejected when the middle covariance eigenvalue is below this fraction of the largest
 (collinear or coincident neighbours: the normal is undefined)."""
 PLANE_METHODS = ("ls", "pca")
-PARALLEL_MIN_ROWS = 8192
-"""Batches with fewer rows run single-threaded: an LS fit costs ~0.1 us per row, so thread
-start-up and scheduling would dominate below this size."""
+PARALLEL_MIN_ROWS = 16384
+"""Batches with fewer rows run single-threaded: an LS fit costs ~0.1 us and a PCA fit ~0.5 us per
+row, so thread wake-up and scheduling (several ms on the shared 2-core dev machine) dominate
+below this size; see benchmarks/bench_map_kernels.py."""
 _JACOBI_SWEEPS = 12
 
 
