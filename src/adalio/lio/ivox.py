@@ -82,6 +82,7 @@ def nearby_offsets(nearby_type: int) -> np.ndarray:
 
 @njit(cache=True, inline="always")
 def _key_of(x: float, y: float, z: float, resolution_m: float):
+    """(ok, kx, ky, kz) = floor(p / s + 1/2), i.e. round(p / s) half up (§7 "Key")."""
     fx = np.floor(x / resolution_m + 0.5)
     fy = np.floor(y / resolution_m + 0.5)
     fz = np.floor(z / resolution_m + 0.5)
@@ -93,6 +94,7 @@ def _key_of(x: float, y: float, z: float, resolution_m: float):
 
 @njit(cache=True, inline="always")
 def _lookup(table: np.ndarray, vkeys: np.ndarray, kx: int, ky: int, kz: int) -> int:
+    """Voxel id of a key by linear probing, or -1 if absent."""
     mask = table.shape[0] - 1
     h = hash_key3(kx, ky, kz, mask)
     while True:
