@@ -241,6 +241,16 @@ def cache_root() -> Path:
     return Path(os.environ.get("ADALIO_CACHE_DIR", "~/.cache/adalio")).expanduser() / "sim"
 
 
+def _code_version() -> str:
+    """Short hash of the simulator's own source, so a changed simulator never reuses old data."""
+    import hashlib
+
+    digest = hashlib.sha1()
+    for path in sorted(Path(__file__).parent.glob("*.py")):
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:8]
+
+
 def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = None,
                     lidar: str = "xt32", fmt: str = "ros1",
                     columns: int | None = None) -> SimResult:
@@ -248,7 +258,7 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     _check_args(scene, duration_s, lidar, fmt, 1.0)
     cols = lidar_model(lidar, columns).columns
     dur = "full" if duration_s is None else f"{float(duration_s):g}"
-    key = f"{scene}-s{seed}-d{dur}-{lidar}-{fmt}-c{cols}"
+    key = f"{scene}-s{seed}-d{dur}-{lidar}-{fmt}-c{cols}-v{_code_version()}"
     final = cache_root() / key
 
     def result(d: Path) -> SimResult:
