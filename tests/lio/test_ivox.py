@@ -331,3 +331,44 @@ def test_insertion_batch_and_small_k() -> None:
     np.testing.assert_array_equal(select_for_insertion(q, nbrs, counts, 1.0, False), [True, True])
     with pytest.raises(InputError):
         select_for_insertion(q, nbrs[:1], counts, 1.0, False)
+
+
+@pytest.mark.parametrize(("resolution_m", "cell_m"), [(0.5, 0.2), (0.3, 0.1), (0.4, 0.4)])
+def test_one_point_per_cell_matches_first_come_model(resolution_m: float, cell_m: float) -> None:
+    """Random batches (with duplicates inside a batch): the map equals the plain-Python model
+    'a point is kept iff its floor(p / cell) cell holds no earlier kept point', so no cell ever
+    holds two points; cells straddling iVox voxel boundaries included."""
+    rng = np.random.default_rng(11)
+    ivox = IVox(resolution_m, 18, 10**6, 64, cell_m=cell_m)
+    kept: dict[tuple[int, int, int], np.ndarray] = {}
+    for _ in range(6):
+        batch = rng.uniform(-1.2, 1.2, size=(700, 3))
+        batch[100:200] = batch[:100] + rng.normal(scale=0.01, size=(100, 3))
+        ivox.add_points(batch)
+        for p in batch:
+            kept.setdefault(tuple(np.floor(p / cell_m).astype(int)), p)
+        stored = ivox.points()
+        cells = np.floor(stored / cell_m).astype(int)
+        assert len({tuple(c) for c in cells}) == len(stored)
+        assert ivox.num_points == len(kept)
+        expected = np.array(sorted(map(tuple, kept.values())))
+        np.testing.assert_array_equal(np.array(sorted(map(tuple, stored))), expected)
+
+
+def test_one_point_per_cell_frees_evicted_cells() -> None:
+    ivox = IVox(1.0, 18, 1, 8, cell_m=0.25)
+    a = np.array([[0.1, 0.1, 0.1]])
+    ivox.add_points(a)
+    ivox.add_points(a + 0.05)
+    assert ivox.num_points == 1
+    ivox.add_points(np.array([[5.0, 5.0, 5.0]]))
+    ivox.add_points(a + 0.05)
+    assert ivox.num_points == 1
+    np.testing.assert_array_equal(ivox.points(), a + 0.05)
+
+
+def test_from_config_uses_map_leaf_as_cell() -> None:
+    cfg = MapConfig()
+    assert IVox.from_config(cfg).cell_m == cfg.map_leaf_m
+    with pytest.raises(ConfigError):
+        IVox(0.5, 18, 100, 8, cell_m=float("nan"))

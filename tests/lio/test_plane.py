@@ -173,3 +173,30 @@ def test_bad_arguments() -> None:
         fit_planes(np.zeros((1, 5, 2)), np.array([5]), 3, 0.1, "ls")
     with pytest.raises(InputError):
         fit_planes(np.zeros((2, 5, 3)), np.array([5]), 3, 0.1, "ls")
+
+
+@pytest.mark.parametrize("method", ["ls", "pca"])
+def test_min_extent_rejects_clustered_blob_and_keeps_spread_patch(method: str) -> None:
+    """5 neighbours within 2 cm pass the margin test with any normal; the extent test drops them
+    and still accepts a 0.4 m patch of the same plane (truth: sqrt(lambda_mid) of each set)."""
+    rng = np.random.default_rng(3)
+    n_true = np.array([0.0, 0.6, 0.8])
+    u = np.array([1.0, 0.0, 0.0])
+    w = np.cross(n_true, u)
+    centre = np.array([2.0, 1.0, 3.0])
+    blob = centre + 0.01 * PENTAGON[:, :1] * u + 0.01 * PENTAGON[:, 1:] * w
+    blob += rng.normal(scale=0.004, size=(5, 3))
+    patch = centre + 0.4 * PENTAGON[:, :1] * u + 0.4 * PENTAGON[:, 1:] * w
+    patch += rng.normal(scale=0.004, size=(5, 1)) * n_true
+    nbrs = np.stack([blob, patch])
+    spread = [np.sqrt(np.linalg.eigvalsh(np.cov(q.T, bias=True))[1]) for q in nbrs]
+    assert spread[0] < 0.02
+    assert spread[1] > 0.2
+    counts = np.full(2, 5)
+    _, _, valid_margin_only = fit_planes(nbrs, counts, 3, 0.05, method)
+    assert valid_margin_only.all()
+    normals, _, valid = fit_planes(nbrs, counts, 3, 0.05, method, min_extent_m=0.05)
+    np.testing.assert_array_equal(valid, [False, True])
+    assert min(angle_deg(normals[1:], n_true[None])[0], angle_deg(-normals[1:], n_true[None])[0]) < 3
+    with pytest.raises(ConfigError):
+        fit_planes(nbrs, counts, 3, 0.05, method, min_extent_m=-1.0)

@@ -17,8 +17,14 @@ Deviations from upstream, documented in lio-design.md §7:
   and rehash happen once per many scans instead of every scan once the map is full.
 * kNN returns the exact k nearest of all points of the searched voxels with squared distance
   < max_range_m**2, sorted ascending (upstream only guarantees element 0 is the nearest).
+* One point per cell (``cell_m > 0``, set to ``map.map_leaf_m`` by :meth:`IVox.from_config`): a
+  point is inserted only if no stored point lies in its cell floor(p / cell_m), checked against
+  the stored points of the iVox voxels overlapping that cell, so earlier rows of the same batch
+  count and an evicted voxel frees its cells. Upstream's rule (:func:`select_for_insertion`) lets
+  a cell accumulate points creeping towards its centre; plane fits over such clusters have
+  arbitrary normals and act as fake constraints (degenerate corridors "stick").
 
-Also holds the map-insertion rule of §7 (:func:`select_for_insertion`).
+Also holds the Faster-LIO map-insertion rule of §7 (:func:`select_for_insertion`).
 """
 
 from __future__ import annotations
@@ -118,11 +124,58 @@ def _rebuild_table(table: np.ndarray, vkeys: np.ndarray, nv: int) -> None:
 
 
 @njit(cache=True)
+def _cell_occupied(
+    x: float,
+    y: float,
+    z: float,
+    cell_m: float,
+    resolution_m: float,
+    cap: int,
+    table: np.ndarray,
+    vkeys: np.ndarray,
+    vtotal: np.ndarray,
+    vblocks: np.ndarray,
+    pool: np.ndarray,
+) -> bool:
+    """Whether a stored point shares the cell floor(p / cell_m) of p (searches every iVox voxel
+    overlapping the cell)."""
+    cx = np.floor(x / cell_m)
+    cy = np.floor(y / cell_m)
+    cz = np.floor(z / cell_m)
+    if not (abs(cx) < _MAX_ABS_KEY and abs(cy) < _MAX_ABS_KEY and abs(cz) < _MAX_ABS_KEY):
+        return False
+    slack = _BOX_SLACK * resolution_m
+    lx = np.int64(np.floor((cx * cell_m - slack) / resolution_m + 0.5))
+    hx = np.int64(np.floor(((cx + 1.0) * cell_m + slack) / resolution_m + 0.5))
+    ly = np.int64(np.floor((cy * cell_m - slack) / resolution_m + 0.5))
+    hy = np.int64(np.floor(((cy + 1.0) * cell_m + slack) / resolution_m + 0.5))
+    lz = np.int64(np.floor((cz * cell_m - slack) / resolution_m + 0.5))
+    hz = np.int64(np.floor(((cz + 1.0) * cell_m + slack) / resolution_m + 0.5))
+    for kx in range(lx, hx + 1):
+        for ky in range(ly, hy + 1):
+            for kz in range(lz, hz + 1):
+                v = _lookup(table, vkeys, kx, ky, kz)
+                if v < 0:
+                    continue
+                for j in range(min(vtotal[v], cap)):
+                    b = vblocks[v, j >> _BLOCK_SHIFT]
+                    s = j & (BLOCK_POINTS - 1)
+                    if (
+                        np.floor(pool[b, s, 0] / cell_m) == cx
+                        and np.floor(pool[b, s, 1] / cell_m) == cy
+                        and np.floor(pool[b, s, 2] / cell_m) == cz
+                    ):
+                        return True
+    return False
+
+
+@njit(cache=True)
 def _insert_points(
     points: np.ndarray,
     start: int,
     resolution_m: float,
     cap: int,
+    cell_m: float,
     table: np.ndarray,
     vkeys: np.ndarray,
     vstamp: np.ndarray,
@@ -135,7 +188,8 @@ def _insert_points(
     """Sequential, deterministic insertion of world points into their round(p/s) voxels (§7).
 
     Processes rows from ``start`` on; a voxel holding ``cap`` points overwrites its oldest point
-    (ring order). Stops before a row that might need a voxel, table slot or block the arrays do
+    (ring order). With ``cell_m > 0`` a row whose cell floor(p / cell_m) already holds a stored
+    point is skipped. Stops before a row that might need a voxel, table slot or block the arrays do
     not have, and returns that row (``len(points)`` when done) so the caller can grow them.
     ``state`` = [nv, n_points, n_blocks, n_free, seq] is updated in place.
     """
@@ -155,6 +209,20 @@ def _insert_points(
         i += 1
         ok, kx, ky, kz = _key_of(points[row, 0], points[row, 1], points[row, 2], resolution_m)
         if not ok:
+            continue
+        if cell_m > 0.0 and _cell_occupied(
+            points[row, 0],
+            points[row, 1],
+            points[row, 2],
+            cell_m,
+            resolution_m,
+            cap,
+            table,
+            vkeys,
+            vtotal,
+            vblocks,
+            pool,
+        ):
             continue
         h = hash_key3(kx, ky, kz, mask)
         while True:
@@ -355,8 +423,9 @@ def _grow(arr: np.ndarray, n_rows: int) -> np.ndarray:
 class IVox:
     """Incremental voxel map with approximate kNN over a voxel neighbourhood (lio-design.md §7).
 
-    ``IVox(resolution_m, nearby_type, capacity_voxels, max_points_per_voxel)``; points in world
-    frame, metres. See the module docstring for the deviations from upstream.
+    ``IVox(resolution_m, nearby_type, capacity_voxels, max_points_per_voxel, cell_m=0.0)``;
+    points in world frame, metres. ``cell_m > 0`` keeps at most one point per cell of that edge.
+    See the module docstring for the deviations from upstream.
     """
 
     def __init__(
@@ -365,6 +434,7 @@ class IVox:
         nearby_type: int = 18,
         capacity_voxels: int = 1_000_000,
         max_points_per_voxel: int = 64,
+        cell_m: float = 0.0,
     ) -> None:
         if not (np.isfinite(resolution_m) and resolution_m > 0.0):
             raise ConfigError(
@@ -376,7 +446,10 @@ class IVox:
             raise ConfigError(
                 f"map.max_points_per_voxel must be >= 1, got {max_points_per_voxel!r}"
             )
+        if not (np.isfinite(cell_m) and cell_m >= 0.0):
+            raise ConfigError(f"map.map_leaf_m must be a positive number of metres, got {cell_m!r}")
         self.resolution_m = float(resolution_m)
+        self.cell_m = float(cell_m)
         self.nearby_type = int(nearby_type)
         self.capacity_voxels = int(capacity_voxels)
         self.max_points_per_voxel = int(max_points_per_voxel)
@@ -393,9 +466,13 @@ class IVox:
 
     @classmethod
     def from_config(cls, cfg: MapConfig) -> IVox:
-        """Map built from the ``map`` config section."""
+        """Map built from the ``map`` config section (one point per ``map_leaf_m`` cell)."""
         return cls(
-            cfg.ivox_resolution_m, cfg.nearby_type, cfg.capacity_voxels, cfg.max_points_per_voxel
+            cfg.ivox_resolution_m,
+            cfg.nearby_type,
+            cfg.capacity_voxels,
+            cfg.max_points_per_voxel,
+            cell_m=cfg.map_leaf_m,
         )
 
     @property
@@ -407,7 +484,8 @@ class IVox:
         return int(self._state[_S_NP])
 
     def add_points(self, points_world: np.ndarray) -> None:
-        """Insert (N,3) world points in row order; non-finite rows are skipped (§7)."""
+        """Insert (N,3) world points in row order; non-finite rows are skipped, and with
+        ``cell_m > 0`` so is a row whose cell already holds a point (§7, module docstring)."""
         pts = _as_points(points_world, "points_world")
         n = pts.shape[0]
         if n == 0:
@@ -420,6 +498,7 @@ class IVox:
                 start,
                 self.resolution_m,
                 self.max_points_per_voxel,
+                self.cell_m,
                 self._table,
                 self._vkeys,
                 self._vstamp,

@@ -13,7 +13,10 @@ Neighbours are world-frame points in metres, as returned by :meth:`adalio.lio.iv
   Jacobi in numba), ``d = -n . mean``.
 
 A plane is valid iff ``counts >= max(min_neighbors, 3)``, the fit is finite and non-degenerate
-(neighbours not collinear), and **every** neighbour satisfies ``|n . q_i + d| <= margin_m``.
+(neighbours not collinear), **every** neighbour satisfies ``|n . q_i + d| <= margin_m``, and the
+neighbours span the plane: sqrt(middle eigenvalue of their covariance) >= ``min_extent_m``
+(adalio addition; 0 disables it). A tight cluster of neighbours (a few cm across) passes the
+margin test whatever its fitted normal, which is then arbitrary and acts as a fake constraint.
 Rows with a fit keep it even when invalid by margin; rows without one are NaN.
 """
 
@@ -146,6 +149,37 @@ def _fit_pca(nbrs: np.ndarray, cnt: int, c: np.ndarray, v: np.ndarray, out_n: np
 
 
 @njit(cache=True)
+def _middle_variance(nbrs: np.ndarray, cnt: int, c: np.ndarray, v: np.ndarray) -> float:
+    """Middle eigenvalue (m²) of the covariance (divided by cnt) of the first cnt neighbours."""
+    mx = 0.0
+    my = 0.0
+    mz = 0.0
+    for j in range(cnt):
+        mx += nbrs[j, 0]
+        my += nbrs[j, 1]
+        mz += nbrs[j, 2]
+    mx /= cnt
+    my /= cnt
+    mz /= cnt
+    c[:, :] = 0.0
+    for j in range(cnt):
+        dx = nbrs[j, 0] - mx
+        dy = nbrs[j, 1] - my
+        dz = nbrs[j, 2] - mz
+        c[0, 0] += dx * dx
+        c[0, 1] += dx * dy
+        c[0, 2] += dx * dz
+        c[1, 1] += dy * dy
+        c[1, 2] += dy * dz
+        c[2, 2] += dz * dz
+    c[1, 0] = c[0, 1]
+    c[2, 0] = c[0, 2]
+    c[2, 1] = c[1, 2]
+    _, i_mid, _ = _jacobi_eigen(c, v)
+    return c[i_mid, i_mid] / cnt
+
+
+@njit(cache=True)
 def _fit_ls(nbrs: np.ndarray, cnt: int, out_n: np.ndarray) -> float:
     """a^T x = -1 least squares via 3x3 normal equations (§6.2); NaN when it must fall back."""
     s00 = 0.0
@@ -199,13 +233,15 @@ def _fit_row(
     counts: np.ndarray,
     min_count: int,
     margin_m: float,
+    min_extent_m: float,
     use_ls: bool,
     scratch: np.ndarray,
     normals: np.ndarray,
     dist: np.ndarray,
     valid: np.ndarray,
 ) -> None:
-    """Plane fit of row i and the all-neighbours margin test of lio-design.md §6.2."""
+    """Plane fit of row i, the all-neighbours margin test of lio-design.md §6.2 and the
+    in-plane extent test."""
     cnt = min(counts[i], nbrs.shape[1])
     if cnt < min_count:
         return
@@ -223,23 +259,55 @@ def _fit_row(
         r = nrm[0] * nbrs[i, j, 0] + nrm[1] * nbrs[i, j, 1] + nrm[2] * nbrs[i, j, 2] + d
         if not abs(r) <= margin_m:
             return
+    if min_extent_m > 0.0:
+        lam_mid = _middle_variance(nbrs[i], cnt, scratch[0], scratch[1])
+        if not lam_mid >= min_extent_m * min_extent_m:
+            return
     valid[i] = True
 
 
 @njit(cache=True)
-def _fit_planes_serial(nbrs, counts, min_count, margin_m, use_ls, normals, dist, valid):
+def _fit_planes_serial(
+    nbrs, counts, min_count, margin_m, min_extent_m, use_ls, normals, dist, valid
+):
     """All rows, one thread."""
     scratch = np.empty((2, 3, 3))
     for i in range(nbrs.shape[0]):
-        _fit_row(i, nbrs, counts, min_count, margin_m, use_ls, scratch, normals, dist, valid)
+        _fit_row(
+            i,
+            nbrs,
+            counts,
+            min_count,
+            margin_m,
+            min_extent_m,
+            use_ls,
+            scratch,
+            normals,
+            dist,
+            valid,
+        )
 
 
 @njit(cache=True, parallel=True)
-def _fit_planes_parallel(nbrs, counts, min_count, margin_m, use_ls, normals, dist, valid):
+def _fit_planes_parallel(
+    nbrs, counts, min_count, margin_m, min_extent_m, use_ls, normals, dist, valid
+):
     """All rows; rows are independent (own scratch), so the result is deterministic."""
     scratch = np.empty((nbrs.shape[0], 2, 3, 3))
     for i in prange(nbrs.shape[0]):
-        _fit_row(i, nbrs, counts, min_count, margin_m, use_ls, scratch[i], normals, dist, valid)
+        _fit_row(
+            i,
+            nbrs,
+            counts,
+            min_count,
+            margin_m,
+            min_extent_m,
+            use_ls,
+            scratch[i],
+            normals,
+            dist,
+            valid,
+        )
 
 
 def fit_planes(
@@ -248,11 +316,14 @@ def fit_planes(
     min_neighbors: int,
     margin_m: float,
     method: str = "ls",
+    min_extent_m: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Plane n . x + d = 0 through each row's neighbours, with the §6.2 validity test.
 
     ``nbrs`` (M,k,3) world points (first ``counts[i]`` used), ``method`` 'ls' or 'pca' (see the
-    module docstring). Returns ``(normals (M,3), d (M,), valid (M,) bool)``.
+    module docstring). ``min_extent_m``: a plane whose neighbours have an in-plane spread
+    sqrt(middle covariance eigenvalue) below this is invalid (0 disables the test).
+    Returns ``(normals (M,3), d (M,), valid (M,) bool)``.
     """
     if method not in PLANE_METHODS:
         raise ConfigError(f"filter.plane_fit must be 'ls' or 'pca', got {method!r}")
@@ -267,7 +338,17 @@ def fit_planes(
     dist = np.full(m, np.nan)
     valid = np.zeros(m, np.bool_)
     kernel = _fit_planes_parallel if m >= PARALLEL_MIN_ROWS else _fit_planes_serial
+    if not (np.isfinite(min_extent_m) and min_extent_m >= 0.0):
+        raise ConfigError(f"plane min_extent_m must be >= 0 metres, got {min_extent_m!r}")
     kernel(
-        nb, cn, max(int(min_neighbors), 3), float(margin_m), method == "ls", normals, dist, valid
+        nb,
+        cn,
+        max(int(min_neighbors), 3),
+        float(margin_m),
+        float(min_extent_m),
+        method == "ls",
+        normals,
+        dist,
+        valid,
     )
     return normals, dist, valid
