@@ -8,10 +8,14 @@ into ``$ADALIO_CACHE_DIR``, the repo's ``.cache`` under pytest).
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from adalio.config import load_config
+from adalio.config import Config, load_config
 from adalio.eval.metrics import ate
+from adalio.lio import odometry
+from adalio.lio.ivox import IVox
+from adalio.lio.state import State
 from adalio.pipeline import run_bag
 from adalio.sim import cached_sequence
 
@@ -29,3 +33,32 @@ def test_corridor_adaptive_tracks_ground_truth(tmp_path: Path) -> None:
     print(f"corridor 20 s adaptive: ATE {err['rmse_m'] * 100:.2f} cm over {err['n']} poses")
     assert err["n"] >= 0.9 * res.n_scans
     assert err["rmse_m"] < MAX_ATE_M
+
+
+def test_residuals_sharing_a_map_point_count_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Duplicating every scan point (same nearest map point) must not add information: with the
+    share weighting, HᵀH of the doubled scan equals that of the single scan, while the
+    unweighted sum would double it (truth: the explicit single-scan H)."""
+    rng = np.random.default_rng(5)
+    cfg = Config()
+    g = np.arange(-1.5, 1.5, cfg.map.map_leaf_m) + 0.05
+    gx, gy = np.meshgrid(g, g)
+    floor = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, -1.0)])
+    wall = np.column_stack([np.full(gx.size, 2.0), gx.ravel(), gy.ravel()])
+    ivox = IVox.from_config(cfg.map)
+    ivox.add_points(np.vstack([floor, wall]))
+    scan = np.vstack([floor[::3], wall[::3]])
+    scan += rng.normal(scale=0.02, size=scan.shape)
+    x = State(R_LI=np.eye(3), t_LI=np.zeros(3))
+
+    def info(points: np.ndarray) -> np.ndarray:
+        a = odometry._Association(points, ivox, cfg, 5.0, 0.1, cfg.map.map_leaf_m)
+        H, _ = a.measure(x, True)
+        assert H.shape[0] > 0.8 * points.shape[0]
+        return H[:, :6].T @ H[:, :6]
+
+    single = info(scan)
+    doubled = info(np.vstack([scan, scan]))
+    np.testing.assert_allclose(doubled, single, rtol=1e-9, atol=1e-9)
+    monkeypatch.setattr(odometry, "SHARE_WEIGHTING", False)
+    np.testing.assert_allclose(info(np.vstack([scan, scan])), 2 * info(scan), rtol=1e-9)

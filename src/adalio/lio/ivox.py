@@ -483,9 +483,15 @@ class IVox:
     def num_points(self) -> int:
         return int(self._state[_S_NP])
 
-    def add_points(self, points_world: np.ndarray) -> None:
+    def add_points(self, points_world: np.ndarray, cell_m: float | None = None) -> None:
         """Insert (N,3) world points in row order; non-finite rows are skipped, and with
-        ``cell_m > 0`` so is a row whose cell already holds a point (§7, module docstring)."""
+        ``cell_m > 0`` so is a row whose cell already holds a point (§7, module docstring).
+
+        ``cell_m`` overrides the map's cell edge for this batch (None: ``self.cell_m``).
+        """
+        cell = self.cell_m if cell_m is None else float(cell_m)
+        if not (np.isfinite(cell) and cell >= 0.0):
+            raise InputError(f"add_points cell_m must be >= 0 metres, got {cell_m!r}")
         pts = _as_points(points_world, "points_world")
         n = pts.shape[0]
         if n == 0:
@@ -498,7 +504,7 @@ class IVox:
                 start,
                 self.resolution_m,
                 self.max_points_per_voxel,
-                self.cell_m,
+                cell,
                 self._table,
                 self._vkeys,
                 self._vstamp,

@@ -10,11 +10,15 @@ Search radius (§9.4): the kNN query returns up to k neighbours within ``filter.
 correspondence is rejected when fewer than ``filter.min_neighbors`` were found or when the
 farthest of the found neighbours lies beyond the active ``search_radius_m`` (FAST-LIO2-style gate
 on the k-th neighbour). The plane margin of the active set is the §6.2 validity threshold; a plane
-must also be spanned by its neighbours (``PLANE_MIN_EXTENT_LEAF_FRACTION``).
+must also be spanned by its neighbours (``PLANE_MIN_EXTENT_LEAF_FRACTION``). Residuals sharing
+their nearest map point are down-weighted as one measurement (``SHARE_WEIGHTING``): a finer scan
+leaf than the map cell would otherwise count the same map error several times and make the
+filter over-confident along weakly observable directions.
 
 Map insertion (deviation from Faster-LIO's §7 rule): every scan, including the first one and the
 ``filter.init_time_s`` window, is offered whole to the iVox map, which keeps at most one point per
-``map.map_leaf_m`` cell (``IVox(cell_m=...)``). Upstream's rule lets cells accumulate clusters
+``map.map_leaf_m`` cell (``IVox(cell_m=...)``; a finer active scan leaf also refines the cell,
+``MAP_CELL_FOLLOWS_VOXEL``). Upstream's rule lets cells accumulate clusters
 whose plane fits have arbitrary normals; in degenerate scenes those fake constraints hold the
 estimate against the IMU (corridor ATE 11 m → 2 cm in the simulator).
 
@@ -62,6 +66,13 @@ PLANE_MIN_EXTENT_LEAF_FRACTION = 0.25
 """A plane needs neighbours spanning sqrt(middle covariance eigenvalue) >= this fraction of
 ``map.map_leaf_m`` (plane.fit_planes ``min_extent_m``): with one map point per map_leaf cell,
 a proper neighbourhood spans about a cell, a stray cluster much less."""
+SHARE_WEIGHTING = True
+"""Residuals whose nearest map point is the same map point share its error (the map point's
+position, hence their plane, is one random quantity): each such group counts as one
+measurement, i.e. each row's variance is multiplied by the group size."""
+MAP_CELL_FOLLOWS_VOXEL = True
+"""Map cell of a scan = min(map.map_leaf_m, active parameter set's voxel_size_m): a degenerate
+scan (finer leaf) also densifies the map where it sees; the plane extent threshold follows."""
 
 
 @njit(cache=True)
@@ -101,11 +112,11 @@ class _Association:
     """
 
     def __init__(self, points_lidar: np.ndarray, ivox: IVox, cfg: Config, radius_m: float,
-                 margin_m: float) -> None:
+                 margin_m: float, cell_m: float) -> None:
         self.points_lidar = points_lidar
         self.ivox = ivox
         self.cfg = cfg.filter
-        self.min_extent_m = PLANE_MIN_EXTENT_LEAF_FRACTION * cfg.map.map_leaf_m
+        self.min_extent_m = PLANE_MIN_EXTENT_LEAF_FRACTION * cell_m
         self.radius2 = radius_m * radius_m
         self.margin_m = margin_m
         n = points_lidar.shape[0]
@@ -141,6 +152,12 @@ class _Association:
         H, r, accepted = point_to_plane(self.points_lidar, x.R, x.p, x.R_LI, x.t_LI, self.normals,
                                         self.d, self.selected, f.estimate_extrinsic)
         self.selected = accepted
+        if SHARE_WEIGHTING and H.shape[0]:
+            _, inverse, group = np.unique(self.nbrs[accepted, 0], axis=0, return_inverse=True,
+                                          return_counts=True)
+            w = 1.0 / np.sqrt(group[inverse.ravel()])
+            H = H * w[:, None]
+            r = r * w
         self.H = H
         return H.copy(), r
 
@@ -293,7 +310,9 @@ class Odometry:
         down = down_general if leaf_m == general.voxel_size_m else voxel_downsample(pts_e, leaf_m)
         t0 = _timer(stage_ms, "downsample", t0)
         x_pred, P_pred = self._state, self._P
-        assoc = _Association(down, self._ivox, cfg, params.search_radius_m, params.plane_margin_m)
+        cell_m = self._map_cell(params.voxel_size_m)
+        assoc = _Association(down, self._ivox, cfg, params.search_radius_m, params.plane_margin_m,
+                             cell_m)
         projector = None
         if cfg.adaptive.mode == "adaptive+" and decision.degenerate:
             down, assoc, leaf_m, projector = self._refine(pts_e, down, assoc, leaf_m, params)
@@ -321,7 +340,7 @@ class Odometry:
         s = self._state
         p_world = points_to_world(down, s.R, s.p, s.R_LI, s.t_LI)
         if down.shape[0] >= MIN_POINTS_FOR_UPDATE:
-            self._ivox.add_points(p_world)
+            self._ivox.add_points(p_world, cell_m)
         t0 = _timer(stage_ms, "map", t0)
 
         stats.n_down, stats.n_down_general = int(down.shape[0]), int(down_general.shape[0])
@@ -406,6 +425,7 @@ class Odometry:
         and within the point budget, then restrict the update to observable pose directions."""
         ada = self.cfg.adaptive
         x = self._state
+        assoc_cell = self._map_cell(params.voxel_size_m)
 
         def probe(a: _Association) -> Localizability:
             a.measure(x, True)
@@ -418,10 +438,14 @@ class Odometry:
                 break
             leaf_m, down = leaf_m / 2, finer
             assoc = _Association(down, self._ivox, self.cfg, params.search_radius_m,
-                                 params.plane_margin_m)
+                                 params.plane_margin_m, assoc_cell)
             loc = probe(assoc)
         projector = observable_projector(loc, ada.observable_eigen_ratio)
         return down, assoc, leaf_m, projector
+
+    def _map_cell(self, voxel_size_m: float) -> float:
+        leaf = self.cfg.map.map_leaf_m
+        return min(leaf, voxel_size_m) if MAP_CELL_FOLLOWS_VOXEL else leaf
 
     def _accumulate(self, stage_ms: dict[str, float]) -> None:
         for k, v in stage_ms.items():
