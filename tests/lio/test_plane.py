@@ -5,7 +5,7 @@ import pytest
 
 from adalio.errors import ConfigError, InputError
 from adalio.lio.ivox import IVox
-from adalio.lio.plane import PARALLEL_MIN_ROWS, fit_planes
+from adalio.lio.plane import PARALLEL_MIN_ROWS, fit_planes, neighbour_moments
 
 PENTAGON = np.array([[np.cos(a), np.sin(a)] for a in 2 * np.pi * np.arange(5) / 5])
 
@@ -200,3 +200,29 @@ def test_min_extent_rejects_clustered_blob_and_keeps_spread_patch(method: str) -
     assert min(angle_deg(normals[1:], n_true[None])[0], angle_deg(-normals[1:], n_true[None])[0]) < 3
     with pytest.raises(ConfigError):
         fit_planes(nbrs, counts, 3, 0.05, method, min_extent_m=-1.0)
+
+
+def test_min_extent_matches_brute_force_eigenvalues() -> None:
+    """valid(min_extent) == valid(margin only) & sqrt(middle eigenvalue) >= min_extent, with the
+    eigenvalues from numpy on anisotropic random neighbour sets far from the origin."""
+    rng = np.random.default_rng(8)
+    m = 3000
+    scale = rng.uniform(0.002, 0.3, size=(m, 1, 3))
+    nbrs = rng.normal(size=(m, 5, 3)) * scale + rng.uniform(-50, 50, size=(m, 1, 3))
+    counts = np.full(m, 5)
+    thr = 0.05
+    _, _, base = fit_planes(nbrs, counts, 3, 0.2, "ls")
+    _, _, valid = fit_planes(nbrs, counts, 3, 0.2, "ls", min_extent_m=thr)
+    lam = np.array([np.linalg.eigvalsh(np.cov(q.T, bias=True))[1] for q in nbrs])
+    clear = np.abs(np.sqrt(lam) - thr) > 1e-9
+    assert 0.2 * m < base.sum() and 0.1 * m < valid.sum() < base.sum()
+    np.testing.assert_array_equal(valid[clear], (base & (np.sqrt(lam) >= thr))[clear])
+
+    counts[:10] = 2
+    counts[10:20] = 4
+    mu, lam_mid = neighbour_moments(nbrs, counts)
+    assert np.isnan(mu[:10]).all() and (lam_mid[:10] == 0).all()
+    ref4 = [np.linalg.eigvalsh(np.cov(q[:4].T, bias=True))[1] for q in nbrs[10:20]]
+    np.testing.assert_allclose(lam_mid[10:20], ref4, rtol=1e-8, atol=1e-15)
+    np.testing.assert_allclose(mu[20:], nbrs[20:].mean(axis=1), rtol=1e-12)
+    np.testing.assert_allclose(lam_mid[20:], lam[20:], rtol=1e-8, atol=1e-15)

@@ -13,7 +13,9 @@ on the k-th neighbour). The plane margin of the active set is the §6.2 validity
 must also be spanned by its neighbours (``PLANE_MIN_EXTENT_LEAF_FRACTION``). Residuals sharing
 their nearest map point are down-weighted as one measurement (``SHARE_WEIGHTING``): a finer scan
 leaf than the map cell would otherwise count the same map error several times and make the
-filter over-confident along weakly observable directions.
+filter over-confident along weakly observable directions. Each residual's variance is also
+scaled by the plane-fit uncertainty at the query (``NORMAL_UNCERTAINTY_WEIGHTING``:
+1 + 1/k + rho²/(k lambda_mid)), so planes extrapolated far from narrow neighbourhoods weigh less.
 
 Map insertion (deviation from Faster-LIO's §7 rule): every scan, including the first one and the
 ``filter.init_time_s`` window, is offered whole to the iVox map, which keeps at most one point per
@@ -51,7 +53,7 @@ from adalio.lio.degeneracy import (
 from adalio.lio.ieskf import iterated_update
 from adalio.lio.ivox import IVox
 from adalio.lio.measurement import point_to_plane, points_to_world
-from adalio.lio.plane import fit_planes
+from adalio.lio.plane import fit_planes, neighbour_moments
 from adalio.lio.state import State, initial_covariance
 from adalio.lio.voxel import voxel_downsample
 from adalio.types import Estimate, ScanStats
@@ -70,6 +72,9 @@ SHARE_WEIGHTING = True
 """Residuals whose nearest map point is the same map point share its error (the map point's
 position, hence their plane, is one random quantity): each such group counts as one
 measurement, i.e. each row's variance is multiplied by the group size."""
+NORMAL_UNCERTAINTY_WEIGHTING = True
+"""Scale each residual's variance by :func:`_plane_variance_factor` (plane offset and tilt
+uncertainty of a k-neighbour fit at the query's in-plane distance from their centroid)."""
 MAP_CELL_FOLLOWS_VOXEL = True
 """Map cell of a scan = min(map.map_leaf_m, active parameter set's voxel_size_m): a degenerate
 scan (finer leaf) also densifies the map where it sees; the plane extent threshold follows."""
@@ -102,6 +107,29 @@ def _range_gate(points, t_ns, blind_m, max_range_m, point_filter_num):
             t_out[j] = t_ns[i]
             j += 1
     return out, t_out, n_finite
+
+
+_KEY_MIX = np.array([0x9E3779B97F4A7C15 - (1 << 64), 0xC2B2AE3D27D4EB4F - (1 << 64),
+                     0x165667B19E3779F9], dtype=np.int64)
+
+
+def _group_sizes(points: np.ndarray) -> np.ndarray:
+    """For each row, how many rows hold exactly the same point (hash of the float bits)."""
+    bits = np.ascontiguousarray(points, dtype=np.float64).view(np.int64)
+    key = (bits * _KEY_MIX).sum(axis=1)
+    _, inverse, group = np.unique(key, return_inverse=True, return_counts=True)
+    return group[inverse]
+
+
+def _plane_variance_factor(p_world, mu, lam_mid, counts, normals):
+    """1 + 1/k + rho²/(k lambda_mid): variance of a point-to-plane residual relative to the point
+    noise, adding the fitted plane's offset and tilt uncertainty at in-plane distance rho from
+    the neighbours' centroid mu (k neighbours, lambda_mid their middle covariance eigenvalue)."""
+    off = p_world - mu
+    along = np.sum(off * normals, axis=1)
+    rho2 = np.maximum(np.sum(off * off, axis=1) - along * along, 0.0)
+    k = np.maximum(counts, 1).astype(np.float64)
+    return 1.0 + 1.0 / k + rho2 / (k * np.maximum(lam_mid, 1e-12))
 
 
 class _Association:
@@ -147,15 +175,23 @@ class _Association:
                                                      self.margin_m, f.plane_fit,
                                                      self.min_extent_m)
             self.selected = valid & near_enough
+            if NORMAL_UNCERTAINTY_WEIGHTING:
+                self.mu, self.lam_mid = neighbour_moments(self.nbrs, self.counts)
             self._valid_after_search = self.selected.copy()
             self._searched_at = (x.R.copy(), x.p.copy(), x.R_LI.copy(), x.t_LI.copy())
         H, r, accepted = point_to_plane(self.points_lidar, x.R, x.p, x.R_LI, x.t_LI, self.normals,
                                         self.d, self.selected, f.estimate_extrinsic)
         self.selected = accepted
+        if NORMAL_UNCERTAINTY_WEIGHTING and H.shape[0]:
+            var = _plane_variance_factor(points_to_world(self.points_lidar[accepted], x.R, x.p,
+                                                         x.R_LI, x.t_LI),
+                                         self.mu[accepted], self.lam_mid[accepted],
+                                         self.counts[accepted], self.normals[accepted])
+            w = 1.0 / np.sqrt(var)
+            H = H * w[:, None]
+            r = r * w
         if SHARE_WEIGHTING and H.shape[0]:
-            _, inverse, group = np.unique(self.nbrs[accepted, 0], axis=0, return_inverse=True,
-                                          return_counts=True)
-            w = 1.0 / np.sqrt(group[inverse.ravel()])
+            w = 1.0 / np.sqrt(_group_sizes(self.nbrs[accepted, 0]))
             H = H * w[:, None]
             r = r * w
         self.H = H

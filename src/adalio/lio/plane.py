@@ -150,7 +150,11 @@ def _fit_pca(nbrs: np.ndarray, cnt: int, c: np.ndarray, v: np.ndarray, out_n: np
 
 @njit(cache=True)
 def _middle_variance(nbrs: np.ndarray, cnt: int, c: np.ndarray, v: np.ndarray) -> float:
-    """Middle eigenvalue (m²) of the covariance (divided by cnt) of the first cnt neighbours."""
+    """Middle eigenvalue (m²) of the covariance (divided by cnt) of the first cnt neighbours.
+
+    Closed form for symmetric 3x3 matrices (trigonometric solution of the characteristic
+    cubic); ``c``, ``v`` are unused scratch kept for a uniform kernel signature.
+    """
     mx = 0.0
     my = 0.0
     mz = 0.0
@@ -161,22 +165,42 @@ def _middle_variance(nbrs: np.ndarray, cnt: int, c: np.ndarray, v: np.ndarray) -
     mx /= cnt
     my /= cnt
     mz /= cnt
-    c[:, :] = 0.0
+    a00 = 0.0
+    a01 = 0.0
+    a02 = 0.0
+    a11 = 0.0
+    a12 = 0.0
+    a22 = 0.0
     for j in range(cnt):
         dx = nbrs[j, 0] - mx
         dy = nbrs[j, 1] - my
         dz = nbrs[j, 2] - mz
-        c[0, 0] += dx * dx
-        c[0, 1] += dx * dy
-        c[0, 2] += dx * dz
-        c[1, 1] += dy * dy
-        c[1, 2] += dy * dz
-        c[2, 2] += dz * dz
-    c[1, 0] = c[0, 1]
-    c[2, 0] = c[0, 2]
-    c[2, 1] = c[1, 2]
-    _, i_mid, _ = _jacobi_eigen(c, v)
-    return c[i_mid, i_mid] / cnt
+        a00 += dx * dx
+        a01 += dx * dy
+        a02 += dx * dz
+        a11 += dy * dy
+        a12 += dy * dz
+        a22 += dz * dz
+    q = (a00 + a11 + a22) / 3.0
+    b00 = a00 - q
+    b11 = a11 - q
+    b22 = a22 - q
+    p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)
+    if not p2 > 1e-30 * (q * q + 1e-300):
+        return q / cnt
+    p = np.sqrt(p2 / 6.0)
+    det = (
+        b00 * (b11 * b22 - a12 * a12)
+        - a01 * (a01 * b22 - a12 * a02)
+        + a02 * (a01 * a12 - b11 * a02)
+    )
+    r = det / (2.0 * p * p * p)
+    r = min(max(r, -1.0), 1.0)
+    phi = np.arccos(r) / 3.0
+    e_max = q + 2.0 * p * np.cos(phi)
+    e_min = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    e_mid = 3.0 * q - e_max - e_min
+    return max(e_mid, 0.0) / cnt
 
 
 @njit(cache=True)
@@ -352,3 +376,33 @@ def fit_planes(
         valid,
     )
     return normals, dist, valid
+
+
+@njit(cache=True)
+def _neighbour_moments(nbrs, counts):
+    """Centroid (M,3) and middle covariance eigenvalue (M,) of each row's first counts[i]
+    neighbours (NaN / 0 for rows with fewer than 3)."""
+    m = nbrs.shape[0]
+    mu = np.full((m, 3), np.nan)
+    lam_mid = np.zeros(m)
+    c = np.empty((3, 3))
+    v = np.empty((3, 3))
+    for i in range(m):
+        cnt = min(counts[i], nbrs.shape[1])
+        if cnt < 3:
+            continue
+        for a in range(3):
+            acc = 0.0
+            for j in range(cnt):
+                acc += nbrs[i, j, a]
+            mu[i, a] = acc / cnt
+        lam_mid[i] = _middle_variance(nbrs[i], cnt, c, v)
+    return mu, lam_mid
+
+
+def neighbour_moments(nbrs: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centroid (M,3) and middle covariance eigenvalue lambda_mid (M,) (m²) of each row's first
+    ``counts[i]`` neighbours; rows with fewer than 3 give NaN / 0."""
+    nb = np.ascontiguousarray(nbrs, dtype=np.float64)
+    cn = np.ascontiguousarray(counts, dtype=np.int64)
+    return _neighbour_moments(nb, cn)
