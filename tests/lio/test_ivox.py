@@ -372,3 +372,28 @@ def test_from_config_uses_map_leaf_as_cell() -> None:
     assert IVox.from_config(cfg).cell_m == cfg.map_leaf_m
     with pytest.raises(ConfigError):
         IVox(0.5, 18, 100, 8, cell_m=float("nan"))
+
+
+def test_add_points_cell_override_is_checked_against_all_stored_points() -> None:
+    """A batch with a finer cell_m keeps a point iff no stored point (from any earlier batch,
+    whatever its cell) lies in its fine cell (brute force)."""
+    rng = np.random.default_rng(4)
+    ivox = IVox(0.5, 18, 10**6, 64, cell_m=0.2)
+    first = rng.uniform(-1, 1, size=(300, 3))
+    ivox.add_points(first)
+    coarse = ivox.points()
+    offered = rng.uniform(-1, 1, size=(400, 3))
+    ivox.add_points(offered, cell_m=0.1)
+    kept_cells = {tuple(c) for c in np.floor(coarse / 0.1).astype(int)}
+    expected = [coarse]
+    for p in offered:
+        c = tuple(np.floor(p / 0.1).astype(int))
+        if c not in kept_cells:
+            kept_cells.add(c)
+            expected.append(p[None])
+    exp = np.vstack(expected)
+    assert len(exp) > len(coarse) + 100
+    np.testing.assert_array_equal(np.array(sorted(map(tuple, ivox.points()))),
+                                  np.array(sorted(map(tuple, exp))))
+    with pytest.raises(InputError):
+        ivox.add_points(offered, cell_m=-0.1)
