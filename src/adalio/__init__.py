@@ -32,5 +32,6 @@ def __getattr__(name: str):
 
 __all__ = [
     "AdalioError", "BagError", "Config", "ConfigError", "Estimate", "ImuBatch", "InputError",
-    "Scan", "ScanStats", *_LAZY, "config_from_dict", "load_config", "__version__",
+    "Scan", "ScanStats", "Odometry", "Bag", "BagWriter", "Sequencer", "CloudDecoder",
+    "decode_pointcloud2", "run_bag", "RunResult", "simulate", "cached_sequence", "config_from_dict", "load_config", "__version__",
 ]

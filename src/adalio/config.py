@@ -116,7 +116,10 @@ class MapConfig:
     max_points_per_voxel: int = 64
     """Per-voxel cap (numba deviation from upstream's unbounded lists); oldest replaced."""
     map_leaf_m: float = 0.2
-    """Insertion-rule cell (Faster-LIO ``filter_size_map``): ~one point per cell (metres)."""
+    """Map cell (Faster-LIO ``filter_size_map``): the map keeps at most one point per cell (m)."""
+    cell_follows_voxel: bool = True
+    """Map cell of a scan = min(map_leaf_m, the active parameter set's voxel_size_m), so a
+    degenerate scan (finer leaf) also densifies the map where it sees."""
 
 
 @dataclass
@@ -139,8 +142,15 @@ class FilterConfig:
     """'ls' (a^T x = -1 least squares, Faster-LIO parity) or 'pca'."""
     knn_max_range_m: float = 5.0
     """Neighbours farther than this are never returned by the map search (iVox max_range)."""
-    init_time_s: float = 0.1
-    """After the first map scan, scans within this time insert all their points (INIT_TIME)."""
+    plane_min_extent_fraction: float = 0.25
+    """A plane needs neighbours spanning sqrt(middle covariance eigenvalue) >= this fraction of
+    the map cell; rejects fits on stray clusters (0 disables)."""
+    share_weighting: bool = True
+    """Residuals whose nearest map point is the same count as one measurement (each row's
+    variance is multiplied by the group size)."""
+    plane_uncertainty_weighting: bool = True
+    """Scale each residual's variance by 1 + 1/k + rho^2 / (k lambda_mid), the offset and tilt
+    uncertainty of a k-neighbour plane fit at the query's in-plane distance rho."""
     refit_every_iteration: bool = False
     """Re-search and refit planes at every iteration (FAST-LIO2) instead of on convergence only."""
 
@@ -353,15 +363,15 @@ def _coerce(current: Any, value: Any, path: str) -> Any:
             return int(float(value))
         if isinstance(current, float):
             if isinstance(value, bool):
-                raise ValueError
+                raise TypeError
             return float(value)
         if isinstance(current, str):
             if not isinstance(value, (str, int, float)):
-                raise ValueError
+                raise TypeError
             return str(value)
         if isinstance(current, list):
             if not isinstance(value, list):
-                raise ValueError
+                raise TypeError
             return value
     except (TypeError, ValueError):
         pass

@@ -35,7 +35,7 @@ def test_corridor_adaptive_tracks_ground_truth(tmp_path: Path) -> None:
     assert err["rmse_m"] < MAX_ATE_M
 
 
-def test_residuals_sharing_a_map_point_count_once(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_residuals_sharing_a_map_point_count_once() -> None:
     """Duplicating every scan point (same nearest map point) must not add information: with the
     share weighting, HᵀH of the doubled scan equals that of the single scan, while the
     unweighted sum would double it (truth: the explicit single-scan H)."""
@@ -60,5 +60,5 @@ def test_residuals_sharing_a_map_point_count_once(monkeypatch: pytest.MonkeyPatc
     single = info(scan)
     doubled = info(np.vstack([scan, scan]))
     np.testing.assert_allclose(doubled, single, rtol=1e-9, atol=1e-9)
-    monkeypatch.setattr(odometry, "SHARE_WEIGHTING", False)
+    cfg.filter.share_weighting = False
     np.testing.assert_allclose(info(np.vstack([scan, scan])), 2 * info(scan), rtol=1e-9)

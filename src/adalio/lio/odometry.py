@@ -10,17 +10,17 @@ Search radius (§9.4): the kNN query returns up to k neighbours within ``filter.
 correspondence is rejected when fewer than ``filter.min_neighbors`` were found or when the
 farthest of the found neighbours lies beyond the active ``search_radius_m`` (FAST-LIO2-style gate
 on the k-th neighbour). The plane margin of the active set is the §6.2 validity threshold; a plane
-must also be spanned by its neighbours (``PLANE_MIN_EXTENT_LEAF_FRACTION``). Residuals sharing
-their nearest map point are down-weighted as one measurement (``SHARE_WEIGHTING``): a finer scan
+must also be spanned by its neighbours (``filter.plane_min_extent_fraction``). Residuals sharing
+their nearest map point are down-weighted as one measurement (``filter.share_weighting``): a finer scan
 leaf than the map cell would otherwise count the same map error several times and make the
 filter over-confident along weakly observable directions. Each residual's variance is also
-scaled by the plane-fit uncertainty at the query (``NORMAL_UNCERTAINTY_WEIGHTING``:
+scaled by the plane-fit uncertainty at the query (``filter.plane_uncertainty_weighting``:
 1 + 1/k + rho²/(k lambda_mid)), so planes extrapolated far from narrow neighbourhoods weigh less.
 
-Map insertion (deviation from Faster-LIO's §7 rule): every scan, including the first one and the
-``filter.init_time_s`` window, is offered whole to the iVox map, which keeps at most one point per
+Map insertion (deviation from Faster-LIO's §7 rule): every scan, including the first one (Faster-LIO's
+INIT_TIME insert-all window is not needed), is offered whole to the iVox map, which keeps at most one point per
 ``map.map_leaf_m`` cell (``IVox(cell_m=...)``; a finer active scan leaf also refines the cell,
-``MAP_CELL_FOLLOWS_VOXEL``). Upstream's rule lets cells accumulate clusters
+``map.cell_follows_voxel``). Upstream's rule lets cells accumulate clusters
 whose plane fits have arbitrary normals; in degenerate scenes those fake constraints hold the
 estimate against the IMU (corridor ATE 11 m → 2 cm in the simulator).
 
@@ -64,20 +64,6 @@ MAX_SCAN_SPAN_NS = 1_000_000_000
 """Per-point times of one sweep spanning more than this are rejected as malformed (units?)."""
 MIN_POINTS_FOR_UPDATE = 5
 """Fewer downsampled points than this: the scan is not used for an update (§6.1)."""
-PLANE_MIN_EXTENT_LEAF_FRACTION = 0.25
-"""A plane needs neighbours spanning sqrt(middle covariance eigenvalue) >= this fraction of
-``map.map_leaf_m`` (plane.fit_planes ``min_extent_m``): with one map point per map_leaf cell,
-a proper neighbourhood spans about a cell, a stray cluster much less."""
-SHARE_WEIGHTING = True
-"""Residuals whose nearest map point is the same map point share its error (the map point's
-position, hence their plane, is one random quantity): each such group counts as one
-measurement, i.e. each row's variance is multiplied by the group size."""
-NORMAL_UNCERTAINTY_WEIGHTING = True
-"""Scale each residual's variance by :func:`_plane_variance_factor` (plane offset and tilt
-uncertainty of a k-neighbour fit at the query's in-plane distance from their centroid)."""
-MAP_CELL_FOLLOWS_VOXEL = True
-"""Map cell of a scan = min(map.map_leaf_m, active parameter set's voxel_size_m): a degenerate
-scan (finer leaf) also densifies the map where it sees; the plane extent threshold follows."""
 
 
 @njit(cache=True)
@@ -144,7 +130,7 @@ class _Association:
         self.points_lidar = points_lidar
         self.ivox = ivox
         self.cfg = cfg.filter
-        self.min_extent_m = PLANE_MIN_EXTENT_LEAF_FRACTION * cell_m
+        self.min_extent_m = cfg.filter.plane_min_extent_fraction * cell_m
         self.radius2 = radius_m * radius_m
         self.margin_m = margin_m
         n = points_lidar.shape[0]
@@ -175,14 +161,14 @@ class _Association:
                                                      self.margin_m, f.plane_fit,
                                                      self.min_extent_m)
             self.selected = valid & near_enough
-            if NORMAL_UNCERTAINTY_WEIGHTING:
+            if f.plane_uncertainty_weighting:
                 self.mu, self.lam_mid = neighbour_moments(self.nbrs, self.counts)
             self._valid_after_search = self.selected.copy()
             self._searched_at = (x.R.copy(), x.p.copy(), x.R_LI.copy(), x.t_LI.copy())
         H, r, accepted = point_to_plane(self.points_lidar, x.R, x.p, x.R_LI, x.t_LI, self.normals,
                                         self.d, self.selected, f.estimate_extrinsic)
         self.selected = accepted
-        if NORMAL_UNCERTAINTY_WEIGHTING and H.shape[0]:
+        if f.plane_uncertainty_weighting and H.shape[0]:
             var = _plane_variance_factor(points_to_world(self.points_lidar[accepted], x.R, x.p,
                                                          x.R_LI, x.t_LI),
                                          self.mu[accepted], self.lam_mid[accepted],
@@ -190,7 +176,7 @@ class _Association:
             w = 1.0 / np.sqrt(var)
             H = H * w[:, None]
             r = r * w
-        if SHARE_WEIGHTING and H.shape[0]:
+        if f.share_weighting and H.shape[0]:
             w = 1.0 / np.sqrt(_group_sizes(self.nbrs[accepted, 0]))
             H = H * w[:, None]
             r = r * w
@@ -481,7 +467,7 @@ class Odometry:
 
     def _map_cell(self, voxel_size_m: float) -> float:
         leaf = self.cfg.map.map_leaf_m
-        return min(leaf, voxel_size_m) if MAP_CELL_FOLLOWS_VOXEL else leaf
+        return min(leaf, voxel_size_m) if self.cfg.map.cell_follows_voxel else leaf
 
     def _accumulate(self, stage_ms: dict[str, float]) -> None:
         for k, v in stage_ms.items():
