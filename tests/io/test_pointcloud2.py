@@ -36,7 +36,8 @@ VELODYNE = ([("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("intensity", 16, "
 @pytest.fixture(scope="module")
 def real():
     if not SCAN.is_file():
-        pytest.skip(f"real scan not found at {SCAN}")
+        pytest.fail(f"real scan not found at {SCAN}: the shared data must sit next to the "
+                    "repository (<repo>/../shared)")
     d = np.load(SCAN)
     stamp_ns = int(Fraction(float(d["stamp_sec"])) * 10**9)
     return SimpleNamespace(x=d["x"], y=d["y"], z=d["z"], intensity=d["intensity"],
