@@ -100,30 +100,7 @@ def _fit_pca(nbrs: np.ndarray, cnt: int, c: np.ndarray, v: np.ndarray, out_n: np
 
     ``c``, ``v`` are 3x3 scratch arrays; the unit normal is written to ``out_n``.
     """
-    mx = 0.0
-    my = 0.0
-    mz = 0.0
-    for j in range(cnt):
-        mx += nbrs[j, 0]
-        my += nbrs[j, 1]
-        mz += nbrs[j, 2]
-    mx /= cnt
-    my /= cnt
-    mz /= cnt
-    c[:, :] = 0.0
-    for j in range(cnt):
-        dx = nbrs[j, 0] - mx
-        dy = nbrs[j, 1] - my
-        dz = nbrs[j, 2] - mz
-        c[0, 0] += dx * dx
-        c[0, 1] += dx * dy
-        c[0, 2] += dx * dz
-        c[1, 1] += dy * dy
-        c[1, 2] += dy * dz
-        c[2, 2] += dz * dz
-    c[1, 0] = c[0, 1]
-    c[2, 0] = c[0, 2]
-    c[2, 1] = c[1, 2]
+    mx, my, mz = _scatter(nbrs, cnt, c)
     i_min, i_mid, i_max = _jacobi_eigen(c, v)
     if not (c[i_mid, i_mid] > PCA_MIN_REL_SPREAD * c[i_max, i_max]):
         return np.nan
@@ -149,12 +126,8 @@ def _fit_pca(nbrs: np.ndarray, cnt: int, c: np.ndarray, v: np.ndarray, out_n: np
 
 
 @njit(cache=True)
-def _middle_variance(nbrs: np.ndarray, cnt: int, c: np.ndarray, v: np.ndarray) -> float:
-    """Middle eigenvalue (m²) of the covariance (divided by cnt) of the first cnt neighbours.
-
-    Closed form for symmetric 3x3 matrices (trigonometric solution of the characteristic
-    cubic); ``c``, ``v`` are unused scratch kept for a uniform kernel signature.
-    """
+def _scatter(nbrs: np.ndarray, cnt: int, c: np.ndarray) -> tuple[float, float, float]:
+    """Centroid of the first cnt neighbours; their scatter matrix sum (x-mu)(x-mu)^T -> ``c``."""
     mx = 0.0
     my = 0.0
     mz = 0.0
@@ -165,29 +138,40 @@ def _middle_variance(nbrs: np.ndarray, cnt: int, c: np.ndarray, v: np.ndarray) -
     mx /= cnt
     my /= cnt
     mz /= cnt
-    a00 = 0.0
-    a01 = 0.0
-    a02 = 0.0
-    a11 = 0.0
-    a12 = 0.0
-    a22 = 0.0
+    c[:, :] = 0.0
     for j in range(cnt):
         dx = nbrs[j, 0] - mx
         dy = nbrs[j, 1] - my
         dz = nbrs[j, 2] - mz
-        a00 += dx * dx
-        a01 += dx * dy
-        a02 += dx * dz
-        a11 += dy * dy
-        a12 += dy * dz
-        a22 += dz * dz
+        c[0, 0] += dx * dx
+        c[0, 1] += dx * dy
+        c[0, 2] += dx * dz
+        c[1, 1] += dy * dy
+        c[1, 2] += dy * dz
+        c[2, 2] += dz * dz
+    c[1, 0] = c[0, 1]
+    c[2, 0] = c[0, 2]
+    c[2, 1] = c[1, 2]
+    return mx, my, mz
+
+
+@njit(cache=True)
+def _middle_eigenvalue(c: np.ndarray) -> float:
+    """Middle eigenvalue of a symmetric 3x3 matrix, closed form (trigonometric solution of the
+    characteristic cubic)."""
+    a00 = c[0, 0]
+    a01 = c[0, 1]
+    a02 = c[0, 2]
+    a11 = c[1, 1]
+    a12 = c[1, 2]
+    a22 = c[2, 2]
     q = (a00 + a11 + a22) / 3.0
     b00 = a00 - q
     b11 = a11 - q
     b22 = a22 - q
     p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)
     if not p2 > 1e-30 * (q * q + 1e-300):
-        return q / cnt
+        return q
     p = np.sqrt(p2 / 6.0)
     det = (
         b00 * (b11 * b22 - a12 * a12)
@@ -199,8 +183,15 @@ def _middle_variance(nbrs: np.ndarray, cnt: int, c: np.ndarray, v: np.ndarray) -
     phi = np.arccos(r) / 3.0
     e_max = q + 2.0 * p * np.cos(phi)
     e_min = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-    e_mid = 3.0 * q - e_max - e_min
-    return max(e_mid, 0.0) / cnt
+    return max(3.0 * q - e_max - e_min, 0.0)
+
+
+@njit(cache=True)
+def _middle_variance(nbrs: np.ndarray, cnt: int, c: np.ndarray) -> float:
+    """Middle eigenvalue (m²) of the covariance (divided by cnt) of the first cnt neighbours;
+    ``c`` is 3x3 scratch."""
+    _scatter(nbrs, cnt, c)
+    return _middle_eigenvalue(c) / cnt
 
 
 @njit(cache=True)
@@ -284,7 +275,7 @@ def _fit_row(
         if not abs(r) <= margin_m:
             return
     if min_extent_m > 0.0:
-        lam_mid = _middle_variance(nbrs[i], cnt, scratch[0], scratch[1])
+        lam_mid = _middle_variance(nbrs[i], cnt, scratch[0])
         if not lam_mid >= min_extent_m * min_extent_m:
             return
     valid[i] = True
@@ -386,17 +377,12 @@ def _neighbour_moments(nbrs, counts):
     mu = np.full((m, 3), np.nan)
     lam_mid = np.zeros(m)
     c = np.empty((3, 3))
-    v = np.empty((3, 3))
     for i in range(m):
         cnt = min(counts[i], nbrs.shape[1])
         if cnt < 3:
             continue
-        for a in range(3):
-            acc = 0.0
-            for j in range(cnt):
-                acc += nbrs[i, j, a]
-            mu[i, a] = acc / cnt
-        lam_mid[i] = _middle_variance(nbrs[i], cnt, c, v)
+        mu[i, 0], mu[i, 1], mu[i, 2] = _scatter(nbrs[i], cnt, c)
+        lam_mid[i] = _middle_eigenvalue(c) / cnt
     return mu, lam_mid
 
 
