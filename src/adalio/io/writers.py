@@ -41,20 +41,14 @@ def matrix_to_tum_fields(T: np.ndarray) -> list[float]:
     return [*T[:3, 3].tolist(), *q.tolist()]
 
 
-class TumWriter:
-    """Append-only TUM trajectory file, flushed per row."""
+class _RowFile:
+    """A text output written row by row and flushed per row; closing is idempotent."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, newline: str | None = None) -> None:
         self.path = Path(path)
-        self._fh: IO[str] | None = open(self.path, "w", encoding="utf-8")  # noqa: SIM115
+        self._fh: IO[str] | None = open(  # noqa: SIM115
+            self.path, "w", encoding="utf-8", newline=newline)
         self.rows = 0
-
-    def write(self, t_ns: int, T_world_imu: np.ndarray) -> None:
-        vals = matrix_to_tum_fields(T_world_imu)
-        assert self._fh is not None
-        self._fh.write(ns_to_s_str(t_ns) + " " + " ".join(f"{v:.9f}" for v in vals) + "\n")
-        self._fh.flush()
-        self.rows += 1
 
     def close(self) -> None:
         if self._fh is not None:
@@ -66,6 +60,17 @@ class TumWriter:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class TumWriter(_RowFile):
+    """Append-only TUM trajectory file, flushed per row."""
+
+    def write(self, t_ns: int, T_world_imu: np.ndarray) -> None:
+        vals = matrix_to_tum_fields(T_world_imu)
+        assert self._fh is not None
+        self._fh.write(ns_to_s_str(t_ns) + " " + " ".join(f"{v:.9f}" for v in vals) + "\n")
+        self._fh.flush()
+        self.rows += 1
 
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -84,17 +89,15 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     return np.array(t, dtype=np.int64), np.array(vals, dtype=np.float64).reshape(-1, 7)
 
 
-class ScansCsvWriter:
+class ScansCsvWriter(_RowFile):
     """``scans.csv`` with :data:`SCANS_CSV_COLUMNS`, flushed per row."""
 
     def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
-        self._fh: IO[str] | None = open(  # noqa: SIM115
-            self.path, "w", encoding="utf-8", newline="")
+        super().__init__(path, newline="")
+        assert self._fh is not None
         self._csv = csv.writer(self._fh)
         self._csv.writerow(SCANS_CSV_COLUMNS)
         self._fh.flush()
-        self.rows = 0
 
     def write(self, stats: ScanStats) -> None:
         eig = np.zeros(6) if stats.eigenvalues is None else np.asarray(stats.eigenvalues)
@@ -112,11 +115,6 @@ class ScansCsvWriter:
         self._csv.writerow(row)
         self._fh.flush()
         self.rows += 1
-
-    def close(self) -> None:
-        if self._fh is not None:
-            self._fh.close()
-            self._fh = None
 
 
 def _points_f4(points: np.ndarray) -> np.ndarray:
