@@ -231,6 +231,9 @@ class Odometry:
         self._prev_sample: tuple[int, np.ndarray, np.ndarray] | None = None
         self._accel_scale = 1.0
         self._t_first_map_ns: int | None = None
+        self._finest_cell_m = config.map.map_leaf_m
+        """Finest cell any scan has used for insertion: the plane-extent test scales with it,
+        since a map densified by degenerate scans holds neighbours that close everywhere."""
 
     # ------------------------------------------------------------------ public API
     @property
@@ -334,7 +337,7 @@ class Odometry:
         x_pred, P_pred = self._state, self._P
         cell_m = self._map_cell(params.voxel_size_m)
         assoc = _Association(down, self._ivox, cfg, params.search_radius_m, params.plane_margin_m,
-                             cell_m)
+                             min(cell_m, self._finest_cell_m))
         projector = None
         if cfg.adaptive.mode == "adaptive+" and decision.degenerate:
             down, assoc, leaf_m, projector = self._refine(pts_e, down, assoc, leaf_m, params)
@@ -363,6 +366,7 @@ class Odometry:
         p_world = points_to_world(down, s.R, s.p, s.R_LI, s.t_LI)
         if down.shape[0] >= MIN_POINTS_FOR_UPDATE:
             self._ivox.add_points(p_world, cell_m)
+            self._finest_cell_m = min(self._finest_cell_m, cell_m)
         t0 = _timer(stage_ms, "map", t0)
 
         stats.n_down, stats.n_down_general = int(down.shape[0]), int(down_general.shape[0])
@@ -447,7 +451,7 @@ class Odometry:
         and within the point budget, then restrict the update to observable pose directions."""
         ada = self.cfg.adaptive
         x = self._state
-        assoc_cell = self._map_cell(params.voxel_size_m)
+        assoc_cell = min(self._map_cell(params.voxel_size_m), self._finest_cell_m)
 
         def probe(a: _Association) -> Localizability:
             a.measure(x, True)
