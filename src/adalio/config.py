@@ -204,6 +204,13 @@ class AdaptiveConfig:
     """adaptive+: max downsampled points per scan while refining."""
     observable_eigen_ratio: float = 0.01
     """adaptive+: directions with eigenvalue ratio below this are left at the IMU prediction."""
+    probe_directions: int = 3
+    """adaptive+: re-association probes along this many weakest directions (0 disables)."""
+    probe_step_m: float = 0.05
+    """adaptive+: probe displacement (RMS motion of the scan points, metres)."""
+    min_restoring_ratio: float = 0.6
+    """adaptive+: a probed direction whose re-associated residuals restore less than this
+    fraction of the information H^T H claims is left at the IMU prediction."""
 
 
 @dataclass

@@ -83,6 +83,11 @@ class ScanStats:
     """Unit eigenvector of the smallest eigenvalue (rotation xyz, translation xyz)."""
     degeneracy_score: float = 0.0
     """0 (well constrained) .. 1 (an unobservable direction); see lio/degeneracy.py."""
+    held_directions: int = 0
+    """adaptive+: pose directions left at the IMU prediction (6 - rank of the projector)."""
+    min_restoring: float = float("nan")
+    """adaptive+: smallest re-association restoring ratio of the probed weak directions (1 =
+    real information, ~0 = the residuals follow the pose; NaN = not probed)."""
     stage_ms: dict[str, float] = field(default_factory=dict)
     """Wall time per pipeline stage (undistort, downsample, degeneracy, update, map)."""
 

@@ -61,8 +61,10 @@ def test_scans_csv_columns_and_values(tmp_path):
     w = ScansCsvWriter(tmp_path / "s.csv")
     st = ScanStats(t_ns=1_000_000_001, n_raw=10, n_down=5, degenerate=True, trigger="count",
                    voxel_size_m=0.1, eigenvalues=np.arange(6.0),
-                   weakest_direction=np.eye(6)[3], degeneracy_score=0.25)
+                   weakest_direction=np.eye(6)[3], degeneracy_score=0.25, held_directions=2,
+                   min_restoring=0.125)
     w.write(st)
+    w.write(ScanStats(t_ns=2_000_000_000))
     w.close()
     with open(tmp_path / "s.csv") as fh:
         rows = list(csv.DictReader(fh))
@@ -72,6 +74,8 @@ def test_scans_csv_columns_and_values(tmp_path):
                                                                      "count")
     assert [float(r[f"eig{i}"]) for i in range(6)] == list(range(6))
     assert float(r["weak_tx"]) == 1.0 and float(r["degeneracy_score"]) == 0.25
+    assert (int(r["held_dirs"]), float(r["restoring_min"])) == (2, 0.125)
+    assert int(rows[1]["held_dirs"]) == 0 and np.isnan(float(rows[1]["restoring_min"]))
 
 
 def test_default_out_dir_is_auto_indexed(tmp_path):

@@ -13,10 +13,12 @@ from adalio.config import AdaptiveConfig
 from adalio.errors import InputError
 from adalio.lio.degeneracy import (
     DegeneracyDetector,
+    consistent_projector,
     count_near,
     is_weak,
     localizability,
     observable_projector,
+    weak_directions,
 )
 
 GENERAL_LEAF_M = AdaptiveConfig().general.voxel_size_m
@@ -363,3 +365,35 @@ def test_localizability_invariants_on_random_jacobians(m, seed, ratio):
     np.testing.assert_allclose(P @ P, P, atol=1e-6 * max(1.0, np.abs(P).max()))
     if m < 3:
         assert loc.translation_ratio < 1e-9
+
+
+def test_weak_directions_move_points_by_the_step_and_follow_the_weakest_eigenvectors():
+    rng = np.random.default_rng(11)
+    pts, nrm, axis = corridor_points(0.4, rng)
+    loc = localizability(pose_jacobian(pts, nrm), POINT_COV, points_body=pts)
+    step = 0.05
+    dirs = weak_directions(loc, 3, step)
+    assert dirs.shape == (3, 6)
+    for d in dirs:
+        dp, dth = d[:3], d[3:]
+        motion = dp[None, :] + np.cross(dth[None, :], pts)
+        rms_without_cross_term = np.sqrt(dp @ dp + np.mean(np.sum(np.cross(dth, pts) ** 2, 1)))
+        assert rms_without_cross_term == pytest.approx(step, rel=1e-9)
+        assert np.isfinite(motion).all()
+    u = np.concatenate([axis, np.zeros(3)])
+    assert abs(dirs[0] @ u) == pytest.approx(step, rel=1e-6)
+
+
+def test_consistent_projector_drops_only_directions_that_do_not_restore():
+    rng = np.random.default_rng(12)
+    pts, nrm = box_room_points(rng)
+    loc = localizability(pose_jacobian(pts, nrm), POINT_COV, points_body=pts)
+    dirs = weak_directions(loc, 3, 0.05)
+    P = consistent_projector(loc, 0.0, dirs, np.array([0.1, 0.9, np.nan]), 0.6)
+    np.testing.assert_allclose(P @ P, P, atol=1e-9)
+    np.testing.assert_allclose(P @ dirs[0], 0.0, atol=1e-9)
+    np.testing.assert_allclose(P @ dirs[1], dirs[1], atol=1e-9)
+    np.testing.assert_allclose(P @ dirs[2], 0.0, atol=1e-9)
+    assert np.linalg.matrix_rank(P, tol=1e-6) == 4
+    np.testing.assert_allclose(consistent_projector(loc, 0.0, dirs, np.ones(3), 0.6), np.eye(6),
+                               atol=1e-9)

@@ -385,3 +385,21 @@ def test_switching_back_from_the_degenerate_set_keeps_matching():
     for st in deg + gen:
         assert st.n_matched >= 0.72 * st.n_down, (st.degenerate, st.n_matched, st.n_down)
 
+
+def test_adaptive_plus_probes_find_real_information_in_a_box_room():
+    """Every plane of the box room is real: re-associating at x ± d restores the information
+    H^T H claims (rho ~ 1), so no direction is held at the IMU prediction."""
+    cfg = _config()
+    cfg.adaptive.mode = "adaptive+"
+    cfg.adaptive.tau_n = 10**9
+    cfg.adaptive.observable_eigen_ratio = 0.0
+    _, est = _run(cfg, 1.5, 600)
+    probed = [e.stats for e in est if e.stats.iterations > 0]
+    assert len(probed) >= 5
+    for st in probed:
+        assert 0.6 < st.min_restoring < 1.5, st.min_restoring
+        assert st.held_directions == 0
+    cfg.adaptive.min_restoring_ratio = 2.0
+    _, est = _run(cfg, 1.5, 600)
+    held = [e.stats.held_directions for e in est if e.stats.iterations > 0]
+    assert held and all(h == cfg.adaptive.probe_directions for h in held)

@@ -47,14 +47,16 @@ from adalio.lio import imu, so3
 from adalio.lio.degeneracy import (
     DegeneracyDetector,
     Localizability,
+    consistent_projector,
     localizability,
     observable_projector,
+    weak_directions,
 )
 from adalio.lio.ieskf import iterated_update
 from adalio.lio.ivox import IVox
 from adalio.lio.measurement import point_to_plane, points_to_world
 from adalio.lio.plane import fit_planes, neighbour_moments
-from adalio.lio.state import State, initial_covariance
+from adalio.lio.state import DIM, State, initial_covariance
 from adalio.lio.voxel import voxel_downsample
 from adalio.types import Estimate, ScanStats
 
@@ -341,6 +343,8 @@ class Odometry:
         projector = None
         if cfg.adaptive.mode == "adaptive+" and decision.degenerate:
             down, assoc, leaf_m, projector = self._refine(pts_e, down, assoc, leaf_m, params)
+            stats.held_directions = 6 - int(np.linalg.matrix_rank(projector, tol=1e-6))
+            stats.min_restoring = self._min_restoring
         t0 = _timer(stage_ms, "degeneracy", t0)
 
         # 7. iterated ESKF update (§6.4)
@@ -466,8 +470,35 @@ class Odometry:
             assoc = _Association(down, self._ivox, self.cfg, params.search_radius_m,
                                  params.plane_margin_m, assoc_cell)
             loc = probe(assoc)
-        projector = observable_projector(loc, ada.observable_eigen_ratio)
+        self._min_restoring = float("nan")
+        if ada.probe_directions > 0 and assoc.H.shape[0]:
+            dirs = weak_directions(loc, ada.probe_directions, ada.probe_step_m)
+            rho = self._restoring_ratios(assoc, x, dirs)
+            self._min_restoring = float(rho.min())
+            projector = consistent_projector(loc, ada.observable_eigen_ratio, dirs, rho,
+                                             ada.min_restoring_ratio)
+        else:
+            projector = observable_projector(loc, ada.observable_eigen_ratio)
         return down, assoc, leaf_m, projector
+
+    def _restoring_ratios(self, assoc: _Association, x: State, dirs: np.ndarray) -> np.ndarray:
+        """For each pose displacement d (error order [dp, dtheta]): re-associate at x ⊞ ±d and
+        compare the restoring gradient with the information H^T H claims,
+        rho = d^T (g(+d) - g(-d)) / (2 d^T H^T H d), g = H^T r (degeneracy.py §4)."""
+        H0 = assoc.H[:, :6]
+        rho = np.zeros(len(dirs))
+        for k, d in enumerate(dirs):
+            claimed = float(np.sum((H0 @ d) ** 2))
+            if not claimed > 0:
+                continue
+            g = []
+            for sgn in (1.0, -1.0):
+                delta = np.zeros(DIM)
+                delta[:6] = sgn * d
+                H, r = assoc.measure(x.boxplus(delta), True)
+                g.append(H[:, :6].T @ r)
+            rho[k] = float(d @ (g[0] - g[1])) / (2.0 * claimed)
+        return rho
 
     def _map_cell(self, voxel_size_m: float) -> float:
         leaf = self.cfg.map.map_leaf_m
