@@ -322,23 +322,26 @@ def observable_projector(loc: Localizability, ratio: float) -> np.ndarray:
         return np.eye(6)
     if loc.n_residuals == 0 or not np.any(loc.info):
         return np.zeros((6, 6))
+    lam, vec = _scaled_eigen(loc)
+    keep = vec[:, lam >= ratio * lam[-1]]
+    W = loc.scaling
+    return W @ (keep @ keep.T) @ np.linalg.inv(W)
+
+
+def _scaled_eigen(loc: Localizability) -> tuple[np.ndarray, np.ndarray]:
+    """Ascending eigen-decomposition of ``W I_e W`` (module docstring §3), error order."""
     inv = np.argsort(_ROT_TRANS_ORDER)
     info_e = loc.info[np.ix_(inv, inv)]
     W = loc.scaling
-    lam, vec = np.linalg.eigh(W @ info_e @ W)
-    keep = vec[:, lam >= ratio * lam[-1]]
-    return W @ (keep @ keep.T) @ np.linalg.inv(W)
+    return np.linalg.eigh(W @ info_e @ W)
 
 
 def weak_directions(loc: Localizability, count: int, step_m: float) -> np.ndarray:
     """(count, 6) error-state pose displacements ``step_m * W v_k`` along the ``count`` weakest
     eigenvectors ``v_k`` of ``W I_e W`` (module docstring §3): each moves the scan points by
     ``step_m`` RMS."""
-    inv = np.argsort(_ROT_TRANS_ORDER)
-    info_e = loc.info[np.ix_(inv, inv)]
-    W = loc.scaling
-    _, vec = np.linalg.eigh(W @ info_e @ W)
-    return step_m * (W @ vec[:, :count]).T
+    _, vec = _scaled_eigen(loc)
+    return step_m * (loc.scaling @ vec[:, :count]).T
 
 
 def consistent_projector(loc: Localizability, ratio: float, directions: np.ndarray,

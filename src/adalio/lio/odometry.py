@@ -342,9 +342,9 @@ class Odometry:
                              min(cell_m, self._finest_cell_m))
         projector = None
         if cfg.adaptive.mode == "adaptive+" and decision.degenerate:
-            down, assoc, leaf_m, projector = self._refine(pts_e, down, assoc, leaf_m, params)
+            down, assoc, leaf_m, projector, stats.min_restoring = self._refine(
+                pts_e, down, assoc, leaf_m, params)
             stats.held_directions = 6 - int(np.linalg.matrix_rank(projector, tol=1e-6))
-            stats.min_restoring = self._min_restoring
         t0 = _timer(stage_ms, "degeneracy", t0)
 
         # 7. iterated ESKF update (§6.4)
@@ -451,8 +451,9 @@ class Odometry:
         return imu.undistort(pts, (t_pts - t_ref) * 1e-9, rec, s.R, s.p, s.R_LI, s.t_LI)
 
     def _refine(self, pts_e, down, assoc, leaf_m, params):
-        """AdaLIO+ (degeneracy.py §3): halve the leaf while the translation information is weak
-        and within the point budget, then restrict the update to observable pose directions."""
+        """AdaLIO+ (degeneracy.py §3-4): halve the leaf while the translation information is weak
+        and within the point budget, then restrict the update to observable pose directions.
+        Returns (down, assoc, leaf_m, projector, smallest restoring ratio or NaN)."""
         ada = self.cfg.adaptive
         x = self._state
         assoc_cell = min(self._map_cell(params.voxel_size_m), self._finest_cell_m)
@@ -470,16 +471,14 @@ class Odometry:
             assoc = _Association(down, self._ivox, self.cfg, params.search_radius_m,
                                  params.plane_margin_m, assoc_cell)
             loc = probe(assoc)
-        self._min_restoring = float("nan")
         if ada.probe_directions > 0 and assoc.H.shape[0]:
             dirs = weak_directions(loc, ada.probe_directions, ada.probe_step_m)
             rho = self._restoring_ratios(assoc, x, dirs)
-            self._min_restoring = float(rho.min())
             projector = consistent_projector(loc, ada.observable_eigen_ratio, dirs, rho,
                                              ada.min_restoring_ratio)
-        else:
-            projector = observable_projector(loc, ada.observable_eigen_ratio)
-        return down, assoc, leaf_m, projector
+            return down, assoc, leaf_m, projector, float(rho.min())
+        projector = observable_projector(loc, ada.observable_eigen_ratio)
+        return down, assoc, leaf_m, projector, float("nan")
 
     def _restoring_ratios(self, assoc: _Association, x: State, dirs: np.ndarray) -> np.ndarray:
         """For each pose displacement d (error order [dp, dtheta]): re-associate at x ⊞ ±d and
