@@ -47,6 +47,10 @@ class RunResult:
     interrupted: bool
     degenerate_ranges_s: list[tuple[float, float]] = field(default_factory=list)
     """(start, end) seconds since the first estimated scan of consecutive degenerate scans."""
+    n_held: int = 0
+    """adaptive+: scans with at least one pose direction held at the IMU prediction."""
+    held_ranges_s: list[tuple[float, float]] = field(default_factory=list)
+    """(start, end) seconds of consecutive scans with a held direction, like the above."""
     lidar_topic: str = ""
     imu_topic: str = ""
     extrinsic_source: str = ""
@@ -102,7 +106,8 @@ def resolve_extrinsic(bag: Bag, lidar_topic: str, imu_topic: str,
     return T, f"tf_static ({imu_frame} <- {lidar_frame})"
 
 
-def _degenerate_ranges(times_ns: list[int], flags: list[bool]) -> list[tuple[float, float]]:
+def _flag_ranges(times_ns: list[int], flags: list[bool]) -> list[tuple[float, float]]:
+    """(start, end) seconds since ``times_ns[0]`` of each run of consecutive flagged scans."""
     if not times_ns:
         return []
     t0 = times_ns[0]
@@ -199,6 +204,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         wall_ms: list[float] = []
         est_t: list[int] = []
         degen: list[bool] = []
+        held: list[bool] = []
         n_in = 0
         interrupted = False
         t_start = time.perf_counter()
@@ -227,6 +233,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                         wall_ms.append(ms)
                         est_t.append(int(est.t_ns))
                         degen.append(bool(stats.degenerate))
+                        held.append(stats.held_directions > 0)
                     elapsed = time.perf_counter() - t_start
                     bar.update(task, advance=1, rate=f"{n_in / max(elapsed, 1e-9):.1f} scans/s")
                     if on_scan is not None:
@@ -259,7 +266,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         n_degenerate=int(sum(degen)), wall_s=wall_s,
         ms_per_scan_median=statistics.median(wall_ms) if wall_ms else 0.0,
         stage_ms=dict(getattr(odom, "stage_ms_total", {}) or {}), interrupted=interrupted,
-        degenerate_ranges_s=_degenerate_ranges(est_t, degen), lidar_topic=lidar_topic,
+        degenerate_ranges_s=_flag_ranges(est_t, degen), n_held=int(sum(held)),
+        held_ranges_s=_flag_ranges(est_t, held), lidar_topic=lidar_topic,
         imu_topic=imu_topic, extrinsic_source=ext_source,
         time_spec=seq.decoder.time_spec.describe() if seq.decoder.time_spec else "",
         sequencer=seq.stats, n_scans_in=n_in)

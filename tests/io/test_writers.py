@@ -18,7 +18,7 @@ from adalio.io.writers import (
     write_pcd,
     write_ply,
 )
-from adalio.pipeline import _degenerate_ranges, default_out_dir
+from adalio.pipeline import _flag_ranges, default_out_dir
 from adalio.types import ScanStats
 
 
@@ -86,7 +86,7 @@ def test_default_out_dir_is_auto_indexed(tmp_path):
     assert default_out_dir("/data/ros2_bag/", tmp_path) == tmp_path / "ros2_bag"
 
 
-def test_degenerate_ranges():
+def test_flag_ranges():
     t = [0, 10**8, 2 * 10**8, 3 * 10**8, 4 * 10**8, 5 * 10**8]
     f = [False, True, True, False, True, True]
-    assert _degenerate_ranges(t, f) == [(0.1, 0.2), (0.4, 0.5)]
+    assert _flag_ranges(t, f) == [(0.1, 0.2), (0.4, 0.5)]

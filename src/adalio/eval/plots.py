@@ -89,7 +89,8 @@ def plot_error_over_time(series: dict[str, tuple[np.ndarray, np.ndarray]], path:
 
 def plot_degeneracy(scans: dict[str, np.ndarray], path: Path, t0_s: float | None = None,
                     tau_n: float | None = None, tau_near: float | None = None) -> Path:
-    """Timeline of ``scans.csv``: point counts, weakest eigenvalue(s), triggers, degenerate mode."""
+    """Timeline of ``scans.csv``: point counts, weakest eigenvalue(s), triggers, degenerate mode
+    and (adaptive+) the scans with a direction held at the IMU prediction."""
     t = np.asarray(scans["t_s"], dtype=np.float64)
     t = t - (t0_s if t0_s is not None else (t[0] if t.size else 0.0))
     degen = np.asarray(scans.get("degenerate", np.zeros(t.size, bool)), dtype=bool)
@@ -129,12 +130,15 @@ def plot_degeneracy(scans: dict[str, np.ndarray], path: Path, t0_s: float | None
     ax = axes[2]
     triggers = np.asarray(scans.get("trigger", np.array([""] * t.size, dtype=object)), dtype=str)
     names = sorted({s for s in triggers if s and s.lower() not in ("nan", "none")})
-    for row, name in enumerate(names):
-        sel = triggers == name
+    rows = [(name, triggers == name) for name in names]
+    if "held_dirs" in scans and np.any(np.asarray(scans["held_dirs"], dtype=float) > 0):
+        rows.append(("held (IMU)", np.asarray(scans["held_dirs"], dtype=float) > 0))
+    names = [name for name, _ in rows]
+    for row, (name, sel) in enumerate(rows):
         ax.plot(t[sel], np.full(int(sel.sum()), row), "|", ms=10, label=name)
     ax.set_yticks(range(len(names)), names if names else [])
     ax.set_ylim(-0.8, max(len(names), 1) - 0.2)
-    ax.set_ylabel("trigger")
+    ax.set_ylabel("trigger / held")
     ax.set_xlabel("time [s]")
     ax.grid(True, axis="x", alpha=0.3)
     return _save(fig, path)

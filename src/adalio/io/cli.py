@@ -182,6 +182,12 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
     more = " ..." if len(res.degenerate_ranges_s) > 8 else ""
     con.print(f"degenerate scans: {res.n_degenerate}/{res.n_scans}"
               + (f" at {ranges}{more}" if ranges else ""), highlight=False, soft_wrap=True)
+    if getattr(res, "n_held", 0):
+        held = ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in res.held_ranges_s[:8])
+        more = " ..." if len(res.held_ranges_s) > 8 else ""
+        con.print(f"scans with a direction left to the IMU (adaptive+, see held_dirs in "
+                  f"scans.csv): {res.n_held}/{res.n_scans} at {held}{more}", highlight=False,
+                  soft_wrap=True)
     if res.sequencer is not None:
         for msg in res.sequencer.messages:
             if msg.startswith(("skipped", "re-sorted")):
