@@ -101,13 +101,17 @@ def _config() -> Config:
     return cfg.validate()
 
 
-def _run(cfg: Config, duration: float, n_cols: int, seed: int = 0, accel_unit: float = 1.0):
+def _run(cfg: Config, duration: float, n_cols: int, seed: int = 0, accel_unit: float = 1.0,
+         before_scan=None):
+    """Feed the box-room sequence; ``before_scan(t_start_s)`` runs before each sweep."""
     rng = np.random.default_rng(seed)
     odom = Odometry(cfg)
     t_imu, gyro, acc = imu_samples(0.0, duration + 0.05, 400.0, rng, noise=0.01)
     acc = acc / accel_unit
     estimates, k = [], 0
     for s in np.arange(0.0, duration, 0.1):
+        if before_scan is not None:
+            before_scan(s)
         pts, t_ns = lidar_scan(s, n_cols, rng)
         hi = int(np.searchsorted(t_imu, t_ns.max(), side="right"))
         if hi > k:
@@ -350,25 +354,6 @@ def test_real_hilti_scan_registers_a_known_displacement():
     assert err_r < np.deg2rad(0.1), np.rad2deg(err_r)
 
 
-def _run_switching(cfg: Config, duration: float, switch_at: float, n_cols: int = 600):
-    """Degenerate set (tau_n huge) until ``switch_at``, general set (no trigger) afterwards."""
-    rng = np.random.default_rng(7)
-    odom = Odometry(cfg)
-    t_imu, gyro, acc = imu_samples(0.0, duration + 0.05, 400.0, rng, noise=0.01)
-    stats, k = [], 0
-    for s in np.arange(0.0, duration, 0.1):
-        if s >= switch_at:
-            cfg.adaptive.tau_n = cfg.adaptive.tau_near = 0
-        pts, t_ns = lidar_scan(s, n_cols, rng)
-        hi = int(np.searchsorted(t_imu, t_ns.max(), side="right"))
-        odom.add_imu(t_imu[k:hi], gyro[k:hi], acc[k:hi])
-        k = hi
-        est = odom.add_scan(pts, t_ns)
-        if est is not None and est.stats.iterations > 0:
-            stats.append(est.stats)
-    return stats
-
-
 def test_switching_back_from_the_degenerate_set_keeps_matching():
     """A map densified by degenerate scans (finer cells) must still give planes to general-set
     scans: the plane-extent test follows the finest cell in the map, not the active one (with
@@ -377,7 +362,12 @@ def test_switching_back_from_the_degenerate_set_keeps_matching():
     cfg.adaptive.mode = "adaptive"
     cfg.adaptive.tau_n = 10**9
     cfg.adaptive.use_localizability_trigger = False
-    stats = _run_switching(cfg, 2.5, 1.2)
+    def switch(t_s: float) -> None:
+        if t_s >= 1.2:
+            cfg.adaptive.tau_n = cfg.adaptive.tau_near = 0
+
+    _, est = _run(cfg, 2.5, 600, seed=7, before_scan=switch)
+    stats = [e.stats for e in est if e.stats.iterations > 0]
     deg = [st for st in stats if st.degenerate]
     gen = [st for st in stats if not st.degenerate]
     assert len(deg) >= 5 and len(gen) >= 5
