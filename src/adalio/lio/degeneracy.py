@@ -103,8 +103,9 @@ state stays at the IMU prediction along it, instead of following noise and unmod
 ``H^T H`` overstates what a scan observes when the fitted normals are noisy: on a vertical wall
 fitted from a few close map points, a normal tilted by eps adds eps² of "height information",
 but when the pose moves up the re-searched neighbours follow the point along the wall and the
-residual does not change. Measured in the simulated stairwell, every row with |n_z| > 0.3 lay
-on a vertical face, and the LiDAR-only optimum stayed wherever it was started (±5 cm) while the
+residual does not change. Measured in the simulated stairwell, on the flights (no return hits a
+horizontal face there, ``benchmarks/bench_observability.py``) every row with |n_z| > 0.3 lay on
+a vertical face, and the LiDAR-only optimum stayed wherever it was started (±5 cm) while the
 filter claimed sigma_z < 1 cm. So adaptive+ tests the weakest directions by re-association:
 for the displacements ``d_k = s W v_k`` along the ``probe_directions`` weakest eigenvectors of
 ``I~`` (each moves the points by s = ``probe_step_m`` RMS, :func:`weak_directions`), it searches
