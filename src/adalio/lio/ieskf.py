@@ -52,7 +52,13 @@ def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: 
     evaluations. ``P⁺ = (I − K H) P_j``.
 
     ``pose_projector`` (6×6, error order [δp, δθ]) restricts the update to observable pose
-    directions: ``H_pose ← H_pose P_obs`` and ``δ_pose ← P_obs δ_pose`` (AdaLIO+).
+    directions (AdaLIO+, degeneracy.py §3): ``H_pose ← H_pose P_obs`` and the gain rows of the
+    pose ``K ← M K`` with ``M = blockdiag(P_obs, I)``, so the pose stays at the prior along
+    ``null(P_obs)`` while the other states take their optimal gain (a Schmidt–Kalman "consider"
+    update). That gain is not the optimal one, so the covariance is the Joseph form, valid for
+    any gain: ``P⁺ = (I − M K H) P_j (I − M K H)ᵀ + M K R Kᵀ Mᵀ``. The short form
+    ``(I − K H) P_j`` would shrink the covariance along the held directions and their
+    correlations as if the state had moved there.
     """
     n_max = cfg.max_iterations
     inv_r = 1.0 / cfg.laser_point_cov
@@ -63,6 +69,10 @@ def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: 
     iterations = 0
     P_out = P_prior
     H = np.zeros((0, 12))
+    M = None
+    if pose_projector is not None:
+        M = np.eye(DIM)
+        M[:6, :6] = pose_projector
     for j in range(-1, n_max):
         H, r = measure(x, research or cfg.refit_every_iteration)
         iterations += 1
@@ -85,6 +95,9 @@ def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: 
             S_inv = np.linalg.inv(S)
             K_h = S_inv[:, :12] @ HTh * inv_r
             KH[:, :12] = S_inv[:, :12] @ HTH * inv_r
+            if M is not None:
+                K_h = M @ K_h
+                KH = M @ KH
             delta = K_h + KH @ dx_tilde - dx_tilde
             if pose_projector is not None:
                 delta[:6] = pose_projector @ delta[:6]
@@ -98,7 +111,12 @@ def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: 
             converged = True
         research = converged
         if t_conv > 1 or j == n_max - 1:
-            P_out = (np.eye(DIM) - KH) @ P_j
+            if M is None or H.shape[0] == 0:
+                P_out = (np.eye(DIM) - KH) @ P_j
+            else:
+                A = np.eye(DIM) - KH
+                KRK = S_inv[:, :12] @ HTH @ S_inv[:12, :] * inv_r
+                P_out = A @ P_j @ A.T + M @ KRK @ M.T
             break
     P_out = 0.5 * (P_out + P_out.T)
     return UpdateResult(state=x, P=P_out, iterations=iterations, H=H, converged=t_conv > 0)
