@@ -99,7 +99,7 @@ def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: 
                 K_h = M @ K_h
                 KH = M @ KH
             delta = K_h + KH @ dx_tilde - dx_tilde
-            if pose_projector is not None:
+            if M is not None:  # δ̃ is in range(P_obs) only up to the SO(3) reprojection J
                 delta[:6] = pose_projector @ delta[:6]
             if not cfg.estimate_extrinsic:
                 delta[6:12] = 0.0
