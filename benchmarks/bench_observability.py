@@ -30,6 +30,7 @@ import sys
 
 import numpy as np
 
+from adalio.pipeline import _flag_ranges
 from adalio.sim import SCENES
 from adalio.sim.generate import IMU_RATE_HZ, START_NS, T_IMU_LIDAR_HILTI, build_trajectory
 from adalio.sim.imu import ImuNoise, synthesize_imu
@@ -58,14 +59,10 @@ def height_evidence(scene: str, seed: int, step_s: float, min_range_m: float,
 
 
 def blind_stretches(t_s: np.ndarray, blind: np.ndarray, step_s: float) -> list[tuple[float, float]]:
-    """(start, end) in seconds of the runs of ``blind`` sweeps lasting >= MIN_STRETCH_S."""
-    edges = np.flatnonzero(np.diff(np.r_[0, blind.astype(np.int8), 0]))
-    out = []
-    for a, b in zip(edges[::2], edges[1::2], strict=True):
-        start, end = float(t_s[a]), float(t_s[b - 1]) + step_s
-        if end - start >= MIN_STRETCH_S:
-            out.append((start, end))
-    return out
+    """(start, end) in seconds of the runs of ``blind`` sweeps lasting >= MIN_STRETCH_S (the
+    pipeline's run finder; a run ends one step after its last blind sweep)."""
+    runs = _flag_ranges([round(t * 1e9) for t in t_s], blind.tolist())
+    return [(a, b + step_s) for a, b in runs if b + step_s - a >= MIN_STRETCH_S]
 
 
 def imu_height_floor(traj, dur_s: float, seed: int,
