@@ -8,5 +8,4 @@ import matplotlib
 matplotlib.use("Agg")
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared"
 os.environ.setdefault("ADALIO_CACHE_DIR", str(REPO / ".cache"))

@@ -11,8 +11,7 @@ from scipy.spatial.transform import Rotation
 from adalio.errors import InputError
 from adalio.eval.hilti import hilti_score, points_for_error
 
-SHARED_GT = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real" / \
-    "hilti2022_gt"
+REAL_GT = Path(__file__).resolve().parents[1] / "data" / "real" / "hilti2022_gt"
 REAL = {
     "exp04": ("exp04_construction_upper_level.txt", "exp_04_*_imu.txt"),
     "exp05": ("exp05_construction_upper_level_2.txt", "exp_05_*_imu.txt"),
@@ -112,14 +111,14 @@ def test_too_few_matches(tmp_path, synthetic):
 
 
 def _real_files(name: str) -> tuple[Path, Path]:
-    if not SHARED_GT.is_dir():
-        pytest.fail(f"HILTI ground truth folder {SHARED_GT} is missing: the shared data must sit "
-                    "next to the repository (<repo>/../shared/data/real/hilti2022_gt)")
+    if not REAL_GT.is_dir():
+        pytest.fail(f"HILTI ground truth folder {REAL_GT} is missing: it ships in "
+                    "the repository (tests/data/real)")
     sparse, pattern = REAL[name]
-    dense = sorted(SHARED_GT.glob(pattern))
-    if not (SHARED_GT / sparse).is_file() or not dense:
-        pytest.fail(f"HILTI file {sparse} or {pattern} missing in {SHARED_GT}")
-    return dense[0], SHARED_GT / sparse
+    dense = sorted(REAL_GT.glob(pattern))
+    if not (REAL_GT / sparse).is_file() or not dense:
+        pytest.fail(f"HILTI file {sparse} or {pattern} missing in {REAL_GT}")
+    return dense[0], REAL_GT / sparse
 
 
 def _independent_errors(dense: Path, sparse: Path, tip: bool) -> np.ndarray:

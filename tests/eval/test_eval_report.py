@@ -119,10 +119,10 @@ def test_report_without_gt_and_cli(run_dir):
 def test_report_detects_hilti_control_points(tmp_path):
     from adalio.eval.hilti import hilti_score
 
-    gt_dir = Path(__file__).resolve().parents[2].parent / "shared/data/real/hilti2022_gt"
+    gt_dir = Path(__file__).resolve().parents[1] / "data" / "real" / "hilti2022_gt"
     dense = sorted(gt_dir.glob("exp_05_*_imu.txt"))
     if not dense:
-        pytest.fail(f"HILTI ground truth missing in {gt_dir} (<repo>/../shared must exist)")
+        pytest.fail(f"HILTI ground truth missing in {gt_dir} (it ships in the repository)")
     sparse = gt_dir / "exp05_construction_upper_level_2.txt"
     run = tmp_path / "run"
     run.mkdir()

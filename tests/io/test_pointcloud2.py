@@ -22,8 +22,8 @@ from adalio.io.pointcloud2 import (
     encode_pointcloud2,
 )
 
-SCAN = (Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real"
-        / "hilti2022_evalio_scan" / "exp04_first_scan.npz")
+SCAN = (Path(__file__).resolve().parents[1] / "data" / "real" / "hilti2022_evalio_scan"
+        / "exp04_first_scan.npz")
 
 HESAI = ([("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("intensity", 16, "f4"),
           ("timestamp", 24, "f8"), ("ring", 32, "u2")], 48)
@@ -36,8 +36,8 @@ VELODYNE = ([("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("intensity", 16, "
 @pytest.fixture(scope="module")
 def real():
     if not SCAN.is_file():
-        pytest.fail(f"real scan not found at {SCAN}: the shared data must sit next to the "
-                    "repository (<repo>/../shared)")
+        pytest.fail(f"real scan not found at {SCAN}: it ships in the "
+                    "repository (tests/data/real)")
     d = np.load(SCAN)
     stamp_ns = int(Fraction(float(d["stamp_sec"])) * 10**9)
     return SimpleNamespace(x=d["x"], y=d["y"], z=d["z"], intensity=d["intensity"],

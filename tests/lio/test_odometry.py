@@ -315,10 +315,10 @@ def test_gravity_aligned_world():
     assert np.linalg.norm(up_body_est - up_body_gt) < 2e-3
 
 
-REAL_SCAN = Path("/work/shared/data/real/hilti2022_evalio_scan/exp04_first_scan.npz")
+REAL_SCAN = (Path(__file__).resolve().parents[1] / "data" / "real" / "hilti2022_evalio_scan"
+             / "exp04_first_scan.npz")
 
 
-@pytest.mark.skipif(not REAL_SCAN.is_file(), reason="real HILTI scan not available")
 def test_real_hilti_scan_registers_a_known_displacement():
     """Real XT-32 geometry: map from the scan, then the same scan seen from a displaced sensor."""
     d = np.load(REAL_SCAN)
