@@ -300,7 +300,7 @@ def test_run_extrinsic_from_tf_static_or_flag(monkeypatch, capsys, tmp_path):
                                tf_static=[("imu", "lidar", T)])
     out = tmp_path / "a"
     code, _, err = run_cli(monkeypatch, capsys, "run", path, "--out", out, "--no-progress",
-                           "--max-scans", "3")
+                           "--max-scans", "8")
     assert code == 0, err
     assert "extrinsic from tf_static (imu <- lidar)" in err
     used = yaml.safe_load((out / "config.yaml").read_text())["sensor"]["T_imu_lidar"]
@@ -308,11 +308,37 @@ def test_run_extrinsic_from_tf_static_or_flag(monkeypatch, capsys, tmp_path):
     q = R.as_quat()
     flag = f"1 2 3 {q[0]} {q[1]} {q[2]} {q[3]}"
     code, _, err = run_cli(monkeypatch, capsys, "run", path, "--out", tmp_path / "b",
-                           "--no-progress", "--max-scans", "3", "--extrinsic", flag)
+                           "--no-progress", "--max-scans", "8", "--extrinsic", flag)
     assert code == 0, err
     used = yaml.safe_load((tmp_path / "b" / "config.yaml").read_text())["sensor"]["T_imu_lidar"]
     np.testing.assert_allclose(np.asarray(used)[:3, 3], [1, 2, 3])
     np.testing.assert_allclose(np.asarray(used)[:3, :3], R.as_matrix(), atol=1e-9)
+
+
+def test_run_without_a_pose_fails_and_keeps_outputs(monkeypatch, capsys, tmp_path, rig):
+    """Three scans end before the 0.5 s still window and the 1 s moving-start timeout: no pose
+    is an error naming why, and the outputs written so far stay."""
+    out = tmp_path / "none"
+    code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--out", out, "--no-progress",
+                           "--max-scans", "3")
+    assert_one_line_error(code, err, "no pose from 3 scans", "never initialized",
+                          "imu.init_timeout_s", str(out))
+    assert check_outputs(out).shape == (0, 7)
+    load_config(config_file=out / "config.yaml")
+
+
+def test_run_writes_the_measured_imu_calibration(monkeypatch, capsys, tmp_path, rig):
+    out = tmp_path / "cal"
+    code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--out", out, "--no-progress")
+    assert code == 0, err
+    assert "initialization: static start" in err
+    measured = yaml.safe_load((out / "config.yaml").read_text())["measured"]
+    assert measured["init_method"] == "static" and measured["filter_noise"] == "config"
+    # the rig's IMU is noise-free, at rest with gravity on +z and zero gyro
+    assert measured["gyro_noise_rad_s_sqrt_hz"] == 0.0
+    np.testing.assert_allclose(measured["gravity_imu_m_s2"], [0, 0, -9.81], atol=1e-6)
+    np.testing.assert_allclose(measured["gyro_bias_rad_s"], 0.0, atol=1e-12)
+    load_config(config_file=out / "config.yaml")  # the measured block reads back
 
 
 @pytest.mark.slow

@@ -94,11 +94,25 @@ class ImuConfig:
     init_samples: int = 20
     """Minimum number of static IMU samples averaged for gravity and gyro bias (MAX_INI_COUNT)."""
     init_window_s: float = 0.5
-    """Length of the window the stillness check looks at (seconds)."""
-    still_gyro_rad_s: float = 0.05
-    """Stillness: max gyro norm deviation from the window mean (rad/s)."""
-    still_accel_m_s2: float = 0.15
-    """Stillness: max accel norm deviation from the window mean (m/s^2)."""
+    """Length of the IMU window the stillness test looks at, ending at a scan start (seconds)."""
+    still_block_s: float = 0.1
+    """Stillness test: block length (s). What averages out within a block (noise, tremor,
+    vibration) is the sensor's noise; what moves the block means is motion (lio/imu.py)."""
+    still_gyro_floor_rad_s: float = 0.01
+    """Stillness test: slow rotation (block-mean spread, rad/s) still treated as rest."""
+    still_accel_floor_m_s2: float = 0.05
+    """Stillness test: slow acceleration (block-mean spread, m/s^2) still treated as rest."""
+    still_false_alarm: float = 1e-3
+    """Stillness test: probability that a window at rest is judged moving (chi-square level)."""
+    noise_source: str = "config"
+    """'config' (gyro_cov / accel_cov as given) or 'measured' (white-noise densities measured in
+    the still window replace them; bias walks stay as configured)."""
+    init_timeout_s: float = 1.0
+    """No still window within this long after the first scan: initialize in motion (s)."""
+    moving_init_window_s: float = 1.0
+    """Moving start: LiDAR-registered scans over this long are fitted against the IMU (s)."""
+    moving_init_max_residual_m: float = 0.05
+    """Moving start: largest RMS position residual of that fit accepted (m)."""
     gravity_align_world: bool = False
     """Rotate the world frame so that its z axis points up (default: world = IMU at init)."""
 
@@ -258,6 +272,7 @@ class Config:
         _choice(self.sensor.point_time_reference, ("auto", "absolute", "relative"),
                 "sensor.point_time_reference")
         _choice(self.imu.noise_discretization, ("dt2", "dt"), "imu.noise_discretization")
+        _choice(self.imu.noise_source, ("config", "measured"), "imu.noise_source")
         _choice(self.map.nearby_type, (0, 6, 18, 26), "map.nearby_type")
         _choice(self.filter.plane_fit, ("ls", "pca"), "filter.plane_fit")
         _choice(self.output.map_format, ("ply", "pcd"), "output.map_format")
@@ -337,11 +352,31 @@ def transform_from_xyz_quat(text: str, where: str = "--extrinsic") -> list[list[
 
 
 # ---------------------------------------------------------------------- loading
+RETIRED_KEYS = {
+    "imu.still_gyro_rad_s": "the stillness test adapts to the IMU's own noise now "
+                            "(imu.still_gyro_floor_rad_s)",
+    "imu.still_accel_m_s2": "the stillness test adapts to the IMU's own noise now "
+                            "(imu.still_accel_floor_m_s2)",
+}
+"""Keys of earlier versions, ignored with a warning so that old config.yaml files still load."""
+OUTPUT_ONLY_KEYS = ("measured",)
+"""Top-level keys that ``adalio run`` writes into config.yaml for information (the IMU
+calibration measured at initialization); ignored when the file is read back."""
+
+
 def _merge_into(obj: Any, data: dict[str, Any], prefix: str) -> None:
     if not isinstance(data, dict):
         raise ConfigError(f"{prefix or 'config'} must be a mapping of keys to values")
     names = {f.name: f for f in dataclasses.fields(obj)}
     for key, value in data.items():
+        full = f"{prefix}.{key}" if prefix else str(key)
+        if full in RETIRED_KEYS or (not prefix and key in OUTPUT_ONLY_KEYS):
+            if full in RETIRED_KEYS:
+                import warnings
+
+                warnings.warn(f"config key '{full}' is ignored: {RETIRED_KEYS[full]}",
+                              stacklevel=2)
+            continue
         if key not in names:
             where = f"{prefix}.{key}" if prefix else str(key)
             close = difflib.get_close_matches(str(key), list(names), n=1, cutoff=0.5)

@@ -58,6 +58,8 @@ class RunResult:
     sequencer: SequencerStats | None = None
     n_scans_in: int = 0
     """Scans handed to the estimator (including those consumed by initialization)."""
+    init_report: Any = None
+    """:class:`adalio.types.InitReport` of the estimator (None if it never initialized)."""
 
 
 def default_out_dir(bag_path: str | Path, root: str | Path = "runs") -> Path:
@@ -162,11 +164,42 @@ def _progress(enabled: bool, total: int | None) -> Any:
                     TimeRemainingColumn(), disable=not enabled, transient=False)
 
 
+def _config_text(cfg: Config, odom: Any) -> str:
+    """The effective config, plus what initialization measured (``measured:``, read back as
+    information only)."""
+    text = cfg.to_yaml()
+    report = getattr(odom, "init_report", None)
+    if report is not None:
+        import yaml
+
+        text += yaml.safe_dump({"measured": report.to_dict()}, sort_keys=False,
+                               default_flow_style=None)
+    return text
+
+
+def _no_pose_reason(odom: Any, n_in: int, lidar_topic: str, imu_topic: str, out: Path) -> str:
+    """One line for a run that produced no pose: what was seen and what to change."""
+    if n_in == 0:
+        return (f"no pose: no scan of {lidar_topic} reached the estimator; check the topic with "
+                f"'adalio info' (partial outputs in {out})")
+    if not odom.initialized:
+        return (f"no pose from {n_in} scans: the estimator never initialized: "
+                f"{odom.init_failure()}. Check {imu_topic} (rate, units, stamps); a still start "
+                "needs imu.init_window_s of rest, a moving start imu.init_timeout_s of "
+                f"registered scans (partial outputs in {out})")
+    return (f"no pose from {n_in} scans of {lidar_topic}: every scan was empty after "
+            f"preprocessing or out of order; check preprocess.blind_m / max_range_m "
+            f"(partial outputs in {out})")
+
+
 def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
             gt_path: str | Path | None = None, progress: bool = True,
             max_scans: int | None = None, map_format: str | None = None,
-            on_scan: Callable[[int], None] | None = None) -> RunResult:
+            on_scan: Callable[[int], None] | None = None, start_s: float = 0.0) -> RunResult:
     """Run the estimator over a bag and write the results into ``out_dir``.
+
+    ``start_s`` skips the bag's first seconds (the run then starts wherever the sensor is, at
+    rest or moving).
 
     ``on_scan(n)`` is called after each scan handed to the estimator (n counts them); an
     exception it raises stops the run like an error would (KeyboardInterrupt = Ctrl-C).
@@ -179,6 +212,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         raise InputError(f"ground truth {gt_path} does not exist: check --gt")
     if max_scans is not None and max_scans < 1:
         raise ConfigError(f"--max-scans must be >= 1 (got {max_scans})")
+    if not start_s >= 0:
+        raise ConfigError(f"--start-s must be >= 0 seconds (got {start_s})")
     try:
         from adalio.lio import Odometry
     except ImportError:
@@ -198,7 +233,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                      "map": out / f"map.{cfg.output.map_format}", "config": out / "config.yaml"}
         paths["config"].write_text(cfg.to_yaml())
         odom = Odometry(cfg)
-        seq = Sequencer(bag, lidar_topic, imu_topic, cfg.sensor)
+        seq = Sequencer(bag, lidar_topic, imu_topic, cfg.sensor,
+                        start_ns=bag.start_ns + round(start_s * 1e9) if start_s else None)
         tum = TumWriter(paths["trajectory"])
         csvw = ScansCsvWriter(paths["scans"])
         wall_ms: list[float] = []
@@ -256,7 +292,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                 with contextlib.suppress(Exception):
                     pts = voxel_downsample(np.asarray(pts, dtype=np.float64), leaf)
             write_map(paths["map"], pts, cfg.output.map_format)
-            paths["config"].write_text(cfg.to_yaml())
+            paths["config"].write_text(_config_text(cfg, odom))
         wall_s = time.perf_counter() - t_start
     finally:
         bag.close()
@@ -270,7 +306,9 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         held_ranges_s=_flag_ranges(est_t, held), lidar_topic=lidar_topic,
         imu_topic=imu_topic, extrinsic_source=ext_source,
         time_spec=seq.decoder.time_spec.describe() if seq.decoder.time_spec else "",
-        sequencer=seq.stats, n_scans_in=n_in)
+        sequencer=seq.stats, n_scans_in=n_in, init_report=odom.init_report)
+    if not est_t and not interrupted:
+        raise InputError(_no_pose_reason(odom, n_in, lidar_topic, imu_topic, out))
     if gt_path is not None and not interrupted:
         try:
             from adalio.eval.report import make_report

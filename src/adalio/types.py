@@ -109,3 +109,49 @@ class Estimate:
     stats: ScanStats = field(default_factory=ScanStats)
     points_world: np.ndarray | None = None
     """(M, 3) the downsampled scan registered into the world (for visualisation)."""
+
+
+@dataclass
+class InitReport:
+    """How the estimator initialized (``Odometry.init_report``); written to config.yaml."""
+
+    method: str
+    """'static' (a still IMU window) or 'moving' (LiDAR-registered scans fitted to the IMU)."""
+    t_ns: int
+    """End of the initialization (the world frame's epoch)."""
+    gyro_bias_rad_s: np.ndarray
+    gravity_imu_m_s2: np.ndarray
+    """Gravity in the IMU frame at initialization."""
+    window_s: float
+    """Length of the still window or of the fitted moving window."""
+    accel_norm_m_s2: float = float("nan")
+    """Static: mean accelerometer norm over the window (in the bag's unit, before scaling)."""
+    gyro_noise_rad_s_sqrt_hz: float = float("nan")
+    """Static: gyro white-noise density measured in the still window (NaN when moving)."""
+    accel_noise_m_s2_sqrt_hz: float = float("nan")
+    """Static: accelerometer white-noise density measured in the still window."""
+    noise_used: str = "config"
+    """Which densities the filter uses: 'config' or 'measured'."""
+    detail: str = ""
+    """The stillness test's figures (static) or the fit's (moving)."""
+
+    def describe(self) -> str:
+        """One line for the run summary."""
+        bias = ", ".join(f"{v:+.2e}" for v in self.gyro_bias_rad_s)
+        text = f"{self.method} start, gyro bias ({bias}) rad/s"
+        if np.isfinite(self.accel_norm_m_s2):
+            text += f", mean |accel| {self.accel_norm_m_s2:.3f}"
+        return text + f"; the filter uses the {self.noise_used} noise densities; {self.detail}"
+
+    def to_dict(self) -> dict:
+        def num(x: float) -> float | None:
+            return None if not np.isfinite(x) else float(f"{x:.6g}")
+
+        return {"init_method": self.method, "init_t_s": self.t_ns * 1e-9,
+                "init_window_s": num(self.window_s),
+                "gyro_bias_rad_s": [num(v) for v in self.gyro_bias_rad_s],
+                "gravity_imu_m_s2": [num(v) for v in self.gravity_imu_m_s2],
+                "accel_norm_m_s2": num(self.accel_norm_m_s2),
+                "gyro_noise_rad_s_sqrt_hz": num(self.gyro_noise_rad_s_sqrt_hz),
+                "accel_noise_m_s2_sqrt_hz": num(self.accel_noise_m_s2_sqrt_hz),
+                "filter_noise": self.noise_used, "detail": self.detail}

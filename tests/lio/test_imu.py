@@ -54,26 +54,118 @@ def test_static_init_recovers_gravity_and_gyro_bias(accel_in_g):
     assert np.allclose(R @ (specific_force * out.accel_scale), [0, 0, 9.81], atol=1e-12)
 
 
-def test_stillness_check_rejects_motion_and_waits_for_window():
-    cfg = ImuConfig()
-    t_ns = np.arange(0, 2_000_000_000, 2_500_000, dtype=np.int64)
-    t_s = t_ns * 1e-9
-    n = t_ns.size
-    gyro = 0.002 * rng.normal(size=(n, 3))
-    acc = np.array([0.0, 0.0, 9.81]) + 0.02 * rng.normal(size=(n, 3))
-    moving = t_s < 1.0
-    gyro[moving, 2] += 0.5 * np.sin(2 * np.pi * 1.5 * t_s[moving])
-    acc[moving, 0] += 1.0 * np.sin(2 * np.pi * 2.0 * t_s[moving])
+HILTI_GYRO_DENSITY = 1.9e-4
+HILTI_ACCEL_DENSITY = 1.32e-3
 
-    assert imu.stillness_window(t_ns, int(0.3e9), cfg.init_window_s) is None
-    w = imu.stillness_window(t_ns, int(0.9e9), cfg.init_window_s)
-    assert not imu.is_still(gyro[w], acc[w], cfg)
-    w = imu.stillness_window(t_ns, int(1.2e9), cfg.init_window_s)
-    assert not imu.is_still(gyro[w], acc[w], cfg)
+
+def _imu_window(rate_hz: float, noise_scale: float, seed: int,
+                duration_s: float = ImuConfig().init_window_s, motion=None):
+    """IMU samples at rest (gravity along a tilted axis, a constant bias) plus white noise of
+    ``noise_scale`` x the HILTI BMI085 densities, plus ``motion(t) -> (gyro, accel)`` if given."""
+    r = np.random.default_rng(seed)
+    n = int(duration_s * rate_hz) + 1
+    t_ns = np.round(np.arange(n) / rate_hz * 1e9).astype(np.int64)
+    up = so3.exp(np.array([0.3, -0.2, 0.0])) @ np.array([0.0, 0.0, 9.81])
+    gyro = np.array([2e-3, -1e-3, 5e-4]) + noise_scale * HILTI_GYRO_DENSITY * np.sqrt(rate_hz) \
+        * r.normal(size=(n, 3))
+    acc = up + noise_scale * HILTI_ACCEL_DENSITY * np.sqrt(rate_hz) * r.normal(size=(n, 3))
+    if motion is not None:
+        dg, da = motion(t_ns * 1e-9 + r.uniform(0, 1))
+        gyro, acc = gyro + dg, acc + da
+    return t_ns, gyro, acc
+
+
+def _slow_walk(t):
+    """A slow walk: step bobbing 0.4 m/s^2 at 1.6 Hz, sway 0.15 rad/s at 0.8 Hz, slow turn."""
+    gyro = np.column_stack([0.15 * np.sin(2 * np.pi * 0.8 * t), 0.05 * np.sin(2 * np.pi * 1.6 * t),
+                            0.1 + 0.0 * t])
+    acc = np.column_stack([0.2 * np.sin(2 * np.pi * 1.6 * t), 0.1 * np.cos(2 * np.pi * 0.8 * t),
+                           0.4 * np.sin(2 * np.pi * 1.6 * t + 0.3)])
+    return gyro, acc
+
+
+def _tremor(t):
+    """Hand tremor at 9-11 Hz: 0.03 rad/s, 0.3 m/s^2."""
+    gyro = 0.03 * np.column_stack([np.sin(2 * np.pi * 9.3 * t), np.cos(2 * np.pi * 10.1 * t),
+                                   np.sin(2 * np.pi * 11.0 * t)])
+    acc = 0.3 * np.column_stack([np.sin(2 * np.pi * 10.4 * t), np.sin(2 * np.pi * 9.7 * t + 1),
+                                 np.cos(2 * np.pi * 10.9 * t)])
+    return gyro, acc
+
+
+def _engine(t):
+    """A running engine: 2 m/s^2 and 0.05 rad/s at 29 Hz, its harmonic, and broadband shake."""
+    s = np.sin(2 * np.pi * 29.0 * t) + 0.5 * np.sin(2 * np.pi * 58.0 * t)
+    return 0.05 * np.column_stack([s, s, 0.5 * s]), 2.0 * np.column_stack([0.5 * s, s, s])
+
+
+@pytest.mark.parametrize("rate_hz", [100.0, 200.0, 400.0])
+@pytest.mark.parametrize("noise_scale", [1.0, 10.0, 50.0])
+def test_stillness_test_adapts_to_the_imu_noise(rate_hz, noise_scale):
+    """At rest the test says still (false alarms near the configured 1e-3 level, whatever the
+    noise), a slow walk is motion; the measured densities are the true ones."""
+    cfg = ImuConfig()
+    verdicts = []
+    for seed in range(100):
+        t_ns, gyro, acc = _imu_window(rate_hz, noise_scale, seed)
+        test = imu.stillness_test(t_ns, gyro, acc, cfg)
+        verdicts.append(test.still)
+        if seed < 10:
+            # within-block variance over 3 axes: 3 B (n_b - 1) dof; its square root has a
+            # relative standard deviation of about 1 / sqrt(2 dof); allow 4 of those
+            n_b = round(cfg.still_block_s * rate_hz)
+            dof = 3 * (len(t_ns) // n_b) * (n_b - 1)
+            rel = 4.0 / np.sqrt(2 * dof)
+            assert test.gyro_noise_rad_s_sqrt_hz == pytest.approx(
+                noise_scale * HILTI_GYRO_DENSITY, rel=rel)
+            assert test.accel_noise_m_s2_sqrt_hz == pytest.approx(
+                noise_scale * HILTI_ACCEL_DENSITY, rel=rel)
+            assert test.rate_hz == pytest.approx(rate_hz, rel=1e-6)
+    assert np.mean(verdicts) >= 0.97
+    if noise_scale <= 10:
+        for seed in range(20):
+            t_ns, gyro, acc = _imu_window(rate_hz, noise_scale, seed, motion=_slow_walk)
+            assert not imu.stillness_test(t_ns, gyro, acc, cfg).still
+
+
+@pytest.mark.parametrize("motion", [_tremor, _engine])
+def test_tremor_and_engine_vibration_are_rest(motion):
+    cfg = ImuConfig()
+    for seed in range(20):
+        t_ns, gyro, acc = _imu_window(400.0, 1.0, seed, motion=motion)
+        test = imu.stillness_test(t_ns, gyro, acc, cfg)
+        assert test.still, test.describe()
+
+
+def test_stillness_test_judges_accel_in_g_alike():
+    cfg = ImuConfig()
+    t_ns, gyro, acc = _imu_window(400.0, 10.0, 3)
+    assert imu.stillness_test(t_ns, gyro, acc / 9.81, cfg).still
+    t_ns, gyro, acc = _imu_window(400.0, 10.0, 3, motion=_slow_walk)
+    assert not imu.stillness_test(t_ns, gyro, acc / 9.81, cfg).still
+
+
+def test_stillness_window_waits_for_enough_data():
+    cfg = ImuConfig()
+    t_ns, gyro, acc = _imu_window(400.0, 1.0, 0, duration_s=2.0)
+    win_ns = round(cfg.init_window_s * 1e9)
+    assert imu.stillness_window(t_ns, win_ns - 10_000_000, cfg.init_window_s) is None
     w = imu.stillness_window(t_ns, int(1.6e9), cfg.init_window_s)
-    assert t_ns[w][0] >= int(1.1e9) and t_ns[w][-1] <= int(1.6e9)
-    assert imu.is_still(gyro[w], acc[w], cfg)
-    assert not imu.is_still(gyro[w][:5], acc[w][:5], cfg)
+    assert t_ns[w][0] >= int(1.6e9) - win_ns and t_ns[w][-1] <= int(1.6e9)
+    assert imu.stillness_test(t_ns[w], gyro[w], acc[w], cfg).still
+    assert not imu.stillness_test(t_ns[w][:5], gyro[w][:5], acc[w][:5], cfg).still
+
+
+def test_measured_noise_config_matches_the_discretization():
+    cfg = ImuConfig(noise_discretization="dt")
+    t_ns, gyro, acc = _imu_window(400.0, 10.0, 1)
+    test = imu.stillness_test(t_ns, gyro, acc, cfg)
+    m = imu.measured_noise_config(cfg, test)
+    assert m.gyro_cov == pytest.approx(test.gyro_noise_rad_s_sqrt_hz**2)
+    assert m.gyro_bias_cov == cfg.gyro_bias_cov
+    m2 = imu.measured_noise_config(ImuConfig(noise_discretization="dt2"), test)
+    # dt2 injects Q dt^2 per step: Q = per-sample variance = density^2 * rate
+    assert m2.accel_cov == pytest.approx(np.var(acc - acc.mean(axis=0), axis=0).mean(), rel=0.1)
 
 
 def test_F_and_G_match_numerical_differentiation():

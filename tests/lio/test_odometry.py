@@ -102,14 +102,15 @@ def _config() -> Config:
 
 
 def _run(cfg: Config, duration: float, n_cols: int, seed: int = 0, accel_unit: float = 1.0,
-         before_scan=None):
-    """Feed the box-room sequence; ``before_scan(t_start_s)`` runs before each sweep."""
+         before_scan=None, t_begin: float = 0.0):
+    """Feed the box-room sequence from ``t_begin`` to ``duration`` (s); ``before_scan(t_start_s)``
+    runs before each sweep."""
     rng = np.random.default_rng(seed)
     odom = Odometry(cfg)
-    t_imu, gyro, acc = imu_samples(0.0, duration + 0.05, 400.0, rng, noise=0.01)
+    t_imu, gyro, acc = imu_samples(t_begin, duration + 0.05, 400.0, rng, noise=0.01)
     acc = acc / accel_unit
     estimates, k = [], 0
-    for s in np.arange(0.0, duration, 0.1):
+    for s in np.arange(t_begin, duration, 0.1):
         if before_scan is not None:
             before_scan(s)
         pts, t_ns = lidar_scan(s, n_cols, rng)
@@ -148,7 +149,7 @@ def test_trajectory_generator_is_self_consistent():
 def test_waits_for_rest_then_initializes_and_emits_first_scan():
     cfg = _config()
     odom, est = _run(cfg, 0.75, 300)
-    assert odom.initialized
+    assert odom.initialized and odom.init_report.method == "static"
     # the first 0.5 s window is not full before t = 0.5 s: scans at 0.0..0.4 are dropped
     assert [round(e.t_ns * 1e-9, 1) for e in est] == [0.6, 0.7, 0.8]
     first = est[0]
@@ -165,7 +166,7 @@ def test_waits_for_rest_then_initializes_and_emits_first_scan():
     assert st.eigenvalues.shape == (6,) and st.eigenvalues[0] > 0
 
 
-def test_moving_start_is_rejected_until_still():
+def test_motion_is_not_taken_for_rest():
     cfg = _config()
     odom = Odometry(cfg)
     rng = np.random.default_rng(1)
@@ -181,6 +182,39 @@ def test_moving_start_is_rejected_until_still():
         assert not odom.initialized
     assert odom.add_scan(pts, np.full(100, int(0.96e9), np.int64)) is not None
     assert odom.initialized
+
+
+@pytest.mark.parametrize("align", [False, True])
+def test_moving_start_initializes_from_registered_scans(align):
+    """The sequence starts 0.6 s into the motion: after imu.init_timeout_s the registered scans
+    give gyro bias, gravity and velocity; the estimate then tracks ground truth."""
+    cfg = _config()
+    cfg.imu.init_timeout_s = 1.0
+    cfg.imu.moving_init_window_s = 1.0
+    cfg.imu.gravity_align_world = align
+    odom, est = _run(cfg, 4.0, 1000, seed=4, t_begin=1.6)
+    rep = odom.init_report
+    assert rep.method == "moving" and rep.window_s >= 0.8
+    first = est[0]
+    assert first.t_ns * 1e-9 <= 1.6 + cfg.imu.init_timeout_s + 0.25
+    assert len(est) >= 12
+    t = np.array([e.t_ns for e in est]) * 1e-9
+    gt_p, gt_R, gt_v, *_ = trajectory(t)
+    R_est = first.T_world_imu[:3, :3]
+    g_imu_est = R_est.T @ first.gravity_world_m_s2
+    g_imu_gt = gt_R[0].T @ GRAVITY
+    angle = np.arccos(np.clip(g_imu_est @ g_imu_gt / 9.81**2, -1, 1))
+    assert np.rad2deg(angle) < 1.0
+    assert np.allclose(rep.gravity_imu_m_s2, g_imu_est, atol=1e-9)
+    assert np.linalg.norm(first.gyro_bias_rad_s - GYRO_BIAS) < 2e-3
+    v_imu_est = R_est.T @ first.velocity_world_m_s
+    v_imu_gt = gt_R[0].T @ gt_v[0]
+    assert np.linalg.norm(v_imu_gt) > 0.3
+    assert np.linalg.norm(v_imu_est - v_imu_gt) < 0.05
+    if align:
+        assert np.allclose(first.gravity_world_m_s2, [0.0, 0.0, -9.81], atol=1e-9)
+    est_p = np.array([e.T_world_imu[:3, 3] for e in est])
+    assert umeyama_ate(est_p, gt_p) < 0.02
 
 
 def test_input_validation_raises_input_error():

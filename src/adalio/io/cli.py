@@ -145,6 +145,9 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
         gt: Annotated[Path | None, typer.Option(help="Ground-truth TUM file: write an "
                                                 "evaluation report too.")] = None,
         max_scans: Annotated[int | None, typer.Option(help="Stop after N scans.")] = None,
+        start_s: Annotated[float, typer.Option(
+            "--start-s", help="Skip the bag's first seconds (start wherever the sensor is).")]
+        = 0.0,
         profile: Annotated[bool, typer.Option(help="Print per-stage timings per scan.")]
         = False,
         no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")]
@@ -159,7 +162,8 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
     try:
         with _warnings_to(con):
             res = run_bag(bag, cfg, out_dir, gt_path=gt,
-                          progress=not no_progress and con.is_terminal, max_scans=max_scans)
+                          progress=not no_progress and con.is_terminal, max_scans=max_scans,
+                          start_s=start_s)
         _summary(con, res, profile)
     except KeyboardInterrupt:
         res = None
@@ -178,6 +182,9 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
     con.print(f"topics: {res.lidar_topic} + {res.imu_topic}; extrinsic from "
               f"{res.extrinsic_source}; point time {res.time_spec}", highlight=False,
               soft_wrap=True)
+    if res.init_report is not None:
+        con.print(f"initialization: {res.init_report.describe()}", highlight=False,
+                  soft_wrap=True)
     ranges = ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in res.degenerate_ranges_s[:8])
     more = " ..." if len(res.degenerate_ranges_s) > 8 else ""
     con.print(f"degenerate scans: {res.n_degenerate}/{res.n_scans}"

@@ -228,8 +228,10 @@ class Sequencer:
 
     def __init__(self, bag: Bag, lidar_topic: str, imu_topic: str,
                  sensor: SensorConfig | None = None, *, imu_chunk: int = 64,
-                 lookahead_ns: int = IMU_LOOKAHEAD_NS) -> None:
+                 lookahead_ns: int = IMU_LOOKAHEAD_NS, start_ns: int | None = None) -> None:
         self.bag = bag
+        self.start_ns = start_ns
+        """Messages received before this time (bag clock, int64 ns) are not read."""
         self.lidar_topic = lidar_topic
         self.imu_topic = imu_topic
         self.sensor = sensor or SensorConfig()
@@ -275,7 +277,8 @@ class Sequencer:
                     yield scaled(h)
                 held.clear()
 
-        for topic, _, msg in self.bag.messages([self.lidar_topic, self.imu_topic]):
+        for topic, _, msg in self.bag.messages([self.lidar_topic, self.imu_topic],
+                                               start_ns=self.start_ns):
             if topic == self.imu_topic:
                 imu_msgs.append(msg)
                 if len(imu_msgs) >= self.imu_chunk:

@@ -41,19 +41,83 @@ def stillness_window(t_ns: np.ndarray, t_end_ns: int, window_s: float) -> slice 
     return slice(lo, hi)
 
 
-def is_still(gyro_rad_s: np.ndarray, accel: np.ndarray, cfg: ImuConfig) -> bool:
-    """Stillness check (§4): every gyro sample within ``still_gyro_rad_s`` of the window mean and
-    every accel norm (scaled to m/s²) within ``still_accel_m_s2`` of the mean norm."""
-    if gyro_rad_s.shape[0] < cfg.init_samples:
-        return False
-    gyro_dev = np.linalg.norm(gyro_rad_s - gyro_rad_s.mean(axis=0), axis=1).max()
-    acc_norm = np.linalg.norm(accel, axis=1)
-    mean_norm = acc_norm.mean()
-    if not mean_norm > 0:
-        return False
-    acc_norm = acc_norm * (cfg.gravity_m_s2 / mean_norm)
-    acc_dev = np.abs(acc_norm - cfg.gravity_m_s2).max()
-    return bool(gyro_dev <= cfg.still_gyro_rad_s and acc_dev <= cfg.still_accel_m_s2)
+@dataclass
+class StillnessTest:
+    """Outcome of :func:`stillness_test` on one IMU window (lio-design.md §4, adalio's rule).
+
+    ``gyro_ratio`` / ``accel_ratio`` are the test statistics divided by their thresholds: the
+    window is still when both are <= 1. The densities are the white-noise densities measured in
+    the window (per-axis RMS), valid as a noise calibration only when ``still``.
+    """
+
+    still: bool
+    gyro_ratio: float
+    accel_ratio: float
+    gyro_noise_rad_s_sqrt_hz: float
+    accel_noise_m_s2_sqrt_hz: float
+    rate_hz: float
+    n_samples: int
+    window_s: float
+
+    def describe(self) -> str:
+        return (f"{self.window_s:.2f} s window of {self.n_samples} samples at "
+                f"{self.rate_hz:.0f} Hz: low-frequency gyro spread {self.gyro_ratio:.1f}x and "
+                f"accel spread {self.accel_ratio:.1f}x the rest threshold (measured noise "
+                f"{self.gyro_noise_rad_s_sqrt_hz:.2e} rad/s/sqrt(Hz), "
+                f"{self.accel_noise_m_s2_sqrt_hz:.2e} m/s^2/sqrt(Hz))")
+
+
+def _block_statistic(x: np.ndarray, n_block: int, floor: float) -> tuple[float, int, float]:
+    """Chi-square statistic of the block means of ``x`` (n, 3) around their mean.
+
+    The within-block (pooled, per axis) variance s² is what averages out inside a block (white
+    noise, tremor, vibration); a block mean of n_b samples then has variance s²/n_b at rest.
+    ``floor`` is a motion amplitude still counted as rest. Returns (statistic, dof, mean s²).
+    """
+    n_blocks = x.shape[0] // n_block
+    blocks = x[: n_blocks * n_block].reshape(n_blocks, n_block, 3)
+    means = blocks.mean(axis=1)
+    within = blocks.var(axis=1, ddof=1).mean(axis=0)
+    dev2 = (means - means.mean(axis=0)) ** 2
+    stat = float(np.sum(dev2 / (within / n_block + floor * floor)))
+    return stat, 3 * (n_blocks - 1), float(within.mean())
+
+
+def stillness_test(t_ns: np.ndarray, gyro_rad_s: np.ndarray, accel: np.ndarray,
+                   cfg: ImuConfig) -> StillnessTest:
+    """Is the IMU at rest over this window? A test that adapts to the sensor's own noise (§4).
+
+    The window is cut into blocks of ``still_block_s``. Whatever averages out within a block
+    (white noise, hand tremor, engine vibration) sets the noise level, measured in the window
+    itself; motion is what moves the block means: a slow walk's step bobbing (~2 Hz) and turns.
+    Per sensor, ``Σ (block mean − mean)² / (s²/n_b + floor²)`` over blocks and axes is compared
+    with the chi-square quantile ``1 − still_false_alarm`` (3 (B − 1) degrees of freedom). The
+    floors (``still_gyro_floor_rad_s``, ``still_accel_floor_m_s2``) are motion small enough to
+    count as rest: the static initialization then errs by at most about that much in gyro bias
+    and in gravity. The accelerometer is scaled to |g| first, so a g-unit IMU is judged alike.
+    Limit: motion at constant velocity and rate (a smoothly driven robot) is indistinguishable
+    from rest for any IMU.
+    """
+    from scipy.stats import chi2
+
+    n = int(gyro_rad_s.shape[0])
+    span_s = float(t_ns[-1] - t_ns[0]) * 1e-9 if n > 1 else 0.0
+    rate = (n - 1) / span_s if span_s > 0 else 0.0
+    n_block = max(round(cfg.still_block_s * rate), 2)
+    nan = float("nan")
+    if n < max(cfg.init_samples, 3 * n_block) or not rate > 0:
+        return StillnessTest(False, nan, nan, nan, nan, rate, n, span_s)
+    acc_norm = float(np.linalg.norm(accel.mean(axis=0)))
+    if not acc_norm > 0:
+        return StillnessTest(False, nan, nan, nan, nan, rate, n, span_s)
+    acc = accel * (cfg.gravity_m_s2 / acc_norm)
+    g_stat, dof, g_var = _block_statistic(gyro_rad_s, n_block, cfg.still_gyro_floor_rad_s)
+    a_stat, _, a_var = _block_statistic(acc, n_block, cfg.still_accel_floor_m_s2)
+    limit = float(chi2.ppf(1.0 - cfg.still_false_alarm, dof))
+    g_ratio, a_ratio = g_stat / limit, a_stat / limit
+    return StillnessTest(bool(g_ratio <= 1.0 and a_ratio <= 1.0), g_ratio, a_ratio,
+                         float(np.sqrt(g_var / rate)), float(np.sqrt(a_var / rate)), rate, n,
+                         span_s)
 
 
 def static_init(gyro_rad_s: np.ndarray, accel: np.ndarray, cfg: ImuConfig) -> StaticInit:
@@ -79,6 +143,16 @@ def static_init(gyro_rad_s: np.ndarray, accel: np.ndarray, cfg: ImuConfig) -> St
     return StaticInit(gyro_bias_rad_s=gyro_rad_s.mean(axis=0), gravity_world_m_s2=g_world,
                       R_world_imu=R, accel_scale=cfg.gravity_m_s2 / norm,
                       n_samples=int(gyro_rad_s.shape[0]))
+
+
+def measured_noise_config(cfg: ImuConfig, test: StillnessTest) -> ImuConfig:
+    """``cfg`` with gyro_cov / accel_cov replaced by the densities measured in a still window,
+    in the configured discretization: ``σ²`` for 'dt' (Q dt), ``σ² f_s`` for 'dt2' (Q dt²)."""
+    from dataclasses import replace
+
+    scale = 1.0 if cfg.noise_discretization == "dt" else test.rate_hz
+    return replace(cfg, gyro_cov=test.gyro_noise_rad_s_sqrt_hz**2 * scale,
+                   accel_cov=test.accel_noise_m_s2_sqrt_hz**2 * scale)
 
 
 def process_noise(cfg: ImuConfig) -> np.ndarray:

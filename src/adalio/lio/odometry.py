@@ -55,10 +55,11 @@ from adalio.lio.degeneracy import (
 from adalio.lio.ieskf import iterated_update
 from adalio.lio.ivox import IVox
 from adalio.lio.measurement import point_to_plane, points_to_world
+from adalio.lio.motion_init import MovingInit
 from adalio.lio.plane import fit_planes, neighbour_moments
 from adalio.lio.state import DIM, State, initial_covariance
 from adalio.lio.voxel import voxel_downsample
-from adalio.types import Estimate, ScanStats
+from adalio.types import Estimate, InitReport, ScanStats
 
 STAGES = ("preprocess", "undistort", "downsample", "degeneracy", "update", "map")
 """Range of the iVox neighbour query (Faster-LIO's ``GetClosestPoint`` default, §7)."""
@@ -236,6 +237,11 @@ class Odometry:
         self._finest_cell_m = config.map.map_leaf_m
         """Finest cell any scan has used for insertion: the plane-extent test scales with it,
         since a map densified by degenerate scans holds neighbours that close everywhere."""
+        self.init_report: InitReport | None = None
+        """How the filter initialized (None until it has)."""
+        self._t_first_scan_ns: int | None = None
+        self._closest_still: imu.StillnessTest | None = None
+        self._moving: MovingInit | None = None
 
     # ------------------------------------------------------------------ public API
     @property
@@ -304,10 +310,15 @@ class Odometry:
             return None
         stats.t_ns = t_e
 
-        # 2. static initialization (§4)
-        if not self.initialized and not self._try_initialize(t_b):
-            self._accumulate(stage_ms)
-            return None
+        # 2. initialization: static (§4), or in motion after imu.init_timeout_s without rest
+        if not self.initialized:
+            pts_e = self._try_initialize(pts, t_pts, t_b, t_e)
+            t0 = _timer(stage_ms, "undistort", t0)
+            if not self.initialized:
+                self._accumulate(stage_ms)
+                return None
+            if pts_e is not None:
+                return self._first_map(pts_e, t_e, stats, stage_ms, t_start, t0)
 
         # 3-4. propagate with pose records, undistort to the scan end (§5)
         pts_e = self._propagate_and_undistort(pts, t_pts, t_e)
@@ -315,16 +326,7 @@ class Odometry:
 
         # 5. first scan after init: whole scan into the map, no update (§4)
         if self._t_first_map_ns is None:
-            p_world = points_to_world(pts_e, self._state.R, self._state.p, self._state.R_LI,
-                                      self._state.t_LI)
-            self._ivox.add_points(p_world)
-            self._t_first_map_ns = t_e
-            t0 = _timer(stage_ms, "map", t0)
-            g = cfg.adaptive.general
-            stats.n_down = stats.n_down_general = int(pts_e.shape[0])
-            stats.voxel_size_m, stats.search_radius_m = g.voxel_size_m, g.search_radius_m
-            stats.plane_margin_m = g.plane_margin_m
-            return self._emit(stats, stage_ms, t_start, p_world)
+            return self._first_map(pts_e, t_e, stats, stage_ms, t_start, t0)
 
         # 6. downsample with the general leaf, degeneracy check, switch parameters (§6.1, §9)
         general = cfg.adaptive.general
@@ -404,15 +406,58 @@ class Odometry:
                                np.concatenate([b.accel] + [p[2] for p in self._pending]))
         self._pending.clear()
 
-    def _try_initialize(self, t_b_ns: int) -> bool:
-        """Static init over ``imu.init_window_s`` before the scan start, if at rest (§4)."""
+    def _first_map(self, pts_e: np.ndarray, t_e: int, stats: ScanStats,
+                   stage_ms: dict[str, float], t_start: float, t0: float) -> Estimate:
+        """The first scan after init goes into the map whole, with no update (§4)."""
+        s = self._state
+        p_world = points_to_world(pts_e, s.R, s.p, s.R_LI, s.t_LI)
+        self._ivox.add_points(p_world)
+        self._t_first_map_ns = t_e
+        _timer(stage_ms, "map", t0)
+        g = self.cfg.adaptive.general
+        stats.n_down = stats.n_down_general = int(pts_e.shape[0])
+        stats.voxel_size_m, stats.search_radius_m = g.voxel_size_m, g.search_radius_m
+        stats.plane_margin_m = g.plane_margin_m
+        return self._emit(stats, stage_ms, t_start, p_world)
+
+    def _try_initialize(self, pts: np.ndarray, t_pts: np.ndarray, t_b_ns: int,
+                        t_e_ns: int) -> np.ndarray | None:
+        """Static init over ``imu.init_window_s`` before the scan start if the IMU rests there
+        (§4); otherwise the scan feeds the moving-start initializer (``motion_init.py``), which
+        takes over once ``imu.init_timeout_s`` has passed since the first scan. Returns the
+        deskewed scan when a moving start completed on it (it becomes the first map)."""
         cfg = self.cfg.imu
         b = self._buf
+        if self._t_first_scan_ns is None:
+            self._t_first_scan_ns = t_b_ns
         window = imu.stillness_window(b.t_ns, t_b_ns, cfg.init_window_s)
-        if window is None or not imu.is_still(b.gyro[window], b.accel[window], cfg):
-            keep_from = int(np.searchsorted(b.t_ns, t_b_ns - round(cfg.init_window_s * 1e9)))
-            self._buf = _ImuBuffer(b.t_ns[keep_from:], b.gyro[keep_from:], b.accel[keep_from:])
-            return False
+        if window is not None:
+            test = imu.stillness_test(b.t_ns[window], b.gyro[window], b.accel[window], cfg)
+            close = self._closest_still
+            if close is None or not (max(close.gyro_ratio, close.accel_ratio)
+                                     <= max(test.gyro_ratio, test.accel_ratio)):
+                self._closest_still = test
+            if test.still:
+                self._static_initialize(window, t_b_ns, test)
+                return None
+        timeout_ns = round(cfg.init_timeout_s * 1e9)
+        if self._moving is None:
+            self._moving = MovingInit(self.cfg, self._R_LI, self._t_LI)
+        n_use = int(np.searchsorted(b.t_ns, t_e_ns, side="right"))
+        self._moving.add_imu(b.t_ns[:n_use], b.gyro[:n_use], b.accel[:n_use])
+        self._moving.add_scan(pts, t_pts)
+        keep_from = int(np.searchsorted(b.t_ns, t_b_ns - round(cfg.init_window_s * 1e9)))
+        self._buf = _ImuBuffer(b.t_ns[keep_from:], b.gyro[keep_from:], b.accel[keep_from:])
+        if t_e_ns - self._t_first_scan_ns < timeout_ns:
+            return None
+        fit = self._moving.solve()
+        if fit is None:
+            return None
+        return self._moving_initialize(fit)
+
+    def _static_initialize(self, window: slice, t_b_ns: int, test: imu.StillnessTest) -> None:
+        cfg = self.cfg.imu
+        b = self._buf
         init = imu.static_init(b.gyro[window], b.accel[window], cfg)
         self._accel_scale = init.accel_scale
         g = init.gravity_world_m_s2
@@ -423,8 +468,66 @@ class Odometry:
         last = window.stop - 1
         self._prev_sample = (int(b.t_ns[last]), b.gyro[last].copy(), b.accel[last].copy())
         self._buf = _ImuBuffer(b.t_ns[window.stop:], b.gyro[window.stop:], b.accel[window.stop:])
+        if cfg.noise_source == "measured":
+            self._q_diag = imu.process_noise(imu.measured_noise_config(cfg, test))
+        self._moving = None
         self.initialized = True
-        return True
+        acc_mean = b.accel[window].mean(axis=0)
+        self.init_report = InitReport(
+            method="static", t_ns=t_b_ns, gyro_bias_rad_s=init.gyro_bias_rad_s.copy(),
+            gravity_imu_m_s2=init.R_world_imu.T @ g, window_s=test.window_s,
+            accel_norm_m_s2=float(np.linalg.norm(acc_mean)),
+            gyro_noise_rad_s_sqrt_hz=test.gyro_noise_rad_s_sqrt_hz,
+            accel_noise_m_s2_sqrt_hz=test.accel_noise_m_s2_sqrt_hz,
+            noise_used=cfg.noise_source, detail=test.describe())
+
+    def _moving_initialize(self, fit) -> np.ndarray:
+        """Hand the moving-start fit (``motion_init.MovingInitResult``) over to the filter."""
+        cfg = self.cfg.imu
+        b = self._buf
+        R_align = np.eye(3)
+        if cfg.gravity_align_world:
+            R_align = imu.static_init(np.zeros((1, 3)), -fit.gravity_world_m_s2[None],
+                                      cfg).R_world_imu
+        g = R_align @ fit.gravity_world_m_s2
+        self._state = State(R=R_align @ fit.R_world_imu, p=R_align @ fit.p_world_imu_m,
+                            v=R_align @ fit.v_world_m_s, R_LI=self._R_LI.copy(),
+                            t_LI=self._t_LI.copy(), b_g=fit.gyro_bias_rad_s.copy(), g=g,
+                            g_anchor=so3.anchor_frame(g))
+        self._P = initial_covariance(self.cfg.filter.estimate_extrinsic)
+        self._t_state_ns = fit.t_ns
+        last = max(int(np.searchsorted(b.t_ns, fit.t_ns, side="right")) - 1, 0)
+        self._prev_sample = (int(b.t_ns[last]), b.gyro[last].copy(), b.accel[last].copy())
+        self._buf = _ImuBuffer(b.t_ns[last + 1:], b.gyro[last + 1:], b.accel[last + 1:])
+        self._moving = None
+        self.initialized = True
+        self.init_report = InitReport(
+            method="moving", t_ns=fit.t_ns, gyro_bias_rad_s=fit.gyro_bias_rad_s.copy(),
+            gravity_imu_m_s2=fit.R_world_imu.T @ fit.gravity_world_m_s2,
+            window_s=fit.window_s, noise_used="config",
+            detail=(f"{fit.n_scans} scans over {fit.window_s:.1f} s, position residual "
+                    f"{fit.residual_m * 100:.1f} cm RMS, unconstrained |g| "
+                    f"{fit.gravity_norm_fit_m_s2:.2f} m/s^2"))
+        return fit.points_lidar_end
+
+    def init_failure(self) -> str:
+        """Why the filter has not initialized yet (for the error of a run with no pose)."""
+        cfg = self.cfg.imu
+        parts = []
+        if self._closest_still is None:
+            parts.append(f"no scan had {cfg.init_window_s:g} s of IMU data before it")
+        else:
+            parts.append("no still window (closest: " + self._closest_still.describe() + ")")
+        if self._t_first_scan_ns is None:
+            parts.append("no scan with points arrived")
+        elif self._moving is not None:
+            waited_s = (self._moving.last_t_ns - self._t_first_scan_ns) * 1e-9
+            if waited_s < cfg.init_timeout_s:
+                parts.append(f"the scans end {waited_s:.1f} s after the first one, before "
+                             f"imu.init_timeout_s ({cfg.init_timeout_s:g} s) allows a moving start")
+            else:
+                parts.append(f"moving start not possible: {self._moving.failure}")
+        return "; ".join(parts)
 
     def _propagate_and_undistort(self, pts: np.ndarray, t_pts: np.ndarray,
                                  t_e_ns: int) -> np.ndarray:

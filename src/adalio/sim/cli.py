@@ -25,6 +25,9 @@ def register(app: typer.Typer) -> None:
             "--columns", help="Columns per sweep (default: the model's).")] = None,
         noise_scale: Annotated[float, typer.Option(
             "--noise-scale", help="Multiplier of all sensor noise (0 = perfect).")] = 1.0,
+        imu_noise_scale: Annotated[float, typer.Option(
+            "--imu-noise-scale", help="Further multiplier of the IMU noise only (x HILTI "
+            "BMI085 densities).")] = 1.0,
     ) -> None:
         """Simulate a handheld LiDAR + IMU walk through an indoor scene into a ROS bag."""
         import json
@@ -36,7 +39,8 @@ def register(app: typer.Typer) -> None:
 
         t0 = time.perf_counter()
         res = run_simulation(scene, out, seed=seed, duration_s=duration, lidar=lidar, fmt=fmt,
-                             columns=columns, noise_scale=noise_scale, progress=True)
+                             columns=columns, noise_scale=noise_scale, progress=True,
+                             imu_noise_scale=imu_noise_scale)
         meta = json.loads(res.meta_path.read_text())
         Console().print(
             f"[green]wrote[/] {res.bag_path} ({meta['n_scans']} sweeps, {meta['n_imu']} IMU, "

@@ -118,14 +118,18 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
              lidar: str = "xt32", fmt: str = "ros1", columns: int | None = None,
              noise_scale: float = 1.0, progress: bool = False,
              T_imu_lidar: list[list[float]] | np.ndarray | None = None,
-             occluder: bool = True, scene_params: dict | None = None) -> SimResult:
+             occluder: bool = True, scene_params: dict | None = None,
+             imu_noise_scale: float = 1.0) -> SimResult:
     """Generate one sequence of ``scene`` into ``out_dir`` (created; the bag must not exist).
 
     ``duration_s`` None walks the whole route; shorter values truncate it (static start kept).
     ``noise_scale`` multiplies all sensor noise, dropouts and initial IMU biases (0 = perfect).
     ``T_imu_lidar`` overrides the HILTI mounting, ``occluder`` toggles the operator's body,
     ``scene_params`` overrides the scene builder's sizes (see :mod:`adalio.sim.scenes`).
+    ``imu_noise_scale`` further multiplies the IMU's noise densities and initial biases only.
     """
+    if not imu_noise_scale >= 0:
+        raise InputError(f"--imu-noise-scale must be >= 0 (got {imu_noise_scale})")
     _check_args(scene, duration_s, lidar, fmt, noise_scale)
     T_il = validate_transform(T_IMU_LIDAR_HILTI if T_imu_lidar is None else T_imu_lidar,
                               "T_imu_lidar")
@@ -152,7 +156,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     t_imu = t0 + np.arange(dur_ns // imu_dt_ns + 1, dtype=np.int64) * imu_dt_ns
     imu_noise = ImuNoise()
     imu = synthesize_imu(traj, t_imu, t0, np.random.default_rng([seed, 200]), imu_noise,
-                         noise_scale, IMU_RATE_HZ)
+                         noise_scale * imu_noise_scale, IMU_RATE_HZ)
     period = model.period_ns
     n_scans = dur_ns // period
     sim = SweepSimulator(caster, traj, model, T_il, t0, Occluder() if occluder else None)
@@ -212,7 +216,8 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
         "scene": scene, "seed": int(seed), "scene_params": dict(scene_params or {}),
         "duration_s": dur, "lidar": model.name,
         "format": fmt, "columns": model.columns, "channels": model.channels,
-        "noise_scale": float(noise_scale), "occluder": bool(occluder),
+        "noise_scale": float(noise_scale), "imu_noise_scale": float(imu_noise_scale),
+        "occluder": bool(occluder),
         "topics": {"lidar": model.lidar_topic, "imu": model.imu_topic},
         "frame_ids": {"lidar": model.lidar_frame, "imu": model.imu_frame},
         "T_imu_lidar": T_il.tolist(), "T_scene_world": T_scene_world.tolist(),
@@ -253,12 +258,13 @@ def _code_version() -> str:
 
 def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = None,
                     lidar: str = "xt32", fmt: str = "ros1",
-                    columns: int | None = None) -> SimResult:
+                    columns: int | None = None, imu_noise_scale: float = 1.0) -> SimResult:
     """Generate once (atomically: temp folder + rename + completion marker) and reuse."""
     _check_args(scene, duration_s, lidar, fmt, 1.0)
     cols = lidar_model(lidar, columns).columns
     dur = "full" if duration_s is None else f"{float(duration_s):g}"
-    key = f"{scene}-s{seed}-d{dur}-{lidar}-{fmt}-c{cols}-v{_code_version()}"
+    imu = "" if imu_noise_scale == 1.0 else f"-imu{imu_noise_scale:g}"
+    key = f"{scene}-s{seed}-d{dur}-{lidar}-{fmt}-c{cols}{imu}-v{_code_version()}"
     final = cache_root() / key
 
     def result(d: Path) -> SimResult:
@@ -271,7 +277,7 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     tmp = final.parent / f".{key}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     try:
         simulate(scene, tmp, seed=seed, duration_s=duration_s, lidar=lidar, fmt=fmt,
-                 columns=columns)
+                 columns=columns, imu_noise_scale=imu_noise_scale)
         (tmp / "COMPLETE").write_text("ok\n")
         if final.exists() and not (final / "COMPLETE").is_file():
             shutil.rmtree(final, ignore_errors=True)

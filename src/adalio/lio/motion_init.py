@@ -1,0 +1,268 @@
+"""Initialization in motion: LiDAR-registered scans aligned against the IMU (moving start).
+
+When no still window appears within ``imu.init_timeout_s`` (a robot already driving, a recording
+started late, a hand that never rests), the static initialization of lio-design.md §4 cannot
+run. Instead, as in LiDAR-inertial initializers such as LI-Init and the visual-inertial alignment
+of VINS-Mono:
+
+1. **Register** each incoming scan against a small local map, LiDAR only: every point is
+   deskewed with the raw gyro rotation and a constant-velocity translation (from the previous
+   two registrations), then the pose is refined point-to-plane by the iterated update of
+   ``ieskf.py`` under a loose prior (the constant-velocity prediction). World = the IMU frame at
+   the start of the first scan.
+2. **Gyro bias**: the gyro rotation from the window's first scan to each later one,
+   ``ΔR_j(b)``, must equal the registered ``R_0ᵀ R_j``; one Gauss-Newton step on
+   ``Log(ΔR_j(0)ᵀ R_0ᵀ R_j) = −J_j b`` (J by finite differences of the preintegration).
+3. **Gravity and velocity**: with the bias-corrected preintegration ``Δp_j``, ``Δv_j`` (in the
+   first scan's IMU frame), ``p_j = p_0 + v_0 t_j + ½ g t_j² + R_0 Δp_j`` is linear in
+   ``(p_0, v_0, g)``; least squares over the window, then ``g`` is scaled to ``|g|`` and
+   ``(p_0, v_0)`` solved again. The fit is accepted when its RMS position residual is below
+   ``imu.moving_init_max_residual_m`` and the unconstrained ``|g|`` is within 10 % of
+   ``imu.gravity_m_s2``.
+
+Limits: the accelerometer bias is not separated from gravity (as in the static case); a window
+whose registration is degenerate along a direction (a featureless corridor) leaves that
+direction to the constant-velocity prior, so the gravity estimate along it carries the mean
+acceleration of the window; a window too short for the fit to pass waits for more scans.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from adalio.config import Config
+from adalio.lio import imu, so3
+from adalio.lio.ieskf import iterated_update
+from adalio.lio.ivox import IVox
+from adalio.lio.measurement import points_to_world
+from adalio.lio.state import DIM, P_, TH, State
+from adalio.lio.voxel import voxel_downsample
+
+MIN_SCANS = 5
+"""Fewest registered scans a moving-start fit uses."""
+MIN_POINTS = 50
+"""Scans with fewer downsampled points are not registered."""
+PRIOR_SIGMA_P_M = 0.5
+PRIOR_SIGMA_TH_RAD = 0.1
+"""Loose prior of the LiDAR-only registration around the constant-velocity prediction."""
+GRAVITY_NORM_TOLERANCE = 0.1
+
+
+@njit(cache=True)
+def preintegrate(imu_tau, gyro, accel, b_g, query_tau):
+    """Rotation, velocity and position increments from ``query_tau[0]`` to each query time.
+
+    Inputs piecewise constant over each sample interval (mid-point of its two samples, as in
+    ``imu.propagate_scan``), no gravity, no accel bias; increments in the frame at
+    ``query_tau[0]``. Times in seconds, ascending, within the samples' span.
+    """
+    m = query_tau.shape[0]
+    out_R = np.empty((m, 3, 3))
+    out_v = np.empty((m, 3))
+    out_p = np.empty((m, 3))
+    R = np.eye(3)
+    v = np.zeros(3)
+    p = np.zeros(3)
+    tau = query_tau[0]
+    q = 0
+    n = imu_tau.shape[0]
+    k = 0
+    while k < n - 2 and imu_tau[k + 1] <= tau:
+        k += 1
+    while q < m:
+        if query_tau[q] <= tau:
+            out_R[q] = R
+            out_v[q] = v
+            out_p[q] = p
+            q += 1
+            continue
+        w = 0.5 * (gyro[k] + gyro[k + 1]) - b_g
+        a = 0.5 * (accel[k] + accel[k + 1])
+        t_next = query_tau[q]
+        if k < n - 2 and imu_tau[k + 1] < t_next:
+            t_next = imu_tau[k + 1]
+        dt = t_next - tau
+        Ra = R @ a
+        p = p + v * dt + 0.5 * Ra * dt * dt
+        v = v + Ra * dt
+        R = R @ so3.exp(w * dt)
+        tau = t_next
+        if k < n - 2 and imu_tau[k + 1] <= tau:
+            k += 1
+    return out_R, out_v, out_p
+
+
+@dataclass
+class MovingInitResult:
+    """State at the end of the last scan of the fitted window (world = IMU at the first scan)."""
+
+    t_ns: int
+    R_world_imu: np.ndarray
+    p_world_imu_m: np.ndarray
+    v_world_m_s: np.ndarray
+    gyro_bias_rad_s: np.ndarray
+    gravity_world_m_s2: np.ndarray
+    residual_m: float
+    gravity_norm_fit_m_s2: float
+    n_scans: int
+    window_s: float
+    points_lidar_end: np.ndarray
+    """The last scan, deskewed to its end (LiDAR frame), for the first map."""
+
+
+@dataclass
+class _Registered:
+    t_ns: int
+    R: np.ndarray
+    p: np.ndarray
+
+
+class MovingInit:
+    """Collects LiDAR-registered scans and IMU samples until a moving-start fit succeeds."""
+
+    def __init__(self, cfg: Config, R_LI: np.ndarray, t_LI: np.ndarray) -> None:
+        self.cfg = cfg
+        self.R_LI, self.t_LI = R_LI, t_LI
+        self.ivox = IVox.from_config(cfg.map)
+        self.scans: list[_Registered] = []
+        self.imu_t_ns = np.empty(0, np.int64)
+        self.gyro = np.empty((0, 3))
+        self.accel = np.empty((0, 3))
+        self.last_points: np.ndarray | None = None
+        self.failure = "no scan registered yet"
+        self.last_t_ns = np.iinfo(np.int64).min
+        """End of the latest scan handed in (int64 ns)."""
+
+    def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        if t_ns.size == 0:
+            return
+        keep = t_ns > (self.imu_t_ns[-1] if self.imu_t_ns.size else np.iinfo(np.int64).min)
+        self.imu_t_ns = np.concatenate([self.imu_t_ns, t_ns[keep]])
+        self.gyro = np.vstack([self.gyro, gyro[keep]])
+        self.accel = np.vstack([self.accel, accel[keep]])
+        horizon = self.imu_t_ns[-1] - round(3.0 * self.cfg.imu.moving_init_window_s * 1e9)
+        first = int(np.searchsorted(self.imu_t_ns, horizon))
+        if first > 0:
+            self.imu_t_ns, self.gyro, self.accel = (self.imu_t_ns[first:], self.gyro[first:],
+                                                    self.accel[first:])
+
+    # ------------------------------------------------------------------ registration
+    def add_scan(self, pts: np.ndarray, t_pts: np.ndarray) -> None:
+        """Deskew and register one preprocessed scan (LiDAR frame, absolute int64 ns times)."""
+        t_b, t_e = int(t_pts.min()), int(t_pts.max())
+        self.last_t_ns = max(self.last_t_ns, t_e)
+        if self.imu_t_ns.size < 2 or self.imu_t_ns[0] > t_b:
+            self.failure = "no IMU sample before the scans"
+            return
+        if self.scans:
+            last = self.scans[-1]
+            t_ref, R0, p0 = last.t_ns, last.R, last.p
+            v = self._velocity()
+        else:
+            t_ref, R0, p0, v = t_b, np.eye(3), np.zeros(3), np.zeros(3)
+        if t_e <= t_ref:
+            return
+        x = State(R=R0.copy(), p=p0.copy(), v=v, R_LI=self.R_LI.copy(), t_LI=self.t_LI.copy(),
+                  g=np.array([0.0, 0.0, -1e-9]))
+        lo = max(int(np.searchsorted(self.imu_t_ns, t_ref, side="right")) - 1, 0)
+        hi = int(np.searchsorted(self.imu_t_ns, t_e, side="right"))
+        tau = (self.imu_t_ns[lo:hi] - t_ref) * 1e-9
+        zeros = np.zeros((hi - lo, 3))
+        x_pred, _, rec = imu.propagate(x, np.zeros((DIM, DIM)), tau, self.gyro[lo:hi], zeros,
+                                       0.0, (t_e - t_ref) * 1e-9, np.zeros(12))
+        pts_e = imu.undistort(pts, (t_pts - t_ref) * 1e-9, rec, x_pred.R, x_pred.p,
+                              x_pred.R_LI, x_pred.t_LI)
+        general = self.cfg.adaptive.general
+        down = voxel_downsample(pts_e, general.voxel_size_m)
+        if down.shape[0] < MIN_POINTS:
+            self.failure = "scans with too few points to register"
+            return
+        state = x_pred
+        if self.scans:
+            from adalio.lio.odometry import _Association
+
+            P = np.eye(DIM) * 1e-12
+            P[P_, P_] = np.eye(3) * PRIOR_SIGMA_P_M**2
+            P[TH, TH] = np.eye(3) * PRIOR_SIGMA_TH_RAD**2
+            assoc = _Association(down, self.ivox, self.cfg, general.search_radius_m,
+                                 general.plane_margin_m, self.cfg.map.map_leaf_m)
+            state = iterated_update(x_pred, P, assoc.measure, self.cfg.filter).state
+        self.ivox.add_points(points_to_world(down, state.R, state.p, self.R_LI, self.t_LI))
+        self.scans.append(_Registered(t_e, state.R.copy(), state.p.copy()))
+        self.last_points = pts_e
+        if len(self.scans) > 1000:
+            del self.scans[:500]
+
+    def _velocity(self) -> np.ndarray:
+        if len(self.scans) < 2:
+            return np.zeros(3)
+        a, b = self.scans[-2], self.scans[-1]
+        return (b.p - a.p) / ((b.t_ns - a.t_ns) * 1e-9)
+
+    # ------------------------------------------------------------------ alignment
+    def solve(self) -> MovingInitResult | None:
+        """Fit gyro bias, gravity and velocity over the last ``moving_init_window_s``."""
+        cfg = self.cfg.imu
+        if len(self.scans) < MIN_SCANS:
+            self.failure = (f"{len(self.scans)} scans registered, the fit needs {MIN_SCANS}")
+            return None
+        t_last = self.scans[-1].t_ns
+        win = [s for s in self.scans if s.t_ns >= t_last - round(cfg.moving_init_window_s * 1e9)]
+        if len(win) < MIN_SCANS:
+            win = self.scans[-MIN_SCANS:]
+        t0 = win[0].t_ns
+        if self.imu_t_ns[0] > t0:
+            self.failure = "IMU samples missing in the window"
+            return None
+        tau_imu = (self.imu_t_ns - t0) * 1e-9
+        tau_q = np.array([(s.t_ns - t0) * 1e-9 for s in win])
+        R0 = win[0].R
+        rel = np.array([so3.log(R0.T @ s.R) for s in win])
+
+        def rot_err(b: np.ndarray) -> np.ndarray:
+            dR = preintegrate(tau_imu, self.gyro, self.accel, b, tau_q)[0]
+            return np.concatenate([so3.log(dR[j].T @ so3.exp(rel[j]))
+                                   for j in range(1, len(win))])
+
+        b_g = np.zeros(3)
+        for _ in range(2):
+            e0 = rot_err(b_g)
+            eps = 1e-4
+            J = np.column_stack([(rot_err(b_g + eps * np.eye(3)[k]) - e0) / eps
+                                 for k in range(3)])
+            b_g = b_g - np.linalg.lstsq(J, e0, rcond=None)[0]
+        _, dv, dp = preintegrate(tau_imu, self.gyro, self.accel, b_g, tau_q)
+        P = np.array([s.p for s in win])
+        n = len(win)
+        eye = np.eye(3)
+        A = np.zeros((3 * n, 9))
+        for j in range(n):
+            A[3 * j:3 * j + 3] = np.hstack([eye, tau_q[j] * eye, 0.5 * tau_q[j] ** 2 * eye])
+        rhs = (P - dp @ R0.T).reshape(-1)
+        sol = np.linalg.lstsq(A, rhs, rcond=None)[0]
+        g_fit = sol[6:9]
+        g_norm = float(np.linalg.norm(g_fit))
+        if not abs(g_norm - cfg.gravity_m_s2) <= GRAVITY_NORM_TOLERANCE * cfg.gravity_m_s2:
+            self.failure = (f"the gravity fitted over {n} scans has norm {g_norm:.2f} m/s^2, "
+                            f"not {cfg.gravity_m_s2:g}")
+            return None
+        g = g_fit * (cfg.gravity_m_s2 / g_norm)
+        rhs_g = rhs - (A[:, 6:9] @ g)
+        pv = np.linalg.lstsq(A[:, :6], rhs_g, rcond=None)[0]
+        residual = float(np.sqrt(np.mean((A[:, :6] @ pv - rhs_g) ** 2) * 3))
+        if not residual <= cfg.moving_init_max_residual_m:
+            self.failure = (f"the motion fit over {n} scans leaves {residual * 100:.1f} cm RMS "
+                            f"(limit imu.moving_init_max_residual_m = "
+                            f"{cfg.moving_init_max_residual_m * 100:g} cm)")
+            return None
+        v_end = pv[3:6] + g * tau_q[-1] + R0 @ dv[-1]
+        last = win[-1]
+        assert self.last_points is not None
+        return MovingInitResult(
+            t_ns=last.t_ns, R_world_imu=last.R.copy(), p_world_imu_m=last.p.copy(),
+            v_world_m_s=v_end, gyro_bias_rad_s=b_g, gravity_world_m_s2=g, residual_m=residual,
+            gravity_norm_fit_m_s2=g_norm, n_scans=n, window_s=float(tau_q[-1]),
+            points_lidar_end=self.last_points)
