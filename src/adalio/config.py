@@ -113,6 +113,16 @@ class ImuConfig:
     """Moving start: LiDAR-registered scans over this long are fitted against the IMU (s)."""
     moving_init_max_residual_m: float = 0.05
     """Moving start: largest RMS position residual of that fit accepted (m)."""
+    gap_periods: float = 5.0
+    """An IMU gap: consecutive samples (or the last one and the scan end) further apart than
+    this many nominal sample periods (measured at initialization)."""
+    gap_motion_gyro_rad_s_sqrt_hz: float = 0.5
+    """Across a gap, the constant-rate motion model's random rate density (rad/s/sqrt(Hz))."""
+    gap_motion_accel_m_s2_sqrt_hz: float = 1.0
+    """Across a gap, the constant-velocity motion model's random acceleration density
+    (m/s^2/sqrt(Hz)): a handheld or driven rig changes speed by about this much per sqrt(s)."""
+    max_gap_s: float = 5.0
+    """A longer IMU gap stops the run with an error (outputs so far kept)."""
     gravity_align_world: bool = False
     """Rotate the world frame so that its z axis points up (default: world = IMU at init)."""
 

@@ -88,6 +88,8 @@ class ScanStats:
     min_restoring: float = float("nan")
     """adaptive+: smallest re-association restoring ratio of the probed weak directions (1 =
     real information, ~0 = the residuals follow the pose; NaN = not probed)."""
+    imu_gap_s: float = 0.0
+    """Length of an IMU gap bridged by the motion model in this scan (s; 0 = none)."""
     stage_ms: dict[str, float] = field(default_factory=dict)
     """Wall time per pipeline stage (undistort, downsample, degeneracy, update, map)."""
 

@@ -19,7 +19,7 @@ SCANS_CSV_COLUMNS: tuple[str, ...] = (
     "t_s", "n_raw", "n_down", "n_down_general", "n_near", "degenerate", "trigger",
     "voxel_size_m", "search_radius_m", "plane_margin_m", "n_matched", "iterations", "wall_ms",
     "eig0", "eig1", "eig2", "eig3", "eig4", "eig5", "weak_rx", "weak_ry", "weak_rz", "weak_tx",
-    "weak_ty", "weak_tz", "degeneracy_score", "held_dirs", "restoring_min",
+    "weak_ty", "weak_tz", "degeneracy_score", "held_dirs", "restoring_min", "imu_gap",
 )
 
 
@@ -111,7 +111,8 @@ class ScansCsvWriter(_RowFile):
                f"{stats.plane_margin_m:.6g}", stats.n_matched, stats.iterations,
                f"{stats.wall_ms:.3f}", *[f"{v:.6g}" for v in eig],
                *[f"{v:.6g}" for v in weak], f"{stats.degeneracy_score:.6g}",
-               stats.held_directions, f"{stats.min_restoring:.4g}"]
+               stats.held_directions, f"{stats.min_restoring:.4g}",
+               f"{stats.imu_gap_s:.4g}"]
         assert self._fh is not None
         self._csv.writerow(row)
         self._fh.flush()

@@ -160,6 +160,16 @@ def process_noise(cfg: ImuConfig) -> np.ndarray:
     return np.repeat([cfg.gyro_cov, cfg.accel_cov, cfg.gyro_bias_cov, cfg.accel_bias_cov], 3)
 
 
+def gap_noise(cfg: ImuConfig, q_diag: np.ndarray) -> np.ndarray:
+    """Q across an IMU gap, continuous-time (Q dt): the motion model's random rate and
+    acceleration densities²; the bias walks as configured in the 'dt' form (the 'dt2' form's
+    per-sample values have no continuous-time reading and are left out)."""
+    q = np.repeat([cfg.gap_motion_gyro_rad_s_sqrt_hz**2, cfg.gap_motion_accel_m_s2_sqrt_hz**2,
+                   0.0, 0.0], 3)
+    q[6:] = q_diag[6:] if cfg.noise_discretization == "dt" else 0.0
+    return q
+
+
 # --------------------------------------------------------------------------- propagation (§3)
 @njit(cache=True)
 def discrete_step(p, R, v, b_g, b_a, g, gyro_rad_s, accel_m_s2, dt):
@@ -240,10 +250,13 @@ def _left_mul_F(M, E_th, J_bg, A_vth, B_vba, C_vg, dt):
 
 
 @njit(cache=True)
-def propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s2, dt, q_diag):
+def propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s2, dt, q_diag,
+                              measured_accel=True):
     """``F P Fᵀ + G diag(q) Gᵀ`` (§3.2) from the blocks of F and G, without forming them.
 
     Requires isotropic accel noise (``q_diag[3:6]`` equal), so that ``R σ_a² Rᵀ = σ_a² I``.
+    ``measured_accel`` False: the velocity is carried by a constant-velocity model, not by a
+    measured specific force, so it does not depend on attitude, accel bias or gravity.
     """
     omega = gyro_rad_s - b_g
     acc = accel_m_s2 - b_a
@@ -253,6 +266,10 @@ def propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s
     A_vth = -(R @ so3.hat(acc)) * dt
     B_vba = -R * dt
     C_vg = -(so3.hat(g) @ so3.s2_basis(g, g_anchor)) * dt
+    if not measured_accel:
+        A_vth[:] = 0.0
+        B_vba[:] = 0.0
+        C_vg[:] = 0.0
     FP = _left_mul_F(P, E_th, J_bg, A_vth, B_vba, C_vg, dt)
     out = _left_mul_F(FP.T.copy(), E_th, J_bg, A_vth, B_vba, C_vg, dt).T.copy()
     JJt = Jr @ Jr.T
@@ -267,14 +284,31 @@ def propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s
 
 
 @njit(cache=True)
+def _gap_inputs(R, b_a, g, gyro, k):
+    """Motion-model inputs across an IMU gap: the body rate of the last samples before it, and
+    the specific force that keeps the world velocity constant (R (a − b_a) + g = 0)."""
+    lo = max(k - 7, 0)
+    rate = np.zeros(3)
+    for j in range(lo, k + 1):
+        rate += gyro[j]
+    return rate / (k + 1 - lo), R.T @ (-g) + b_a
+
+
+@njit(cache=True)
 def propagate_scan(p, R, v, b_g, b_a, g, g_anchor, P, imu_tau, gyro, accel, tau_start, tau_end,
-                   q_diag, noise_dt):
+                   q_diag, noise_dt, gap_s, q_gap):
     """Forward propagation over one scan with pose records (§5.2).
 
     ``imu_tau`` (n,) sample times (s, relative), ``accel`` already scaled; the first sample is the
     last one consumed by the previous scan (it may precede ``tau_start``). Mid-point inputs per
     interval; the last input is held to ``tau_end``. Record k holds the state at ``rec_tau[k]``
     and the body rate / world acceleration valid from it to the next record.
+
+    IMU gaps (an interval between samples, or from the last sample to ``tau_end``, longer than
+    ``gap_s``): nothing is integrated there. A constant-velocity, constant-rate motion model
+    (:func:`_gap_inputs`) carries the state and ``q_gap`` (continuous-time densities², the
+    motion model's random acceleration and rate) grows the covariance with the gap's length, so
+    the LiDAR update carries the pose.
     """
     n = imu_tau.shape[0]
     m_max = n + 1
@@ -288,13 +322,20 @@ def propagate_scan(p, R, v, b_g, b_a, g, g_anchor, P, imu_tau, gyro, accel, tau_
     m = 0
     gyro_in = gyro[n - 1].copy()
     acc_in = accel[n - 1].copy()
+    gap = False
+    broke = False
     for k in range(n - 1):
         t1 = imu_tau[k + 1]
-        gyro_in = 0.5 * (gyro[k] + gyro[k + 1])
-        acc_in = 0.5 * (accel[k] + accel[k + 1])
+        gap = t1 - imu_tau[k] > gap_s
+        if gap:
+            gyro_in, acc_in = _gap_inputs(R, b_a, g, gyro, k)
+        else:
+            gyro_in = 0.5 * (gyro[k] + gyro[k + 1])
+            acc_in = 0.5 * (accel[k] + accel[k + 1])
         if t1 <= tau:
             continue
         if t1 > tau_end:
+            broke = True
             break
         dt = t1 - max(imu_tau[k], tau)
         rec_tau[m] = tau
@@ -304,10 +345,15 @@ def propagate_scan(p, R, v, b_g, b_a, g, g_anchor, P, imu_tau, gyro, accel, tau_
         rec_w[m] = gyro_in - b_g
         rec_a[m] = R @ (acc_in - b_a) + g
         m += 1
-        q = q_diag if not noise_dt else q_diag / dt
-        P = propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_in, acc_in, dt, q)
+        q = q_gap / dt if gap else (q_diag if not noise_dt else q_diag / dt)
+        P = propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_in, acc_in, dt, q,
+                                      not gap)
         p, R, v = discrete_step(p, R, v, b_g, b_a, g, gyro_in, acc_in, dt)
         tau = t1
+    if not broke:
+        gap = tau_end - imu_tau[n - 1] > gap_s
+        if gap:
+            gyro_in, acc_in = _gap_inputs(R, b_a, g, gyro, n - 1)
     rec_tau[m] = tau
     rec_R[m] = R
     rec_p[m] = p
@@ -317,8 +363,9 @@ def propagate_scan(p, R, v, b_g, b_a, g, g_anchor, P, imu_tau, gyro, accel, tau_
     m += 1
     dt = tau_end - tau
     if dt > 0.0:
-        q = q_diag if not noise_dt else q_diag / dt
-        P = propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_in, acc_in, dt, q)
+        q = q_gap / dt if gap else (q_diag if not noise_dt else q_diag / dt)
+        P = propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_in, acc_in, dt, q,
+                                      not gap)
         p, R, v = discrete_step(p, R, v, b_g, b_a, g, gyro_in, acc_in, dt)
     return (p, R, v, P, rec_tau[:m].copy(), rec_R[:m].copy(), rec_p[:m].copy(),
             rec_v[:m].copy(), rec_w[:m].copy(), rec_a[:m].copy())
@@ -338,12 +385,15 @@ class PoseRecords:
 
 def propagate(state: State, P: np.ndarray, imu_tau_s: np.ndarray, gyro_rad_s: np.ndarray,
               accel_m_s2: np.ndarray, tau_start_s: float, tau_end_s: float, q_diag: np.ndarray,
-              noise_discretization: str = "dt2") -> tuple[State, np.ndarray, PoseRecords]:
-    """Propagate ``state`` and ``P`` from ``tau_start_s`` to ``tau_end_s`` (§5.2)."""
+              noise_discretization: str = "dt2", gap_s: float = np.inf,
+              q_gap: np.ndarray | None = None) -> tuple[State, np.ndarray, PoseRecords]:
+    """Propagate ``state`` and ``P`` from ``tau_start_s`` to ``tau_end_s`` (§5.2), bridging
+    IMU gaps longer than ``gap_s`` with the motion model of :func:`propagate_scan`."""
     out = propagate_scan(state.p, state.R, state.v, state.b_g, state.b_a, state.g,
                          state.g_anchor, P, imu_tau_s, gyro_rad_s, accel_m_s2,
                          float(tau_start_s), float(tau_end_s), q_diag,
-                         noise_discretization == "dt")
+                         noise_discretization == "dt", float(gap_s),
+                         np.zeros(12) if q_gap is None else q_gap)
     new = state.copy()
     new.p, new.R, new.v = out[0], out[1], out[2]
     return new, out[3], PoseRecords(*out[4:])

@@ -242,6 +242,12 @@ class Odometry:
         self._t_first_scan_ns: int | None = None
         self._closest_still: imu.StillnessTest | None = None
         self._moving: MovingInit | None = None
+        self._gap_s = np.inf
+        """IMU gap threshold (s): imu.gap_periods nominal periods, set at initialization."""
+        self._q_gap = np.zeros(12)
+        self._last_gap: tuple[int, float] | None = None
+        """(start ns, length s) of the IMU gap bridged in the latest scan."""
+        self._warned_gap_ns: int | None = None
 
     # ------------------------------------------------------------------ public API
     @property
@@ -323,6 +329,8 @@ class Odometry:
         # 3-4. propagate with pose records, undistort to the scan end (§5)
         pts_e = self._propagate_and_undistort(pts, t_pts, t_e)
         t0 = _timer(stage_ms, "undistort", t0)
+        if self._last_gap is not None:
+            stats.imu_gap_s = self._last_gap[1]
 
         # 5. first scan after init: whole scan into the map, no update (§4)
         if self._t_first_map_ns is None:
@@ -467,9 +475,11 @@ class Odometry:
         self._t_state_ns = t_b_ns
         last = window.stop - 1
         self._prev_sample = (int(b.t_ns[last]), b.gyro[last].copy(), b.accel[last].copy())
+        self._set_gap_model(b.t_ns[window])
         self._buf = _ImuBuffer(b.t_ns[window.stop:], b.gyro[window.stop:], b.accel[window.stop:])
         if cfg.noise_source == "measured":
             self._q_diag = imu.process_noise(imu.measured_noise_config(cfg, test))
+            self._q_gap = imu.gap_noise(cfg, self._q_diag)
         self._moving = None
         self.initialized = True
         acc_mean = b.accel[window].mean(axis=0)
@@ -496,6 +506,7 @@ class Odometry:
                             g_anchor=so3.anchor_frame(g))
         self._P = initial_covariance(self.cfg.filter.estimate_extrinsic)
         self._t_state_ns = fit.t_ns
+        self._set_gap_model(self._moving.imu_t_ns)
         last = max(int(np.searchsorted(b.t_ns, fit.t_ns, side="right")) - 1, 0)
         self._prev_sample = (int(b.t_ns[last]), b.gyro[last].copy(), b.accel[last].copy())
         self._buf = _ImuBuffer(b.t_ns[last + 1:], b.gyro[last + 1:], b.accel[last + 1:])
@@ -509,6 +520,40 @@ class Odometry:
                     f"{fit.residual_m * 100:.1f} cm RMS, unconstrained |g| "
                     f"{fit.gravity_norm_fit_m_s2:.2f} m/s^2"))
         return fit.points_lidar_end
+
+    def _set_gap_model(self, t_ns: np.ndarray) -> None:
+        """Nominal IMU period from the initialization samples, and the gap threshold."""
+        dt = np.diff(t_ns)
+        period_s = float(np.median(dt[dt > 0])) * 1e-9 if np.any(dt > 0) else np.inf
+        self._gap_s = self.cfg.imu.gap_periods * period_s
+        self._q_gap = imu.gap_noise(self.cfg.imu, self._q_diag)
+
+    def _find_gap(self, imu_tau: np.ndarray, tau_end: float, t_ref: int) -> None:
+        """Record (and warn once about, or refuse beyond imu.max_gap_s) an IMU gap in this scan."""
+        tail = tau_end > imu_tau[-1]
+        edges = np.append(imu_tau, tau_end) if tail else imu_tau
+        lengths = np.diff(edges)
+        hit = np.flatnonzero((lengths > self._gap_s) & (edges[1:] > 0.0))
+        if hit.size == 0:
+            self._last_gap = None
+            return
+        k = int(hit[np.argmax(lengths[hit])])
+        start_ns = t_ref + round(edges[k] * 1e9)
+        length_s = float(lengths[k])
+        ongoing = tail and k == len(edges) - 2  # full length known once the IMU resumes
+        self._last_gap = (start_ns, length_s)
+        if length_s > self.cfg.imu.max_gap_s:
+            raise InputError(f"IMU gap of {'at least ' if ongoing else ''}{length_s:.2f} s after "
+                             f"t = {start_ns * 1e-9:.3f} s is longer than imu.max_gap_s "
+                             f"({self.cfg.imu.max_gap_s:g} s): the motion model cannot bridge "
+                             "it; split the bag there or raise imu.max_gap_s")
+        if not ongoing and self._warned_gap_ns != start_ns:
+            self._warned_gap_ns = start_ns
+            import warnings
+
+            warnings.warn(f"IMU gap of {length_s:.2f} s after t = {start_ns * 1e-9:.3f} s: "
+                          "bridged with a constant-velocity motion model, the LiDAR carries "
+                          "the pose (scans.csv column imu_gap)", stacklevel=3)
 
     def init_failure(self) -> str:
         """Why the filter has not initialized yet (for the error of a run with no pose)."""
@@ -542,9 +587,11 @@ class Odometry:
         gyro = np.vstack([gyro_prev[None], b.gyro[:n_use]])
         acc = np.vstack([acc_prev[None], b.accel[:n_use]]) * self._accel_scale
         tau_end = max((t_e_ns - t_ref) * 1e-9, 0.0)
+        self._find_gap(imu_tau, tau_end, t_ref)
         self._state, self._P, rec = imu.propagate(self._state, self._P, imu_tau, gyro, acc, 0.0,
                                                   tau_end, self._q_diag,
-                                                  self.cfg.imu.noise_discretization)
+                                                  self.cfg.imu.noise_discretization, self._gap_s,
+                                                  self._q_gap)
         if n_use:
             self._prev_sample = (int(b.t_ns[n_use - 1]), b.gyro[n_use - 1].copy(),
                                  b.accel[n_use - 1].copy())
