@@ -1,7 +1,8 @@
 """Benchmark: does the default preset initialize and track on sensors it was not tuned on?
 
 The sensor-variation matrix of issue #12, reusable by later work: for every scene, seed, IMU
-noise level (x HILTI BMI085 densities and initial biases, ``simulate(imu_noise_scale=...)``) and
+noise level (x the HILTI BMI085 white-noise densities, ``simulate(imu_noise_scale=...)``; bias
+walks and initial biases stay at the HILTI values) and
 LiDAR (XT-32 at 512 / 2000 columns, Ouster OS1-64), the simulator's sequence is run through
 ``adalio.pipeline.run_bag`` with the sequence's own ``config.yaml`` (preset ``hilti2022`` or
 ``ouster`` with the simulated extrinsic; nothing else set) twice:

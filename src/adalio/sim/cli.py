@@ -26,8 +26,8 @@ def register(app: typer.Typer) -> None:
         noise_scale: Annotated[float, typer.Option(
             "--noise-scale", help="Multiplier of all sensor noise (0 = perfect).")] = 1.0,
         imu_noise_scale: Annotated[float, typer.Option(
-            "--imu-noise-scale", help="Further multiplier of the IMU noise only (x HILTI "
-            "BMI085 densities).")] = 1.0,
+            "--imu-noise-scale", help="Further multiplier of the IMU white noise only (x the "
+            "HILTI BMI085 densities).")] = 1.0,
     ) -> None:
         """Simulate a handheld LiDAR + IMU walk through an indoor scene into a ROS bag."""
         import json

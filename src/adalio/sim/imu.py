@@ -55,8 +55,9 @@ def true_imu(traj: Trajectory, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 def synthesize_imu(traj: Trajectory, t_ns: np.ndarray, t0_ns: int, rng: np.random.Generator,
                    noise: ImuNoise | None = None, noise_scale: float = 1.0,
-                   rate_hz: float = 400.0) -> ImuData:
-    """IMU samples at ``t_ns`` (absolute) for a trajectory whose time origin is ``t0_ns``."""
+                   rate_hz: float = 400.0, white_scale: float = 1.0) -> ImuData:
+    """IMU samples at ``t_ns`` (absolute) for a trajectory whose time origin is ``t0_ns``;
+    ``white_scale`` further multiplies the white-noise densities only."""
     noise = noise or ImuNoise()
     n = len(t_ns)
     gyro_true, accel_true = true_imu(traj, (t_ns - t0_ns) * 1e-9)
@@ -72,7 +73,8 @@ def synthesize_imu(traj: Trajectory, t_ns: np.ndarray, t0_ns: int, rng: np.rando
     steps_a[0] = 0.0
     bg = bg0 + k * noise.gyro_bias_walk_rad_s2_sqrt_hz * np.sqrt(dt) * np.cumsum(steps_g, 0)
     ba = ba0 + k * noise.accel_bias_walk_m_s3_sqrt_hz * np.sqrt(dt) * np.cumsum(steps_a, 0)
-    gyro = gyro_true + bg + k * noise.gyro_noise_rad_s_sqrt_hz / np.sqrt(dt) * wg
-    accel = accel_true + ba + k * noise.accel_noise_m_s2_sqrt_hz / np.sqrt(dt) * wa
+    kw = k * white_scale
+    gyro = gyro_true + bg + kw * noise.gyro_noise_rad_s_sqrt_hz / np.sqrt(dt) * wg
+    accel = accel_true + ba + kw * noise.accel_noise_m_s2_sqrt_hz / np.sqrt(dt) * wa
     return ImuData(t_ns=t_ns, gyro_rad_s=gyro, accel_m_s2=accel, gyro_bias_rad_s=bg,
                    accel_bias_m_s2=ba, gyro_true_rad_s=gyro_true, accel_true_m_s2=accel_true)
