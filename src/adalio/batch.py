@@ -278,7 +278,16 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
     with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                       dashboard_address=None, memory_limit=0, host="127.0.0.1",
                       silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+        client.run(_ignore_sigint)
         yield client
+
+
+def _ignore_sigint() -> None:
+    """In an embedded worker process: leave Ctrl-C to the client, which cancels the tasks and
+    closes the cluster (the workers share the terminal's process group)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 # ------------------------------------------------------------------------------ the batch
