@@ -365,16 +365,24 @@ def run_jobs(jobs: Sequence[BagJob], out_dir: str | Path, *, client: Any = None,
             if on_row is not None:
                 on_row(row)
     todo = [j for j in jobs if j.name not in rows]
+
+    def summarize() -> tuple[list[BagRow], Path, Path]:
+        ordered = [rows.get(j.name) or BagRow(bag=j.name, status="cancelled",
+                                              error="cancelled (Ctrl-C) before it finished",
+                                              bag_path=str(j.bag_path)) for j in jobs]
+        return ordered, *write_summary(ordered, out)
+
     interrupted = False
     if todo:
-        with contextlib.ExitStack() as stack:
-            if client is None:
-                client = stack.enter_context(dask_client(workers, scheduler))
-            interrupted = _gather(client, todo, rows, len(jobs), progress, on_row)
-    ordered = [rows.get(j.name) or BagRow(bag=j.name, status="cancelled",
-                                          error="cancelled (Ctrl-C) before it finished",
-                                          bag_path=str(j.bag_path)) for j in jobs]
-    csv_path, md_path = write_summary(ordered, out)
+        try:
+            with contextlib.ExitStack() as stack:
+                if client is None:
+                    client = stack.enter_context(dask_client(workers, scheduler))
+                interrupted = _gather(client, todo, rows, len(jobs), progress, on_row)
+                summarize()  # before the cluster closes, which a Ctrl-C may cut short
+        except KeyboardInterrupt:
+            interrupted = True
+    ordered, csv_path, md_path = summarize()
     return BatchResult(out_dir=out, rows=ordered, summary_csv=csv_path, summary_md=md_path,
                        wall_s=time.perf_counter() - t0, interrupted=interrupted)
 
@@ -408,6 +416,10 @@ def _gather(client: Any, todo: Sequence[BagJob], rows: dict[str, BagRow], n_tota
                 if on_row is not None:
                     on_row(row)
     except KeyboardInterrupt:
+        import sys
+
+        sys.stderr.write("cancelling the unfinished bags and closing the workers "
+                         "(Ctrl-C again to stop at once)\n")
         with contextlib.suppress(Exception):
             client.cancel(list(futures), force=True)
         return True
