@@ -109,7 +109,7 @@ def test_rerun_skips_finished_bags_and_retries_failed_ones(local_batch, fleet: P
     proc = subprocess.run(
         [sys.executable, "-m", "adalio.cli", "batch", str(fleet), "--out", str(out),
          "--config", str(config_file), "--workers", "1"],
-        capture_output=True, text=True, timeout=300)
+        check=False, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 1, proc.stderr
     assert "2 skipped" in proc.stderr and "Traceback" not in proc.stderr
     assert "| broken | failed |" in proc.stdout
@@ -198,7 +198,7 @@ def test_bad_command_line_input_is_one_error_line(fleet: Path, tmp_path: Path) -
              ([str(fleet / "hall"), "--out", str(a_file)], "is a file")]
     for args, message in cases:
         proc = subprocess.run([sys.executable, "-m", "adalio.cli", "batch", *args],
-                              capture_output=True, text=True, timeout=60)
+                              check=False, capture_output=True, text=True, timeout=60)
         assert proc.returncode == 2
         assert proc.stderr.strip().startswith("error:") and message in proc.stderr
         assert len(proc.stderr.strip().splitlines()) == 1
@@ -217,7 +217,7 @@ def test_ctrl_c_cancels_and_keeps_finished_bags(fleet: Path, config_file: Path, 
     try:
         _wait_for(marker.is_file, "the first finished bag", [proc])
         os.killpg(proc.pid, signal.SIGINT)
-        stdout, stderr = proc.communicate(timeout=TIMEOUT_S)
+        _, stderr = proc.communicate(timeout=TIMEOUT_S)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
