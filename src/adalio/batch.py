@@ -351,6 +351,8 @@ def run_jobs(jobs: Sequence[BagJob], out_dir: str | Path, *, client: Any = None,
     this process for every row as it arrives (skipped ones first). On Ctrl-C the tasks are
     cancelled, the finished rows kept and the rest marked ``cancelled`` (``interrupted``)."""
     out = Path(out_dir)
+    if workers is not None and workers < 1:
+        raise InputError(f"--workers must be >= 1 (got {workers})")
     names = [j.name for j in jobs]
     if len(set(names)) != len(names):
         raise InputError("two jobs share an output folder name; give each bag its own name")
