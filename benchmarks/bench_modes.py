@@ -2,7 +2,10 @@
 
 For every scene and seed, the simulator's sequence (``adalio.sim.cached_sequence``) is run
 through ``adalio.pipeline.run_bag`` with the sequence's own ``config.yaml`` and only
-``adaptive.mode`` overridden. Per run: ATE RMSE after SE(3) (Umeyama) and first-pose alignment
+``adaptive.mode`` overridden; sequences and runs are tasks of the batch layer
+(``adalio.batch``) on an embedded Dask cluster with ``--workers`` processes (default: the
+number of cores), or on an existing one with ``--scheduler tcp://HOST:PORT``. Per run: ATE RMSE
+after SE(3) (Umeyama) and first-pose alignment
 (``adalio.eval.metrics.ate``, translation part, metres), the max first-pose-aligned error,
 divergence (max first-pose-aligned error > ``--diverge-m`` (1 m), or the run aborted / stopped
 before 90 % of the scans), the share of scans the detector put in the degenerate set, and the
@@ -20,20 +23,18 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import shlex
 import sys
 import time
-import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import yaml
 
+from adalio.batch import BagJob, BagRow, BatchResult, dask_client, run_jobs
 from adalio.config import MODES, config_from_dict, load_config
 from adalio.eval.metrics import ate
-from adalio.pipeline import run_bag
 from adalio.sim import SCENES, cached_sequence
 
 
@@ -90,58 +91,42 @@ def run_dir(out_root: Path, scene: str, seed: int, mode: str) -> Path:
     return out_root / f"{scene}_s{seed}_{mode.replace('+', 'plus')}"
 
 
-def load_row(out_root: Path, scene: str, seed: int, mode: str) -> RunRow | None:
-    path = run_dir(out_root, scene, seed, mode) / "bench_row.json"
-    if not path.is_file():
-        return None
-    row = RunRow(**json.loads(path.read_text()))
-    scans_csv = path.parent / "scans.csv"
-    if scans_csv.is_file():
-        row.scans = read_scans_csv(scans_csv)
-    return row
+def sequences(client, scenes: list[str], seeds: int, duration_s: float | None) -> dict:
+    """(scene, seed) -> SimResult, or the one-line reason the simulator failed; generated (or
+    taken from the cache) as tasks on the cluster."""
+    keys = [(scene, seed) for scene in scenes for seed in range(seeds)]
+    futures = [client.submit(cached_sequence, scene, seed=seed, duration_s=duration_s,
+                             pure=False) for scene, seed in keys]
+    out: dict = {}
+    for key, fut in zip(keys, futures, strict=True):
+        try:
+            out[key] = fut.result()
+        except Exception as exc:  # noqa: BLE001 - reported in the table, not a divergence
+            out[key] = f"simulator: {exc}".splitlines()[0][:120]
+    return out
 
 
-def save_row(out_root: Path, row: RunRow) -> None:
-    d = run_dir(out_root, row.scene, row.seed, row.mode)
-    d.mkdir(parents=True, exist_ok=True)
-    (d / "bench_row.json").write_text(json.dumps(row.to_json()))
-
-
-def run_one(scene: str, seed: int, mode: str, duration_s: float | None, out_root: Path,
-            diverge_m: float, overrides: dict[str, str] | None = None) -> RunRow:
+def run_row(bag_row: BagRow, job: BagJob, scene: str, seed: int, mode: str, sim,
+            diverge_m: float) -> RunRow:
+    """The benchmark's metrics of one finished batch task."""
     row = RunRow(scene, seed, mode)
-    try:
-        sim = cached_sequence(scene, seed=seed, duration_s=duration_s)
-    except Exception as exc:  # noqa: BLE001 - reported in the table, not a divergence
-        row.aborted = f"simulator: {exc}".splitlines()[0][:120]
-        row.diverged, row.sim_failed = False, True
+    if bag_row.status != "ok":
+        row.aborted = bag_row.error[:120] or bag_row.status
         return row
-    cfg = load_config(config_file=sim.config_path,
-                      overrides={**(overrides or {}), "adaptive.mode": mode})
-    out_dir = run_dir(out_root, scene, seed, mode)
-    try:
-        res = run_bag(sim.bag_path, cfg, out_dir, progress=False)
-    except Exception as exc:  # noqa: BLE001 - a crashed run is a diverged run in this table
-        row.aborted = f"{type(exc).__name__}: {exc}".splitlines()[0][:120]
-        traceback.print_exc(file=sys.stderr)
-        return row
-    row.n_scans = res.n_scans
-    row.ms_per_scan = res.ms_per_scan_median
-    row.scans = read_scans_csv(res.scans_csv_path)
+    row.n_scans = bag_row.poses
+    row.ms_per_scan = bag_row.ms_per_scan
+    row.scans = read_scans_csv(job.run_dir / "scans.csv")
     if row.scans:
         row.pct_degenerate = 100.0 * float(np.mean(row.scans["degenerate"]))
-    expected = gt_scan_count(sim.gt_path, cfg.sensor.lidar_rate_hz)
-    if res.interrupted:
-        row.aborted = "interrupted"
-    elif expected and res.n_scans < 0.9 * expected - 5:
-        row.aborted = f"stopped at {res.n_scans}/{expected} scans"
+    expected = gt_scan_count(sim.gt_path, job.config.sensor.lidar_rate_hz)
+    if expected and row.n_scans < 0.9 * expected - 5:
+        row.aborted = f"stopped at {row.n_scans}/{expected} scans"
     try:
-        se3 = ate(res.trajectory_path, sim.gt_path, align="se3")
-        first = ate(res.trajectory_path, sim.gt_path, align="first")
+        first = ate(job.run_dir / "trajectory.tum", sim.gt_path, align="first")
     except Exception as exc:  # noqa: BLE001
         row.aborted = row.aborted or f"eval failed: {exc}".splitlines()[0][:120]
         return row
-    row.ate_se3_m = se3["rmse_m"]
+    row.ate_se3_m = bag_row.ate_se3_m
     row.ate_first_m = first["rmse_m"]
     row.max_err_m = first["max_m"]
     row.diverged = bool(row.aborted) or not (row.max_err_m <= diverge_m)
@@ -225,6 +210,51 @@ def threshold_table(rows: list[RunRow], cfg_adaptive) -> str:
     return "\n".join(lines)
 
 
+def run_all(args: argparse.Namespace, overrides: dict[str, str], out_root: Path,
+            t0: float) -> tuple[BatchResult, list[RunRow]]:
+    """Sequences, then every (scene, seed, mode) run, on one Dask cluster; rows in table order.
+    Prints one line per run as it finishes."""
+    runs: dict[str, tuple[str, int, str, object]] = {}
+    failed_sims: list[RunRow] = []
+    jobs: list[BagJob] = []
+    with dask_client(args.workers, args.scheduler) as client:
+        sims = sequences(client, args.scenes, args.seeds, args.duration)
+        for scene in args.scenes:
+            for seed in range(args.seeds):
+                sim = sims[(scene, seed)]
+                for mode in args.modes:
+                    if isinstance(sim, str):
+                        failed_sims.append(RunRow(scene, seed, mode, aborted=sim,
+                                                  diverged=False, sim_failed=True))
+                        continue
+                    cfg = load_config(config_file=sim.config_path,
+                                      overrides={**overrides, "adaptive.mode": mode})
+                    name = run_dir(out_root, scene, seed, mode).name
+                    jobs.append(BagJob(name, sim.bag_path, cfg, out_root, sim.gt_path))
+                    runs[name] = (scene, seed, mode, sim)
+        by_name = {j.name: j for j in jobs}
+        done: dict[str, RunRow] = {}
+
+        def report(bag_row: BagRow) -> None:
+            scene, seed, mode, sim = runs[bag_row.bag]
+            row = run_row(bag_row, by_name[bag_row.bag], scene, seed, mode, sim,
+                          args.diverge_m)
+            done[bag_row.bag] = row
+            took = "reused" if bag_row.skipped else f"{bag_row.wall_s:.0f} s"
+            print(f"[{time.perf_counter() - t0:7.0f} s] {scene} seed {seed} {mode}: "
+                  f"ATE se3 {row.ate_se3_m:.3f} m first {row.ate_first_m:.3f} m max "
+                  f"{row.max_err_m:.3f} m degenerate {row.pct_degenerate:.0f} % "
+                  f"{row.ms_per_scan:.0f} ms/scan {triggers(row)} {row.aborted} "
+                  f"({took}, {bag_row.worker})", file=sys.stderr, flush=True)
+
+        result = run_jobs(jobs, out_root, client=client, force=not args.resume, on_row=report)
+    rows = failed_sims + [done[j.name] for j in jobs if j.name in done]
+    order = {(sc, sd, m): k for k, (sc, sd, m) in enumerate(
+        (sc, sd, m) for sc in args.scenes for sd in range(args.seeds) for m in args.modes)}
+    rows.sort(key=lambda r: order[(r.scene, r.seed, r.mode)])
+    return result, rows
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
@@ -238,30 +268,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for every run, e.g. --set adaptive.tau_n=1500")
     ap.add_argument("--resume", action="store_true",
-                    help="reuse finished runs found in --out (same options assumed)")
+                    help="reuse finished runs found in --out (the batch layer's markers: "
+                         "same bag, ground truth and config)")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="worker processes of the embedded Dask cluster (default: cores); "
+                         "ms/scan is timed under that parallel load, use 1 for timings")
+    ap.add_argument("--scheduler", default=None,
+                    help="existing Dask scheduler (tcp://HOST:PORT) on a shared filesystem")
     args = ap.parse_args(argv)
     overrides = parse_overrides(args.set)
+    out_root = args.out.expanduser().resolve()
 
-    rows: list[RunRow] = []
     t0 = time.perf_counter()
-    for scene in args.scenes:
-        for seed in range(args.seeds):
-            for mode in args.modes:
-                t_run = time.perf_counter()
-                row = load_row(args.out, scene, seed, mode) if args.resume else None
-                if row is None:
-                    row = run_one(scene, seed, mode, args.duration, args.out, args.diverge_m,
-                                  overrides)
-                    if not row.sim_failed:
-                        save_row(args.out, row)
-                rows.append(row)
-                print(f"[{time.perf_counter() - t0:7.0f} s] {scene} seed {seed} {mode}: "
-                      f"ATE se3 {row.ate_se3_m:.3f} m first {row.ate_first_m:.3f} m max "
-                      f"{row.max_err_m:.3f} m degenerate {row.pct_degenerate:.0f} % "
-                      f"{row.ms_per_scan:.0f} ms/scan {triggers(row)} {row.aborted} "
-                      f"({time.perf_counter() - t_run:.0f} s)", file=sys.stderr, flush=True)
+    try:
+        result, rows = run_all(args, overrides, out_root, t0)
+    except KeyboardInterrupt:
+        result = None
+    if result is None or result.interrupted:
+        print("interrupted: finished runs are kept (rerun with --resume)", file=sys.stderr)
+        return 130
 
-    saved = [run_dir(args.out, r.scene, r.seed, r.mode) / "config.yaml" for r in rows]
+    saved = [run_dir(out_root, r.scene, r.seed, r.mode) / "config.yaml" for r in rows]
     saved = [p for p in saved if p.is_file()]
     cfg0 = (config_from_dict(yaml.safe_load(saved[0].read_text())) if saved
             else load_config(overrides=overrides))

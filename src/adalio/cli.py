@@ -36,7 +36,7 @@ def version() -> None:
     typer.echo(__version__)
 
 
-_COMMAND_MODULES = ("adalio.io.cli", "adalio.sim.cli", "adalio.eval.cli")
+_COMMAND_MODULES = ("adalio.io.cli", "adalio.sim.cli", "adalio.eval.cli", "adalio.batch")
 
 for _name in _COMMAND_MODULES:
     try:

@@ -1,0 +1,277 @@
+"""``adalio batch`` on real Dask clusters: an embedded LocalCluster with 2 workers, and a
+``dask scheduler`` with two ``dask worker`` processes started here on 127.0.0.1.
+
+Truths the batch is checked against: a direct :func:`adalio.pipeline.run_bag` of the same bag
+(trajectory bytes), :func:`adalio.eval.metrics.ate` on the written trajectory (summary ATE),
+the scheduler's own list of workers (summary ``worker`` column).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+import adalio
+from adalio.batch import find_bags, find_gt, process_bag, run_batch, unique_names
+from adalio.config import load_config
+from adalio.errors import InputError
+from adalio.eval.metrics import ate
+from adalio.pipeline import run_bag
+
+SCENES = ("hall", "corridor")
+TIMEOUT_S = 60.0
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """FLEET/<scene>/<scene>.bag + gt.tum + config.yaml (4 s, 512 columns) and a garbage
+    FLEET/broken.bag."""
+    root = tmp_path_factory.mktemp("fleet")
+    for k, scene in enumerate(SCENES):
+        adalio.simulate(scene, root / scene, seed=k + 1, duration_s=4, columns=512)
+    (root / "broken.bag").write_bytes(os.urandom(4096))
+    return root
+
+
+@pytest.fixture(scope="module")
+def config_file(fleet: Path) -> Path:
+    return fleet / "hall" / "config.yaml"
+
+
+@pytest.fixture(scope="module")
+def direct(fleet: Path, config_file: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The hall bag run in this process, as ``adalio run`` does (also warms the numba cache
+    the worker processes then load)."""
+    out = tmp_path_factory.mktemp("direct") / "hall"
+    run_bag(fleet / "hall" / "hall.bag", load_config(None, config_file), out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def local_batch(fleet: Path, config_file: Path, direct: Path,
+                tmp_path_factory: pytest.TempPathFactory):
+    out = tmp_path_factory.mktemp("batch") / "out"
+    return run_batch([fleet], out, config_file=config_file, workers=2)
+
+
+def read_summary(out: Path) -> dict[str, dict[str, str]]:
+    with open(out / "summary.csv", newline="", encoding="utf-8") as fh:
+        return {r["bag"]: r for r in csv.DictReader(fh)}
+
+
+def test_local_cluster_runs_every_bag_and_a_garbage_bag_fails_alone(local_batch) -> None:
+    rows = read_summary(local_batch.out_dir)
+    assert set(rows) == {"hall", "corridor", "broken"}
+    assert rows["broken"]["status"] == "failed"
+    assert "not a ROS1 bag" in rows["broken"]["error"]
+    assert "\n" not in rows["broken"]["error"]
+    for scene in SCENES:
+        row = rows[scene]
+        assert row["status"] == "ok" and row["error"] == ""
+        assert row["worker"].startswith("tcp://127.0.0.1:")
+        traj = (local_batch.out_dir / scene / "trajectory.tum").read_text().splitlines()
+        assert int(row["poses"]) == len(traj) > 20
+        assert int(row["scans"]) >= int(row["poses"])
+        assert {p.name for p in (local_batch.out_dir / scene).iterdir()} == \
+            {"trajectory.tum", "scans.csv", "map.ply", "config.yaml"}
+    assert (local_batch.n_ok, local_batch.n_failed, local_batch.n_skipped) == (2, 1, 0)
+    md = (local_batch.out_dir / "summary.md").read_text()
+    assert md.startswith("| bag | status |") and md.count("\n") == 5
+
+
+def test_trajectory_is_bit_identical_to_a_direct_run(local_batch, direct: Path) -> None:
+    for name in ("trajectory.tum", "config.yaml", "map.ply"):
+        assert (local_batch.out_dir / "hall" / name).read_bytes() == (direct / name).read_bytes()
+
+
+def test_summary_ate_is_the_ate_of_the_written_trajectory(local_batch, fleet: Path) -> None:
+    rows = read_summary(local_batch.out_dir)
+    for scene in SCENES:
+        truth = ate(local_batch.out_dir / scene / "trajectory.tum", fleet / scene / "gt.tum",
+                    align="se3")["rmse_m"]
+        assert float(rows[scene]["ate_se3_m"]) == pytest.approx(truth, rel=1e-5)
+        assert truth < 0.2
+    assert rows["broken"]["ate_se3_m"] == ""
+
+
+def test_rerun_skips_finished_bags_and_retries_failed_ones(local_batch, fleet: Path,
+                                                           config_file: Path) -> None:
+    out = local_batch.out_dir
+    before = {s: (out / s / "trajectory.tum").stat().st_mtime_ns for s in SCENES}
+    old = read_summary(out)
+    proc = subprocess.run(
+        [sys.executable, "-m", "adalio.cli", "batch", str(fleet), "--out", str(out),
+         "--config", str(config_file), "--workers", "1"],
+        check=False, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 1, proc.stderr
+    assert "2 skipped" in proc.stderr and "Traceback" not in proc.stderr
+    assert "| broken | failed |" in proc.stdout
+    rows = read_summary(out)
+    for scene in SCENES:
+        assert (out / scene / "trajectory.tum").stat().st_mtime_ns == before[scene]
+        assert rows[scene] == old[scene]
+    assert rows["broken"]["worker"].startswith("tcp://127.0.0.1:")
+
+
+def test_force_reruns_a_finished_bag(local_batch, fleet: Path, config_file: Path) -> None:
+    out = local_batch.out_dir
+    marker = out / ".adalio-batch" / "hall.json"
+    first = json.loads(marker.read_text())["row"]["wall_s"]
+    res = run_batch([fleet / "hall" / "hall.bag"], out, config_file=config_file, workers=1,
+                    force=True)
+    assert [(r.bag, r.status, r.skipped) for r in res.rows] == [("hall", "ok", False)]
+    assert json.loads(marker.read_text())["row"]["wall_s"] != first
+    # a changed setting is not "done" either
+    res = run_batch([fleet / "hall" / "hall.bag"], out, config_file=config_file, workers=1,
+                    mode="fixed")
+    assert not res.rows[0].skipped and res.rows[0].status == "ok"
+
+
+def _wait_for(predicate, what: str, procs: list[subprocess.Popen]) -> None:
+    deadline = time.monotonic() + TIMEOUT_S
+    while not predicate():
+        for p in procs:
+            if p.poll() is not None:
+                raise AssertionError(f"{what}: {p.args[:2]} exited with {p.returncode}")
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.2)
+
+
+def test_external_cluster_runs_the_bags_on_its_workers(fleet: Path, config_file: Path,
+                                                       direct: Path, tmp_path: Path) -> None:
+    from distributed import Client
+
+    dask_bin = str(Path(sys.executable).parent / "dask")
+    sched_file = tmp_path / "scheduler.json"
+    common = ["--scheduler-file", str(sched_file), "--no-dashboard"]
+    procs: list[subprocess.Popen] = []
+    try:
+        procs.append(subprocess.Popen([dask_bin, "scheduler", "--host", "127.0.0.1",
+                                       "--port", "0", *common],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        _wait_for(sched_file.is_file, "the scheduler file", procs)
+        for _ in range(2):
+            procs.append(subprocess.Popen(
+                [dask_bin, "worker", "--nthreads", "1", "--host", "127.0.0.1",
+                 "--memory-limit", "0", *common],
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        address = json.loads(sched_file.read_text())["address"]
+        assert address.startswith("tcp://127.0.0.1:")
+        with Client(address, timeout="20s") as client:
+            client.wait_for_workers(2, timeout=TIMEOUT_S)
+            workers = set(client.scheduler_info()["workers"])
+        assert len(workers) == 2
+        out = tmp_path / "out"
+        res = run_batch([fleet / s / f"{s}.bag" for s in SCENES], out,
+                        config_file=config_file, scheduler=address)
+        rows = read_summary(out)
+        assert [r.status for r in res.rows] == ["ok", "ok"]
+        assert {r["worker"] for r in rows.values()} <= workers
+        assert (out / "hall" / "trajectory.tum").read_bytes() == \
+            (direct / "trajectory.tum").read_bytes()
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(timeout=10)
+
+
+def test_bad_command_line_input_is_one_error_line(fleet: Path, tmp_path: Path) -> None:
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    a_file = tmp_path / "file.txt"
+    a_file.write_text("x")
+    cases = [([str(empty), "--out", str(tmp_path / "o")], "no bags in folder"),
+             ([str(tmp_path / "missing"), "--out", str(tmp_path / "o")], "does not exist"),
+             ([str(fleet / "hall"), "--out", str(a_file)], "is a file")]
+    for args, message in cases:
+        proc = subprocess.run([sys.executable, "-m", "adalio.cli", "batch", *args],
+                              check=False, capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 2
+        assert proc.stderr.strip().startswith("error:") and message in proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_ctrl_c_cancels_and_keeps_finished_bags(fleet: Path, config_file: Path, direct: Path,
+                                                tmp_path: Path) -> None:
+    import signal
+
+    out = tmp_path / "out"
+    marker = out / ".adalio-batch" / "corridor.json"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "adalio.cli", "batch", str(fleet), "--out", str(out),
+         "--config", str(config_file), "--workers", "1"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        _wait_for(marker.is_file, "the first finished bag", [proc])
+        os.killpg(proc.pid, signal.SIGINT)
+        _, stderr = proc.communicate(timeout=TIMEOUT_S)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=10)
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr and "interrupted" in stderr
+    rows = read_summary(out)
+    assert rows["corridor"]["status"] == "ok"
+    assert rows["hall"]["status"] in ("ok", "cancelled")
+    assert (out / "corridor" / "trajectory.tum").is_file()
+
+
+def test_unreachable_scheduler_is_an_input_error(fleet: Path, tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    import socket
+
+    import adalio.batch
+
+    monkeypatch.setattr(adalio.batch, "CONNECT_TIMEOUT_S", 2.0)
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with pytest.raises(InputError, match="cannot reach the Dask scheduler"):
+        run_batch([fleet / "hall" / "hall.bag"], tmp_path / "o",
+                  scheduler=f"tcp://127.0.0.1:{port}")
+
+
+def test_finding_bags_names_and_ground_truth(tmp_path: Path) -> None:
+    for day in ("day1", "day2"):
+        (tmp_path / day).mkdir()
+        (tmp_path / day / "run.bag").write_bytes(b"")
+    ros2 = tmp_path / "day2" / "walk_ros2"
+    ros2.mkdir()
+    (ros2 / "metadata.yaml").write_text("x")
+    (ros2 / "walk_ros2_0.mcap").write_bytes(b"")
+    (tmp_path / "day2" / "loop.mcap").write_bytes(b"")
+    (tmp_path / "day1" / "gt.tum").write_text("")
+    (tmp_path / "day2" / "run_gt.tum").write_text("")
+    bags = find_bags([tmp_path])
+    assert bags == [tmp_path / "day1" / "run.bag", tmp_path / "day2" / "loop.mcap",
+                    tmp_path / "day2" / "run.bag", ros2]
+    assert unique_names(bags) == ["day1_run", "loop", "day2_run", "walk_ros2"]
+    assert find_gt(bags[0]) == tmp_path / "day1" / "gt.tum"
+    assert find_gt(bags[2]) is None
+    assert find_gt(bags[2], "{name}_gt.tum") == tmp_path / "day2" / "run_gt.tum"
+    assert find_gt(bags[0], "{dir}/../day2/{name}_gt.tum") is not None
+
+
+def test_a_task_outside_a_cluster_reports_errors_as_rows(tmp_path: Path) -> None:
+    from adalio.batch import BagJob
+
+    bad = tmp_path / "x.bag"
+    bad.write_bytes(b"#ROSBAG V2.0\n" + b"\0" * 64)
+    row = process_bag(BagJob("x", bad, load_config(), tmp_path / "out"))
+    assert row.status == "failed" and row.error and "\n" not in row.error
+    assert not (tmp_path / "out" / ".adalio-batch" / "x.json").exists()
