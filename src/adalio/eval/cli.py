@@ -155,12 +155,14 @@ def compare_command(
 
 
 def demo_command(
-    out: Annotated[Path, typer.Option(help="Output folder.")] = Path("adalio_demo"),
+    out: Annotated[Path | None, typer.Option(
+        help="Output folder [default: runs/demo]")] = None,
     short: Annotated[bool, typer.Option("--short", help="Much shorter sequence (CI).")] = False,
 ) -> None:
     """Simulate a spiral staircase descent and compare fixed vs adaptive (no data needed)."""
-    from adalio.eval.demo import run_demo
+    from adalio.eval.demo import DEFAULT_OUT, run_demo
 
+    out = DEFAULT_OUT if out is None else out
     console = Console()
     t0 = time.perf_counter()
     res = run_demo(out, short=short, console=console)
