@@ -188,7 +188,8 @@ def test_info_reports_topics_and_time_format(monkeypatch, capsys, rig):
     n = 180 * 16
     assert f"min {n}, median {n}, max {n}" in out
     assert "accelerometer in m/s^2" in out
-    assert "T_imu_lidar from config: t = [0.0, 0.0, 0.0] m" in out
+    assert "T_imu_lidar from identity (fallback): t = [0.0, 0.0, 0.0] m" in out
+    assert "warning: no extrinsic in the preset, the config or /tf_static" in err
 
 
 def test_config_show_roundtrips(monkeypatch, capsys):

@@ -171,7 +171,7 @@ def _f(value: float | None, digits: int = 3) -> str:
     return f"{value:.{digits}f}"
 
 
-TABLE_HEADER = ("mode", "ATE rmse [m]", "max err [m]", "diverged", "degenerate [%]",
+TABLE_HEADER = ("mode", "ATE rmse (m)", "max err (m)", "diverged", "degenerate (%)",
                 "ms/scan", "scans")
 
 
