@@ -41,6 +41,8 @@ GENERAL_RGB = (70, 140, 230)
 DEGENERATE_RGB = (240, 130, 30)
 MAP_RGB = (160, 160, 160)
 TRAJECTORY_RGB = (40, 200, 90)
+FLUSH_TIMEOUT_S = 10.0
+"""How long :meth:`RerunView.close` waits for the viewer / file to take the last messages."""
 MAX_SCAN_POINTS = 20_000
 """Scans with more points are logged with a regular stride (bounds the .rrd size)."""
 
@@ -191,7 +193,9 @@ class RerunView:
             return
         try:
             self._flush_map()
-            self._rec.flush(timeout_sec=10.0)
+            self._rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
+        except RuntimeError as exc:  # a viewer closed early or never reachable: the run is done
+            warnings.warn(f"the rerun viewer did not receive everything ({exc})", stacklevel=2)
         finally:
             self._rec.disconnect()
             self._rec = None
