@@ -168,7 +168,8 @@ def demo_command(
     t0 = time.perf_counter()
     res = run_demo(out, short=short, console=console)
     _print_compare(console, res.compare)
-    console.print(f"simulated bag: {res.bag_path}  (ground truth {res.gt_path})")
+    console.print(f"simulated bag: {res.bag_path}  (ground truth {res.gt_path}; cached "
+                  f"sequence {res.cache_bytes / 1e6:.0f} MB, reused next time)", highlight=False)
     for row in res.compare.rows:
         if row.report:
             console.print(f"report ({row.mode}): [bold]{row.report}[/]")

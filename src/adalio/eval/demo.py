@@ -40,6 +40,16 @@ class DemoResult:
     gt_path: Path
     sim_s: float
     total_s: float
+    cache_bytes: int = 0
+    """Disk use of the cached sequence (bag, ground truth, scene mesh, metadata)."""
+
+
+def disk_bytes(path: str | Path) -> int:
+    """Size of a file, or of all files under a folder (bytes)."""
+    p = Path(path)
+    if p.is_file():
+        return p.stat().st_size
+    return sum(f.stat().st_size for f in p.rglob("*") if f.is_file())
 
 
 def run_demo(out_dir: str | Path, *, short: bool = False, progress: bool = True,
@@ -59,4 +69,5 @@ def run_demo(out_dir: str | Path, *, short: bool = False, progress: bool = True,
     result = compare_modes(sim.bag_path, list(DEMO_MODES), out_dir, gt=sim.gt_path,
                            config_file=sim.config_path, progress=progress, console=console)
     return DemoResult(compare=result, bag_path=Path(sim.bag_path), gt_path=Path(sim.gt_path),
-                      sim_s=sim_s, total_s=time.perf_counter() - t_start)
+                      sim_s=sim_s, total_s=time.perf_counter() - t_start,
+                      cache_bytes=disk_bytes(Path(sim.gt_path).parent))
