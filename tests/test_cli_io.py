@@ -113,7 +113,8 @@ def test_cloud_without_xyz(monkeypatch, capsys, tmp_path):
     path = bf.write_static_rig(tmp_path / "noz.bag", duration_s=0.5, columns=30, layout=layout,
                                point_step=16)
     for cmd in ("run", "info"):
-        code, _, err = run_cli(monkeypatch, capsys, cmd, path)
+        out = ("--out", tmp_path / "o") if cmd == "run" else ()
+        code, _, err = run_cli(monkeypatch, capsys, cmd, path, *out)
         assert_one_line_error(code, err, "PointCloud2 on /points has no z field",
                               "fields: x, y, intensity, t")
 

@@ -11,7 +11,8 @@ the timeline ``scan_time`` (the scan end, absolute ns) and the sequence ``scan``
 * ``world/trajectory``: the IMU positions so far (line strip), ``world/imu``: the IMU pose;
 * ``world/weakest_direction``: the translation part of the weakest eigenvector of the scan's
   6x6 point-to-plane information (world frame, see :mod:`adalio.lio.degeneracy`), as an arrow
-  at the IMU, 1 m long at degeneracy score 1, labelled with the score;
+  at the IMU scaled by the degeneracy score (1 m for a pure translation at score 1), labelled
+  with the score;
 * ``plots/...``: the degeneracy score and flag, the point counts (raw, downsampled, matched)
   and the filter's position and yaw standard deviations (square roots of the covariance
   diagonal, cm and degrees).
