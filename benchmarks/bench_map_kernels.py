@@ -15,7 +15,7 @@ import numpy as np
 
 from adalio.lio import ivox as ivox_module
 from adalio.lio import plane as plane_module
-from adalio.lio.ivox import IVox, select_for_insertion
+from adalio.lio.ivox import IVox
 from adalio.lio.plane import fit_planes
 from adalio.lio.voxel import voxel_downsample
 
@@ -97,19 +97,12 @@ def main() -> None:
                 )
             )
     nbrs, counts, _ = ivox.knn(queries, 5, 5.0)
-    rows.append(
-        (
-            "select_for_insertion 2000 pts",
-            median_ms(lambda: select_for_insertion(queries, nbrs, counts, 0.2, False), 50),
-        )
-    )
 
     def insert_scan() -> None:
-        keep = select_for_insertion(queries, nbrs, counts, 0.2, False)
-        ivox.add_points(queries[keep])
+        ivox.add_points(queries)
 
     rows.append(
-        ("IVox.add_points of the selected 2000-pt scan (existing map)", median_ms(insert_scan, 20))
+        ("IVox.add_points of a 2000-pt scan (existing map)", median_ms(insert_scan, 20))
     )
     for method in ("ls", "pca"):
         for label, threshold in (("1 thread", serial), (f"{threads} threads", parallel)):

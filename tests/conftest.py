@@ -1,11 +1,48 @@
-"""Shared pytest set-up: generated data goes to the repo's git-ignored .cache folder."""
+"""Shared pytest set-up: generated sequences go under pytest's temporary folder.
+
+``adalio.sim.cached_sequence`` writes into ``$ADALIO_CACHE_DIR``. Unless that is set already (to
+reuse sequences between sessions on purpose), it points at ``adalio-cache`` in this session's
+``tmp_path_factory`` base (``/tmp/pytest-of-$USER/pytest-N``), which is deleted at the end of
+the session; the terminal summary says how much it held. A test run leaves nothing in the
+repository.
+"""
 
 import os
+import shutil
 from pathlib import Path
 
 import matplotlib
+import pytest
 
 matplotlib.use("Agg")
 
 REPO = Path(__file__).resolve().parents[1]
-os.environ.setdefault("ADALIO_CACHE_DIR", str(REPO / ".cache"))
+_SESSION_CACHE: list[Path] = []
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_configure(config: pytest.Config) -> None:
+    if os.environ.get("ADALIO_CACHE_DIR"):
+        return
+    factory = getattr(config, "_tmp_path_factory", None)
+    if factory is not None:
+        cache = factory.getbasetemp() / "adalio-cache"
+    else:  # the tmpdir plugin is disabled: still stay out of the repository
+        import tempfile
+
+        cache = Path(tempfile.mkdtemp(prefix="adalio-cache-"))
+    cache.mkdir(parents=True, exist_ok=True)
+    os.environ["ADALIO_CACHE_DIR"] = str(cache)
+    _SESSION_CACHE.append(cache)
+
+
+def pytest_terminal_summary(terminalreporter) -> None:
+    for cache in _SESSION_CACHE:
+        size = sum(f.stat().st_size for f in cache.rglob("*") if f.is_file())
+        terminalreporter.write_line(f"adalio: {size / 1e6:.0f} MB of generated sequences in "
+                                    f"{cache} (removed at exit)")
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    while _SESSION_CACHE:
+        shutil.rmtree(_SESSION_CACHE.pop(), ignore_errors=True)

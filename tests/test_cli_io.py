@@ -113,7 +113,8 @@ def test_cloud_without_xyz(monkeypatch, capsys, tmp_path):
     path = bf.write_static_rig(tmp_path / "noz.bag", duration_s=0.5, columns=30, layout=layout,
                                point_step=16)
     for cmd in ("run", "info"):
-        code, _, err = run_cli(monkeypatch, capsys, cmd, path)
+        out = ("--out", tmp_path / "o") if cmd == "run" else ()
+        code, _, err = run_cli(monkeypatch, capsys, cmd, path, *out)
         assert_one_line_error(code, err, "PointCloud2 on /points has no z field",
                               "fields: x, y, intensity, t")
 
@@ -188,7 +189,8 @@ def test_info_reports_topics_and_time_format(monkeypatch, capsys, rig):
     n = 180 * 16
     assert f"min {n}, median {n}, max {n}" in out
     assert "accelerometer in m/s^2" in out
-    assert "T_imu_lidar from config: t = [0.0, 0.0, 0.0] m" in out
+    assert "T_imu_lidar from identity (fallback): t = [0.0, 0.0, 0.0] m" in out
+    assert "warning: no extrinsic in the preset, the config or /tf_static" in err
 
 
 def test_config_show_roundtrips(monkeypatch, capsys):

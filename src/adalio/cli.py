@@ -12,7 +12,6 @@ import importlib
 import sys
 
 import typer
-from rich.console import Console
 
 app = typer.Typer(
     name="adalio",
@@ -20,7 +19,10 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,
 )
+"""Plain help text: flags without a ``<bool>`` type, brackets such as ``adalio[view]`` kept
+literally (rich markup would drop them), nothing box-drawn to break when piped."""
 
 
 @app.callback()
@@ -51,8 +53,9 @@ for _name in _COMMAND_MODULES:
 def main() -> None:
     """Console-script entry point."""
     from adalio.errors import AdalioError
+    from adalio.term import console
 
-    err = Console(stderr=True)
+    err = console(stderr=True)
     try:
         app(standalone_mode=True)
     except AdalioError as exc:

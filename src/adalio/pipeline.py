@@ -23,11 +23,11 @@ from typing import Any, Self
 import numpy as np
 
 from adalio.config import Config, validate_transform
-from adalio.errors import AdalioError, BagError, ConfigError, InputError
+from adalio.errors import AdalioError, BagError, ConfigError
 from adalio.io.bag import Bag, chain_transform
 from adalio.io.sequencer import Sequencer, SequencerStats
 from adalio.io.writers import ScansCsvWriter, TumWriter, write_map
-from adalio.types import ImuBatch
+from adalio.types import Estimate, ImuBatch
 
 
 @dataclass
@@ -193,23 +193,22 @@ def _no_pose_reason(odom: Any, n_in: int, lidar_topic: str, imu_topic: str, out:
 
 
 def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
-            gt_path: str | Path | None = None, progress: bool = True,
-            max_scans: int | None = None, map_format: str | None = None,
-            on_scan: Callable[[int], None] | None = None, start_s: float = 0.0) -> RunResult:
+            progress: bool = True, max_scans: int | None = None,
+            map_format: str | None = None, on_scan: Callable[[int], None] | None = None,
+            on_estimate: Callable[[Estimate], None] | None = None,
+            start_s: float = 0.0) -> RunResult:
     """Run the estimator over a bag and write the results into ``out_dir``.
 
     ``start_s`` skips the bag's first seconds (the run then starts wherever the sensor is, at
-    rest or moving).
-
-    ``on_scan(n)`` is called after each scan handed to the estimator (n counts them); an
-    exception it raises stops the run like an error would (KeyboardInterrupt = Ctrl-C).
+    rest or moving). ``on_scan(n)`` is called after each scan handed to the estimator (n counts
+    them); ``on_estimate(est)`` after each estimate is written (e.g. a live view). An exception
+    either raises stops the run like an error would (KeyboardInterrupt = Ctrl-C). Evaluation
+    against a ground truth is separate: :func:`adalio.eval.report.make_report` on ``out_dir``.
     """
     cfg = copy.deepcopy(config)
     if map_format is not None:
         cfg.output.map_format = map_format
     cfg.validate()
-    if gt_path is not None and not Path(gt_path).is_file():
-        raise InputError(f"ground truth {gt_path} does not exist: check --gt")
     if max_scans is not None and max_scans < 1:
         raise ConfigError(f"--max-scans must be >= 1 (got {max_scans})")
     if not start_s >= 0:
@@ -270,6 +269,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                         est_t.append(int(est.t_ns))
                         degen.append(bool(stats.degenerate))
                         held.append(stats.held_directions > 0)
+                        if on_estimate is not None:
+                            on_estimate(est)
                     elapsed = time.perf_counter() - t_start
                     bar.update(task, advance=1, rate=f"{n_in / max(elapsed, 1e-9):.1f} scans/s")
                     if on_scan is not None:
@@ -309,11 +310,4 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         sequencer=seq.stats, n_scans_in=n_in, init_report=odom.init_report)
     if not est_t and not interrupted:
         raise InputError(_no_pose_reason(odom, n_in, lidar_topic, imu_topic, out))
-    if gt_path is not None and not interrupted:
-        try:
-            from adalio.eval.report import make_report
-        except ImportError:
-            make_report = None
-        if make_report is not None:
-            make_report(out, gt=gt_path)
     return result

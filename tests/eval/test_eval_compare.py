@@ -12,7 +12,12 @@ from typer.testing import CliRunner
 
 from adalio.errors import ConfigError
 from adalio.eval.compare import DIVERGED_MAX_ERROR_M, parse_modes
-from adalio.eval.demo import DEMO_SCENE, SHORT_COLUMNS, SHORT_DURATION_S  # shares the demo's cache
+from adalio.eval.demo import (  # shares the demo's cache
+    DEMO_FORMAT,
+    DEMO_SCENE,
+    SHORT_COLUMNS,
+    SHORT_DURATION_S,
+)
 from adalio.eval.files import read_scans_csv
 from adalio.eval.metrics import ate
 
@@ -37,7 +42,7 @@ def test_compare_cli_on_simulated_run(tmp_path):
     from adalio.sim import cached_sequence
 
     sim = cached_sequence(DEMO_SCENE, seed=0, duration_s=SHORT_DURATION_S,
-                          columns=SHORT_COLUMNS)
+                          columns=SHORT_COLUMNS, fmt=DEMO_FORMAT)
     out = tmp_path / "cmp"
     res = CliRunner().invoke(app, ["compare", str(sim.bag_path), "--modes", "fixed,adaptive",
                                    "--gt", str(sim.gt_path), "--config", str(sim.config_path),

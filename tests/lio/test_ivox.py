@@ -1,4 +1,4 @@
-"""IVox map and insertion rule against brute force and a plain-Python model (lio-design.md §7)."""
+"""IVox map and its one-point-per-cell insertion against brute force and a plain-Python model (lio-design.md §7)."""
 
 import numpy as np
 import pytest
@@ -10,7 +10,6 @@ from adalio.lio.ivox import (
     PARALLEL_MIN_ROWS,
     IVox,
     nearby_offsets,
-    select_for_insertion,
 )
 
 
@@ -282,55 +281,6 @@ def test_deterministic_outputs_serial_and_parallel_paths() -> None:
     expected = brute_knn_in_neighbourhood(runs[1][0], queries[:50], 5, 1.0, 0.4, 18)
     for i, e in enumerate(expected):
         np.testing.assert_array_equal(runs[1][3][i, : len(e)], e)
-
-
-def nbr_rows(rows: list[list[float]], k: int = 5) -> tuple[np.ndarray, np.ndarray]:
-    nbrs = np.full((1, k, 3), np.nan)
-    nbrs[0, : len(rows)] = np.array(rows, dtype=float).reshape(-1, 3)
-    return nbrs, np.array([len(rows)])
-
-
-def insert(q: list[float], rows: list[list[float]], leaf: float = 1.0, insert_all=False) -> bool:
-    nbrs, counts = nbr_rows(rows)
-    return bool(select_for_insertion(np.array([q]), nbrs, counts, leaf, insert_all)[0])
-
-
-def test_insertion_rule_branches() -> None:
-    q = [0.3, 0.3, 0.3]
-    centre_hugging = [[0.5, 0.5, 0.5], [0.51, 0.5, 0.5], [0.5, 0.52, 0.5]] + [[0.5, 0.5, 0.53]] * 2
-    assert insert(q, centre_hugging, insert_all=True)
-    assert not insert(q, centre_hugging)
-    assert insert(q, [])
-    assert insert(q, centre_hugging[:4])
-
-    q_far = [0.05, 0.05, 0.05]
-    rest_at_centre = [[0.5, 0.5, 0.5]] * 4
-    assert insert(q_far, [[1.05, 1.05, 1.05]] + rest_at_centre)
-    assert not insert(q_far, [[1.05, 1.05, 0.9]] + rest_at_centre)
-    assert not insert(q_far, [[1.05, 1.05, 0.5]] * 5)
-    assert insert(q_far, [[1.05, 1.05, 0.9]] + rest_at_centre[:3])
-
-    q_central = [0.25, 0.5, 0.5]
-    farther = [[0.1, 0.5, 0.5], [0.5, 0.1, 0.5], [0.5, 0.5, 0.1], [0.9, 0.5, 0.5], [0.5, 0.9, 0.5]]
-    assert insert(q_central, farther)
-    assert not insert(q_central, farther[:4] + [[0.5, 0.5, 0.6]])
-    assert not insert(q_central, farther[:4] + [[0.5, 0.75, 0.5]])
-
-
-def test_insertion_cell_centre_uses_floor_for_negative_coordinates() -> None:
-    q = [-0.3, -0.3, -0.3]
-    assert insert(q, [[0.05, 0.05, 0.05]] + [[0.5, 0.5, 0.5]] * 4)
-    assert not insert(q, [[-0.45, -0.45, -0.45]] + [[-0.5, -0.5, -0.5]] * 4)
-    assert insert([-0.3, -0.3, -0.3], [[-0.9, -0.1, -0.1]] * 5, leaf=1.0)
-
-
-def test_insertion_batch_and_small_k() -> None:
-    q = np.array([[0.3, 0.3, 0.3], [0.45, 0.5, 0.5]])
-    nbrs = np.full((2, 3, 3), 0.5)
-    counts = np.array([3, 3])
-    np.testing.assert_array_equal(select_for_insertion(q, nbrs, counts, 1.0, False), [True, True])
-    with pytest.raises(InputError):
-        select_for_insertion(q, nbrs[:1], counts, 1.0, False)
 
 
 @pytest.mark.parametrize(("resolution_m", "cell_m"), [(0.5, 0.2), (0.3, 0.1), (0.4, 0.4)])

@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.table import Table
 
 from adalio.errors import InputError
+from adalio.term import console as term_console
 
 
 def _parse_floats(text: str, option: str) -> tuple[float, ...]:
@@ -55,7 +56,7 @@ def eval_command(
         "--rpe-delta", help="RPE segment lengths in metres, comma-separated.")] = "1,5",
 ) -> None:
     """Accuracy of a trajectory: ATE and RPE (evo), or the HILTI 2022 score."""
-    console = Console()
+    console = term_console()
     if hilti:
         from adalio.eval.hilti import MAX_DIFF_S, hilti_score
 
@@ -86,13 +87,13 @@ def eval_command(
         return
     table = Table(title=f"ATE (translation, align={align}, {a['n']} pairs within {diff} s, "
                         f"{a['duration_s']:.1f} s)")
-    for col in ("RMSE [m]", "mean [m]", "median [m]", "std [m]", "max [m]"):
+    for col in ("RMSE (m)", "mean (m)", "median (m)", "std (m)", "max (m)"):
         table.add_column(col, justify="right")
     table.add_row(*(f"{a[k]:.4f}" for k in ("rmse_m", "mean_m", "median_m", "std_m", "max_m")))
     console.print(table)
     table = Table(title="RPE (translation per GT path segment; alignment-free)")
-    for col in ("segment [m]", "pairs", "RMSE [m]", "mean [m]", "max [m]", "drift [%]",
-                "rot RMSE [deg]"):
+    for col in ("segment (m)", "pairs", "RMSE (m)", "mean (m)", "max (m)", "drift (%)",
+                "rot RMSE (deg)"):
         table.add_column(col, justify="right")
     for row in r:
         table.add_row(f"{row['delta_m']:g}", str(row["n"]), _f(row["rmse_m"], 4),
@@ -111,7 +112,7 @@ def report_command(
     from adalio.eval.report import make_report
 
     path = make_report(run_dir, gt, hilti=hilti)
-    Console().print(f"report written to [bold]{path}[/]")
+    term_console().print(f"report written to [bold]{path}[/]")
 
 
 def _print_compare(console: Console, result) -> None:
@@ -146,7 +147,7 @@ def compare_command(
     """Run several modes on the same bag and print one comparison table."""
     from adalio.eval.compare import compare_modes, parse_modes
 
-    console = Console()
+    console = term_console()
     result = compare_modes(bag, parse_modes(modes), out, gt=gt, preset=preset,
                            config_file=config, overrides=_overrides(set_), max_scans=max_scans,
                            console=console)
@@ -155,17 +156,20 @@ def compare_command(
 
 
 def demo_command(
-    out: Annotated[Path, typer.Option(help="Output folder.")] = Path("adalio_demo"),
+    out: Annotated[Path | None, typer.Option(
+        help="Output folder [default: runs/demo]")] = None,
     short: Annotated[bool, typer.Option("--short", help="Much shorter sequence (CI).")] = False,
 ) -> None:
     """Simulate a spiral staircase descent and compare fixed vs adaptive (no data needed)."""
-    from adalio.eval.demo import run_demo
+    from adalio.eval.demo import DEFAULT_OUT, run_demo
 
-    console = Console()
+    out = DEFAULT_OUT if out is None else out
+    console = term_console()
     t0 = time.perf_counter()
     res = run_demo(out, short=short, console=console)
     _print_compare(console, res.compare)
-    console.print(f"simulated bag: {res.bag_path}  (ground truth {res.gt_path})")
+    console.print(f"simulated bag: {res.bag_path}  (ground truth {res.gt_path}; cached "
+                  f"sequence {res.cache_bytes / 1e6:.0f} MB, reused next time)", highlight=False)
     for row in res.compare.rows:
         if row.report:
             console.print(f"report ({row.mode}): [bold]{row.report}[/]")

@@ -96,7 +96,7 @@ def compare_modes(bag_path: str | Path, modes: list[str], out_dir: str | Path, *
         if console is not None:
             console.print(f"[bold]running mode {mode}[/] -> {run_dir}")
         try:
-            res = run_bag(bag_path, cfg, run_dir, gt_path=None, progress=progress,
+            res = run_bag(bag_path, cfg, run_dir, progress=progress,
                           max_scans=max_scans)
         except (BagError, ConfigError):
             raise
@@ -171,7 +171,7 @@ def _f(value: float | None, digits: int = 3) -> str:
     return f"{value:.{digits}f}"
 
 
-TABLE_HEADER = ("mode", "ATE rmse [m]", "max err [m]", "diverged", "degenerate [%]",
+TABLE_HEADER = ("mode", "ATE rmse (m)", "max err (m)", "diverged", "degenerate (%)",
                 "ms/scan", "scans")
 
 

@@ -15,9 +15,11 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from adalio.errors import AdalioError, BagError, ConfigError
+from adalio.errors import AdalioError, BagError, ConfigError, InputError
+from adalio.term import console
 
-config_app = typer.Typer(help="Inspect the configuration.", no_args_is_help=True)
+config_app = typer.Typer(help="Inspect the configuration.", no_args_is_help=True,
+                         rich_markup_mode=None)
 
 
 @contextlib.contextmanager
@@ -70,10 +72,11 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
     from adalio.io.sequencer import accel_is_in_g, imu_msg_arrays
 
     cfg = _build_config(preset, config, lidar_topic, imu_topic, None, None, None)
-    out = Console()
-    err = Console(stderr=True)
+    out = console()
+    err = console(stderr=True)
     with _warnings_to(err), Bag(bag) as b:
-        table = Table(title=f"{bag}  ({b.duration_s:.2f} s)")
+        out.print(f"bag: {bag}", highlight=False)
+        table = Table()
         for col in ("topic", "type", "count", "rate (Hz)"):
             table.add_column(col, justify="right" if col in ("count", "rate (Hz)") else "left")
         for t in b.topics():
@@ -120,9 +123,33 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
         from adalio.pipeline import resolve_extrinsic
 
         T, source = resolve_extrinsic(b, lidar, imu, cfg)
+        origin = source if source.startswith("tf_static") else _extrinsic_origin(preset, config)
         q = Rotation.from_matrix(T[:3, :3]).as_quat()
-        out.print(f"T_imu_lidar from {source}: t = {np.round(T[:3, 3], 6).tolist()} m, "
-                  f"q xyzw = {np.round(q, 6).tolist()}", highlight=False, soft_wrap=True)
+        out.print(f"extrinsic a run would use: T_imu_lidar from {origin or 'identity (fallback)'}"
+                  f": t = {np.round(T[:3, 3], 6).tolist()} m, q xyzw = "
+                  f"{np.round(q, 6).tolist()}", highlight=False, soft_wrap=True)
+        if not origin:
+            err.print("[yellow]warning:[/] no extrinsic in the preset, the config or /tf_static: "
+                      "a run would treat the LiDAR frame as the IMU frame; give --preset, "
+                      "--config or run --extrinsic 'tx ty tz qx qy qz qw'", highlight=False,
+                      soft_wrap=True)
+
+
+def _extrinsic_origin(preset: str | None, config_file: Path | None) -> str:
+    """Which layer sets ``sensor.T_imu_lidar``: 'config file F', 'preset P', or '' (defaults)."""
+    import yaml
+
+    from adalio.config import preset_dict
+
+    if config_file is not None:
+        data = yaml.safe_load(config_file.read_text()) or {}
+        if isinstance(data, dict):
+            if "T_imu_lidar" in (data.get("sensor") or {}):
+                return f"config file {config_file}"
+            preset = preset or data.get("preset")
+    if preset and "T_imu_lidar" in (preset_dict(str(preset)).get("sensor") or {}):
+        return f"preset {preset}"
+    return ""
 
 
 # ------------------------------------------------------------------------------------ run
@@ -152,25 +179,63 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
         = False,
         no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")]
         = False,
+        view: Annotated[bool, typer.Option("--view", help="Show the run live in a rerun viewer "
+                                           "(needs adalio[view] and a display).")] = False,
+        rrd: Annotated[Path | None, typer.Option(help="Record the live view to this .rrd file "
+                                                 "(no display needed; open with `rerun FILE`).")]
+        = None,
         ) -> None:
     """Estimate the trajectory and map of a bag; write trajectory.tum, map, scans.csv, config."""
     from adalio.pipeline import default_out_dir, run_bag
 
     cfg = _build_config(preset, config, lidar_topic, imu_topic, extrinsic, mode, map_format)
+    if gt is not None and not gt.is_file():
+        raise InputError(f"ground truth {gt} does not exist: check --gt")
     out_dir = out if out is not None else default_out_dir(bag)
-    con = Console(stderr=True)
+    con = console(stderr=True)
+    viewer = None
     try:
         with _warnings_to(con):
-            res = run_bag(bag, cfg, out_dir, gt_path=gt,
-                          progress=not no_progress and con.is_terminal, max_scans=max_scans,
-                          start_s=start_s)
+            if view or rrd is not None:
+                from adalio.view import RerunView
+
+                viewer = RerunView(spawn=view, rrd_path=rrd)
+            res = run_bag(bag, cfg, out_dir, progress=not no_progress and con.is_terminal,
+                          max_scans=max_scans, on_estimate=viewer, start_s=start_s)
         _summary(con, res, profile)
     except KeyboardInterrupt:
         res = None
+    finally:
+        if viewer is not None:
+            viewer.close()
+    if viewer is not None and viewer.rrd_path is not None:
+        con.print(f"live view recorded to {viewer.rrd_path} (open with: rerun "
+                  f"{viewer.rrd_path})", highlight=False, soft_wrap=True)
+    if gt is not None and res is not None and not res.interrupted:
+        _report(con, res.out_dir, gt)
     if res is None or res.interrupted:
         if res is None:
             con.print("[yellow]interrupted[/]: outputs written so far are kept")
         raise typer.Exit(130)
+
+
+def _report(con: Console, out_dir: Path, gt: Path) -> None:
+    """``run --gt``: write the report and print the ATE (or HILTI score) and its path."""
+    import json
+
+    from adalio.eval.report import make_report
+
+    report = make_report(out_dir, gt=gt)
+    metrics = json.loads((report.parent / "metrics.json").read_text())
+    if "ate_se3" in metrics:
+        a = metrics["ate_se3"]
+        con.print(f"ATE (SE(3)-aligned, {a['n']} poses): RMSE {a['rmse_m']:.3f} m, max "
+                  f"{a['max_m']:.3f} m", highlight=False, soft_wrap=True)
+    elif "hilti" in metrics:
+        h = metrics["hilti"]
+        con.print(f"HILTI 2022 score: {h['score']:.1f} / 100 ({h['n_matched']}/{h['n_gt']} "
+                  "control points)", highlight=False, soft_wrap=True)
+    con.print(f"report: {report}", highlight=False, soft_wrap=True)
 
 
 def _summary(con: Console, res: Any, profile: bool) -> None:

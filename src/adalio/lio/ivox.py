@@ -20,11 +20,9 @@ Deviations from upstream, documented in lio-design.md §7:
 * One point per cell (``cell_m > 0``, set to ``map.map_leaf_m`` by :meth:`IVox.from_config`): a
   point is inserted only if no stored point lies in its cell floor(p / cell_m), checked against
   the stored points of the iVox voxels overlapping that cell, so earlier rows of the same batch
-  count and an evicted voxel frees its cells. Upstream's rule (:func:`select_for_insertion`) lets
+  count and an evicted voxel frees its cells. Upstream's rule (lio-design.md §7) lets
   a cell accumulate points creeping towards its centre; plane fits over such clusters have
   arbitrary normals and act as fake constraints (degenerate corridors "stick").
-
-Also holds the Faster-LIO map-insertion rule of §7 (:func:`select_for_insertion`).
 """
 
 from __future__ import annotations
@@ -39,8 +37,6 @@ BLOCK_POINTS = 8
 """Points per storage block of a voxel (memory granularity, not an algorithm constant)."""
 _BLOCK_SHIFT = 3
 _BOX_SLACK = 1e-6
-INSERTION_NUM_NEIGHBORS = 5
-"""Neighbours compared by the §7 insertion rule (Faster-LIO NUM_MATCH_POINTS)."""
 NEARBY_TYPES = (0, 6, 18, 26)
 EVICT_SLACK_DIVISOR = 16
 """A batch eviction frees capacity // EVICT_SLACK_DIVISOR extra voxels (amortises compaction)."""
@@ -608,68 +604,3 @@ def _as_points(points: np.ndarray, name: str) -> np.ndarray:
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise InputError(f"{name} must have shape (N, 3), got {np.shape(points)}")
     return arr
-
-
-@njit(cache=True)
-def _select_for_insertion(
-    points: np.ndarray, nbrs: np.ndarray, counts: np.ndarray, leaf_m: float, n_cmp: int
-) -> np.ndarray:
-    """Faster-LIO map-insertion rule (lio-design.md §7, "Insertion rule" 1-3)."""
-    m = points.shape[0]
-    add = np.ones(m, np.bool_)
-    half = 0.5 * leaf_m
-    for i in range(m):
-        if counts[i] <= 0:
-            continue
-        cx = (np.floor(points[i, 0] / leaf_m) + 0.5) * leaf_m
-        cy = (np.floor(points[i, 1] / leaf_m) + 0.5) * leaf_m
-        cz = (np.floor(points[i, 2] / leaf_m) + 0.5) * leaf_m
-        if (
-            abs(nbrs[i, 0, 0] - cx) > half
-            and abs(nbrs[i, 0, 1] - cy) > half
-            and abs(nbrs[i, 0, 2] - cz) > half
-        ):
-            continue
-        if counts[i] < n_cmp:
-            continue
-        dq = (points[i, 0] - cx) ** 2 + (points[i, 1] - cy) ** 2 + (points[i, 2] - cz) ** 2
-        for j in range(n_cmp):
-            dn = (nbrs[i, j, 0] - cx) ** 2 + (nbrs[i, j, 1] - cy) ** 2 + (nbrs[i, j, 2] - cz) ** 2
-            if not dq < dn:
-                add[i] = False
-                break
-    return add
-
-
-def select_for_insertion(
-    points_world: np.ndarray,
-    nbrs: np.ndarray,
-    counts: np.ndarray,
-    map_leaf_m: float,
-    insert_all: bool,
-) -> np.ndarray:
-    """Which updated world points go into the map: Faster-LIO's rule (lio-design.md §7).
-
-    With m = map_leaf_m and cell centre c = (floor(q/m) + 1/2) m of point q:
-    1. ``insert_all`` (first 0.1 s after init) or no neighbours: add.
-    2. The nearest neighbour nbrs[:, 0] lies farther than m/2 from c on all three axes: add.
-    3. Otherwise, with >= 5 neighbours, add only if |q - c|^2 < |n_i - c|^2 for each of the 5
-       nearest (strict, as §7; upstream adds a 1e-6 slack); with < 5 neighbours, add.
-    ``nbrs``/``counts`` are those of the last search, rows sorted ascending. Returns (M,) bool.
-    """
-    pts = _as_points(points_world, "points_world")
-    m = pts.shape[0]
-    if insert_all:
-        return np.ones(m, np.bool_)
-    nb = np.ascontiguousarray(nbrs, dtype=np.float64)
-    cn = np.ascontiguousarray(counts, dtype=np.int64)
-    if nb.ndim != 3 or nb.shape[0] != m or nb.shape[2] != 3 or cn.shape != (m,):
-        raise InputError(
-            f"nbrs must be (M, k, 3) and counts (M,) for M={m} points, got {nb.shape}, {cn.shape}"
-        )
-    if not (np.isfinite(map_leaf_m) and map_leaf_m > 0.0):
-        raise ConfigError(f"map.map_leaf_m must be a positive number of metres, got {map_leaf_m!r}")
-    n_cmp = INSERTION_NUM_NEIGHBORS
-    if nb.shape[1] < n_cmp:
-        cn = np.minimum(cn, nb.shape[1])
-    return _select_for_insertion(pts, nb, cn, float(map_leaf_m), n_cmp)

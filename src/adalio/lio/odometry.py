@@ -62,7 +62,6 @@ from adalio.lio.voxel import voxel_downsample
 from adalio.types import Estimate, InitReport, ScanStats
 
 STAGES = ("preprocess", "undistort", "downsample", "degeneracy", "update", "map")
-"""Range of the iVox neighbour query (Faster-LIO's ``GetClosestPoint`` default, §7)."""
 MAX_SCAN_SPAN_NS = 1_000_000_000
 """Per-point times of one sweep spanning more than this are rejected as malformed (units?)."""
 MIN_POINTS_FOR_UPDATE = 5

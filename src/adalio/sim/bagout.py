@@ -7,7 +7,8 @@ of valid returns only, column-major; fields x, y, z (f32 @0,4,8), intensity (f32
 x, y, z (f32), intensity (f32 @16), t (u32 ns relative to the header stamp @20), reflectivity
 (u16 @24), ring (u16 @26), ambient (u16 @28), range (u32 mm @32), point_step 48. Header stamp =
 sweep start; the bag record time of a sweep is its end. sensor_msgs/Imu: orientation unknown
-(covariance[0] = -1).
+(covariance[0] = -1). mcap bags are written with zstd-compressed chunks (about 4x smaller for
+simulated clouds; rosbags, ros2 bag and Foxglove read them transparently).
 """
 
 from __future__ import annotations
@@ -62,10 +63,12 @@ class SimBagWriter:
 
             self._writer = Writer(self.path)
         else:
-            from rosbags.rosbag2 import StoragePlugin, Writer
+            from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 
             plugin = StoragePlugin.MCAP if self.fmt == "mcap" else StoragePlugin.SQLITE3
             self._writer = Writer(self.path, version=8, storage_plugin=plugin)
+            if self.fmt == "mcap":
+                self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
         self._writer.open()
         self._conn_imu = self._writer.add_connection(self.model.imu_topic, "sensor_msgs/msg/Imu",
                                                      typestore=self.typestore)

@@ -33,16 +33,15 @@ def register(app: typer.Typer) -> None:
         import json
         import time
 
-        from rich.console import Console
-
         from adalio.sim import simulate as run_simulation
+        from adalio.term import console
 
         t0 = time.perf_counter()
         res = run_simulation(scene, out, seed=seed, duration_s=duration, lidar=lidar, fmt=fmt,
                              columns=columns, noise_scale=noise_scale, progress=True,
                              imu_noise_scale=imu_noise_scale)
         meta = json.loads(res.meta_path.read_text())
-        Console().print(
+        console().print(
             f"[green]wrote[/] {res.bag_path} ({meta['n_scans']} sweeps, {meta['n_imu']} IMU, "
             f"{meta['duration_s']:.1f} s) in {time.perf_counter() - t0:.1f} s\n"
             f"ground truth {res.gt_path}, config {res.config_path}\n"

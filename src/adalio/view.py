@@ -1,0 +1,208 @@
+"""Live 3D view of a run with rerun (``adalio run --view`` / ``--rrd FILE``).
+
+:class:`RerunView` receives each :class:`~adalio.types.Estimate` as it is written and logs, on
+the timeline ``scan_time`` (the scan end, absolute ns) and the sequence ``scan`` (0, 1, ...):
+
+* ``world/scan``: the downsampled scan in the world frame, blue on general scans and orange on
+  degenerate ones;
+* ``world/map/NNNN``: the map, decimated to one point per ``map_voxel_m`` cell; every
+  ``map_every_scans`` scans the cells seen for the first time are logged as one new child, so
+  each point is sent once and the map grows without re-logging it;
+* ``world/trajectory``: the IMU positions so far (line strip), ``world/imu``: the IMU pose;
+* ``world/weakest_direction``: the translation part of the weakest eigenvector of the scan's
+  6x6 point-to-plane information (world frame, see :mod:`adalio.lio.degeneracy`), as an arrow
+  at the IMU scaled by the degeneracy score (1 m for a pure translation at score 1), labelled
+  with the score;
+* ``plots/...``: the degeneracy score and flag, the point counts (raw, downsampled, matched)
+  and the filter's position and yaw standard deviations (square roots of the covariance
+  diagonal, cm and degrees).
+
+World frame and metres as in ``trajectory.tum``. ``rerun`` is imported lazily: it is the optional
+extra ``adalio[view]``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import warnings
+from pathlib import Path
+from typing import Any, Self
+
+import numpy as np
+
+from adalio.errors import AdalioError
+from adalio.types import Estimate
+
+MISSING_RERUN = "--view/--rrd need rerun-sdk: pip install 'adalio[view]'"
+TIMELINE = "scan_time"
+SEQUENCE = "scan"
+GENERAL_RGB = (70, 140, 230)
+DEGENERATE_RGB = (240, 130, 30)
+MAP_RGB = (160, 160, 160)
+TRAJECTORY_RGB = (40, 200, 90)
+FLUSH_TIMEOUT_S = 10.0
+"""How long :meth:`RerunView.close` waits for the viewer / file to take the last messages."""
+MAX_SCAN_POINTS = 20_000
+"""Scans with more points are logged with a regular stride (bounds the .rrd size)."""
+
+
+def _import_rerun() -> Any:
+    try:
+        import rerun as rr
+    except ImportError:
+        raise AdalioError(MISSING_RERUN) from None
+    return rr
+
+
+def has_display() -> bool:
+    """Whether a native window can open: always on macOS / Windows, X11 or Wayland on Linux."""
+    if not sys.platform.startswith("linux"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def viewer_executable() -> str | None:
+    """The ``rerun`` viewer binary of the rerun-sdk wheel (this environment first, then PATH)."""
+    here = shutil.which("rerun", path=str(Path(sys.executable).parent))
+    return here or shutil.which("rerun")
+
+
+class RerunView:
+    """Stream a run to a spawned rerun viewer and/or record it to an ``.rrd`` file.
+
+    ``spawn`` without a display is an :class:`AdalioError` unless ``rrd_path`` is given too (then
+    a warning, and only the file is written). Use as ``run_bag(..., on_estimate=view.log_estimate)``
+    and call :meth:`close` at the end (or use it as a context manager).
+    """
+
+    def __init__(self, *, spawn: bool = False, rrd_path: str | Path | None = None,
+                 map_voxel_m: float = 0.2, map_every_scans: int = 10, port: int = 9876,
+                 application_id: str = "adalio") -> None:
+        if not spawn and rrd_path is None:
+            raise AdalioError("RerunView needs spawn=True or an rrd_path")
+        if not map_voxel_m > 0 or map_every_scans < 1:
+            raise AdalioError("RerunView: map_voxel_m must be > 0 and map_every_scans >= 1")
+        rr = _import_rerun()
+        self._rr = rr
+        if spawn and not has_display():
+            msg = ("--view needs a display (neither DISPLAY nor WAYLAND_DISPLAY is set); "
+                   "record with --rrd FILE and open it elsewhere with `rerun FILE`")
+            if rrd_path is None:
+                raise AdalioError(msg)
+            warnings.warn(msg + "; writing only the .rrd", stacklevel=2)
+            spawn = False
+        self.rrd_path = None if rrd_path is None else Path(rrd_path)
+        self.spawned = spawn
+        self._rec = rr.RecordingStream(application_id)
+        sinks: list[Any] = []
+        if spawn:
+            exe = viewer_executable()
+            if exe is None:
+                raise AdalioError("--view: the rerun viewer binary is not on PATH; reinstall "
+                                  "with pip install 'adalio[view]'")
+            rr.spawn(port=port, connect=False, executable_path=exe, recording=self._rec)
+            sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy"))
+        if self.rrd_path is not None:
+            self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
+            sinks.append(rr.FileSink(str(self.rrd_path)))
+        self._rec.set_sinks(*sinks)
+        self._rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self.map_voxel_m = float(map_voxel_m)
+        self.map_every_scans = int(map_every_scans)
+        self._map_keys: set[int] = set()
+        self._map_new: list[np.ndarray] = []
+        self._map_chunks = 0
+        self._positions: list[np.ndarray] = []
+        self.n_scans = 0
+
+    # -------------------------------------------------------------------------------- logging
+    def log_estimate(self, est: Estimate) -> None:
+        """Log one scan's estimate (call after it was written)."""
+        rr, rec = self._rr, self._rec
+        rec.set_time(TIMELINE, timestamp=np.datetime64(int(est.t_ns), "ns"))
+        rec.set_time(SEQUENCE, sequence=self.n_scans)
+        stats = est.stats
+        T = np.asarray(est.T_world_imu, dtype=np.float64)
+        p = T[:3, 3]
+        self._positions.append(p.copy())
+        color = DEGENERATE_RGB if stats.degenerate else GENERAL_RGB
+        pts = est.points_world
+        if pts is None:
+            pts = np.zeros((0, 3))
+        pts = np.asarray(pts, dtype=np.float32)
+        if len(pts) > MAX_SCAN_POINTS:
+            pts = pts[:: -(-len(pts) // MAX_SCAN_POINTS)]
+        rec.log("world/scan", rr.Points3D(pts, colors=color, radii=0.03))
+        self._collect_map(pts)
+        if (self.n_scans + 1) % self.map_every_scans == 0:
+            self._flush_map()
+        from scipy.spatial.transform import Rotation
+
+        q = Rotation.from_matrix(T[:3, :3]).as_quat()
+        rec.log("world/imu", rr.Transform3D(translation=p, quaternion=q))
+        rec.log("world/trajectory", rr.LineStrips3D([np.asarray(self._positions)],
+                                                    colors=TRAJECTORY_RGB, radii=0.02))
+        weak = np.asarray(stats.weakest_direction, dtype=np.float64).reshape(-1)
+        score = float(stats.degeneracy_score)
+        if weak.shape == (6,) and np.all(np.isfinite(weak)):
+            rec.log("world/weakest_direction", rr.Arrows3D(
+                origins=[p], vectors=[weak[3:6] * max(score, 0.05)], colors=color, radii=0.02,
+                labels=[f"score {score:.2f}"]))
+        rec.log("plots/degeneracy/score", rr.Scalars(score))
+        rec.log("plots/degeneracy/degenerate", rr.Scalars(float(bool(stats.degenerate))))
+        for name in ("n_raw", "n_down", "n_matched"):
+            rec.log(f"plots/points/{name}", rr.Scalars(float(getattr(stats, name))))
+        cov = np.asarray(est.cov_diag, dtype=np.float64).reshape(-1)
+        if cov.shape[0] >= 6:
+            sig = np.sqrt(np.clip(cov[:6], 0.0, None))
+            for axis, s in zip("xyz", sig[:3], strict=True):
+                rec.log(f"plots/sigma/position_{axis}_cm", rr.Scalars(100.0 * s))
+            rec.log("plots/sigma/yaw_deg", rr.Scalars(float(np.degrees(sig[5]))))
+        self.n_scans += 1
+
+    def __call__(self, est: Estimate) -> None:
+        self.log_estimate(est)
+
+    def _collect_map(self, pts: np.ndarray) -> None:
+        if not len(pts):
+            return
+        finite = pts[np.all(np.isfinite(pts), axis=1)]
+        cells = np.floor(finite / self.map_voxel_m).astype(np.int64)
+        cells = np.clip(cells, -(2**20), 2**20 - 1) + 2**20
+        keys = (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
+        keys, first = np.unique(keys, return_index=True)
+        new = np.fromiter((k not in self._map_keys for k in keys.tolist()), bool, len(keys))
+        if new.any():
+            self._map_keys.update(keys[new].tolist())
+            self._map_new.append(finite[first[new]])
+
+    def _flush_map(self) -> None:
+        if not self._map_new:
+            return
+        pts = np.concatenate(self._map_new)
+        self._map_new = []
+        self._rec.log(f"world/map/{self._map_chunks:04d}",
+                      self._rr.Points3D(pts, colors=MAP_RGB, radii=0.02))
+        self._map_chunks += 1
+
+    # -------------------------------------------------------------------------------- closing
+    def close(self) -> None:
+        """Log the last map cells and flush the sinks (bounded wait for a viewer)."""
+        if self._rec is None:
+            return
+        try:
+            self._flush_map()
+            self._rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
+        except RuntimeError as exc:  # a viewer closed early or never reachable: the run is done
+            warnings.warn(f"the rerun viewer did not receive everything ({exc})", stacklevel=2)
+        finally:
+            self._rec.disconnect()
+            self._rec = None
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
