@@ -23,7 +23,7 @@ from typing import Any, Self
 import numpy as np
 
 from adalio.config import Config, validate_transform
-from adalio.errors import AdalioError, BagError, ConfigError
+from adalio.errors import AdalioError, BagError, ConfigError, InputError
 from adalio.io.bag import Bag, chain_transform
 from adalio.io.sequencer import Sequencer, SequencerStats
 from adalio.io.writers import ScansCsvWriter, TumWriter, write_map

@@ -33,7 +33,7 @@ def test_propagation_across_a_gap_follows_the_motion_model():
     q_gap = np.repeat([0.5**2, 1.0**2, 0.0, 0.0], 3)
     P0 = np.eye(DIM) * 1e-6
     t_end = t[t > 0.8][0]
-    y, P, rec = imu.propagate(x, P0, t, gyro, accel, 0.0, t_end, q, "dt", 5.0 / rate, q_gap)
+    y, P, _ = imu.propagate(x, P0, t, gyro, accel, 0.0, t_end, q, "dt", 5.0 / rate, q_gap)
     assert np.allclose(y.p, v * t_end, atol=1e-9)
     assert np.allclose(y.v, v, atol=1e-9)
     assert np.allclose(so3.log(y.R), omega * t_end, atol=1e-9)
