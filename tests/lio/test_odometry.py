@@ -102,13 +102,14 @@ def _config() -> Config:
 
 
 def _run(cfg: Config, duration: float, n_cols: int, seed: int = 0, accel_unit: float = 1.0,
-         before_scan=None, t_begin: float = 0.0):
+         before_scan=None, t_begin: float = 0.0, gyro_unit: float = 1.0):
     """Feed the box-room sequence from ``t_begin`` to ``duration`` (s); ``before_scan(t_start_s)``
     runs before each sweep."""
     rng = np.random.default_rng(seed)
     odom = Odometry(cfg)
     t_imu, gyro, acc = imu_samples(t_begin, duration + 0.05, 400.0, rng, noise=0.01)
     acc = acc / accel_unit
+    gyro = gyro * gyro_unit
     estimates, k = [], 0
     for s in np.arange(t_begin, duration, 0.1):
         if before_scan is not None:
@@ -215,6 +216,20 @@ def test_moving_start_initializes_from_registered_scans(align):
         assert np.allclose(first.gravity_world_m_s2, [0.0, 0.0, -9.81], atol=1e-9)
     est_p = np.array([e.T_world_imu[:3, 3] for e in est])
     assert umeyama_ate(est_p, gt_p) < 0.02
+
+
+@pytest.mark.parametrize("t_begin", [0.0, 1.6])
+def test_gyro_in_deg_per_s_is_refused_naming_the_unit(t_begin):
+    """Still start (t_begin 0) and moving start: the gyro's rotation is 57x the LiDAR's."""
+    cfg = _config()
+    cfg.imu.init_timeout_s = 1.0
+    with pytest.raises(InputError, match=r"reports deg/s; set sensor.gyro_unit: deg_s"):
+        _run(cfg, 4.0, 300, seed=2, t_begin=t_begin, gyro_unit=np.rad2deg(1.0))
+
+
+def test_gyro_in_rad_per_s_passes_the_unit_check():
+    odom, est = _run(_config(), 4.0, 300, seed=2)
+    assert odom._units_check is None and len(est) >= 30
 
 
 def test_input_validation_raises_input_error():

@@ -202,6 +202,19 @@ class MovingInit:
         a, b = self.scans[-2], self.scans[-1]
         return (b.p - a.p) / ((b.t_ns - a.t_ns) * 1e-9)
 
+    def rotation_ratio(self, b_g: np.ndarray) -> tuple[float, float]:
+        """(gyro angle / LiDAR angle, LiDAR angle in rad), summed over consecutive registered
+        scans: about 1 for a gyro in rad/s, about 57 for one reporting deg/s."""
+        if len(self.scans) < 2 or self.imu_t_ns[0] > self.scans[0].t_ns:
+            return float("nan"), 0.0
+        t0 = self.scans[0].t_ns
+        tau_q = np.array([(s.t_ns - t0) * 1e-9 for s in self.scans])
+        dR = preintegrate((self.imu_t_ns - t0) * 1e-9, self.gyro, self.accel, b_g, tau_q)[0]
+        gyro = sum(np.linalg.norm(so3.log(dR[j].T @ dR[j + 1])) for j in range(len(dR) - 1))
+        lidar = sum(np.linalg.norm(so3.log(a.R.T @ b.R))
+                    for a, b in zip(self.scans[:-1], self.scans[1:], strict=True))
+        return (gyro / lidar if lidar > 0 else float("nan")), float(lidar)
+
     # ------------------------------------------------------------------ alignment
     def solve(self) -> MovingInitResult | None:
         """Fit gyro bias, gravity and velocity over the last ``moving_init_window_s``."""

@@ -66,6 +66,13 @@ MAX_SCAN_SPAN_NS = 1_000_000_000
 """Per-point times of one sweep spanning more than this are rejected as malformed (units?)."""
 MIN_POINTS_FOR_UPDATE = 5
 """Fewer downsampled points than this: the scan is not used for an update (§6.1)."""
+GYRO_RANGE_RAD_S = 35.0
+"""2000 deg/s, the widest range of common MEMS gyros: a larger reading is not in rad/s."""
+DEG_PER_RAD = 57.29577951308232
+UNITS_CHECK_ANGLE_RAD = 0.3
+"""LiDAR-registered rotation needed before the gyro's unit is judged against it."""
+UNITS_CHECK_S = 2.5
+"""After a still start, the unit check registers scans LiDAR-only for at most this long."""
 
 
 @njit(cache=True)
@@ -247,6 +254,8 @@ class Odometry:
         self._last_gap: tuple[int, float] | None = None
         """(start ns, length s) of the IMU gap bridged in the latest scan."""
         self._warned_gap_ns: int | None = None
+        self._units_check: MovingInit | None = None
+        """After a still start: LiDAR-only registrations to compare the gyro's rotation with."""
 
     # ------------------------------------------------------------------ public API
     @property
@@ -273,6 +282,12 @@ class Odometry:
                              f"{np.shape(gyro_rad_s)} and {np.shape(accel_m_s2)}")
         if not (np.all(np.isfinite(gyro)) and np.all(np.isfinite(acc))):
             raise InputError("add_imu: gyro/accel contain NaN or inf: drop those samples")
+        if gyro.size and np.abs(gyro).max() > GYRO_RANGE_RAD_S:
+            k = int(np.argmax(np.abs(gyro).max(axis=1)))
+            raise InputError(f"the gyro reads {np.abs(gyro[k]).max():.0f} at t = "
+                             f"{int(t[k]) * 1e-9:.3f} s, beyond any gyro's range in rad/s "
+                             f"({GYRO_RANGE_RAD_S:g}): it reports deg/s; set sensor.gyro_unit: "
+                             "deg_s")
         t = t.astype(np.int64)
         if t.size == 0:
             return
@@ -315,6 +330,8 @@ class Odometry:
             return None
         stats.t_ns = t_e
 
+        if self._units_check is not None:
+            self._check_gyro_units(pts, t_pts, t_e)
         # 2. initialization: static (§4), or in motion after imu.init_timeout_s without rest
         if not self.initialized:
             pts_e = self._try_initialize(pts, t_pts, t_b, t_e)
@@ -457,6 +474,7 @@ class Odometry:
         self._buf = _ImuBuffer(b.t_ns[keep_from:], b.gyro[keep_from:], b.accel[keep_from:])
         if t_e_ns - self._t_first_scan_ns < timeout_ns:
             return None
+        self._judge_gyro_units(self._moving, np.zeros(3))
         fit = self._moving.solve()
         if fit is None:
             return None
@@ -481,6 +499,7 @@ class Odometry:
             self._q_gap = imu.gap_noise(cfg, self._q_diag)
         self._moving = None
         self.initialized = True
+        self._units_check = MovingInit(self.cfg, self._R_LI, self._t_LI)
         acc_mean = b.accel[window].mean(axis=0)
         self.init_report = InitReport(
             method="static", t_ns=t_b_ns, gyro_bias_rad_s=init.gyro_bias_rad_s.copy(),
@@ -519,6 +538,30 @@ class Odometry:
                     f"{fit.residual_m * 100:.1f} cm RMS, unconstrained |g| "
                     f"{fit.gravity_norm_fit_m_s2:.2f} m/s^2"))
         return fit.points_lidar_end
+
+    def _check_gyro_units(self, pts: np.ndarray, t_pts: np.ndarray, t_e_ns: int) -> None:
+        """After a still start, register the next scans LiDAR-only until they have turned
+        enough to judge the gyro's unit (or UNITS_CHECK_S passed)."""
+        chk = self._units_check
+        b = self._buf
+        n_use = int(np.searchsorted(b.t_ns, t_e_ns, side="right"))
+        chk.add_imu(b.t_ns[:n_use], b.gyro[:n_use], b.accel[:n_use])
+        chk.add_scan(pts, t_pts)
+        done = self._judge_gyro_units(chk, self._state.b_g)
+        if done or (chk.scans and (chk.scans[-1].t_ns - chk.scans[0].t_ns) * 1e-9
+                    > UNITS_CHECK_S):
+            self._units_check = None
+
+    def _judge_gyro_units(self, chk: MovingInit, b_g: np.ndarray) -> bool:
+        """Compare the gyro's rotation with the LiDAR-registered one (about 57x: deg/s)."""
+        ratio, angle = chk.rotation_ratio(b_g)
+        if angle < UNITS_CHECK_ANGLE_RAD:
+            return False
+        if DEG_PER_RAD / 2 < ratio < DEG_PER_RAD * 2:
+            raise InputError(f"the gyro's rotation is {ratio:.0f}x the LiDAR-registered "
+                             f"rotation over the first scans ({np.rad2deg(angle):.0f} deg): it "
+                             "reports deg/s; set sensor.gyro_unit: deg_s")
+        return True
 
     def _set_gap_model(self, t_ns: np.ndarray) -> None:
         """Nominal IMU period from the initialization samples, and the gap threshold."""
