@@ -369,6 +369,14 @@ def run_jobs(jobs: Sequence[BagJob], out_dir: str | Path, *, client: Any = None,
     todo = [j for j in jobs if j.name not in rows]
 
     def summarize() -> tuple[list[BagRow], Path, Path]:
+        if interrupted:
+            # a bag whose worker wrote its marker before the Ctrl-C reached the client finished
+            # in this run (a started task removes its marker first)
+            for j in todo:
+                row = None if j.name in rows else finished_row(j)
+                if row is not None:
+                    row.skipped = False
+                    rows[j.name] = row
         ordered = [rows.get(j.name) or BagRow(bag=j.name, status="cancelled",
                                               error="cancelled (Ctrl-C) before it finished",
                                               bag_path=str(j.bag_path)) for j in jobs]
