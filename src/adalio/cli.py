@@ -48,18 +48,35 @@ for _name in _COMMAND_MODULES:
     _module.register(app)
 
 
+def _from_ctrl_c(exc: BaseException | None) -> bool:
+    """True if ``exc`` was raised while handling a KeyboardInterrupt (typer turns one inside a
+    command into a silent exit 130)."""
+    while exc is not None:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
 def main() -> None:
-    """Console-script entry point."""
+    """Console-script entry point: an AdalioError is one 'error:' line and exit 2; Ctrl-C at any
+    moment is one 'interrupted' line and exit 130 (never a traceback)."""
     from adalio.errors import AdalioError
 
     err = Console(stderr=True)
+    ctrl_c = "[yellow]interrupted[/] (Ctrl-C): outputs written so far are kept"
     try:
-        app(standalone_mode=True)
-    except AdalioError as exc:
-        err.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
-        sys.exit(exc.exit_code)
+        try:
+            app(standalone_mode=True)
+        except AdalioError as exc:
+            err.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+            sys.exit(exc.exit_code)
+        except SystemExit as exc:
+            if exc.code == 130 and _from_ctrl_c(exc):
+                err.print(ctrl_c)
+            raise
     except (KeyboardInterrupt, typer.Abort):
-        err.print("[yellow]interrupted[/]: partial outputs were flushed")
+        err.print(ctrl_c)
         sys.exit(130)
 
 

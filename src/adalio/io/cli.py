@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import statistics
 import sys
 import warnings
@@ -15,7 +16,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from adalio.errors import AdalioError, BagError, ConfigError
+from adalio.errors import AdalioError, BagError, ConfigError, InputError
 
 config_app = typer.Typer(help="Inspect the configuration.", no_args_is_help=True)
 
@@ -37,6 +38,18 @@ def _warnings_to(console: Console) -> Iterator[None]:
             yield
     finally:
         warnings.showwarning = old
+
+
+def check_out_dir(out: Path, option: str = "--out") -> None:
+    """InputError unless ``out`` is an existing folder or can be created as one."""
+    existing = out
+    while not existing.exists() and existing.parent != existing:
+        existing = existing.parent
+    if existing.exists() and not existing.is_dir():
+        where = "is a file" if existing == out else f"lies inside {existing}, which is a file"
+        raise InputError(f"{option} {out} {where}: give a folder (new or existing)")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(f"{option} {out}: {existing} is not writable; choose another folder")
 
 
 def _build_config(preset: str | None, config_file: Path | None, lidar_topic: str | None,
@@ -155,6 +168,7 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
 
     cfg = _build_config(preset, config, lidar_topic, imu_topic, extrinsic, mode, map_format)
     out_dir = out if out is not None else default_out_dir(bag)
+    check_out_dir(out_dir)
     con = Console(stderr=True)
     try:
         with _warnings_to(con):
@@ -235,4 +249,4 @@ def register(app: typer.Typer) -> None:
     app.add_typer(config_app, name="config")
 
 
-__all__ = ["AdalioError", "ConfigError", "register"]
+__all__ = ["AdalioError", "ConfigError", "check_out_dir", "register"]

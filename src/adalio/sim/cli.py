@@ -32,8 +32,10 @@ def register(app: typer.Typer) -> None:
 
         from rich.console import Console
 
+        from adalio.io.cli import check_out_dir
         from adalio.sim import simulate as run_simulation
 
+        check_out_dir(out)
         t0 = time.perf_counter()
         res = run_simulation(scene, out, seed=seed, duration_s=duration, lidar=lidar, fmt=fmt,
                              columns=columns, noise_scale=noise_scale, progress=True)
