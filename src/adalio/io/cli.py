@@ -126,6 +126,15 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
             batch = imu_msg_arrays(imu_msgs)
             unit = "g (converted)" if accel_is_in_g(batch.accel_m_s2) else "m/s^2"
             out.print(f"imu frame '{imu_msgs[0].header.frame_id}', accelerometer in {unit}")
+            for k in range(1, n_sample):
+                start = b.start_ns + span * k // n_sample
+                imu_msgs += [m for _, _, m in b.messages([imu], limit=50, start_ns=start)]
+            gyro = imu_msg_arrays(imu_msgs).gyro_rad_s
+            finite = np.isfinite(gyro).all(axis=1)
+            w = float(np.linalg.norm(gyro[finite], axis=1).max()) if finite.any() else np.nan
+            bad = f", {int((~finite).sum())} with NaN/inf" if not finite.all() else ""
+            out.print(f"gyro: max |w| {w:.3g} rad/s ({np.degrees(w):.3g} deg/s) over "
+                      f"{len(imu_msgs)} sampled messages{bad}", highlight=False)
         tf = b.static_transforms()
         out.print(f"/tf_static: {len(tf)} transforms" if tf else "/tf_static: none")
         from scipy.spatial.transform import Rotation
