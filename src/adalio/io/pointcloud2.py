@@ -157,6 +157,8 @@ def decode_fields(data: Any, layout: CloudLayout, names: list[str],
     if row_step == row_bytes:
         block = buf[: n_points * step]
     else:
+        if buf.size < n_rows * row_step:  # the last row's padding may be left out
+            buf = np.concatenate([buf[:need], np.zeros(n_rows * row_step - need, np.uint8)])
         block = np.ascontiguousarray(
             buf[: n_rows * row_step].reshape(n_rows, row_step)[:, :row_bytes]).reshape(-1)
     out: dict[str, np.ndarray] = {}
