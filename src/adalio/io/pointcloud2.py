@@ -364,7 +364,7 @@ class DecodeStats:
         parts = [f"{n} {what}" for n, what in (
             (self.clouds_without_points, "clouds hold no points at all"),
             (self.nonfinite, "points have a NaN/inf coordinate"),
-            (self.zero, "points are exactly (0, 0, 0) (a driver's 'no return')"),
+            (self.zero, "points are exactly (0, 0, 0), a driver's 'no return'"),
             (self.bad_time, "points have an invalid time (sensor.point_time_*)")) if n]
         return "; ".join(parts)
 

@@ -88,6 +88,15 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
     released_imu_t: int | None = None
     released_scan_end: int | None = None
     max_imu_t: int | None = None
+    held: list[str] = []
+
+    def note(text: str) -> None:
+        """Warn once a scan has gone out; until then hold the text, so that a stream that ends
+        in an error (nothing usable) prints that error alone."""
+        if st.scans_out:
+            st.warn(text)
+        else:
+            held.append(text)
 
     def take_imu(upto_ns: int) -> ImuBatch | None:
         nonlocal imu_t, imu_g, imu_a, released_imu_t
@@ -126,6 +135,8 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
                 continue
             released_scan_end = scan.t_end_ns
             st.scans_out += 1
+            while held:
+                st.warn(held.pop(0))
             yield scan
         if max_imu_t is not None and (not pending or final):
             batch = take_imu(max_imu_t if final and not pending else max_imu_t - window_ns)
@@ -142,9 +153,8 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
             if not finite.all():
                 if st.imu_first_nonfinite_ns is None:
                     st.imu_first_nonfinite_ns = int(t[~finite][0])
-                    st.warn(f"IMU sample on {imu_topic} at {_fmt_s(int(t[~finite][0]), 9)} s "
-                            "has a NaN/inf gyro or accel value: dropped (further ones are "
-                            "counted)")
+                    note(f"IMU sample on {imu_topic} at {_fmt_s(int(t[~finite][0]), 9)} s has "
+                         "a NaN/inf gyro or accel value: dropped (further ones are counted)")
                 st.imu_nonfinite += int(np.count_nonzero(~finite))
                 t = t[finite]
                 item = ImuBatch(t, item.gyro_rad_s[finite], item.accel_m_s2[finite])
@@ -176,8 +186,8 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
             if len(item) == 0:
                 st.scans_empty += 1
                 if st.scans_empty == 1:
-                    st.warn(f"empty scan on {lidar_topic} at {item.stamp_ns * 1e-9:.3f} s "
-                            "skipped (no finite points); further ones are counted")
+                    note(f"empty scan on {lidar_topic} at {item.stamp_ns * 1e-9:.3f} s skipped "
+                         "(no valid points); further ones are counted")
                 continue
             end = item.t_end_ns
             st.scan_first_end_ns = end if st.scan_first_end_ns is None else st.scan_first_end_ns
@@ -191,9 +201,9 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
             if released_imu_t is not None and end < released_imu_t:
                 st.scans_late += 1
                 if st.scans_late == 1:
-                    st.warn(f"scan on {lidar_topic} ending at {_fmt_s(end)} s arrived more than "
-                            f"{window_ns * 1e-9:.1f} s after its IMU samples; skipped (further "
-                            "ones are counted)")
+                    note(f"scan on {lidar_topic} ending at {_fmt_s(end)} s arrived more than "
+                         f"{window_ns * 1e-9:.1f} s after its IMU samples; skipped (further "
+                         "ones are counted)")
                 continue
             pending.append(item)
         yield from release(final=False)
@@ -219,6 +229,8 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
                          f" s, {st.imu_samples} samples) does not cover any scan on {lidar_topic} "
                          f"({_fmt_s(st.scan_first_end_ns)}..{_fmt_s(st.scan_last_end_ns)} s); "
                          "check the topics and the bag's time ranges")
+    while held:
+        st.warn(held.pop(0))
     for n, what in ((st.scans_empty, "empty scans"),
                     (st.scans_before_imu, "scans before the first IMU sample"),
                     (st.scans_after_imu, "scans after the last IMU sample"),
