@@ -187,9 +187,7 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
     except KeyboardInterrupt:
         res = None
     if res is None or res.interrupted:
-        if res is None:
-            con.print("[yellow]interrupted[/]: outputs written so far are kept")
-        raise typer.Exit(130)
+        raise typer.Exit(130)  # the entry point prints the 'interrupted' line
 
 
 def _summary(con: Console, res: Any, profile: bool) -> None:
