@@ -51,18 +51,38 @@ for _name in _COMMAND_MODULES:
 
 
 def main() -> None:
-    """Console-script entry point."""
+    """Console-script entry point: an AdalioError or a command-line usage error is one 'error:'
+    line and exit 2; Ctrl-C at any moment is one 'interrupted' line and exit 130 (never a
+    traceback)."""
+    from rich.markup import escape
+
     from adalio.errors import AdalioError
     from adalio.term import console
 
+    # click's base exception, found through typer's public BadParameter (typer may vendor click)
+    click_error = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
     err = console(stderr=True)
+    ctrl_c = "[yellow]interrupted[/] (Ctrl-C): outputs written so far are kept"
     try:
-        app(standalone_mode=True)
-    except AdalioError as exc:
-        err.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
-        sys.exit(exc.exit_code)
+        try:
+            code = app(standalone_mode=False)
+        except AdalioError as exc:
+            err.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False,
+                      soft_wrap=True)
+            sys.exit(exc.exit_code)
+        except click_error as exc:
+            if type(exc).__name__ != "NoArgsIsHelpError":  # that one has printed the help
+                ctx = getattr(exc, "ctx", None)
+                see = f" (see: {ctx.command_path} --help)" if ctx is not None else ""
+                err.print(f"[bold red]error:[/] {escape(exc.format_message() + see)}",
+                          highlight=False, soft_wrap=True)
+            sys.exit(exc.exit_code)
+        code = code if isinstance(code, int) else 0
+        if code == 130:  # typer turns a KeyboardInterrupt inside a command into exit 130
+            err.print(ctrl_c)
+        sys.exit(code)
     except (KeyboardInterrupt, typer.Abort):
-        err.print("[yellow]interrupted[/]: partial outputs were flushed")
+        err.print(ctrl_c)
         sys.exit(130)
 
 

@@ -54,6 +54,9 @@ class SensorConfig:
     """Nominal sweep rate (Hz); used to reconstruct per-point times from azimuth when absent."""
     accel_unit: str = "auto"
     """'auto' (g if the static mean norm is near 1), 'm_s2' or 'g'."""
+    gyro_unit: str = "rad_s"
+    """'rad_s' or 'deg_s' (converted on reading). A deg/s gyro read as rad/s is detected (rates
+    beyond 2000 deg/s, or 57x the LiDAR-registered rotation) and stops the run naming this key."""
     point_time_field: str = "auto"
     """Per-point time field name, or 'auto' (t, time, timestamp, timestamps, offset_time, ...),
     or 'none' to reconstruct times from azimuth."""
@@ -271,45 +274,14 @@ class Config:
         return validate_transform(self.sensor.T_imu_lidar, "sensor.T_imu_lidar")
 
     def validate(self) -> Config:
-        """Check enumerations, ranges and the extrinsic; raise ConfigError naming the key."""
-        _choice(self.adaptive.mode, MODES, "adaptive.mode")
-        _choice(self.adaptive.detector, ("count", "near_ratio"), "adaptive.detector")
-        _choice(self.sensor.extrinsic_source, ("auto", "config", "tf_static"),
-                "sensor.extrinsic_source")
-        _choice(self.sensor.accel_unit, ("auto", "m_s2", "g"), "sensor.accel_unit")
-        _choice(self.sensor.point_time_unit, ("auto", "s", "ms", "us", "ns"),
-                "sensor.point_time_unit")
-        _choice(self.sensor.point_time_reference, ("auto", "absolute", "relative"),
-                "sensor.point_time_reference")
-        _choice(self.imu.noise_discretization, ("dt2", "dt"), "imu.noise_discretization")
-        _choice(self.imu.noise_source, ("config", "measured"), "imu.noise_source")
-        _choice(self.map.nearby_type, (0, 6, 18, 26), "map.nearby_type")
-        _choice(self.filter.plane_fit, ("ls", "pca"), "filter.plane_fit")
-        _choice(self.output.map_format, ("ply", "pcd"), "output.map_format")
-        for name, ps in (("general", self.adaptive.general),
-                         ("degenerate", self.adaptive.degenerate)):
-            for f in dataclasses.fields(ps):
-                if not getattr(ps, f.name) > 0:
-                    raise ConfigError(f"adaptive.{name}.{f.name} must be > 0 "
-                                      f"(got {getattr(ps, f.name)})")
-        for key, value in (("preprocess.blind_m", self.preprocess.blind_m),):
-            if value < 0:
-                raise ConfigError(f"{key} must be >= 0 (got {value})")
-        for key, value in (("preprocess.max_range_m", self.preprocess.max_range_m),
-                           ("map.ivox_resolution_m", self.map.ivox_resolution_m),
-                           ("map.map_leaf_m", self.map.map_leaf_m),
-                           ("imu.gravity_m_s2", self.imu.gravity_m_s2),
-                           ("filter.laser_point_cov", self.filter.laser_point_cov)):
-            if not value > 0:
-                raise ConfigError(f"{key} must be > 0 (got {value})")
-        for key, value in (("preprocess.point_filter_num", self.preprocess.point_filter_num),
-                           ("imu.init_samples", self.imu.init_samples),
-                           ("filter.max_iterations", self.filter.max_iterations),
-                           ("filter.knn_k", self.filter.knn_k),
-                           ("map.capacity_voxels", self.map.capacity_voxels),
-                           ("map.max_points_per_voxel", self.map.max_points_per_voxel)):
-            if int(value) < 1:
-                raise ConfigError(f"{key} must be >= 1 (got {value})")
+        """Check enumerations, ranges and the extrinsic; raise ConfigError naming the key and
+        what it allows (rules: ``CHOICES``, ``RANGES``, ``_cross_checks``)."""
+        values = _leaf_values(self)
+        for key, allowed in CHOICES.items():
+            _choice(values[key], allowed, key)
+        for key, rule in RANGES.items():
+            rule.check(key, values[key])
+        _cross_checks(self)
         self.T_imu_lidar()
         return self
 
@@ -317,6 +289,141 @@ class Config:
 def _choice(value: Any, allowed: tuple, key: str) -> None:
     if value not in allowed:
         raise ConfigError(f"{key} must be one of {', '.join(map(str, allowed))} (got {value!r})")
+
+
+def _leaf_values(obj: Any, prefix: str = "") -> dict[str, Any]:
+    """Dotted key -> value of every non-section field (``{"sensor.imu_rate_hz": 400.0, ...}``)."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        key = f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(value):
+            out.update(_leaf_values(value, key + "."))
+        else:
+            out[key] = value
+    return out
+
+
+@dataclass(frozen=True)
+class Range:
+    """Allowed interval of a numeric field; ``lo``/``hi`` None = unbounded on that side, and
+    ``lo_open``/``hi_open`` exclude the bound itself. Non-finite values are always rejected."""
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def describe(self) -> str:
+        if self.lo is not None and self.hi is not None:
+            return (f"in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}"
+                    f"{')' if self.hi_open else ']'}")
+        if self.lo is not None:
+            return f"{'>' if self.lo_open else '>='} {self.lo:g}"
+        if self.hi is not None:
+            return f"{'<' if self.hi_open else '<='} {self.hi:g}"
+        return "finite"
+
+    def allows(self, value: float) -> bool:
+        if not np.isfinite(value):
+            return False
+        if self.lo is not None and (value <= self.lo if self.lo_open else value < self.lo):
+            return False
+        return self.hi is None or (value < self.hi if self.hi_open else value <= self.hi)
+
+    def check(self, key: str, value: Any) -> None:
+        try:
+            ok = not isinstance(value, bool) and self.allows(float(value))
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ConfigError(f"{key} must be {self.describe()} (got {value!r})")
+
+
+POSITIVE = Range(0.0, lo_open=True)
+NON_NEGATIVE = Range(0.0)
+AT_LEAST_ONE = Range(1)
+FRACTION = Range(0.0, 1.0)
+
+CHOICES: dict[str, tuple] = {
+    "sensor.extrinsic_source": ("auto", "config", "tf_static"),
+    "sensor.accel_unit": ("auto", "m_s2", "g"),
+    "sensor.point_time_unit": ("auto", "s", "ms", "us", "ns"),
+    "sensor.point_time_reference": ("auto", "absolute", "relative"),
+    "imu.noise_discretization": ("dt2", "dt"),
+    "imu.noise_source": ("config", "measured"),
+    "sensor.gyro_unit": ("rad_s", "deg_s"),
+    "map.nearby_type": (0, 6, 18, 26),
+    "filter.plane_fit": ("ls", "pca"),
+    "adaptive.mode": MODES,
+    "adaptive.detector": ("count", "near_ratio"),
+    "output.map_format": ("ply", "pcd"),
+}
+"""Fields with a fixed set of values."""
+
+RANGES: dict[str, Range] = {
+    "sensor.imu_rate_hz": POSITIVE,
+    "sensor.lidar_rate_hz": POSITIVE,
+    "preprocess.blind_m": NON_NEGATIVE,
+    "preprocess.max_range_m": POSITIVE,
+    "preprocess.point_filter_num": AT_LEAST_ONE,
+    "imu.gyro_cov": POSITIVE,
+    "imu.accel_cov": POSITIVE,
+    "imu.gyro_bias_cov": NON_NEGATIVE,
+    "imu.accel_bias_cov": NON_NEGATIVE,
+    "imu.gravity_m_s2": POSITIVE,
+    "imu.init_samples": AT_LEAST_ONE,
+    "imu.init_window_s": POSITIVE,
+    "imu.still_block_s": POSITIVE,
+    "imu.still_gyro_floor_rad_s": NON_NEGATIVE,
+    "imu.still_accel_floor_m_s2": NON_NEGATIVE,
+    "imu.still_false_alarm": Range(0, 1, lo_open=True, hi_open=True),
+    "imu.init_timeout_s": NON_NEGATIVE,
+    "imu.moving_init_window_s": POSITIVE,
+    "imu.moving_init_max_residual_m": POSITIVE,
+    "imu.gap_periods": Range(1, lo_open=True),
+    "imu.gap_motion_gyro_rad_s_sqrt_hz": POSITIVE,
+    "imu.gap_motion_accel_m_s2_sqrt_hz": POSITIVE,
+    "imu.max_gap_s": POSITIVE,
+    "map.ivox_resolution_m": POSITIVE,
+    "map.capacity_voxels": AT_LEAST_ONE,
+    "map.max_points_per_voxel": AT_LEAST_ONE,
+    "map.map_leaf_m": POSITIVE,
+    "filter.max_iterations": AT_LEAST_ONE,
+    "filter.knn_k": Range(3),
+    "filter.min_neighbors": Range(3),
+    "filter.laser_point_cov": POSITIVE,
+    "filter.convergence_eps": POSITIVE,
+    "filter.knn_max_range_m": POSITIVE,
+    "filter.plane_min_extent_fraction": NON_NEGATIVE,
+    **{f"adaptive.{s}.{f}": POSITIVE for s in ("general", "degenerate")
+       for f in ("voxel_size_m", "search_radius_m", "plane_margin_m")},
+    "adaptive.tau_n": NON_NEGATIVE,
+    "adaptive.tau_near": NON_NEGATIVE,
+    "adaptive.d_xy_m": POSITIVE,
+    "adaptive.near_ratio": FRACTION,
+    "adaptive.hold_scans": AT_LEAST_ONE,
+    "adaptive.min_eigen_ratio": FRACTION,
+    "adaptive.min_voxel_size_m": POSITIVE,
+    "adaptive.point_budget": AT_LEAST_ONE,
+    "adaptive.observable_eigen_ratio": FRACTION,
+    "adaptive.probe_directions": Range(0, 6),
+    "adaptive.probe_step_m": POSITIVE,
+    "adaptive.min_restoring_ratio": FRACTION,
+    "output.map_voxel_m": NON_NEGATIVE,
+}
+"""Allowed range of every numeric field (a new numeric field needs one line here; the tests
+check that every int/float field has a rule)."""
+
+
+def _cross_checks(cfg: Config) -> None:
+    """Rules that relate two fields."""
+    if not cfg.preprocess.max_range_m > cfg.preprocess.blind_m:
+        raise ConfigError(f"preprocess.max_range_m must be > preprocess.blind_m (got "
+                          f"{cfg.preprocess.max_range_m} <= {cfg.preprocess.blind_m})")
+    if cfg.filter.min_neighbors > cfg.filter.knn_k:
+        raise ConfigError(f"filter.min_neighbors must be <= filter.knn_k (got "
+                          f"{cfg.filter.min_neighbors} > {cfg.filter.knn_k})")
 
 
 def validate_transform(T: Any, where: str) -> np.ndarray:

@@ -42,7 +42,9 @@ def real():
     stamp_ns = int(Fraction(float(d["stamp_sec"])) * 10**9)
     return SimpleNamespace(x=d["x"], y=d["y"], z=d["z"], intensity=d["intensity"],
                            ring=d["row"].astype(np.uint16), t=d["t"], rng=d["range"],
-                           stamp_sec=float(d["stamp_sec"]), stamp_ns=stamp_ns)
+                           stamp_sec=float(d["stamp_sec"]), stamp_ns=stamp_ns,
+                           ret=d["range"] > 0)
+    # ret: points with a return; the driver writes (0, 0, 0) for none, which the decoder drops
 
 
 def exact_ns(values) -> np.ndarray:
@@ -68,10 +70,10 @@ def msg_from(columns, layout, step, stamp_ns, big=False, height=1, row_pad=0):
 
 
 def xyz_equal(scan, r):
-    assert scan.points_lidar.shape == (r.x.size, 3)
-    np.testing.assert_array_equal(scan.points_lidar[:, 0].astype(np.float32), r.x)
-    np.testing.assert_array_equal(scan.points_lidar[:, 1].astype(np.float32), r.y)
-    np.testing.assert_array_equal(scan.points_lidar[:, 2].astype(np.float32), r.z)
+    assert scan.points_lidar.shape == (r.ret.sum(), 3)
+    np.testing.assert_array_equal(scan.points_lidar[:, 0].astype(np.float32), r.x[r.ret])
+    np.testing.assert_array_equal(scan.points_lidar[:, 1].astype(np.float32), r.y[r.ret])
+    np.testing.assert_array_equal(scan.points_lidar[:, 2].astype(np.float32), r.z[r.ret])
 
 
 @pytest.mark.parametrize("big", [False, True])
@@ -85,12 +87,12 @@ def test_hesai_layout_roundtrip(real, big, height, row_pad):
     scan = dec.decode(msg)
     assert dec.time_spec == TimeSpec("timestamp", "s", "absolute")
     xyz_equal(scan, real)
-    np.testing.assert_array_equal(scan.t_ns, exact_ns(absolute))
+    np.testing.assert_array_equal(scan.t_ns, exact_ns(absolute[real.ret]))
     # the f64 absolute seconds carry ~0.24 us resolution at this epoch
-    true_ns = real.stamp_ns + np.rint(real.t * 1e9).astype(np.int64)
+    true_ns = real.stamp_ns + np.rint(real.t[real.ret] * 1e9).astype(np.int64)
     assert np.abs(scan.t_ns - true_ns).max() <= 300
-    np.testing.assert_array_equal(scan.intensity, real.intensity)
-    np.testing.assert_array_equal(scan.ring, real.ring)
+    np.testing.assert_array_equal(scan.intensity, real.intensity[real.ret])
+    np.testing.assert_array_equal(scan.ring, real.ring[real.ret])
     assert scan.stamp_ns == real.stamp_ns
 
 
@@ -103,7 +105,7 @@ def test_ouster_layout_roundtrip(real, big):
     scan = dec.decode(msg_from(cols, *OUSTER, real.stamp_ns, big))
     assert dec.time_spec == TimeSpec("t", "ns", "relative")
     xyz_equal(scan, real)
-    np.testing.assert_array_equal(scan.t_ns, real.stamp_ns + t_u32.astype(np.int64))
+    np.testing.assert_array_equal(scan.t_ns, real.stamp_ns + t_u32[real.ret].astype(np.int64))
 
 
 @pytest.mark.parametrize("big", [False, True])
@@ -117,7 +119,7 @@ def test_velodyne_layout_roundtrip_header_at_sweep_end(real, big):
     scan = dec.decode(msg_from(cols, *VELODYNE, stamp_ns, big))
     assert dec.time_spec == TimeSpec("time", "s", "relative")
     xyz_equal(scan, real)
-    assert np.abs(scan.t_ns - (stamp_ns + exact_ns(t_f32))).max() <= 1
+    assert np.abs(scan.t_ns - (stamp_ns + exact_ns(t_f32[real.ret]))).max() <= 1
 
 
 def test_nonfinite_points_dropped_with_their_times(real):
@@ -130,7 +132,7 @@ def test_nonfinite_points_dropped_with_their_times(real):
     cols = {"x": x, "y": real.y, "z": real.z, "intensity": real.intensity, "t": t_u32,
                 "reflectivity": np.zeros_like(real.ring), "ring": real.ring}
     scan = CloudDecoder().decode(msg_from(cols, *OUSTER, real.stamp_ns))
-    keep = np.ones(x.size, bool)
+    keep = real.ret.copy()
     keep[bad] = False
     assert len(scan) == keep.sum()
     np.testing.assert_array_equal(scan.t_ns, real.stamp_ns + t_u32[keep].astype(np.int64))
@@ -144,7 +146,9 @@ def test_nan_time_drops_point(real):
     cols = {"x": real.x[:n], "y": real.y[:n], "z": real.z[:n], "intensity": real.intensity[:n],
                 "ring": real.ring[:n], "time": t.astype(np.float32)}
     scan = CloudDecoder().decode(msg_from(cols, *VELODYNE, real.stamp_ns))
-    assert len(scan) == n - 2 and scan.t_ns.min() >= real.stamp_ns
+    keep = real.ret[:n].copy()
+    keep[[3, 500]] = False
+    assert len(scan) == keep.sum() and scan.t_ns.min() >= real.stamp_ns
 
 
 def test_azimuth_reconstruction_matches_true_times(real):
@@ -213,7 +217,7 @@ def test_missing_xyz_names_topic_and_fields():
 
 def test_count_gt_one_coordinate_is_error_other_fields_ignored():
     layout = [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("normal", 12, "f4")]
-    cols = {k: np.arange(4, dtype=np.float32) for k in ("x", "y", "z", "normal")}
+    cols = {k: np.arange(1, 5, dtype=np.float32) for k in ("x", "y", "z", "normal")}
     msg = msg_from(cols, layout, 16, 10**18)
     msg.fields[3].count = 3
     with pytest.warns(UserWarning):

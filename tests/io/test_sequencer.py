@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -115,8 +117,36 @@ def test_empty_and_uncovered_scans_are_counted():
 
 def test_all_empty_scans_is_error():
     empty = Scan(np.zeros((0, 3)), np.zeros(0, np.int64), 0)
-    with pytest.warns(UserWarning), pytest.raises(InputError, match="all 2 scans"):
-        list(merge([imu([1, 2, 3]), empty, empty]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the error alone, no 'empty scan skipped' before it
+        with pytest.raises(InputError, match="all 2 clouds on lidar"):
+            list(merge([imu([1, 2, 3]), empty, empty]))
+        with pytest.raises(InputError, match=r"\(3 points are \(0, 0"):
+            list(merge([imu([1, 2, 3]), empty, empty],
+                       why_empty=lambda: "3 points are (0, 0, 0)"))
+
+
+def test_nonfinite_imu_samples_dropped_with_one_warning():
+    st = SequencerStats()
+    batch = imu(range(0, 10**9, 5_000_000))
+    batch.gyro_rad_s[[10, 11, 50]] = np.nan
+    batch.accel_m_s2[70, 2] = np.inf
+    with pytest.warns(UserWarning, match=r"IMU sample on /imu at 0\.050000000 s has a NaN") as w:
+        out = list(merge([batch, scan(10**8, 2 * 10**8)], st, imu_topic="/imu"))
+    assert len(w) == 1
+    kept = np.concatenate([o.t_ns for o in out if isinstance(o, ImuBatch)])
+    assert kept.size == 200 - 4 and st.imu_nonfinite == 4
+    assert not np.isin([50_000_000, 55_000_000, 250_000_000, 350_000_000], kept).any()
+    assert any(m.startswith("skipped 4 IMU samples with NaN/inf") for m in st.messages)
+
+
+def test_all_nonfinite_imu_is_error():
+    batch = imu(range(0, 10**9, 5_000_000))
+    batch.accel_m_s2[:] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match="all 200 IMU samples on /i"):
+            list(merge([batch, scan(10**8, 2 * 10**8)], imu_topic="/i"))
 
 
 def test_scans_before_first_imu_are_skipped():

@@ -11,6 +11,7 @@ becomes an :class:`~adalio.errors.InputError` with a one-line message.
 from __future__ import annotations
 
 import csv
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -47,9 +48,14 @@ def read_trajectory(path: TrajectoryLike, what: str = "trajectory") -> PoseTraje
 
 def _loadtxt_tum(path: Path, what: str) -> np.ndarray:
     try:
-        mat = np.loadtxt(path, comments="#", dtype=np.float64, ndmin=2)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # an empty file is reported below, once
+            mat = np.loadtxt(path, comments="#", dtype=np.float64, ndmin=2)
     except (ValueError, UnicodeDecodeError):
         mat = None
+    if mat is not None and mat.size == 0:
+        raise InputError(f"{what} file {path} has no poses (it is empty or only comments); "
+                         "give a trajectory with at least one 't x y z qx qy qz qw' line")
     if mat is None or mat.ndim != 2 or mat.shape[1] != 8:
         raise InputError(f"{what} file {path} is not a TUM trajectory: expected 8 numbers "
                          "'t x y z qx qy qz qw' per line")

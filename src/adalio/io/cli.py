@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import statistics
 import sys
 import warnings
@@ -39,6 +40,18 @@ def _warnings_to(console: Console) -> Iterator[None]:
             yield
     finally:
         warnings.showwarning = old
+
+
+def check_out_dir(out: Path, option: str = "--out") -> None:
+    """InputError unless ``out`` is an existing folder or can be created as one."""
+    existing = out
+    while not existing.exists() and existing.parent != existing:
+        existing = existing.parent
+    if existing.exists() and not existing.is_dir():
+        where = "is a file" if existing == out else f"lies inside {existing}, which is a file"
+        raise InputError(f"{option} {out} {where}: give a folder (new or existing)")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(f"{option} {out}: {existing} is not writable; choose another folder")
 
 
 def _build_config(preset: str | None, config_file: Path | None, lidar_topic: str | None,
@@ -116,6 +129,15 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
             batch = imu_msg_arrays(imu_msgs)
             unit = "g (converted)" if accel_is_in_g(batch.accel_m_s2) else "m/s^2"
             out.print(f"imu frame '{imu_msgs[0].header.frame_id}', accelerometer in {unit}")
+            for k in range(1, n_sample):
+                start = b.start_ns + span * k // n_sample
+                imu_msgs += [m for _, _, m in b.messages([imu], limit=50, start_ns=start)]
+            gyro = imu_msg_arrays(imu_msgs).gyro_rad_s
+            finite = np.isfinite(gyro).all(axis=1)
+            w = float(np.linalg.norm(gyro[finite], axis=1).max()) if finite.any() else np.nan
+            bad = f", {int((~finite).sum())} with NaN/inf" if not finite.all() else ""
+            out.print(f"gyro: max |w| {w:.3g} rad/s ({np.degrees(w):.3g} deg/s) over "
+                      f"{len(imu_msgs)} sampled messages{bad}", highlight=False)
         tf = b.static_transforms()
         out.print(f"/tf_static: {len(tf)} transforms" if tf else "/tf_static: none")
         from scipy.spatial.transform import Rotation
@@ -192,6 +214,7 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
     if gt is not None and not gt.is_file():
         raise InputError(f"ground truth {gt} does not exist: check --gt")
     out_dir = out if out is not None else default_out_dir(bag)
+    check_out_dir(out_dir)
     con = console(stderr=True)
     viewer = None
     try:
@@ -214,9 +237,7 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
     if gt is not None and res is not None and not res.interrupted:
         _report(con, res.out_dir, gt)
     if res is None or res.interrupted:
-        if res is None:
-            con.print("[yellow]interrupted[/]: outputs written so far are kept")
-        raise typer.Exit(130)
+        raise typer.Exit(130)  # the entry point prints the 'interrupted' line
 
 
 def _report(con: Console, out_dir: Path, gt: Path) -> None:
@@ -307,4 +328,4 @@ def register(app: typer.Typer) -> None:
     app.add_typer(config_app, name="config")
 
 
-__all__ = ["AdalioError", "ConfigError", "register"]
+__all__ = ["AdalioError", "ConfigError", "check_out_dir", "register"]

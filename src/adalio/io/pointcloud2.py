@@ -7,13 +7,18 @@ Decoding reads x, y, z (metres, LiDAR frame = the cloud's ``header.frame_id``), 
 intensity and ring, and a per-point time field whose name, unit (s/ms/us/ns) and reference
 (absolute epoch time or offset from the header stamp) are detected from the first cloud unless
 configured (``sensor.point_time_*``). Output times are int64 absolute nanoseconds. Points with a
-non-finite coordinate or time are dropped together with their time. A cloud without a time field
+non-finite coordinate or time, and points at exactly (0, 0, 0) (many drivers' placeholder for "no
+return"), are dropped together with their time; :class:`DecodeStats` counts what was dropped so
+that an all-empty topic can be explained. A configured time unit/reference that gives implausible
+times (a cloud spanning more than ``MAX_SPAN_SWEEPS`` sweeps, times hours from the header stamp)
+is refused on the first cloud, naming the field and the unit. A cloud without a time field
 gets times reconstructed from the azimuth of a spinning LiDAR (clockwise seen from above, one
 sweep = ``1 / sensor.lidar_rate_hz``), starting at the header stamp.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from dataclasses import dataclass
 from typing import Any
@@ -35,9 +40,16 @@ TIME_FIELD_CANDIDATES: tuple[str, ...] = (
 """Field names tried, in order, when ``sensor.point_time_field`` is 'auto'."""
 
 UNIT_TO_NS: dict[str, int] = {"s": 1_000_000_000, "ms": 1_000_000, "us": 1_000, "ns": 1}
+INT64_MIN_NS = -(2**63)
+INT64_MAX_NS = 2**63 - 1
 MIN_SPAN_SWEEPS = 0.02
 """A cloud's times must span at least this fraction of a sweep for a unit to be accepted."""
 MIN_POINTS_FOR_SPAN = 100
+MAX_SPAN_SWEEPS = 5.0
+"""A configured time unit giving a cloud longer than this many sweeps is refused."""
+MAX_STAMP_OFFSET_S = 3600.0
+"""A configured time unit/reference putting points further than this from the header stamp is
+refused (a clock offset that large is a unit or reference mismatch)."""
 INTENSITY_FIELDS: tuple[str, ...] = ("intensity", "reflectivity", "i")
 RING_FIELDS: tuple[str, ...] = ("ring", "channel", "line", "laser_id")
 
@@ -145,6 +157,8 @@ def decode_fields(data: Any, layout: CloudLayout, names: list[str],
     if row_step == row_bytes:
         block = buf[: n_points * step]
     else:
+        if buf.size < n_rows * row_step:  # the last row's padding may be left out
+            buf = np.concatenate([buf[:need], np.zeros(n_rows * row_step - need, np.uint8)])
         block = np.ascontiguousarray(
             buf[: n_rows * row_step].reshape(n_rows, row_step)[:, :row_bytes]).reshape(-1)
     out: dict[str, np.ndarray] = {}
@@ -282,6 +296,79 @@ def stamp_to_ns(stamp: Any) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
+def check_time_spec(values: np.ndarray, datatype: int, spec: TimeSpec, stamp_ns: int,
+                    sensor: SensorConfig, topic: str = "") -> None:
+    """BagError if a configured unit/reference makes the raw times of one cloud implausible:
+    spanning more than MAX_SPAN_SWEEPS sweeps, or further than MAX_STAMP_OFFSET_S from the
+    header stamp (or beyond int64 ns). The message names the field, the configured unit and, if
+    detection finds one, the unit the values look like."""
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return
+    sweep_s = 1.0 / max(sensor.lidar_rate_hz, 1e-3)
+    scale = UNIT_TO_NS[spec.unit] * 1e-9
+    base = stamp_ns * 1e-9 if spec.reference == "absolute" else 0.0
+    vmin, vmax = float(v.min()), float(v.max())
+    span_s = (vmax - vmin) * scale
+    lo, hi = vmin * scale - base, vmax * scale - base
+    if span_s > MAX_SPAN_SWEEPS * sweep_s:
+        what = f"one cloud spanning {span_s:.4g} s ({sensor.lidar_rate_hz:g} Hz LiDAR)"
+    elif max(abs(lo), abs(hi)) > MAX_STAMP_OFFSET_S or max(abs(vmin), abs(vmax)) * \
+            UNIT_TO_NS[spec.unit] > 9.2e18:
+        what = f"points {lo:.4g}..{hi:.4g} s away from the header stamp"
+    else:
+        return
+    guess = ""
+    try:
+        auto = dataclasses.replace(sensor, point_time_unit="auto", point_time_reference="auto")
+        found = detect_time_spec(v, datatype, spec.field or "", stamp_ns, auto, topic)
+        if (found.unit, found.reference) != (spec.unit, spec.reference):
+            guess = f"; the values look like {found.unit}, {found.reference}"
+    except BagError:
+        pass
+    raise BagError(f"PointCloud2 on {topic or '?'}: time field '{spec.field}' read as "
+                   f"{spec.unit}, {spec.reference} (sensor.point_time_unit / "
+                   f"point_time_reference) gives {what}: the unit or reference is likely wrong"
+                   f"{guess}; set sensor.point_time_unit and sensor.point_time_reference "
+                   "(or 'auto')")
+
+
+@dataclass
+class DecodeStats:
+    """Points seen and dropped by a :class:`CloudDecoder` (all clouds so far)."""
+
+    clouds: int = 0
+    clouds_without_points: int = 0
+    """Clouds whose message holds no point at all (width x height = 0)."""
+    points: int = 0
+    nonfinite: int = 0
+    """Points dropped for a NaN/inf coordinate."""
+    zero: int = 0
+    """Points dropped for being exactly (0, 0, 0)."""
+    bad_time: int = 0
+    """Points dropped for a NaN/inf or out-of-range time."""
+    kept: int = 0
+
+    def add(self, n: int, nonfinite: int, zero: int, bad_time: int, kept: int) -> None:
+        self.clouds += 1
+        self.clouds_without_points += int(n == 0)
+        self.points += n
+        self.nonfinite += nonfinite
+        self.zero += zero
+        self.bad_time += bad_time
+        self.kept += kept
+
+    def why_empty(self) -> str:
+        """What the dropped points were, for the 'all clouds empty' error."""
+        parts = [f"{n} {what}" for n, what in (
+            (self.clouds_without_points, "clouds hold no points at all"),
+            (self.nonfinite, "points have a NaN/inf coordinate"),
+            (self.zero, "points are exactly (0, 0, 0), a driver's 'no return'"),
+            (self.bad_time, "points have an invalid time (sensor.point_time_*)")) if n]
+        return "; ".join(parts)
+
+
 # ----------------------------------------------------------------------------- decoder
 class CloudDecoder:
     """Decode PointCloud2 messages of one topic into :class:`Scan` objects.
@@ -295,14 +382,26 @@ class CloudDecoder:
         self.time_spec: TimeSpec | None = None
         self._warned_azimuth = False
         self._constant_fields: set[str] = set()
+        self._spec_checked = False
+        self.stats = DecodeStats()
 
     def decode(self, msg: Any) -> Scan:
         """One message → Scan (may have 0 points). Raises BagError on unusable layouts."""
-        stamp_ns = stamp_to_ns(msg.header.stamp)
-        layout = CloudLayout.from_msg(msg)
+        where = f"PointCloud2 on {self.topic or '?'}"
+        try:
+            stamp_ns = stamp_to_ns(msg.header.stamp)
+            layout = CloudLayout.from_msg(msg)
+        except (TypeError, ValueError, OverflowError):
+            raise BagError(f"{where}: header or field list is malformed (stamp, offsets, "
+                           "datatypes, sizes must be integers); the message is corrupted") \
+                from None
         return self.decode_raw(msg.data, layout, stamp_ns)
 
     def decode_raw(self, data: Any, layout: CloudLayout, stamp_ns: int) -> Scan:
+        """Decode raw ``data`` laid out as ``layout`` (see :meth:`decode`)."""
+        if not INT64_MIN_NS <= int(stamp_ns) <= INT64_MAX_NS:
+            raise BagError(f"PointCloud2 on {self.topic or '?'}: header stamp {stamp_ns} ns is "
+                           "out of range; the message is corrupted")
         names = layout.field_names()
         missing = [c for c in ("x", "y", "z") if c not in names]
         if missing:
@@ -323,6 +422,11 @@ class CloudDecoder:
         cols = decode_fields(data, layout, want + list(extras.values()), self.topic)
         pts = np.stack([cols["x"], cols["y"], cols["z"]], axis=1).astype(np.float64)
         ok = np.isfinite(pts).all(axis=1)
+        n_nonfinite = int(pts.shape[0] - np.count_nonzero(ok))
+        zero = ok & ~pts.any(axis=1)
+        n_zero = int(np.count_nonzero(zero))
+        ok &= ~zero
+        n_xyz_ok = int(np.count_nonzero(ok))
         t_ns = None
         if tfield is not None and tfield not in self._constant_fields:
             raw_t = cols[tfield]
@@ -339,6 +443,10 @@ class CloudDecoder:
                 if spec is None:
                     t_ns = np.zeros(pts.shape[0], dtype=np.int64)
                 else:
+                    if not self._spec_checked and not spec.detected and ok.any():
+                        self._spec_checked = True
+                        check_time_spec(raw_t[ok], layout.find(tfield)[2], spec, stamp_ns,
+                                        self.sensor, self.topic)
                     t_ns = times_to_ns(raw_t, spec, stamp_ns)
                     ok &= t_ns != np.iinfo(np.int64).min
         if t_ns is None:
@@ -352,7 +460,10 @@ class CloudDecoder:
                 warnings.warn(f"PointCloud2 on {self.topic or '?'}: {why}; times reconstructed "
                               f"from azimuth at {self.sensor.lidar_rate_hz} Hz (set "
                               "sensor.point_time_field if it has one)", stacklevel=2)
+        n_total = int(pts.shape[0])
         pts = pts[ok]
+        self.stats.add(n_total, n_nonfinite, n_zero, n_xyz_ok - int(pts.shape[0]),
+                       int(pts.shape[0]))
         if t_ns is None:
             t_ns = azimuth_times_ns(pts, stamp_ns, self.sensor.lidar_rate_hz)
         else:

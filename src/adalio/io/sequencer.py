@@ -5,14 +5,17 @@ the sweep. The sequencer yields :class:`ImuBatch` chunks and :class:`Scan` objec
 every scan comes after all IMU samples with ``t_ns <= scan.t_end_ns`` (scans are keyed by their
 end time) and IMU batches never go back in time. IMU samples are held for a lookahead window to
 absorb small reordering. Stamp problems are counted in :class:`SequencerStats`; IMU stamps going
-backwards beyond the window, scans whose end times go backwards, or IMU that covers none of the
-scans raise :class:`~adalio.errors.InputError`. Times are int64 ns; IMU in rad/s and m/s^2.
+backwards beyond the window, scans whose end times go backwards, IMU that covers none of the
+scans, a topic whose clouds are all empty (the error says why: no points, NaN, (0, 0, 0)
+placeholders, invalid times) or an IMU topic with no finite sample raise
+:class:`~adalio.errors.InputError`. IMU samples with a NaN/inf value are dropped with one warning
+naming the topic and the first bad stamp. Times are int64 ns; IMU in rad/s and m/s^2.
 """
 
 from __future__ import annotations
 
 import warnings
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -38,6 +41,9 @@ class SequencerStats:
     """What the sequencer saw and dropped."""
 
     imu_samples: int = 0
+    imu_nonfinite: int = 0
+    """IMU samples dropped for a NaN/inf gyro or accel value."""
+    imu_first_nonfinite_ns: int | None = None
     imu_duplicates: int = 0
     imu_reordered: int = 0
     scans_in: int = 0
@@ -68,9 +74,12 @@ def _fmt_s(t_ns: int | None, decimals: int = 3) -> str:
 
 def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None, *,
           imu_topic: str = "imu", lidar_topic: str = "lidar",
-          lookahead_ns: int = IMU_LOOKAHEAD_NS,
-          window_ns: int = IMU_WINDOW_NS) -> Iterator[ImuBatch | Scan]:
-    """Merge IMU batches and scans given in receive order into processing order."""
+          lookahead_ns: int = IMU_LOOKAHEAD_NS, window_ns: int = IMU_WINDOW_NS,
+          why_empty: Callable[[], str] | None = None) -> Iterator[ImuBatch | Scan]:
+    """Merge IMU batches and scans given in receive order into processing order.
+
+    ``why_empty()`` (e.g. :meth:`DecodeStats.why_empty`) explains the error when every scan is
+    empty."""
     st = stats if stats is not None else SequencerStats()
     imu_t: list[np.ndarray] = []
     imu_g: list[np.ndarray] = []
@@ -79,6 +88,15 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
     released_imu_t: int | None = None
     released_scan_end: int | None = None
     max_imu_t: int | None = None
+    held: list[str] = []
+
+    def note(text: str) -> None:
+        """Warn once a scan has gone out; until then hold the text, so that a stream that ends
+        in an error (nothing usable) prints that error alone."""
+        if st.scans_out:
+            st.warn(text)
+        else:
+            held.append(text)
 
     def take_imu(upto_ns: int) -> ImuBatch | None:
         nonlocal imu_t, imu_g, imu_a, released_imu_t
@@ -117,6 +135,8 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
                 continue
             released_scan_end = scan.t_end_ns
             st.scans_out += 1
+            while held:
+                st.warn(held.pop(0))
             yield scan
         if max_imu_t is not None and (not pending or final):
             batch = take_imu(max_imu_t if final and not pending else max_imu_t - window_ns)
@@ -128,6 +148,18 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
             if len(item) == 0:
                 continue
             t = np.asarray(item.t_ns, dtype=np.int64)
+            finite = np.isfinite(item.gyro_rad_s).all(axis=1) & \
+                np.isfinite(item.accel_m_s2).all(axis=1)
+            if not finite.all():
+                if st.imu_first_nonfinite_ns is None:
+                    st.imu_first_nonfinite_ns = int(t[~finite][0])
+                    note(f"IMU sample on {imu_topic} at {_fmt_s(int(t[~finite][0]), 9)} s has "
+                         "a NaN/inf gyro or accel value: dropped (further ones are counted)")
+                st.imu_nonfinite += int(np.count_nonzero(~finite))
+                t = t[finite]
+                item = ImuBatch(t, item.gyro_rad_s[finite], item.accel_m_s2[finite])
+                if t.size == 0:
+                    continue
             if released_imu_t is not None and int(t.min()) < released_imu_t:
                 bad = int(t[t < released_imu_t][0])
                 raise InputError(f"IMU stamps on {imu_topic} go backwards: {_fmt_s(bad, 9)} s "
@@ -154,8 +186,8 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
             if len(item) == 0:
                 st.scans_empty += 1
                 if st.scans_empty == 1:
-                    st.warn(f"empty scan on {lidar_topic} at {item.stamp_ns * 1e-9:.3f} s "
-                            "skipped (no finite points); further ones are counted")
+                    note(f"empty scan on {lidar_topic} at {item.stamp_ns * 1e-9:.3f} s skipped "
+                         "(no valid points); further ones are counted")
                 continue
             end = item.t_end_ns
             st.scan_first_end_ns = end if st.scan_first_end_ns is None else st.scan_first_end_ns
@@ -169,9 +201,9 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
             if released_imu_t is not None and end < released_imu_t:
                 st.scans_late += 1
                 if st.scans_late == 1:
-                    st.warn(f"scan on {lidar_topic} ending at {_fmt_s(end)} s arrived more than "
-                            f"{window_ns * 1e-9:.1f} s after its IMU samples; skipped (further "
-                            "ones are counted)")
+                    note(f"scan on {lidar_topic} ending at {_fmt_s(end)} s arrived more than "
+                         f"{window_ns * 1e-9:.1f} s after its IMU samples; skipped (further "
+                         "ones are counted)")
                 continue
             pending.append(item)
         yield from release(final=False)
@@ -184,19 +216,30 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
         yield batch
     usable = st.scans_in - st.scans_empty
     if st.scans_in and usable == 0:
-        raise InputError(f"all {st.scans_in} scans on {lidar_topic} are empty (no finite "
-                         "points); check the lidar topic")
+        why = why_empty() if why_empty is not None else ""
+        raise InputError(f"all {st.scans_in} clouds on {lidar_topic} are empty after dropping "
+                         f"invalid points ({why or 'no finite points'}); check the lidar "
+                         "topic and its driver")
+    if st.imu_nonfinite and st.imu_samples == 0:
+        raise InputError(f"all {st.imu_nonfinite} IMU samples on {imu_topic} have NaN/inf "
+                         f"values (first at {_fmt_s(st.imu_first_nonfinite_ns, 9)} s); check "
+                         "the IMU topic (--imu-topic) and its driver")
     if usable and st.scans_out == 0:
         raise InputError(f"IMU on {imu_topic} ({_fmt_s(st.imu_first_ns)}..{_fmt_s(st.imu_last_ns)}"
                          f" s, {st.imu_samples} samples) does not cover any scan on {lidar_topic} "
                          f"({_fmt_s(st.scan_first_end_ns)}..{_fmt_s(st.scan_last_end_ns)} s); "
                          "check the topics and the bag's time ranges")
+    while held:
+        st.warn(held.pop(0))
     for n, what in ((st.scans_empty, "empty scans"),
                     (st.scans_before_imu, "scans before the first IMU sample"),
                     (st.scans_after_imu, "scans after the last IMU sample"),
                     (st.scans_late, "scans arriving later than the IMU window")):
         if n:
             st.messages.append(f"skipped {n} {what}")
+    if st.imu_nonfinite:
+        st.messages.append(f"skipped {st.imu_nonfinite} IMU samples with NaN/inf values on "
+                           f"{imu_topic} (first at {_fmt_s(st.imu_first_nonfinite_ns, 3)} s)")
     if st.imu_reordered:
         st.messages.append(f"re-sorted {st.imu_reordered} out-of-order IMU samples on {imu_topic}")
 
@@ -213,9 +256,10 @@ def imu_msg_arrays(msgs: list[Any]) -> ImuBatch:
 
 def accel_is_in_g(accel: np.ndarray) -> bool:
     """True if the mean accelerometer norm of (static-ish) samples is near 1 (units of g)."""
+    accel = accel[np.isfinite(accel).all(axis=1)] if accel.ndim == 2 else accel
     if accel.shape[0] == 0:
         return False
-    norm = float(np.linalg.norm(np.nanmean(accel, axis=0)))
+    norm = float(np.linalg.norm(np.mean(accel, axis=0)))
     return 0.5 < norm < 2.0
 
 
@@ -256,9 +300,13 @@ class Sequencer:
             imu_msgs.clear()
             return batch
 
+        gyro_scale = np.pi / 180.0 if self.sensor.gyro_unit == "deg_s" else 1.0
+
         def scaled(item: ImuBatch | Scan) -> ImuBatch | Scan:
             if isinstance(item, ImuBatch) and self._accel_scale != 1.0:
                 item.accel_m_s2 = item.accel_m_s2 * self._accel_scale
+            if isinstance(item, ImuBatch) and gyro_scale != 1.0:
+                item.gyro_rad_s = item.gyro_rad_s * gyro_scale
             return item
 
         def decide(force: bool) -> Iterator[ImuBatch | Scan]:
@@ -302,4 +350,5 @@ class Sequencer:
 
     def __iter__(self) -> Iterator[ImuBatch | Scan]:
         return merge(self._raw(), self.stats, imu_topic=self.imu_topic,
-                     lidar_topic=self.lidar_topic, lookahead_ns=self.lookahead_ns)
+                     lidar_topic=self.lidar_topic, lookahead_ns=self.lookahead_ns,
+                     why_empty=self.decoder.stats.why_empty)

@@ -33,9 +33,11 @@ def register(app: typer.Typer) -> None:
         import json
         import time
 
+        from adalio.io.cli import check_out_dir
         from adalio.sim import simulate as run_simulation
         from adalio.term import console
 
+        check_out_dir(out)
         t0 = time.perf_counter()
         res = run_simulation(scene, out, seed=seed, duration_s=duration, lidar=lidar, fmt=fmt,
                              columns=columns, noise_scale=noise_scale, progress=True,
