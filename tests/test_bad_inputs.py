@@ -245,6 +245,17 @@ def imu_swapped_pairs(k: int, msg: Any) -> Any:
     return None
 
 
+def imu_gap(first: int, last: int) -> Callable[[int, Any], Any]:
+    """Drop IMU messages first..last-1 (400 Hz: 200 messages = 0.5 s)."""
+    return lambda k, msg: [] if first <= k < last else None
+
+
+def gyro_in_deg_s(k: int, msg: Any) -> Any:
+    w = msg.angular_velocity
+    w.x, w.y, w.z = np.rad2deg(w.x), np.rad2deg(w.y), np.rad2deg(w.z)
+    return msg
+
+
 def imu_shifted(k: int, msg: Any) -> Any:
     return set_stamp(msg, stamp_ns(msg) + 100 * 10**9)
 
@@ -478,6 +489,17 @@ CASES: list[Case] = [
     Case("imu_duplicated", bag_case(imus(duplicated_imu)), "ok", ("done:",), CLEAN_ATE_M),
     Case("imu_not_covering", bag_case(imus(imu_shifted)), "error",
          (f"IMU on {IMU}", "does not cover any scan")),
+    Case("imu_gap_half_second", bag_case(imus(imu_gap(1500, 1700))), "bridged",
+         ("IMU gap of 0.50 s after t =", "bridged with a constant-velocity motion model"),
+         CLEAN_ATE_M),
+    Case("imu_gap_beyond_max_gap_s", bag_case(imus(imu_gap(1200, 1800)),
+                                              config={"imu.max_gap_s": 1.0}), "error",
+         ("IMU gap of", "longer than imu.max_gap_s (1 s)")),
+    Case("gyro_in_deg_s", bag_case(imus(gyro_in_deg_s)), "error",
+         ("reports deg/s; set sensor.gyro_unit: deg_s",)),
+    Case("gyro_in_deg_s_configured", bag_case(imus(gyro_in_deg_s),
+                                              config={"sensor.gyro_unit": "deg_s"}), "ok",
+         ("done:",), CLEAN_ATE_M),
     Case("accel_in_g", bag_case(imus(accel_in_g), config={"sensor.accel_unit": "auto"}),
          "bridged", (f"accelerometer on {IMU} reports in g",), CLEAN_ATE_M),
     # evaluation files

@@ -123,8 +123,13 @@ class _Registered:
 class MovingInit:
     """Collects LiDAR-registered scans and IMU samples until a moving-start fit succeeds."""
 
-    def __init__(self, cfg: Config, R_LI: np.ndarray, t_LI: np.ndarray) -> None:
+    def __init__(self, cfg: Config, R_LI: np.ndarray, t_LI: np.ndarray,
+                 use_gyro: bool = True) -> None:
         self.cfg = cfg
+        self.use_gyro = use_gyro
+        """False: deskew and predict with the LiDAR's own constant rate (from the previous two
+        registrations) instead of the gyro, so the registration is independent of the gyro
+        (the unit check)."""
         self.R_LI, self.t_LI = R_LI, t_LI
         self.ivox = IVox.from_config(cfg.map)
         self.scans: list[_Registered] = []
@@ -170,9 +175,13 @@ class MovingInit:
         lo = max(int(np.searchsorted(self.imu_t_ns, t_ref, side="right")) - 1, 0)
         hi = int(np.searchsorted(self.imu_t_ns, t_e, side="right"))
         tau = (self.imu_t_ns[lo:hi] - t_ref) * 1e-9
-        zeros = np.zeros((hi - lo, 3))
-        x_pred, _, rec = imu.propagate(x, np.zeros((DIM, DIM)), tau, self.gyro[lo:hi], zeros,
-                                       0.0, (t_e - t_ref) * 1e-9, np.zeros(12))
+        rates = self.gyro[lo:hi]
+        if not self.use_gyro:
+            tau = np.array([min(tau[0], 0.0), (t_e - t_ref) * 1e-9])
+            rates = np.zeros((2, 3))
+        x_pred, _, rec = imu.propagate(x, np.zeros((DIM, DIM)), tau, rates,
+                                       np.zeros_like(rates), 0.0, (t_e - t_ref) * 1e-9,
+                                       np.zeros(12))
         pts_e = imu.undistort(pts, (t_pts - t_ref) * 1e-9, rec, x_pred.R, x_pred.p,
                               x_pred.R_LI, x_pred.t_LI)
         general = self.cfg.adaptive.general
@@ -196,6 +205,13 @@ class MovingInit:
         if len(self.scans) > 1000:
             del self.scans[:500]
 
+    def _rate(self) -> np.ndarray:
+        """Body rate of the last two registrations (rad/s, the LiDAR's constant-rate model)."""
+        if len(self.scans) < 2:
+            return np.zeros(3)
+        a, b = self.scans[-2], self.scans[-1]
+        return so3.log(a.R.T @ b.R) / ((b.t_ns - a.t_ns) * 1e-9)
+
     def _velocity(self) -> np.ndarray:
         if len(self.scans) < 2:
             return np.zeros(3)
@@ -203,17 +219,24 @@ class MovingInit:
         return (b.p - a.p) / ((b.t_ns - a.t_ns) * 1e-9)
 
     def rotation_ratio(self, b_g: np.ndarray) -> tuple[float, float]:
-        """(gyro angle / LiDAR angle, LiDAR angle in rad), summed over consecutive registered
-        scans: about 1 for a gyro in rad/s, about 57 for one reporting deg/s."""
-        if len(self.scans) < 2 or self.imu_t_ns[0] > self.scans[0].t_ns:
+        """(k, s): the scale k of the gyro's rotation increments between consecutive
+        registered scans against the LiDAR's, ``sqrt(Σ|gyro|² / Σ|lidar|²)`` when the two are
+        positively correlated, else NaN (about 1 for a gyro in rad/s, 57 for one reporting deg/s,
+        noise included: it scales with the unit too), and the signal s = sqrt(Σ |lidar|²) in rad
+        (registration noise, ~0.002 rad per pair, adds little to it, unlike a sum of angles)."""
+        scans = [s for s in self.scans if self.imu_t_ns.size and s.t_ns >= self.imu_t_ns[0]]
+        if len(scans) < 2:
             return float("nan"), 0.0
-        t0 = self.scans[0].t_ns
-        tau_q = np.array([(s.t_ns - t0) * 1e-9 for s in self.scans])
+        t0 = scans[0].t_ns
+        tau_q = np.array([(s.t_ns - t0) * 1e-9 for s in scans])
         dR = preintegrate((self.imu_t_ns - t0) * 1e-9, self.gyro, self.accel, b_g, tau_q)[0]
-        gyro = sum(np.linalg.norm(so3.log(dR[j].T @ dR[j + 1])) for j in range(len(dR) - 1))
-        lidar = sum(np.linalg.norm(so3.log(a.R.T @ b.R))
-                    for a, b in zip(self.scans[:-1], self.scans[1:], strict=True))
-        return (gyro / lidar if lidar > 0 else float("nan")), float(lidar)
+        gyro = np.array([so3.log(dR[j].T @ dR[j + 1]) for j in range(len(dR) - 1)])
+        lidar = np.array([so3.log(a.R.T @ b.R)
+                          for a, b in zip(scans[:-1], scans[1:], strict=True)])
+        power = float(np.sum(lidar * lidar))
+        if not (power > 0 and np.sum(gyro * lidar) > 0):
+            return float("nan"), float(np.sqrt(power))
+        return float(np.sqrt(np.sum(gyro * gyro) / power)), float(np.sqrt(power))
 
     # ------------------------------------------------------------------ alignment
     def solve(self) -> MovingInitResult | None:

@@ -69,9 +69,10 @@ MIN_POINTS_FOR_UPDATE = 5
 GYRO_RANGE_RAD_S = 35.0
 """2000 deg/s, the widest range of common MEMS gyros: a larger reading is not in rad/s."""
 DEG_PER_RAD = 57.29577951308232
-UNITS_CHECK_ANGLE_RAD = 0.3
-"""LiDAR-registered rotation needed before the gyro's unit is judged against it."""
-UNITS_CHECK_S = 2.5
+UNITS_CHECK_ANGLE_RAD = 0.05
+"""LiDAR-registered rotation, sqrt of the sum of squared increments between scans, needed before
+the gyro's unit is judged against it (registration noise, ~0.002 rad per pair, adds little)."""
+UNITS_CHECK_S = 10.0
 """After a still start, the unit check registers scans LiDAR-only for at most this long."""
 
 
@@ -499,7 +500,7 @@ class Odometry:
             self._q_gap = imu.gap_noise(cfg, self._q_diag)
         self._moving = None
         self.initialized = True
-        self._units_check = MovingInit(self.cfg, self._R_LI, self._t_LI)
+        self._units_check = MovingInit(self.cfg, self._R_LI, self._t_LI, use_gyro=False)
         acc_mean = b.accel[window].mean(axis=0)
         self.init_report = InitReport(
             method="static", t_ns=t_b_ns, gyro_bias_rad_s=init.gyro_bias_rad_s.copy(),
@@ -547,21 +548,24 @@ class Odometry:
         n_use = int(np.searchsorted(b.t_ns, t_e_ns, side="right"))
         chk.add_imu(b.t_ns[:n_use], b.gyro[:n_use], b.accel[:n_use])
         chk.add_scan(pts, t_pts)
-        done = self._judge_gyro_units(chk, self._state.b_g)
+        done = self._judge_gyro_units(chk, self.init_report.gyro_bias_rad_s)
         if done or (chk.scans and (chk.scans[-1].t_ns - chk.scans[0].t_ns) * 1e-9
                     > UNITS_CHECK_S):
             self._units_check = None
 
     def _judge_gyro_units(self, chk: MovingInit, b_g: np.ndarray) -> bool:
-        """Compare the gyro's rotation with the LiDAR-registered one (about 57x: deg/s)."""
+        """Compare the gyro's rotation with the LiDAR-registered one: 0.5-2x is rad/s (done),
+        28-115x is deg/s (error); anything else waits for more rotation."""
         ratio, angle = chk.rotation_ratio(b_g)
-        if angle < UNITS_CHECK_ANGLE_RAD:
+        if not angle >= UNITS_CHECK_ANGLE_RAD:
             return False
+        if 0.5 < ratio < 2.0:
+            return True
         if DEG_PER_RAD / 2 < ratio < DEG_PER_RAD * 2:
             raise InputError(f"the gyro's rotation is {ratio:.0f}x the LiDAR-registered "
-                             f"rotation over the first scans ({np.rad2deg(angle):.0f} deg): it "
-                             "reports deg/s; set sensor.gyro_unit: deg_s")
-        return True
+                             "rotation over the first scans: it reports deg/s; set "
+                             "sensor.gyro_unit: deg_s")
+        return False  # undecided: more rotation needed
 
     def _set_gap_model(self, t_ns: np.ndarray) -> None:
         """Nominal IMU period from the initialization samples, and the gap threshold."""
