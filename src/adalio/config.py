@@ -114,7 +114,7 @@ class ImuConfig:
     """No still window within this long after the first scan: initialize in motion (s)."""
     moving_init_window_s: float = 1.0
     """Moving start: LiDAR-registered scans over this long are fitted against the IMU (s)."""
-    moving_init_max_residual_m: float = 0.05
+    moving_init_max_residual_m: float = 0.03
     """Moving start: largest RMS position residual of that fit accepted (m)."""
     gap_periods: float = 5.0
     """An IMU gap: consecutive samples (or the last one and the scan end) further apart than
