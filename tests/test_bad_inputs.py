@@ -89,12 +89,13 @@ def set_points(msg: Any, arr: np.ndarray) -> Any:
     return msg
 
 
-def clouds(fn: Callable[[int, Any], Any]) -> Edit:
-    """Apply ``fn(k, msg)`` to the k-th cloud (it may return a message, a list, or None)."""
+def on_topic(topic_name: str, fn: Callable[[int, Any], Any]) -> Edit:
+    """Apply ``fn(k, msg)`` to the k-th message of ``topic_name`` (it may return a message, a
+    list, or None)."""
     count = [0]
 
     def edit(topic: str, t_ns: int, msg: Any):
-        if topic != LIDAR:
+        if topic != topic_name:
             return None
         k, count[0] = count[0], count[0] + 1
         res = fn(k, msg)
@@ -102,21 +103,16 @@ def clouds(fn: Callable[[int, Any], Any]) -> Edit:
             return None
         return [(topic, t_ns, m) for m in (res if isinstance(res, list) else [res])]
     return edit
+
+
+def clouds(fn: Callable[[int, Any], Any]) -> Edit:
+    """Apply ``fn(k, msg)`` to the k-th cloud."""
+    return on_topic(LIDAR, fn)
 
 
 def imus(fn: Callable[[int, Any], Any]) -> Edit:
-    """Apply ``fn(k, msg)`` to the k-th IMU message, like :func:`clouds`."""
-    count = [0]
-
-    def edit(topic: str, t_ns: int, msg: Any):
-        if topic != IMU:
-            return None
-        k, count[0] = count[0], count[0] + 1
-        res = fn(k, msg)
-        if res is None:
-            return None
-        return [(topic, t_ns, m) for m in (res if isinstance(res, list) else [res])]
-    return edit
+    """Apply ``fn(k, msg)`` to the k-th IMU message."""
+    return on_topic(IMU, fn)
 
 
 def with_points(fn: Callable[[int, np.ndarray], np.ndarray | None]) -> Edit:

@@ -328,18 +328,10 @@ def _check_out_dir(out_dir: Path, jobs: Sequence[BagJob]) -> None:
 
 def _progress_bar(enabled: bool) -> Any:
     from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
 
-    return Progress(TextColumn("[bold]bags"), BarColumn(), MofNCompleteColumn(),
-                    TextColumn("{task.fields[note]}"), TimeElapsedColumn(), TextColumn("eta"),
-                    TimeRemainingColumn(), disable=not enabled, console=Console(stderr=True))
+    from adalio.pipeline import progress_bar
+
+    return progress_bar(enabled, "bags", "note", Console(stderr=True))
 
 
 def run_jobs(jobs: Sequence[BagJob], out_dir: str | Path, *, client: Any = None,

@@ -149,7 +149,8 @@ class _GracefulStop:
             self._old = None
 
 
-def _progress(enabled: bool, total: int | None) -> Any:
+def progress_bar(enabled: bool, unit: str, field: str, console: Any = None) -> Any:
+    """A rich progress bar over ``unit`` (scans, bags) with the task field ``field`` shown."""
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -159,9 +160,10 @@ def _progress(enabled: bool, total: int | None) -> Any:
         TimeRemainingColumn,
     )
 
-    return Progress(TextColumn("[bold]scans"), BarColumn(), MofNCompleteColumn(),
-                    TextColumn("{task.fields[rate]}"), TimeElapsedColumn(), TextColumn("eta"),
-                    TimeRemainingColumn(), disable=not enabled, transient=False)
+    return Progress(TextColumn(f"[bold]{unit}"), BarColumn(), MofNCompleteColumn(),
+                    TextColumn(f"{{task.fields[{field}]}}"), TimeElapsedColumn(),
+                    TextColumn("eta"), TimeRemainingColumn(), disable=not enabled,
+                    transient=False, console=console)
 
 
 def _config_text(cfg: Config, odom: Any) -> str:
@@ -245,7 +247,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         t_start = time.perf_counter()
         stop = _GracefulStop()
         try:
-            with stop, _progress(progress, total) as bar:
+            with stop, progress_bar(progress, "scans", "rate") as bar:
                 task = bar.add_task("scans", total=total or None, rate="")
                 for item in seq:
                     if stop.requested:

@@ -29,6 +29,7 @@ acceleration of the window; a window too short for the fit to pass waits for mor
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 from numba import njit
@@ -230,9 +231,8 @@ class MovingInit:
         t0 = scans[0].t_ns
         tau_q = np.array([(s.t_ns - t0) * 1e-9 for s in scans])
         dR = preintegrate((self.imu_t_ns - t0) * 1e-9, self.gyro, self.accel, b_g, tau_q)[0]
-        gyro = np.array([so3.log(dR[j].T @ dR[j + 1]) for j in range(len(dR) - 1)])
-        lidar = np.array([so3.log(a.R.T @ b.R)
-                          for a, b in zip(scans[:-1], scans[1:], strict=True)])
+        gyro = np.array([so3.log(a.T @ b) for a, b in pairwise(dR)])
+        lidar = np.array([so3.log(a.R.T @ b.R) for a, b in pairwise(scans)])
         power = float(np.sum(lidar * lidar))
         if not (power > 0 and np.sum(gyro * lidar) > 0):
             return float("nan"), float(np.sqrt(power))
