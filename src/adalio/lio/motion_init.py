@@ -128,9 +128,8 @@ class MovingInit:
                  use_gyro: bool = True) -> None:
         self.cfg = cfg
         self.use_gyro = use_gyro
-        """False: deskew and predict with the LiDAR's own constant rate (from the previous two
-        registrations) instead of the gyro, so the registration is independent of the gyro
-        (the unit check)."""
+        """False: deskew and predict with zero rotation instead of the gyro, so the
+        registration is independent of the gyro (the unit check)."""
         self.R_LI, self.t_LI = R_LI, t_LI
         self.ivox = IVox.from_config(cfg.map)
         self.scans: list[_Registered] = []
@@ -205,13 +204,6 @@ class MovingInit:
         self.last_points = pts_e
         if len(self.scans) > 1000:
             del self.scans[:500]
-
-    def _rate(self) -> np.ndarray:
-        """Body rate of the last two registrations (rad/s, the LiDAR's constant-rate model)."""
-        if len(self.scans) < 2:
-            return np.zeros(3)
-        a, b = self.scans[-2], self.scans[-1]
-        return so3.log(a.R.T @ b.R) / ((b.t_ns - a.t_ns) * 1e-9)
 
     def _velocity(self) -> np.ndarray:
         if len(self.scans) < 2:

@@ -468,9 +468,7 @@ class Odometry:
         timeout_ns = round(cfg.init_timeout_s * 1e9)
         if self._moving is None:
             self._moving = MovingInit(self.cfg, self._R_LI, self._t_LI)
-        n_use = int(np.searchsorted(b.t_ns, t_e_ns, side="right"))
-        self._moving.add_imu(b.t_ns[:n_use], b.gyro[:n_use], b.accel[:n_use])
-        self._moving.add_scan(pts, t_pts)
+        self._feed(self._moving, pts, t_pts, t_e_ns)
         keep_from = int(np.searchsorted(b.t_ns, t_b_ns - round(cfg.init_window_s * 1e9)))
         self._buf = _ImuBuffer(b.t_ns[keep_from:], b.gyro[keep_from:], b.accel[keep_from:])
         if t_e_ns - self._t_first_scan_ns < timeout_ns:
@@ -493,11 +491,10 @@ class Odometry:
         self._t_state_ns = t_b_ns
         last = window.stop - 1
         self._prev_sample = (int(b.t_ns[last]), b.gyro[last].copy(), b.accel[last].copy())
-        self._set_gap_model(b.t_ns[window])
-        self._buf = _ImuBuffer(b.t_ns[window.stop:], b.gyro[window.stop:], b.accel[window.stop:])
         if cfg.noise_source == "measured":
             self._q_diag = imu.process_noise(imu.measured_noise_config(cfg, test))
-            self._q_gap = imu.gap_noise(cfg, self._q_diag)
+        self._set_gap_model(b.t_ns[window])
+        self._buf = _ImuBuffer(b.t_ns[window.stop:], b.gyro[window.stop:], b.accel[window.stop:])
         self._moving = None
         self.initialized = True
         self._units_check = MovingInit(self.cfg, self._R_LI, self._t_LI, use_gyro=False)
@@ -544,14 +541,20 @@ class Odometry:
         """After a still start, register the next scans LiDAR-only until they have turned
         enough to judge the gyro's unit (or UNITS_CHECK_S passed)."""
         chk = self._units_check
-        b = self._buf
-        n_use = int(np.searchsorted(b.t_ns, t_e_ns, side="right"))
-        chk.add_imu(b.t_ns[:n_use], b.gyro[:n_use], b.accel[:n_use])
-        chk.add_scan(pts, t_pts)
+        self._feed(chk, pts, t_pts, t_e_ns)
         done = self._judge_gyro_units(chk, self.init_report.gyro_bias_rad_s)
         if done or (chk.scans and (chk.scans[-1].t_ns - chk.scans[0].t_ns) * 1e-9
                     > UNITS_CHECK_S):
             self._units_check = None
+
+    def _feed(self, registrar: MovingInit, pts: np.ndarray, t_pts: np.ndarray,
+              t_e_ns: int) -> None:
+        """Hand a LiDAR-only registrar the buffered IMU samples up to the scan end, then the
+        scan."""
+        b = self._buf
+        n_use = int(np.searchsorted(b.t_ns, t_e_ns, side="right"))
+        registrar.add_imu(b.t_ns[:n_use], b.gyro[:n_use], b.accel[:n_use])
+        registrar.add_scan(pts, t_pts)
 
     def _judge_gyro_units(self, chk: MovingInit, b_g: np.ndarray) -> bool:
         """Compare the gyro's rotation with the LiDAR-registered one: 0.5-2x is rad/s (done),
