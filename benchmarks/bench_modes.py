@@ -22,6 +22,7 @@ so that tau_n / tau_near are judged on all scenes, not tuned on one.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import shlex
 import sys
@@ -34,7 +35,9 @@ import yaml
 
 from adalio.batch import BagJob, BagRow, BatchResult, dask_client, run_jobs
 from adalio.config import MODES, config_from_dict, load_config
-from adalio.eval.metrics import ate
+from adalio.errors import InputError
+from adalio.eval.files import read_scans_csv as adalio_scans_csv
+from adalio.eval.metrics import ate, sigma_consistency
 from adalio.sim import SCENES, cached_sequence
 
 
@@ -52,6 +55,9 @@ class RunRow:
     ms_per_scan: float = float("nan")
     n_scans: int = 0
     sim_failed: bool = False
+    within_3sigma: tuple[float, float, float] = (float("nan"),) * 3
+    """Share of scans whose first-pose-aligned error is within 3 sigma on x, y, z."""
+    mean_nees: float = float("nan")
     scans: dict[str, np.ndarray] = field(default_factory=dict)
 
     def to_json(self) -> dict:
@@ -130,7 +136,30 @@ def run_row(bag_row: BagRow, job: BagJob, scene: str, seed: int, mode: str, sim,
     row.ate_first_m = first["rmse_m"]
     row.max_err_m = first["max_m"]
     row.diverged = bool(row.aborted) or not (row.max_err_m <= diverge_m)
+    with contextlib.suppress(InputError):
+        cons = sigma_consistency(job.run_dir / "trajectory.tum", sim.gt_path,
+                                 adalio_scans_csv(job.run_dir / "scans.csv"))
+        row.within_3sigma = tuple(float(v) for v in cons.within_3sigma)
+        row.mean_nees = cons.mean_nees
     return row
+
+
+def sigma_table(rows: list[RunRow]) -> str:
+    """Per scene and mode: share of scans within 3 sigma per axis (mean and worst run) and the
+    mean NEES (3 for an honest covariance)."""
+    lines = ["| scene | mode | within 3σ x | within 3σ y | within 3σ z | mean NEES |",
+             "|" + "---|" * 6]
+    for scene, mode in dict.fromkeys((r.scene, r.mode) for r in rows):
+        rs = [r for r in rows if r.scene == scene and r.mode == mode
+              and np.isfinite(r.mean_nees)]
+        if not rs:
+            continue
+        w = np.array([r.within_3sigma for r in rs])
+        cells = [f"{100 * w[:, k].mean():.0f} % ({100 * w[:, k].min():.0f})" for k in range(3)]
+        nees = np.array([r.mean_nees for r in rs])
+        lines.append(f"| {scene} | {mode} | {' | '.join(cells)} | {nees.mean():.3g} "
+                     f"({nees.max():.3g}) |")
+    return "\n".join(lines)
 
 
 def triggers(row: RunRow) -> str:
@@ -300,6 +329,9 @@ def main(argv: list[str] | None = None) -> int:
     print(results_table(rows))
     print()
     print(threshold_table(rows, cfg0.adaptive))
+    print()
+    print("Uncertainty: mean (worst) over seeds")
+    print(sigma_table(rows))
     aborted = [r for r in rows if r.aborted]
     if aborted:
         print()

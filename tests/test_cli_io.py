@@ -370,3 +370,28 @@ def test_real_sigint_in_subprocess(tmp_path):
     poses = check_outputs(out)
     assert 3 <= len(poses) < 110
     assert len(read_ply_points(out / "map.ply")) > 0
+
+
+def test_run_writes_sigma_columns_and_names_risky_stretches(monkeypatch, capsys, tmp_path, rig):
+    from adalio.eval.files import read_scans_csv
+
+    out = tmp_path / "sig"
+    code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--out", out, "--no-progress")
+    assert code == 0, err
+    assert "at risk" not in err  # mm-level sigmas stay under the 0.1 m default
+    scans = read_scans_csv(out / "scans.csv")
+    cols = ["sigma_x_m", "sigma_y_m", "sigma_z_m", "sigma_roll_deg", "sigma_pitch_deg",
+            "sigma_yaw_deg"]
+    sig = np.column_stack([scans[c] for c in cols])
+    assert np.all(sig[0] == 0.0)  # the first map scan defines the world
+    assert np.all(np.isfinite(sig[1:])) and np.all(sig[1:] > 0.0)
+    assert np.all(sig[1:, :3] < 0.1)
+    # a threshold below every sigma names the whole run after the first scan
+    code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--out", tmp_path / "sig2",
+                           "--no-progress", "--sigma-warn-m", "1e-9")
+    assert code == 0, err
+    n = len(scans["t_s"])
+    assert f"in {n - 1}/{n} scans" in err and "at risk" in err
+    code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--out", tmp_path / "sig3",
+                           "--no-progress", "--sigma-warn-m", "0")
+    assert code != 0 and "--sigma-warn-m" in err

@@ -29,6 +29,9 @@ from adalio.io.sequencer import Sequencer, SequencerStats
 from adalio.io.writers import ScansCsvWriter, TumWriter, write_map
 from adalio.types import Estimate, ImuBatch
 
+DEFAULT_SIGMA_WARN_M = 0.10
+"""``run --sigma-warn-m``: a position standard deviation above this (m) is named in the summary."""
+
 
 @dataclass
 class RunResult:
@@ -58,6 +61,11 @@ class RunResult:
     sequencer: SequencerStats | None = None
     n_scans_in: int = 0
     """Scans handed to the estimator (including those consumed by initialization)."""
+    sigma_warn_m: float = DEFAULT_SIGMA_WARN_M
+    sigma_warn_ranges_s: list[tuple[float, float]] = field(default_factory=list)
+    """(start, end) seconds of consecutive scans whose largest position standard deviation
+    (scans.csv sigma_x/y/z_m) exceeds ``sigma_warn_m``."""
+    n_sigma_warn: int = 0
     init_report: Any = None
     """:class:`adalio.types.InitReport` of the estimator (None if it never initialized)."""
 
@@ -198,7 +206,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
             progress: bool = True, max_scans: int | None = None,
             map_format: str | None = None, on_scan: Callable[[int], None] | None = None,
             on_estimate: Callable[[Estimate], None] | None = None,
-            start_s: float = 0.0) -> RunResult:
+            start_s: float = 0.0, sigma_warn_m: float = DEFAULT_SIGMA_WARN_M) -> RunResult:
     """Run the estimator over a bag and write the results into ``out_dir``.
 
     ``start_s`` skips the bag's first seconds (the run then starts wherever the sensor is, at
@@ -215,6 +223,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         raise ConfigError(f"--max-scans must be >= 1 (got {max_scans})")
     if not start_s >= 0:
         raise ConfigError(f"--start-s must be >= 0 seconds (got {start_s})")
+    if not sigma_warn_m > 0:
+        raise ConfigError(f"--sigma-warn-m must be > 0 metres (got {sigma_warn_m})")
     try:
         from adalio.lio import Odometry
     except ImportError:
@@ -242,6 +252,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         est_t: list[int] = []
         degen: list[bool] = []
         held: list[bool] = []
+        risky: list[bool] = []
         n_in = 0
         interrupted = False
         t_start = time.perf_counter()
@@ -271,6 +282,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                         est_t.append(int(est.t_ns))
                         degen.append(bool(stats.degenerate))
                         held.append(stats.held_directions > 0)
+                        risky.append(bool(np.nanmax(stats.sigma_p_world_m) > sigma_warn_m))
                         if on_estimate is not None:
                             on_estimate(est)
                     elapsed = time.perf_counter() - t_start
@@ -309,7 +321,9 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         held_ranges_s=_flag_ranges(est_t, held), lidar_topic=lidar_topic,
         imu_topic=imu_topic, extrinsic_source=ext_source,
         time_spec=seq.decoder.time_spec.describe() if seq.decoder.time_spec else "",
-        sequencer=seq.stats, n_scans_in=n_in, init_report=odom.init_report)
+        sequencer=seq.stats, n_scans_in=n_in, init_report=odom.init_report,
+        sigma_warn_m=sigma_warn_m, sigma_warn_ranges_s=_flag_ranges(est_t, risky),
+        n_sigma_warn=int(sum(risky)))
     if not est_t and not interrupted:
         raise InputError(_no_pose_reason(odom, n_in, lidar_topic, imu_topic, out))
     return result

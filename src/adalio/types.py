@@ -90,6 +90,12 @@ class ScanStats:
     real information, ~0 = the residuals follow the pose; NaN = not probed)."""
     imu_gap_s: float = 0.0
     """Length of an IMU gap bridged by the motion model in this scan (s; 0 = none)."""
+    sigma_p_world_m: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    """Standard deviations of the world-frame position x, y, z from the filter covariance at
+    the scan end (m)."""
+    sigma_rot_world_deg: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    """Standard deviations of small rotations about the world x, y, z axes (deg): roll, pitch
+    and yaw of a level sensor (yaw exactly)."""
     stage_ms: dict[str, float] = field(default_factory=dict)
     """Wall time per pipeline stage (undistort, downsample, degeneracy, update, map)."""
 

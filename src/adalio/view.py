@@ -154,12 +154,11 @@ class RerunView:
         rec.log("plots/degeneracy/degenerate", rr.Scalars(float(bool(stats.degenerate))))
         for name in ("n_raw", "n_down", "n_matched"):
             rec.log(f"plots/points/{name}", rr.Scalars(float(getattr(stats, name))))
-        cov = np.asarray(est.cov_diag, dtype=np.float64).reshape(-1)
-        if cov.shape[0] >= 6:
-            sig = np.sqrt(np.clip(cov[:6], 0.0, None))
-            for axis, s in zip("xyz", sig[:3], strict=True):
+        sig_p = np.asarray(stats.sigma_p_world_m, dtype=np.float64).reshape(-1)
+        if sig_p.shape[0] == 3 and np.all(np.isfinite(sig_p)):
+            for axis, s in zip("xyz", sig_p, strict=True):
                 rec.log(f"plots/sigma/position_{axis}_cm", rr.Scalars(100.0 * s))
-            rec.log("plots/sigma/yaw_deg", rr.Scalars(float(np.degrees(sig[5]))))
+            rec.log("plots/sigma/yaw_deg", rr.Scalars(float(stats.sigma_rot_world_deg[2])))
         self.n_scans += 1
 
     def __call__(self, est: Estimate) -> None:

@@ -143,3 +143,25 @@ def test_projected_update_covariance_matches_monte_carlo():
     assert np.isclose(out.P[0, 0], P0[0, 0])
     short = (np.eye(DIM) - K_eff @ H) @ P0  # the optimal-gain shortcut is not this error's
     assert np.max(np.abs(short - emp) / np.outer(sd, sd)) > 0.1
+
+
+def test_world_sigmas_match_monte_carlo():
+    """World-frame sigmas of a random covariance against sampled perturbations: position errors
+    are world-frame already, attitude errors δθ (body frame, R Exp(δθ)) are measured as the world
+    rotation Log(R Exp(δθ) Rᵀ)."""
+    from scipy.spatial.transform import Rotation
+
+    from adalio.lio.state import P_, TH, world_sigmas
+
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(DIM, DIM)) * 0.02
+    P = A @ A.T + np.eye(DIM) * 1e-5
+    R = Rotation.from_euler("zyx", [1.1, 0.4, -0.6]).as_matrix()
+    sig_p, sig_th_deg = world_sigmas(R, P)
+    d = rng.multivariate_normal(np.zeros(DIM), P, size=40000)
+    pos = d[:, P_]
+    rot_w = np.array([so3.log(R @ so3.exp(x.copy()) @ R.T) for x in d[:, TH]])
+    np.testing.assert_allclose(sig_p, pos.std(axis=0), rtol=0.03)
+    np.testing.assert_allclose(sig_th_deg, np.degrees(rot_w.std(axis=0)), rtol=0.03)
+    # the body-frame diagonal is not the world one for this rotation
+    assert not np.allclose(sig_th_deg, np.degrees(np.sqrt(np.diag(P[TH, TH]))), rtol=0.05)

@@ -181,3 +181,56 @@ def path_length_m(traj: TrajectoryLike) -> float:
     """Total travelled distance of a trajectory (metres)."""
     t = read_trajectory(traj)
     return float(np.sum(np.linalg.norm(np.diff(t.positions_xyz, axis=0), axis=1)))
+
+
+SIGMA_COLUMNS = ("sigma_x_m", "sigma_y_m", "sigma_z_m")
+
+
+@dataclass
+class SigmaConsistency:
+    """How honest the filter's position standard deviations are against a ground truth."""
+
+    t_s: np.ndarray
+    """(n,) associated times (s)."""
+    errors_world_m: np.ndarray
+    """(n, 3) estimate minus ground truth in the estimate's world frame, the ground truth aligned
+    on the first associated pose (the filter's covariance grows from there too)."""
+    sigma_world_m: np.ndarray
+    """(n, 3) the filter's sigma_x/y/z_m at those scans."""
+    within_3sigma: np.ndarray
+    """(3,) share of scans with ``|error| <= 3 sigma`` on x, y, z."""
+    mean_nees: float
+    """Mean of ``Σ_axis (error / sigma)²`` (3 for a consistent filter; the covariance's
+    off-diagonal terms are not in scans.csv, so this is the diagonal NEES)."""
+
+
+def sigma_consistency(est_tum: TrajectoryLike, gt_tum: TrajectoryLike,
+                      scans: dict[str, np.ndarray],
+                      max_diff_s: float = DEFAULT_MAX_DIFF_S) -> SigmaConsistency:
+    """Compare the errors of a run with the sigma columns of its ``scans.csv`` (as read by
+    :func:`adalio.eval.files.read_scans_csv`)."""
+    missing = [c for c in SIGMA_COLUMNS if c not in scans]
+    if missing:
+        raise InputError(f"scans.csv has no {', '.join(missing)} column: it was written by an "
+                         "adalio without sigma columns; re-run the bag")
+    gt_s, est_s = associate(est_tum, gt_tum, max_diff_s)
+    T_est0, T_gt0 = est_s.poses_se3[0], gt_s.poses_se3[0]
+    T = T_est0 @ np.linalg.inv(T_gt0)
+    p_gt = gt_s.positions_xyz @ T[:3, :3].T + T[:3, 3]
+    err = est_s.positions_xyz - p_gt
+    t_est = np.asarray(est_s.timestamps, dtype=np.float64)
+    t_csv = np.asarray(scans["t_s"], dtype=np.float64)
+    idx = np.clip(np.searchsorted(t_csv, t_est), 0, max(len(t_csv) - 1, 0))
+    prev = np.clip(idx - 1, 0, None)
+    idx = np.where(np.abs(t_csv[prev] - t_est) < np.abs(t_csv[idx] - t_est), prev, idx)
+    ok = np.abs(t_csv[idx] - t_est) <= 1e-6
+    sig = np.column_stack([np.asarray(scans[c], dtype=np.float64)[idx] for c in SIGMA_COLUMNS])
+    ok &= np.all(np.isfinite(sig) & (sig > 0), axis=1)
+    if not np.any(ok):
+        raise InputError("no trajectory pose has a scans.csv row with finite sigma columns at "
+                         "the same time: are the two files from the same run?")
+    err, sig = err[ok], sig[ok]
+    z = err / sig
+    return SigmaConsistency(t_s=t_est[ok], errors_world_m=err, sigma_world_m=sig,
+                            within_3sigma=np.mean(np.abs(z) <= 3.0, axis=0),
+                            mean_nees=float(np.mean(np.sum(z * z, axis=1))))

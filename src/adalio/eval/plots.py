@@ -171,3 +171,19 @@ def plot_map_top(points_world: np.ndarray, path: Path, traj_xyz: np.ndarray | No
     ax.set_ylabel("y [m]")
     ax.set_title(f"{title}, {len(pts)} points")
     return _save(fig, path)
+
+
+def plot_error_sigma(t_s: np.ndarray, errors_m: np.ndarray, sigma_m: np.ndarray,
+                     path: Path) -> Path:
+    """Per-axis error (first-pose aligned, world frame) against the filter's ±3σ band."""
+    fig, axes = plt.subplots(3, 1, figsize=(8, 6.5), sharex=True)
+    for k, (ax, name) in enumerate(zip(axes, "xyz", strict=True)):
+        ax.fill_between(t_s, -300 * sigma_m[:, k], 300 * sigma_m[:, k], color="tab:blue",
+                        alpha=0.25, lw=0, label="±3σ (filter)")
+        ax.plot(t_s, 100 * errors_m[:, k], color="tab:red", lw=1.0, label="error")
+        ax.set_ylabel(f"{name} (cm)")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper left", fontsize=8)
+    axes[-1].set_xlabel("time (s)")
+    axes[0].set_title("position error vs. the filter's 3σ (first-pose aligned, world frame)")
+    return _save(fig, path)

@@ -8,6 +8,7 @@ PNG figures plus ``report.md`` and ``metrics.json`` next to them. Metres and sec
 
 from __future__ import annotations
 
+import contextlib
 import json
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ from adalio.eval.metrics import (
     align_pair,
     ate_from_pair,
     rpe,
+    sigma_consistency,
 )
 
 REPORT_NAME = "report.md"
@@ -143,6 +145,15 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
             {f"{label}, SE(3)-aligned": (pair.t_s - t0, pair.errors_m),
              f"{label}, first-pose-aligned": (pair_first.t_s - t0, pair_first.errors_m)},
             run_dir / "error.png", degenerate=degen_series)))
+    cons = None
+    if pair is not None and scans is not None and "sigma_x_m" in scans:
+        with contextlib.suppress(InputError):  # no finite sigma (a hand-made scans.csv)
+            cons = sigma_consistency(est_path, gt, scans, max_diff_s)
+    if cons is not None:
+        metrics["sigma"] = {"within_3sigma_xyz": cons.within_3sigma.tolist(),
+                            "mean_nees": cons.mean_nees, "n": len(cons.t_s)}
+        figures.append(("Position error against the filter's ±3σ", plots.plot_error_sigma(
+            cons.t_s - t0, cons.errors_world_m, cons.sigma_world_m, run_dir / "error_sigma.png")))
     if scans is not None:
         adaptive = config.get("adaptive", {}) if config else {}
         figures.append(("Degeneracy timeline", plots.plot_degeneracy(
@@ -189,6 +200,14 @@ def _markdown(metrics: dict[str, Any], figures: list[tuple[str, Path]],
                          f"{_fmt(r['max_m'])} | {_fmt(r['drift_pct'], 2)} | "
                          f"{_fmt(r['rot_rmse_deg'], 2)} | {r['n']} |")
         lines.append("")
+    if "sigma" in metrics:
+        c = metrics["sigma"]
+        w = c["within_3sigma_xyz"]
+        lines += ["## Uncertainty (scans.csv sigma columns against the ground truth)", "",
+                  (f"Scans whose first-pose-aligned error lies within 3σ: x {100 * w[0]:.1f} %, "
+                   f"y {100 * w[1]:.1f} %, z {100 * w[2]:.1f} % (99.7 % if the σ were honest "
+                   f"and Gaussian); mean NEES {c['mean_nees']:.1f} (3 if consistent), "
+                   f"{c['n']} scans."), ""]
     if "hilti" in metrics:
         h = metrics["hilti"]
         lines += ["## HILTI 2022 score", "",

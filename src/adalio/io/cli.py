@@ -197,6 +197,10 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
         start_s: Annotated[float, typer.Option(
             "--start-s", help="Skip the bag's first seconds (start wherever the sensor is).")]
         = 0.0,
+        sigma_warn_m: Annotated[float, typer.Option(
+            "--sigma-warn-m", help="Name the stretches whose position standard deviation "
+                                   "(scans.csv sigma_x/y/z_m) exceeds this many metres.")]
+        = 0.10,
         profile: Annotated[bool, typer.Option(help="Print per-stage timings per scan.")]
         = False,
         no_progress: Annotated[bool, typer.Option("--no-progress", help="No progress bar.")]
@@ -224,7 +228,8 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
 
                 viewer = RerunView(spawn=view, rrd_path=rrd)
             res = run_bag(bag, cfg, out_dir, progress=not no_progress and con.is_terminal,
-                          max_scans=max_scans, on_estimate=viewer, start_s=start_s)
+                          max_scans=max_scans, on_estimate=viewer, start_s=start_s,
+                          sigma_warn_m=sigma_warn_m)
         _summary(con, res, profile)
     except KeyboardInterrupt:
         res = None
@@ -275,6 +280,12 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
     more = " ..." if len(res.degenerate_ranges_s) > 8 else ""
     con.print(f"degenerate scans: {res.n_degenerate}/{res.n_scans}"
               + (f" at {ranges}{more}" if ranges else ""), highlight=False, soft_wrap=True)
+    if getattr(res, "n_sigma_warn", 0):
+        risk = ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in res.sigma_warn_ranges_s[:8])
+        more = " ..." if len(res.sigma_warn_ranges_s) > 8 else ""
+        con.print(f"[yellow]at risk:[/] position sigma above {res.sigma_warn_m:g} m (scans.csv "
+                  f"sigma_x/y/z_m) in {res.n_sigma_warn}/{res.n_scans} scans at {risk}{more}",
+                  highlight=False, soft_wrap=True)
     if getattr(res, "n_held", 0):
         held = ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in res.held_ranges_s[:8])
         more = " ..." if len(res.held_ranges_s) > 8 else ""

@@ -57,7 +57,7 @@ from adalio.lio.ivox import IVox
 from adalio.lio.measurement import point_to_plane, points_to_world
 from adalio.lio.motion_init import MovingInit
 from adalio.lio.plane import fit_planes, neighbour_moments
-from adalio.lio.state import DIM, State, initial_covariance
+from adalio.lio.state import DIM, State, initial_covariance, world_sigmas
 from adalio.lio.voxel import voxel_downsample
 from adalio.types import Estimate, InitReport, ScanStats
 
@@ -443,7 +443,10 @@ class Odometry:
         stats.n_down = stats.n_down_general = int(pts_e.shape[0])
         stats.voxel_size_m, stats.search_radius_m = g.voxel_size_m, g.search_radius_m
         stats.plane_margin_m = g.plane_margin_m
-        return self._emit(stats, stage_ms, t_start, p_world)
+        est = self._emit(stats, stage_ms, t_start, p_world)
+        # This pose anchors the map, so it defines the world: no error relative to it.
+        stats.sigma_p_world_m, stats.sigma_rot_world_deg = np.zeros(3), np.zeros(3)
+        return est
 
     def _try_initialize(self, pts: np.ndarray, t_pts: np.ndarray, t_b_ns: int,
                         t_e_ns: int) -> np.ndarray | None:
@@ -713,6 +716,7 @@ class Odometry:
         stats.stage_ms = {k: stage_ms.get(k, 0.0) for k in STAGES}
         stats.wall_ms = (time.perf_counter() - t_start) * 1e3
         s = self._state
+        stats.sigma_p_world_m, stats.sigma_rot_world_deg = world_sigmas(s.R, self._P)
         return Estimate(t_ns=stats.t_ns, T_world_imu=s.T_world_imu(), velocity_world_m_s=s.v.copy(),
                         gyro_bias_rad_s=s.b_g.copy(), accel_bias_m_s2=s.b_a.copy(),
                         gravity_world_m_s2=s.g.copy(), cov_diag=np.diag(self._P).copy(),

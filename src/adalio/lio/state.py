@@ -89,3 +89,17 @@ def initial_covariance(estimate_extrinsic: bool) -> np.ndarray:
         idx = np.arange(sl.start, sl.stop)
         P[idx, idx] = val
     return P
+
+
+def world_sigmas(R_world_imu: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World-frame standard deviations of the pose from the error-state covariance ``P``.
+
+    Position: ``sqrt(diag(P_pp))`` (the position error is already world-frame, m). Attitude:
+    ``R ⊞ δθ = R Exp(δθ)`` puts δθ in the body frame; the same rotation seen in the world frame is
+    ``R δθ``, so its covariance is ``R P_θθ Rᵀ`` and the result is the standard deviation of a
+    small rotation about the world x, y, z axes, in degrees.
+    """
+    sig_p = np.sqrt(np.clip(np.diag(P[P_, P_]), 0.0, None))
+    C = R_world_imu @ P[TH, TH] @ R_world_imu.T
+    sig_th = np.degrees(np.sqrt(np.clip(np.diag(C), 0.0, None)))
+    return sig_p, sig_th
