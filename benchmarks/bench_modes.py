@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import csv
 import shlex
 import sys
 import time
@@ -36,7 +35,7 @@ import yaml
 from adalio.batch import BagJob, BagRow, BatchResult, dask_client, run_jobs
 from adalio.config import MODES, config_from_dict, load_config
 from adalio.errors import InputError
-from adalio.eval.files import read_scans_csv as adalio_scans_csv
+from adalio.eval.files import read_scans_csv
 from adalio.eval.metrics import ate, sigma_consistency
 from adalio.sim import SCENES, cached_sequence
 
@@ -62,20 +61,6 @@ class RunRow:
 
     def to_json(self) -> dict:
         return {k: v for k, v in self.__dict__.items() if k != "scans"}
-
-
-def read_scans_csv(path: Path) -> dict[str, np.ndarray]:
-    with open(path, newline="", encoding="utf-8") as fh:
-        rows = list(csv.DictReader(fh))
-    if not rows:
-        return {}
-    out: dict[str, np.ndarray] = {}
-    for key in rows[0]:
-        if key == "trigger":
-            out[key] = np.array([r[key] for r in rows])
-        else:
-            out[key] = np.array([float(r[key]) for r in rows])
-    return out
 
 
 def gt_scan_count(gt_path: Path, lidar_rate_hz: float) -> int:
@@ -122,7 +107,7 @@ def run_row(bag_row: BagRow, job: BagJob, scene: str, seed: int, mode: str, sim,
     row.n_scans = bag_row.poses
     row.ms_per_scan = bag_row.ms_per_scan
     row.scans = read_scans_csv(job.run_dir / "scans.csv")
-    if row.scans:
+    if len(row.scans["t_s"]):
         row.pct_degenerate = 100.0 * float(np.mean(row.scans["degenerate"]))
     expected = gt_scan_count(sim.gt_path, job.config.sensor.lidar_rate_hz)
     if expected and row.n_scans < 0.9 * expected - 5:
@@ -137,8 +122,7 @@ def run_row(bag_row: BagRow, job: BagJob, scene: str, seed: int, mode: str, sim,
     row.max_err_m = first["max_m"]
     row.diverged = bool(row.aborted) or not (row.max_err_m <= diverge_m)
     with contextlib.suppress(InputError):
-        cons = sigma_consistency(job.run_dir / "trajectory.tum", sim.gt_path,
-                                 adalio_scans_csv(job.run_dir / "scans.csv"))
+        cons = sigma_consistency(job.run_dir / "trajectory.tum", sim.gt_path, row.scans)
         row.within_3sigma = tuple(float(v) for v in cons.within_3sigma)
         row.mean_nees = cons.mean_nees
     return row

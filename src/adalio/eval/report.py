@@ -146,8 +146,8 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
              f"{label}, first-pose-aligned": (pair_first.t_s - t0, pair_first.errors_m)},
             run_dir / "error.png", degenerate=degen_series)))
     cons = None
-    if pair is not None and scans is not None and "sigma_x_m" in scans:
-        with contextlib.suppress(InputError):  # no finite sigma (a hand-made scans.csv)
+    if pair is not None and scans is not None:
+        with contextlib.suppress(InputError):  # no (finite) sigma columns: an older scans.csv
             cons = sigma_consistency(est_path, gt, scans, max_diff_s)
     if cons is not None:
         metrics["sigma"] = {"within_3sigma_xyz": cons.within_3sigma.tolist(),

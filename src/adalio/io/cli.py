@@ -264,6 +264,12 @@ def _report(con: Console, out_dir: Path, gt: Path) -> None:
     con.print(f"report: {report}", highlight=False, soft_wrap=True)
 
 
+def _ranges_text(ranges_s: list[tuple[float, float]], limit: int = 8) -> str:
+    """'a-b s, c-d s' for the first ``limit`` (start, end) ranges, ' ...' if there are more."""
+    text = ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in ranges_s[:limit])
+    return text + (" ..." if len(ranges_s) > limit else "")
+
+
 def _summary(con: Console, res: Any, profile: bool) -> None:
     status = "[yellow]interrupted[/]" if res.interrupted else "[green]done[/]"
     con.print(f"{status}: {res.n_scans} poses from {res.n_scans_in} scans in {res.wall_s:.1f} s "
@@ -276,22 +282,17 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
     if res.init_report is not None:
         con.print(f"initialization: {res.init_report.describe()}", highlight=False,
                   soft_wrap=True)
-    ranges = ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in res.degenerate_ranges_s[:8])
-    more = " ..." if len(res.degenerate_ranges_s) > 8 else ""
+    ranges = _ranges_text(res.degenerate_ranges_s)
     con.print(f"degenerate scans: {res.n_degenerate}/{res.n_scans}"
-              + (f" at {ranges}{more}" if ranges else ""), highlight=False, soft_wrap=True)
+              + (f" at {ranges}" if ranges else ""), highlight=False, soft_wrap=True)
     if getattr(res, "n_sigma_warn", 0):
-        risk = ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in res.sigma_warn_ranges_s[:8])
-        more = " ..." if len(res.sigma_warn_ranges_s) > 8 else ""
         con.print(f"[yellow]at risk:[/] position sigma above {res.sigma_warn_m:g} m (scans.csv "
-                  f"sigma_x/y/z_m) in {res.n_sigma_warn}/{res.n_scans} scans at {risk}{more}",
-                  highlight=False, soft_wrap=True)
+                  f"sigma_x/y/z_m) in {res.n_sigma_warn}/{res.n_scans} scans at "
+                  f"{_ranges_text(res.sigma_warn_ranges_s)}", highlight=False, soft_wrap=True)
     if getattr(res, "n_held", 0):
-        held = ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in res.held_ranges_s[:8])
-        more = " ..." if len(res.held_ranges_s) > 8 else ""
         con.print(f"scans with a direction left to the IMU (adaptive+, see held_dirs in "
-                  f"scans.csv): {res.n_held}/{res.n_scans} at {held}{more}", highlight=False,
-                  soft_wrap=True)
+                  f"scans.csv): {res.n_held}/{res.n_scans} at "
+                  f"{_ranges_text(res.held_ranges_s)}", highlight=False, soft_wrap=True)
     if res.sequencer is not None:
         for msg in res.sequencer.messages:
             if msg.startswith(("skipped", "re-sorted")):
