@@ -395,3 +395,12 @@ def test_run_writes_sigma_columns_and_names_risky_stretches(monkeypatch, capsys,
     code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--out", tmp_path / "sig3",
                            "--no-progress", "--sigma-warn-m", "0")
     assert code != 0 and "--sigma-warn-m" in err
+
+
+def test_sigma_warn_default_is_the_pipeline_default():
+    import inspect
+
+    from adalio.io.cli import run
+    from adalio.pipeline import DEFAULT_SIGMA_WARN_M
+
+    assert inspect.signature(run).parameters["sigma_warn_m"].default == DEFAULT_SIGMA_WARN_M
