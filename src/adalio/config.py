@@ -180,6 +180,9 @@ class FilterConfig:
     uncertainty of a k-neighbour plane fit at the query's in-plane distance rho."""
     refit_every_iteration: bool = False
     """Re-search and refit planes at every iteration (FAST-LIO2) instead of on convergence only."""
+    research_min_shift_m: float = 0.0
+    """A re-search is skipped (the correspondences of the last search are kept) while no scan
+    point has moved more than this since that search (0: always re-search, as FAST-LIO2)."""
 
 
 @dataclass
@@ -396,6 +399,7 @@ RANGES: dict[str, Range] = {
     "filter.convergence_eps": POSITIVE,
     "filter.knn_max_range_m": POSITIVE,
     "filter.plane_min_extent_fraction": NON_NEGATIVE,
+    "filter.research_min_shift_m": NON_NEGATIVE,
     **{f"adaptive.{s}.{f}": POSITIVE for s in ("general", "degenerate")
        for f in ("voxel_size_m", "search_radius_m", "plane_margin_m")},
     "adaptive.tau_n": NON_NEGATIVE,

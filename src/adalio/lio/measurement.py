@@ -86,3 +86,46 @@ def point_to_plane(points_lidar, R, p, R_LI, t_LI, normals, d, selected, estimat
         r_out[j] = res[i]
         j += 1
     return H, r_out, accepted
+
+
+@njit(cache=True)
+def residual_weights(points_lidar, accepted, R, p, R_LI, t_LI, normals, mu, lam_mid, counts,
+                     group_id, n_groups, plane_variance, share):
+    """1/sigma factor of each accepted row (point order) of :func:`point_to_plane`.
+
+    The row's variance relative to the point noise is the product of
+    ``plane_variance``: 1 + 1/k + rho²/(k lambda_mid), the fitted plane's offset and tilt
+    uncertainty at the point's in-plane distance rho from the k neighbours' centroid ``mu``
+    (lambda_mid their middle covariance eigenvalue); and ``share``: the number of accepted rows
+    in the row's ``group_id`` (rows sharing their nearest map point count as one measurement).
+    """
+    n = points_lidar.shape[0]
+    size = np.zeros(n_groups if share else 0, np.int64)
+    m = 0
+    for i in range(n):
+        if accepted[i]:
+            m += 1
+            if share:
+                size[group_id[i]] += 1
+    w = np.empty(m)
+    M = R @ R_LI
+    tw = R @ t_LI + p
+    j = 0
+    for i in range(n):
+        if not accepted[i]:
+            continue
+        var = 1.0
+        if plane_variance:
+            x, y, z = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
+            ox = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + tw[0] - mu[i, 0]
+            oy = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + tw[1] - mu[i, 1]
+            oz = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + tw[2] - mu[i, 2]
+            along = ox * normals[i, 0] + oy * normals[i, 1] + oz * normals[i, 2]
+            rho2 = max(ox * ox + oy * oy + oz * oz - along * along, 0.0)
+            k = float(max(counts[i], 1))
+            var = 1.0 + 1.0 / k + rho2 / (k * max(lam_mid[i], 1e-12))
+        if share:
+            var *= size[group_id[i]]
+        w[j] = 1.0 / np.sqrt(var)
+        j += 1
+    return w

@@ -44,6 +44,7 @@ from numba import njit
 from adalio.config import Config
 from adalio.errors import InputError
 from adalio.lio import imu, so3
+from adalio.lio.associate import associate
 from adalio.lio.degeneracy import (
     DegeneracyDetector,
     Localizability,
@@ -54,9 +55,8 @@ from adalio.lio.degeneracy import (
 )
 from adalio.lio.ieskf import iterated_update
 from adalio.lio.ivox import IVox
-from adalio.lio.measurement import point_to_plane, points_to_world
+from adalio.lio.measurement import point_to_plane, points_to_world, residual_weights
 from adalio.lio.motion_init import MovingInit
-from adalio.lio.plane import fit_planes, neighbour_moments
 from adalio.lio.state import DIM, State, initial_covariance, world_sigmas
 from adalio.lio.voxel import voxel_downsample
 from adalio.types import Estimate, InitReport, ScanStats
@@ -109,23 +109,13 @@ _KEY_MIX = np.array([0x9E3779B97F4A7C15 - (1 << 64), 0xC2B2AE3D27D4EB4F - (1 << 
                      0x165667B19E3779F9], dtype=np.int64)
 
 
-def _group_sizes(points: np.ndarray) -> np.ndarray:
-    """For each row, how many rows hold exactly the same point (hash of the float bits)."""
+def _group_ids(points: np.ndarray) -> tuple[np.ndarray, int]:
+    """Group index of each row (rows holding exactly the same point share one; hash of the
+    float bits) and the number of groups."""
     bits = np.ascontiguousarray(points, dtype=np.float64).view(np.int64)
     key = (bits * _KEY_MIX).sum(axis=1)
-    _, inverse, group = np.unique(key, return_inverse=True, return_counts=True)
-    return group[inverse]
-
-
-def _plane_variance_factor(p_world, mu, lam_mid, counts, normals):
-    """1 + 1/k + rho²/(k lambda_mid): variance of a point-to-plane residual relative to the point
-    noise, adding the fitted plane's offset and tilt uncertainty at in-plane distance rho from
-    the neighbours' centroid mu (k neighbours, lambda_mid their middle covariance eigenvalue)."""
-    off = p_world - mu
-    along = np.sum(off * normals, axis=1)
-    rho2 = np.maximum(np.sum(off * off, axis=1) - along * along, 0.0)
-    k = np.maximum(counts, 1).astype(np.float64)
-    return 1.0 + 1.0 / k + rho2 / (k * np.maximum(lam_mid, 1e-12))
+    uniq, inverse = np.unique(key, return_inverse=True)
+    return inverse.reshape(-1), int(uniq.shape[0])
 
 
 class _Association:
@@ -141,55 +131,62 @@ class _Association:
         self.ivox = ivox
         self.cfg = cfg.filter
         self.min_extent_m = cfg.filter.plane_min_extent_fraction * cell_m
-        self.radius2 = radius_m * radius_m
+        self.radius_m = radius_m
         self.margin_m = margin_m
         n = points_lidar.shape[0]
-        self.nbrs = np.full((n, cfg.filter.knn_k, 3), np.nan)
+        self.nearest = np.full((n, 3), np.nan)
         self.counts = np.zeros(n, np.int64)
         self.normals = np.zeros((n, 3))
         self.d = np.zeros(n)
         self.selected = np.zeros(n, np.bool_)
         self.H = np.zeros((0, 12))
         self._searched_at: tuple[np.ndarray, ...] | None = None
+        self._p_world_searched: np.ndarray | None = None
+        self.n_searches = 0
 
     def _same_pose(self, x: State) -> bool:
         last = self._searched_at
         return last is not None and all(np.array_equal(a, b) for a, b in
                                         zip(last, (x.R, x.p, x.R_LI, x.t_LI)))
 
+    def _small_shift(self, p_world: np.ndarray) -> bool:
+        """No scan point moved more than ``filter.research_min_shift_m`` since the last search."""
+        last = self._p_world_searched
+        tol = self.cfg.research_min_shift_m
+        if last is None or not tol > 0:
+            return False
+        return bool(np.max(np.abs(p_world - last)) <= tol)
+
     def measure(self, x: State, research: bool) -> tuple[np.ndarray, np.ndarray]:
         f = self.cfg
-        if research and self._same_pose(x):
+        p_world = None
+        if research and not self._same_pose(x):
+            p_world = points_to_world(self.points_lidar, x.R, x.p, x.R_LI, x.t_LI)
+            if self._small_shift(p_world):
+                p_world = None
+        if research and p_world is None:
             self.selected = self._valid_after_search.copy()
         elif research:
-            p_world = points_to_world(self.points_lidar, x.R, x.p, x.R_LI, x.t_LI)
-            self.nbrs, self.counts, dist2 = self.ivox.knn(p_world, f.knn_k, f.knn_max_range_m)
-            n = self.counts.shape[0]
-            farthest2 = dist2[np.arange(n), np.maximum(self.counts - 1, 0)]
-            near_enough = (self.counts >= f.min_neighbors) & (farthest2 <= self.radius2)
-            self.normals, self.d, valid = fit_planes(self.nbrs, self.counts, f.min_neighbors,
-                                                     self.margin_m, f.plane_fit,
-                                                     self.min_extent_m)
-            self.selected = valid & near_enough
-            if f.plane_uncertainty_weighting:
-                self.mu, self.lam_mid = neighbour_moments(self.nbrs, self.counts)
+            self.n_searches += 1
+            self._p_world_searched = p_world
+            c = associate(self.ivox, p_world, f.knn_k, f.knn_max_range_m, f.min_neighbors,
+                          self.radius_m, self.margin_m, f.plane_fit, self.min_extent_m)
+            self.normals, self.d, self.counts = c.normals, c.d, c.counts
+            self.mu, self.lam_mid, self.nearest = c.mu, c.lam_mid, c.nearest
+            self.selected = c.valid
+            self.group_id, self.n_groups = _group_ids(c.nearest)
             self._valid_after_search = self.selected.copy()
             self._searched_at = (x.R.copy(), x.p.copy(), x.R_LI.copy(), x.t_LI.copy())
         H, r, accepted = point_to_plane(self.points_lidar, x.R, x.p, x.R_LI, x.t_LI, self.normals,
                                         self.d, self.selected, f.estimate_extrinsic)
         self.selected = accepted
-        if f.plane_uncertainty_weighting and H.shape[0]:
-            var = _plane_variance_factor(points_to_world(self.points_lidar[accepted], x.R, x.p,
-                                                         x.R_LI, x.t_LI),
-                                         self.mu[accepted], self.lam_mid[accepted],
-                                         self.counts[accepted], self.normals[accepted])
-            w = 1.0 / np.sqrt(var)
-            H = H * w[:, None]
-            r = r * w
-        if f.share_weighting and H.shape[0]:
-            w = 1.0 / np.sqrt(_group_sizes(self.nbrs[accepted, 0]))
-            H = H * w[:, None]
-            r = r * w
+        if (f.plane_uncertainty_weighting or f.share_weighting) and H.shape[0]:
+            w = residual_weights(self.points_lidar, accepted, x.R, x.p, x.R_LI, x.t_LI,
+                                 self.normals, self.mu, self.lam_mid, self.counts,
+                                 self.group_id, self.n_groups, f.plane_uncertainty_weighting,
+                                 f.share_weighting)
+            H *= w[:, None]
+            r *= w
         self.H = H
         return H.copy(), r
 

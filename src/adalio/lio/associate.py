@@ -1,0 +1,151 @@
+"""Point-to-plane correspondences in one pass: kNN, plane fit and neighbour moments per query.
+
+The same computation as :meth:`adalio.lio.ivox.IVox.knn` followed by
+:func:`adalio.lio.plane.fit_planes` and :func:`adalio.lio.plane.neighbour_moments` (lio-design.md
+§6.2, §7), fused into one numba loop over the queries: each row's k neighbours live in a small
+scratch buffer instead of an (M, k, 3) array that three kernels read in turn, so the search
+touches memory once and allocates nothing per row. Results are bit-identical to the three-step
+path (``tests/lio/test_associate.py`` checks that).
+
+Output per query row (world frame, metres): the plane ``n . x + d = 0`` and its §6.2 validity
+combined with the §9.4 search-radius gate (enough neighbours and the farthest of them within
+``radius_m``), the neighbours' centroid and middle covariance eigenvalue (for the plane-fit
+variance), the neighbour count and the nearest neighbour (for the shared-neighbour weighting).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit, prange
+
+from adalio.errors import ConfigError
+from adalio.lio.ivox import PARALLEL_MIN_ROWS, IVox, _knn_row
+from adalio.lio.plane import PLANE_METHODS, _fit_ls, _fit_pca, _middle_eigenvalue, _scatter
+
+
+@dataclass
+class Correspondences:
+    """Per query row: plane, validity and the neighbour statistics the residual model uses."""
+
+    normals: np.ndarray
+    """(M,3) unit plane normals (NaN where no fit)."""
+    d: np.ndarray
+    """(M,) plane offsets, m (NaN where no fit)."""
+    valid: np.ndarray
+    """(M,) bool: a valid plane (§6.2) from enough neighbours, the farthest within the radius."""
+    counts: np.ndarray
+    """(M,) int64 neighbours found."""
+    mu: np.ndarray
+    """(M,3) neighbour centroid (NaN for fewer than 3 neighbours)."""
+    lam_mid: np.ndarray
+    """(M,) middle eigenvalue of the neighbour covariance, m² (0 for fewer than 3)."""
+    nearest: np.ndarray
+    """(M,3) nearest neighbour (NaN when none)."""
+
+
+@njit(cache=True, inline="always")
+def _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
+                   min_neighbors, radius2, margin_m, min_extent_m, use_ls, nb, d2, scratch, normals, dist, valid, counts, mu, lam_mid, nearest):
+    for j in range(k):
+        d2[0, j] = np.inf
+        nb[0, j, 0] = np.nan
+        nb[0, j, 1] = np.nan
+        nb[0, j, 2] = np.nan
+    c = _knn_row(0, queries[i:i + 1], k, max_d2, resolution_m, offsets, cap, store, nb, d2)
+    counts[i] = c
+    nearest[i, 0] = nb[0, 0, 0]
+    nearest[i, 1] = nb[0, 0, 1]
+    nearest[i, 2] = nb[0, 0, 2]
+    if c >= 3:
+        mu[i, 0], mu[i, 1], mu[i, 2] = _scatter(nb[0], c, scratch[0])
+        lam_mid[i] = _middle_eigenvalue(scratch[0]) / c
+    if not (c >= min_count and c >= min_neighbors and d2[0, max(c - 1, 0)] <= radius2):
+        if c >= min_count:  # keep the fit of a gated row, as fit_planes does
+            _fit_plane(nb[0], c, use_ls, scratch, normals, dist, i)
+        return
+    if not _fit_plane(nb[0], c, use_ls, scratch, normals, dist, i):
+        return
+    for j in range(c):
+        r = (normals[i, 0] * nb[0, j, 0] + normals[i, 1] * nb[0, j, 1]
+             + normals[i, 2] * nb[0, j, 2] + dist[i])
+        if not abs(r) <= margin_m:
+            return
+    if min_extent_m > 0.0 and not lam_mid[i] >= min_extent_m * min_extent_m:
+        return
+    valid[i] = True
+
+
+@njit(cache=True, inline="always")
+def _fit_plane(nbrs, cnt, use_ls, scratch, normals, dist, i):
+    """The plane of ``plane._fit_row``: LS, or PCA when LS must fall back; False if none."""
+    nrm = normals[i]
+    d = np.nan
+    if use_ls:
+        d = _fit_ls(nbrs, cnt, nrm)
+    if not np.isfinite(d):
+        d = _fit_pca(nbrs, cnt, scratch[0], scratch[1], nrm)
+    if not np.isfinite(d):
+        nrm[:] = np.nan
+        return False
+    dist[i] = d
+    return True
+
+
+@njit(cache=True)
+def _associate_serial(queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
+                      min_neighbors, radius2, margin_m, min_extent_m, use_ls, normals, dist,
+                      valid, counts, mu, lam_mid, nearest):
+    """All rows, one thread, one scratch buffer."""
+    nb = np.empty((1, k, 3))
+    d2 = np.empty((1, k))
+    scratch = np.empty((2, 3, 3))
+    for i in range(queries.shape[0]):
+        _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
+                       min_neighbors, radius2, margin_m, min_extent_m, use_ls, nb, d2, scratch, normals, dist, valid, counts, mu, lam_mid, nearest)
+
+
+@njit(cache=True, parallel=True)
+def _associate_parallel(queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
+                        min_neighbors, radius2, margin_m, min_extent_m, use_ls, normals, dist,
+                        valid, counts, mu, lam_mid, nearest):
+    """All rows on all numba threads; rows are independent (own scratch), so deterministic."""
+    for i in prange(queries.shape[0]):
+        nb = np.empty((1, k, 3))
+        d2 = np.empty((1, k))
+        scratch = np.empty((2, 3, 3))
+        _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
+                       min_neighbors, radius2, margin_m, min_extent_m, use_ls, nb, d2, scratch, normals, dist, valid, counts, mu, lam_mid, nearest)
+
+
+def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
+              min_neighbors: int, radius_m: float, margin_m: float, method: str = "ls",
+              min_extent_m: float = 0.0) -> Correspondences:
+    """Planes from the k nearest map points of each world point (§6.2, §7, §9.4).
+
+    Same arguments and result as ``ivox.knn(points_world, k, max_range_m)``, then
+    ``fit_planes(nbrs, counts, min_neighbors, margin_m, method, min_extent_m)`` with the search
+    radius gate ``counts >= min_neighbors and dist2[count - 1] <= radius_m²`` folded into
+    ``valid``, and ``neighbour_moments``.
+    """
+    if method not in PLANE_METHODS:
+        raise ConfigError(f"filter.plane_fit must be 'ls' or 'pca', got {method!r}")
+    if not (np.isfinite(min_extent_m) and min_extent_m >= 0.0):
+        raise ConfigError(f"plane min_extent_m must be >= 0 metres, got {min_extent_m!r}")
+    q = np.ascontiguousarray(points_world, dtype=np.float64)
+    m = q.shape[0]
+    out = Correspondences(normals=np.full((m, 3), np.nan), d=np.full(m, np.nan),
+                          valid=np.zeros(m, np.bool_), counts=np.zeros(m, np.int64),
+                          mu=np.full((m, 3), np.nan), lam_mid=np.zeros(m),
+                          nearest=np.full((m, 3), np.nan))
+    if m == 0 or ivox.num_voxels == 0:
+        return out
+    kernel = _associate_parallel if m >= PARALLEL_MIN_ROWS else _associate_serial
+    kernel(q, int(k), float(max_range_m) ** 2, ivox.resolution_m, ivox._offsets,
+           ivox.max_points_per_voxel,
+           (ivox._table, ivox._vkeys, ivox._vtotal, ivox._vblocks, ivox._pool),
+           max(int(min_neighbors), 3), int(min_neighbors), float(radius_m) ** 2, float(margin_m),
+           float(min_extent_m), method == "ls", out.normals, out.d, out.valid, out.counts,
+           out.mu, out.lam_mid, out.nearest)
+    return out

@@ -1,0 +1,67 @@
+"""The fused search + fit (adalio.lio.associate) against the three-step path it replaces:
+IVox.knn, then fit_planes with the search-radius gate, then neighbour_moments. Same inputs must
+give the same outputs bit for bit, on a map with planes, clutter and empty space."""
+
+import numpy as np
+import pytest
+
+from adalio.lio import associate as assoc_mod
+from adalio.lio.associate import associate
+from adalio.lio.ivox import IVox
+from adalio.lio.plane import fit_planes, neighbour_moments
+
+
+def _room_map(rng: np.random.Generator) -> IVox:
+    """A 6 x 4 x 3 m box (floor, ceiling, walls) sampled every ~5 cm with 1 cm noise, plus a
+    cloud of clutter points inside."""
+    u, v = rng.uniform(0, 1, (2, 4000))
+    faces = [np.c_[6 * u, 4 * v, 0 * u], np.c_[6 * u, 4 * v, 3 + 0 * u],
+             np.c_[6 * u, 0 * u, 3 * v], np.c_[6 * u, 4 + 0 * u, 3 * v],
+             np.c_[0 * u, 4 * u, 3 * v], np.c_[6 + 0 * u, 4 * u, 3 * v]]
+    pts = np.vstack(faces + [rng.uniform([1, 1, 0.5], [5, 3, 2.5], (800, 3))])
+    pts += rng.normal(0, 0.01, pts.shape)
+    ivox = IVox(resolution_m=0.5, nearby_type=18, max_points_per_voxel=32, cell_m=0.05)
+    ivox.add_points(pts)
+    return ivox
+
+
+def _three_step(ivox, q, k, max_range_m, min_nb, radius_m, margin_m, method, min_extent_m):
+    nbrs, counts, dist2 = ivox.knn(q, k, max_range_m)
+    farthest2 = dist2[np.arange(len(q)), np.maximum(counts - 1, 0)]
+    near = (counts >= min_nb) & (farthest2 <= radius_m ** 2)
+    normals, d, valid = fit_planes(nbrs, counts, min_nb, margin_m, method, min_extent_m)
+    mu, lam_mid = neighbour_moments(nbrs, counts)
+    return normals, d, valid & near, counts, mu, lam_mid, nbrs[:, 0]
+
+
+@pytest.mark.parametrize("method", ["ls", "pca"])
+@pytest.mark.parametrize("parallel", [False, True])
+def test_fused_association_equals_search_then_fit(method: str, parallel: bool,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    rng = np.random.default_rng(3)
+    ivox = _room_map(rng)
+    # queries on the faces, inside, and far outside (no neighbours)
+    q = np.vstack([ivox.points()[rng.choice(ivox.num_points, 1500)] + rng.normal(0, 0.05, (1500, 3)),
+                   rng.uniform([-1, -1, -1], [7, 5, 4], (1500, 3)),
+                   rng.uniform(20, 30, (50, 3))])
+    if parallel:
+        monkeypatch.setattr(assoc_mod, "PARALLEL_MIN_ROWS", 1)
+    for k, min_nb, radius_m, margin_m, min_ext in [(5, 3, 3.0, 0.05, 0.05), (8, 5, 0.3, 0.02, 0.0)]:
+        ref = _three_step(ivox, q, k, 5.0, min_nb, radius_m, margin_m, method, min_ext)
+        got = associate(ivox, q, k, 5.0, min_nb, radius_m, margin_m, method, min_ext)
+        for name, a, b in zip(("normals", "d", "valid", "counts", "mu", "lam_mid", "nearest"),
+                              ref, (got.normals, got.d, got.valid, got.counts, got.mu,
+                                    got.lam_mid, got.nearest)):
+            np.testing.assert_array_equal(a, b, err_msg=name)
+        # the scene exercises every branch: valid planes, rejected rows, rows with no neighbour
+        assert 0 < got.valid.sum() < len(q)
+        assert (got.counts == 0).sum() >= 50
+
+
+def test_empty_map_and_empty_queries() -> None:
+    ivox = IVox(resolution_m=0.5, nearby_type=18, max_points_per_voxel=32)
+    got = associate(ivox, np.zeros((4, 3)), 5, 5.0, 3, 3.0, 0.05)
+    assert not got.valid.any() and (got.counts == 0).all() and np.isnan(got.nearest).all()
+    ivox.add_points(np.random.default_rng(0).uniform(0, 1, (100, 3)))
+    got = associate(ivox, np.zeros((0, 3)), 5, 5.0, 3, 3.0, 0.05)
+    assert got.valid.shape == (0,)
