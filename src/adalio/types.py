@@ -76,6 +76,8 @@ class ScanStats:
     n_matched: int = 0
     """Points with an accepted point-to-plane residual at the last iteration."""
     iterations: int = 0
+    n_searches: int = 0
+    """Map searches (kNN + plane fits) of the update; see filter.research_min_shift_m."""
     wall_ms: float = 0.0
     eigenvalues: np.ndarray = field(default_factory=lambda: np.zeros(6))
     """Ascending eigenvalues of the 6x6 (rotation, translation) information matrix H^T H / R."""

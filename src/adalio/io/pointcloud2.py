@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from adalio.config import SensorConfig
 from adalio.errors import BagError
@@ -167,6 +168,34 @@ def decode_fields(data: Any, layout: CloudLayout, names: list[str],
         col = block.view(dtype)["v"]
         out[name] = col.astype(np.dtype(fmt).newbyteorder("="), copy=True)
     return out
+
+
+@njit(cache=True)
+def _xyz_rows(x, y, z):
+    """(N,3) float64 points from the x/y/z columns in one pass, and which rows are usable:
+    ``ok`` is False for a non-finite coordinate or for (0,0,0) ("no return" on many drivers).
+    Returns ``(points, ok, n_nonfinite, n_zero)``."""
+    n = x.shape[0]
+    pts = np.empty((n, 3))
+    ok = np.empty(n, np.bool_)
+    n_nonfinite = 0
+    n_zero = 0
+    for i in range(n):
+        a = float(x[i])
+        b = float(y[i])
+        c = float(z[i])
+        pts[i, 0] = a
+        pts[i, 1] = b
+        pts[i, 2] = c
+        if not (np.isfinite(a) and np.isfinite(b) and np.isfinite(c)):
+            ok[i] = False
+            n_nonfinite += 1
+        elif a == 0.0 and b == 0.0 and c == 0.0:
+            ok[i] = False
+            n_zero += 1
+        else:
+            ok[i] = True
+    return pts, ok, n_nonfinite, n_zero
 
 
 # ----------------------------------------------------------------------------- time handling
@@ -420,13 +449,8 @@ class CloudDecoder:
                     extras[key] = name
                     break
         cols = decode_fields(data, layout, want + list(extras.values()), self.topic)
-        pts = np.stack([cols["x"], cols["y"], cols["z"]], axis=1).astype(np.float64)
-        ok = np.isfinite(pts).all(axis=1)
-        n_nonfinite = int(pts.shape[0] - np.count_nonzero(ok))
-        zero = ok & ~pts.any(axis=1)
-        n_zero = int(np.count_nonzero(zero))
-        ok &= ~zero
-        n_xyz_ok = int(np.count_nonzero(ok))
+        pts, ok, n_nonfinite, n_zero = _xyz_rows(cols["x"], cols["y"], cols["z"])
+        n_xyz_ok = int(pts.shape[0]) - n_nonfinite - n_zero
         t_ns = None
         if tfield is not None and tfield not in self._constant_fields:
             raw_t = cols[tfield]

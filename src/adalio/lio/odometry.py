@@ -377,6 +377,7 @@ class Odometry:
             result = iterated_update(x_pred, P_pred, assoc.measure, cfg.filter, projector)
             self._state, self._P = result.state, result.P
             stats.iterations = result.iterations
+            stats.n_searches = assoc.n_searches
             stats.n_matched = int(assoc.H.shape[0])
             loc = localizability(assoc.H[:, :6], cfg.filter.laser_point_cov,
                                  assoc.points_body(self._state))
