@@ -275,9 +275,13 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
     n = workers if workers is not None else (os.cpu_count() or 1)
     if n < 1:
         raise InputError(f"--workers must be >= 1 (got {n})")
+    # The cores are shared out: numba's parallel kernels spin-wait when threads outnumber cores.
+    numba_threads = os.environ.get("NUMBA_NUM_THREADS") or str(max(1, (os.cpu_count() or 1) // n))
     with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                       dashboard_address=None, memory_limit=0, host="127.0.0.1",
-                      silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+                      silence_logs=logging.ERROR,
+                      env={"NUMBA_NUM_THREADS": numba_threads}) as cluster, \
+            Client(cluster) as client:
         client.run(_ignore_sigint)
         yield client
 

@@ -180,9 +180,11 @@ class FilterConfig:
     uncertainty of a k-neighbour plane fit at the query's in-plane distance rho."""
     refit_every_iteration: bool = False
     """Re-search and refit planes at every iteration (FAST-LIO2) instead of on convergence only."""
-    research_min_shift_m: float = 0.0
+    research_min_shift_m: float = 0.005
     """A re-search is skipped (the correspondences of the last search are kept) while no scan
-    point has moved more than this since that search (0: always re-search, as FAST-LIO2)."""
+    point has moved more than this since that search (0: always re-search, as FAST-LIO2). 5 mm is
+    a sixth of the point-to-plane noise (sqrt(laser_point_cov)) and a fortieth of the map cell;
+    on the 4 scenes x 4 seeds of bench_modes it halves the searches at unchanged accuracy."""
 
 
 @dataclass

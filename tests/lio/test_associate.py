@@ -44,8 +44,7 @@ def test_fused_association_equals_search_then_fit(method: str, parallel: bool,
     q = np.vstack([ivox.points()[rng.choice(ivox.num_points, 1500)] + rng.normal(0, 0.05, (1500, 3)),
                    rng.uniform([-1, -1, -1], [7, 5, 4], (1500, 3)),
                    rng.uniform(20, 30, (50, 3))])
-    if parallel:
-        monkeypatch.setattr(assoc_mod, "PARALLEL_MIN_ROWS", 1)
+    monkeypatch.setattr(assoc_mod, "PARALLEL_MIN_QUERIES", 1 if parallel else 10**9)
     for k, min_nb, radius_m, margin_m, min_ext in [(5, 3, 3.0, 0.05, 0.05), (8, 5, 0.3, 0.02, 0.0)]:
         ref = _three_step(ivox, q, k, 5.0, min_nb, radius_m, margin_m, method, min_ext)
         got = associate(ivox, q, k, 5.0, min_nb, radius_m, margin_m, method, min_ext)

@@ -17,12 +17,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numba import njit, prange
 
 from adalio.errors import ConfigError
-from adalio.lio.ivox import PARALLEL_MIN_ROWS, IVox, _knn_row
+from adalio.lio.ivox import IVox, _knn_row
 from adalio.lio.plane import PLANE_METHODS, _fit_ls, _fit_pca, _middle_eigenvalue, _scatter
+
+PARALLEL_MIN_QUERIES = 256
+"""Batches of at least this many queries run on all numba threads (``NUMBA_NUM_THREADS``). On the
+quiet 2-core dev machine (OpenMP layer) two threads beat one from 128 queries on: 0.23 vs 0.36 ms
+at 512, 1.6 vs 2.7 ms at 2842 (a 512-column XT-32 scan). On a machine whose cores are all busy,
+OpenMP's spin-waiting makes them slower (8 vs 3.8 ms measured), hence one numba thread per
+``adalio batch`` worker when the workers fill the cores."""
 
 
 @dataclass
@@ -141,7 +149,8 @@ def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
                           nearest=np.full((m, 3), np.nan))
     if m == 0 or ivox.num_voxels == 0:
         return out
-    kernel = _associate_parallel if m >= PARALLEL_MIN_ROWS else _associate_serial
+    parallel = m >= PARALLEL_MIN_QUERIES and numba.get_num_threads() > 1
+    kernel = _associate_parallel if parallel else _associate_serial
     kernel(q, int(k), float(max_range_m) ** 2, ivox.resolution_m, ivox._offsets,
            ivox.max_points_per_voxel,
            (ivox._table, ivox._vkeys, ivox._vtotal, ivox._vblocks, ivox._pool),

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from adalio.config import ImuConfig
 from adalio.lio import so3
@@ -400,14 +400,16 @@ def propagate(state: State, P: np.ndarray, imu_tau_s: np.ndarray, gyro_rad_s: np
 
 
 # --------------------------------------------------------------------------- undistortion (§5.3)
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _undistort_kernel(points_lidar, tau_s, rec_tau, rec_R, rec_p, rec_v, rec_w, rec_a, R_end,
                       p_end, R_LI, t_LI):
+    """Rows are independent, so they run on all numba threads; the result does not depend on
+    how many."""
     n = points_lidar.shape[0]
     m = rec_tau.shape[0]
     out = np.empty((n, 3))
     M = R_end.T
-    for i in range(n):
+    for i in prange(n):
         tau = tau_s[i]
         lo, hi = 0, m
         while lo < hi:
