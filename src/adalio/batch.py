@@ -207,6 +207,7 @@ def process_bag(job: BagJob) -> BagRow:
     job.marker_path.unlink(missing_ok=True)
     t0 = time.perf_counter()
     try:
+        use_bag_threads()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             res = run_bag(job.bag_path, job.config, job.run_dir, progress=False)
@@ -275,15 +276,36 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
     n = workers if workers is not None else (os.cpu_count() or 1)
     if n < 1:
         raise InputError(f"--workers must be >= 1 (got {n})")
-    # The cores are shared out: numba's parallel kernels spin-wait when threads outnumber cores.
-    numba_threads = os.environ.get("NUMBA_NUM_THREADS") or str(max(1, (os.cpu_count() or 1) // n))
     with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                       dashboard_address=None, memory_limit=0, host="127.0.0.1",
-                      silence_logs=logging.ERROR,
-                      env={"NUMBA_NUM_THREADS": numba_threads}) as cluster, \
-            Client(cluster) as client:
+                      silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
         client.run(_ignore_sigint)
+        if not os.environ.get("NUMBA_NUM_THREADS"):
+            client.run(_share_cores, max(1, (os.cpu_count() or 1) // n))
         yield client
+
+
+_BAG_NUMBA_THREADS: int | None = None
+"""Numba threads for each bag this worker process runs (set by the embedded cluster)."""
+
+
+def _share_cores(n_threads: int) -> None:
+    """In an embedded worker process: run each bag's parallel kernels on ``n_threads`` numba
+    threads (cores // workers), since with more threads than cores they spin-wait on each other
+    (one search: 8 instead of 3.8 ms measured). Applied by :func:`process_bag` in the task's
+    own thread (numba's thread count is per calling thread)."""
+    global _BAG_NUMBA_THREADS
+    _BAG_NUMBA_THREADS = n_threads
+
+
+def use_bag_threads() -> int:
+    """Apply this worker's share of the cores to the calling thread; returns numba's thread
+    count for it."""
+    import numba
+
+    if _BAG_NUMBA_THREADS is not None:
+        numba.set_num_threads(max(1, min(_BAG_NUMBA_THREADS, numba.config.NUMBA_NUM_THREADS)))
+    return numba.get_num_threads()
 
 
 def _ignore_sigint() -> None:
