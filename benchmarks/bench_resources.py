@@ -98,7 +98,8 @@ def long_walk(minutes: float, columns: int, seed: int, report_min: float) -> Non
     from adalio.io.writers import ScansCsvWriter, TumWriter, write_map
     from adalio.lio import Odometry
     from adalio.lio.voxel import voxel_downsample
-    from adalio.sim.generate import START_NS, T_IMU_LIDAR_HILTI, _config_dict, mesh_distance_m
+    from adalio.sim import cached_sequence
+    from adalio.sim.generate import START_NS, T_IMU_LIDAR_HILTI, mesh_distance_m
     from adalio.sim.imu import ImuNoise, synthesize_imu
     from adalio.sim.lidar import Occluder, RayCaster, SweepSimulator, lidar_model
     from adalio.sim.trajectory import Trajectory
@@ -125,13 +126,10 @@ def long_walk(minutes: float, columns: int, seed: int, report_min: float) -> Non
     imu = synthesize_imu(traj, t_imu, t0, np.random.default_rng([seed, 200]), ImuNoise(),
                          1.0, IMU_RATE_HZ)
     sim = SweepSimulator(caster, traj, model, T_il, t0, Occluder())
-    cfg_dict = _config_dict(model.name, model, T_il)
+    # the simulator's own config for this LiDAR and mounting (the one next to any of its bags)
+    cfg = load_config(config_file=cached_sequence("hall", seed=seed, duration_s=8.0, lidar="xt32",
+                                                  fmt="mcap", columns=columns).config_path)
     with tempfile.TemporaryDirectory(prefix="adalio-long-") as tmp:
-        cfg_path = Path(tmp) / "config.yaml"
-        import yaml
-
-        cfg_path.write_text(yaml.safe_dump(cfg_dict, sort_keys=False))
-        cfg = load_config(config_file=cfg_path)
         odom = Odometry(cfg)
         tum = TumWriter(Path(tmp) / "trajectory.tum")
         csvw = ScansCsvWriter(Path(tmp) / "scans.csv")

@@ -23,7 +23,7 @@ from numba import njit, prange
 
 from adalio.errors import ConfigError
 from adalio.lio.ivox import IVox, _knn_row
-from adalio.lio.plane import PLANE_METHODS, _fit_ls, _fit_pca, _middle_eigenvalue, _scatter
+from adalio.lio.plane import PLANE_METHODS, _middle_eigenvalue, _scatter, fit_plane, within_margin
 
 PARALLEL_MIN_QUERIES = 256
 """Batches of at least this many queries run on all numba threads (``NUMBA_NUM_THREADS``). On the
@@ -55,7 +55,8 @@ class Correspondences:
 
 @njit(cache=True, inline="always")
 def _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
-                   min_neighbors, radius2, margin_m, min_extent_m, use_ls, nb, d2, scratch, normals, dist, valid, counts, mu, lam_mid, nearest):
+                   radius2, margin_m, min_extent_m, use_ls, nb, d2, scratch, normals, dist,
+                   valid, counts, mu, lam_mid, nearest):
     for j in range(k):
         d2[0, j] = np.inf
         nb[0, j, 0] = np.nan
@@ -69,62 +70,44 @@ def _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min
     if c >= 3:
         mu[i, 0], mu[i, 1], mu[i, 2] = _scatter(nb[0], c, scratch[0])
         lam_mid[i] = _middle_eigenvalue(scratch[0]) / c
-    if not (c >= min_count and c >= min_neighbors and d2[0, max(c - 1, 0)] <= radius2):
-        if c >= min_count:  # keep the fit of a gated row, as fit_planes does
-            _fit_plane(nb[0], c, use_ls, scratch, normals, dist, i)
+    if c < min_count:
         return
-    if not _fit_plane(nb[0], c, use_ls, scratch, normals, dist, i):
+    d = fit_plane(nb[0], c, use_ls, scratch, normals[i])  # kept for gated rows, as fit_planes
+    dist[i] = d
+    if not (np.isfinite(d) and d2[0, c - 1] <= radius2
+            and within_margin(nb[0], c, normals[i], d, margin_m)):
         return
-    for j in range(c):
-        r = (normals[i, 0] * nb[0, j, 0] + normals[i, 1] * nb[0, j, 1]
-             + normals[i, 2] * nb[0, j, 2] + dist[i])
-        if not abs(r) <= margin_m:
-            return
     if min_extent_m > 0.0 and not lam_mid[i] >= min_extent_m * min_extent_m:
         return
     valid[i] = True
 
 
-@njit(cache=True, inline="always")
-def _fit_plane(nbrs, cnt, use_ls, scratch, normals, dist, i):
-    """The plane of ``plane._fit_row``: LS, or PCA when LS must fall back; False if none."""
-    nrm = normals[i]
-    d = np.nan
-    if use_ls:
-        d = _fit_ls(nbrs, cnt, nrm)
-    if not np.isfinite(d):
-        d = _fit_pca(nbrs, cnt, scratch[0], scratch[1], nrm)
-    if not np.isfinite(d):
-        nrm[:] = np.nan
-        return False
-    dist[i] = d
-    return True
-
-
 @njit(cache=True)
-def _associate_serial(queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
-                      min_neighbors, radius2, margin_m, min_extent_m, use_ls, normals, dist,
-                      valid, counts, mu, lam_mid, nearest):
+def _associate_serial(queries, k, max_d2, resolution_m, offsets, cap, store, min_count, radius2,
+                      margin_m, min_extent_m, use_ls, normals, dist, valid, counts, mu, lam_mid,
+                      nearest):
     """All rows, one thread, one scratch buffer."""
     nb = np.empty((1, k, 3))
     d2 = np.empty((1, k))
     scratch = np.empty((2, 3, 3))
     for i in range(queries.shape[0]):
         _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
-                       min_neighbors, radius2, margin_m, min_extent_m, use_ls, nb, d2, scratch, normals, dist, valid, counts, mu, lam_mid, nearest)
+                       radius2, margin_m, min_extent_m, use_ls, nb, d2, scratch, normals, dist,
+                       valid, counts, mu, lam_mid, nearest)
 
 
 @njit(cache=True, parallel=True)
 def _associate_parallel(queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
-                        min_neighbors, radius2, margin_m, min_extent_m, use_ls, normals, dist,
-                        valid, counts, mu, lam_mid, nearest):
+                        radius2, margin_m, min_extent_m, use_ls, normals, dist, valid, counts,
+                        mu, lam_mid, nearest):
     """All rows on all numba threads; rows are independent (own scratch), so deterministic."""
     for i in prange(queries.shape[0]):
         nb = np.empty((1, k, 3))
         d2 = np.empty((1, k))
         scratch = np.empty((2, 3, 3))
         _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
-                       min_neighbors, radius2, margin_m, min_extent_m, use_ls, nb, d2, scratch, normals, dist, valid, counts, mu, lam_mid, nearest)
+                       radius2, margin_m, min_extent_m, use_ls, nb, d2, scratch, normals, dist,
+                       valid, counts, mu, lam_mid, nearest)
 
 
 def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
@@ -154,7 +137,7 @@ def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
     kernel(q, int(k), float(max_range_m) ** 2, ivox.resolution_m, ivox._offsets,
            ivox.max_points_per_voxel,
            (ivox._table, ivox._vkeys, ivox._vtotal, ivox._vblocks, ivox._pool),
-           max(int(min_neighbors), 3), int(min_neighbors), float(radius_m) ** 2, float(margin_m),
+           max(int(min_neighbors), 3), float(radius_m) ** 2, float(margin_m),
            float(min_extent_m), method == "ls", out.normals, out.d, out.valid, out.counts,
            out.mu, out.lam_mid, out.nearest)
     return out

@@ -13,6 +13,15 @@ GATE_FACTOR = 81.0
 """Accept a residual iff ``|p_L| > 81 r²`` (FAST-LIO2's ``s > 0.9`` test, §6.3)."""
 
 
+@njit(cache=True, inline="always")
+def _world_point(points_lidar, i, M, t):
+    """``M p_L + t`` of row i, with ``M = R R_LI`` and ``t = R t_LI + p`` (§1)."""
+    x, y, z = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
+    return (M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + t[0],
+            M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + t[1],
+            M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + t[2])
+
+
 @njit(cache=True)
 def points_to_world(points_lidar, R, p, R_LI, t_LI):
     """``p_W = R (R_LI p_L + t_LI) + p`` for all points (§1)."""
@@ -21,9 +30,7 @@ def points_to_world(points_lidar, R, p, R_LI, t_LI):
     t = R @ t_LI + p
     out = np.empty((n, 3))
     for i in range(n):
-        x, y, z = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
-        for r in range(3):
-            out[i, r] = M[r, 0] * x + M[r, 1] * y + M[r, 2] * z + t[r]
+        out[i, 0], out[i, 1], out[i, 2] = _world_point(points_lidar, i, M, t)
     return out
 
 
@@ -46,9 +53,11 @@ def point_to_plane(points_lidar, R, p, R_LI, t_LI, normals, d, selected, estimat
         if not selected[i]:
             continue
         x, y, z = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
+        wx, wy, wz = _world_point(points_lidar, i, M, tw)
         r = d[i]
-        for k in range(3):
-            r += normals[i, k] * (M[k, 0] * x + M[k, 1] * y + M[k, 2] * z + tw[k])
+        r += normals[i, 0] * wx
+        r += normals[i, 1] * wy
+        r += normals[i, 2] * wz
         if np.sqrt(x * x + y * y + z * z) > GATE_FACTOR * r * r:
             accepted[i] = True
             res[i] = r
@@ -116,10 +125,8 @@ def residual_weights(points_lidar, accepted, R, p, R_LI, t_LI, normals, mu, lam_
             continue
         var = 1.0
         if plane_variance:
-            x, y, z = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
-            ox = M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + tw[0] - mu[i, 0]
-            oy = M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + tw[1] - mu[i, 1]
-            oz = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + tw[2] - mu[i, 2]
+            wx, wy, wz = _world_point(points_lidar, i, M, tw)
+            ox, oy, oz = wx - mu[i, 0], wy - mu[i, 1], wz - mu[i, 2]
             along = ox * normals[i, 0] + oy * normals[i, 1] + oz * normals[i, 2]
             rho2 = max(ox * ox + oy * oy + oz * oz - along * along, 0.0)
             k = float(max(counts[i], 1))

@@ -242,6 +242,32 @@ def _fit_ls(nbrs: np.ndarray, cnt: int, out_n: np.ndarray) -> float:
 
 
 @njit(cache=True)
+def fit_plane(nbrs: np.ndarray, cnt: int, use_ls: bool, scratch: np.ndarray,
+              out_n: np.ndarray) -> float:
+    """The plane through the first ``cnt`` neighbours (§6.2): LS, or PCA where LS must fall
+    back. Writes the unit normal to ``out_n`` and returns d; NaN (and a NaN normal) if neither
+    method gives one. ``scratch`` is (2,3,3)."""
+    d = np.nan
+    if use_ls:
+        d = _fit_ls(nbrs, cnt, out_n)
+    if not np.isfinite(d):
+        d = _fit_pca(nbrs, cnt, scratch[0], scratch[1], out_n)
+    if not np.isfinite(d):
+        out_n[:] = np.nan
+    return d
+
+
+@njit(cache=True)
+def within_margin(nbrs: np.ndarray, cnt: int, n: np.ndarray, d: float, margin_m: float) -> bool:
+    """The all-neighbours margin test of §6.2: every |n . q_j + d| <= margin_m."""
+    for j in range(cnt):
+        r = n[0] * nbrs[j, 0] + n[1] * nbrs[j, 1] + n[2] * nbrs[j, 2] + d
+        if not abs(r) <= margin_m:
+            return False
+    return True
+
+
+@njit(cache=True)
 def _fit_row(
     i: int,
     nbrs: np.ndarray,
@@ -260,20 +286,10 @@ def _fit_row(
     cnt = min(counts[i], nbrs.shape[1])
     if cnt < min_count:
         return
-    nrm = normals[i]
-    d = np.nan
-    if use_ls:
-        d = _fit_ls(nbrs[i], cnt, nrm)
-    if not np.isfinite(d):
-        d = _fit_pca(nbrs[i], cnt, scratch[0], scratch[1], nrm)
-    if not np.isfinite(d):
-        nrm[:] = np.nan
-        return
+    d = fit_plane(nbrs[i], cnt, use_ls, scratch, normals[i])
     dist[i] = d
-    for j in range(cnt):
-        r = nrm[0] * nbrs[i, j, 0] + nrm[1] * nbrs[i, j, 1] + nrm[2] * nbrs[i, j, 2] + d
-        if not abs(r) <= margin_m:
-            return
+    if not (np.isfinite(d) and within_margin(nbrs[i], cnt, normals[i], d, margin_m)):
+        return
     if min_extent_m > 0.0:
         lam_mid = _middle_variance(nbrs[i], cnt, scratch[0])
         if not lam_mid >= min_extent_m * min_extent_m:
