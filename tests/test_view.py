@@ -1,11 +1,16 @@
 """The live view: ``adalio run --rrd`` on a short simulated run, read back with rerun's dataframe
-API; missing rerun and a headless ``--view`` end with one error line."""
+API; ``--view`` on a virtual X display, checked by the viewer's own screenshot; missing rerun
+and a headless ``--view`` end with one error line."""
 
 from __future__ import annotations
 
 import os
+import shutil
+import socket
 import subprocess
 import sys
+import time
+import warnings
 
 import numpy as np
 import pytest
@@ -81,3 +86,66 @@ def test_view_without_display_is_one_error_line(tmp_path):
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: --view needs a display"), lines
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _pixels_near(rgb_image: np.ndarray, rgb: tuple[int, int, int], tol: int = 30) -> int:
+    return int((np.abs(rgb_image - np.asarray(rgb)).max(axis=-1) < tol).sum())
+
+
+@pytest.mark.skipif(shutil.which("Xvfb") is None, reason="needs Xvfb for a virtual display")
+def test_live_view_on_a_virtual_display(corridor, tmp_path, monkeypatch):
+    """``adalio run --view`` on an X display: the spawned viewer window receives the whole run
+    and paints it. Its own screenshot of the 3D view (rerun's ViewerClient) must show the scan
+    in the general/degenerate colours and the grey map, which neither the background nor the
+    grid (at most ~60 grey) has."""
+    import matplotlib.image as mpimg
+    from rerun.experimental import ViewerClient
+
+    import adalio.view
+
+    read_fd, write_fd = os.pipe()
+    with open(tmp_path / "xvfb.log", "w") as xlog:
+        xvfb = subprocess.Popen(["Xvfb", "-displayfd", str(write_fd), "-screen", "0",
+                                 "1280x800x24"], pass_fds=(write_fd,), stderr=xlog)
+    os.close(write_fd)
+    port = _free_port()
+    try:
+        display = os.read(read_fd, 32).decode().strip()
+        os.close(read_fd)
+        assert display, (tmp_path / "xvfb.log").read_text()
+        monkeypatch.setenv("DISPLAY", f":{display}")
+        monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+        monkeypatch.setattr(adalio.view, "VIEWER_PORT", port)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res = CliRunner().invoke(app, ["run", str(corridor.bag_path), "--config",
+                                           str(corridor.config_path), "--out",
+                                           str(tmp_path / "run"), "--view", "--no-progress"])
+        assert res.exit_code == 0, res.output + repr(res.exception)
+        assert not [w for w in caught if "viewer" in str(w.message)], [str(w.message)
+                                                                          for w in caught]
+        views = adalio.view.blueprint()[1]
+        client = ViewerClient.connect(f"rerun+http://127.0.0.1:{port}/proxy")
+        whole, world = tmp_path / "viewer.png", tmp_path / "world.png"
+        client.save_screenshot(str(whole))
+        client.save_screenshot(str(world), view_id=views["world"].id)
+    finally:
+        # the viewer first (it panics when its display goes away), then the display
+        subprocess.run(["pkill", "-f", f"rerun.*port={port}"], check=False)
+        time.sleep(0.5)
+        xvfb.kill()
+        xvfb.wait(timeout=10)
+    image = (mpimg.imread(world)[..., :3] * 255).round().astype(int)
+    assert image.shape[0] > 300 and image.shape[1] > 300, image.shape
+    scan = (_pixels_near(image, adalio.view.DEGENERATE_RGB)
+            + _pixels_near(image, adalio.view.GENERAL_RGB))
+    assert scan > 200, scan
+    assert _pixels_near(image, adalio.view.MAP_RGB) > 200
+    window = mpimg.imread(whole)
+    assert window.shape[0] > image.shape[0] and window.shape[1] > image.shape[1]

@@ -17,6 +17,10 @@ the timeline ``scan_time`` (the scan end, absolute ns) and the sequence ``scan``
   and the filter's position and yaw standard deviations (square roots of the covariance
   diagonal, cm and degrees).
 
+The recording carries a default layout (:func:`blueprint`): the 3D view of ``world`` on the left,
+three stacked time series (degeneracy, points, sigma) on the right. A layout the user arranged
+in the viewer is kept across runs of the same application id, as rerun does.
+
 World frame and metres as in ``trajectory.tum``. ``rerun`` is imported lazily: it is the optional
 extra ``adalio[view]``.
 """
@@ -26,6 +30,7 @@ from __future__ import annotations
 import os
 import shutil
 import sys
+import uuid
 import warnings
 from pathlib import Path
 from typing import Any, Self
@@ -44,6 +49,8 @@ MAP_RGB = (160, 160, 160)
 TRAJECTORY_RGB = (40, 200, 90)
 FLUSH_TIMEOUT_S = 10.0
 """How long :meth:`RerunView.close` waits for the viewer / file to take the last messages."""
+VIEWER_PORT = 9876
+"""gRPC port of the spawned viewer (rerun's default) when ``RerunView`` is given none."""
 MAX_SCAN_POINTS = 20_000
 """Scans with more points are logged with a regular stride (bounds the .rrd size)."""
 
@@ -63,6 +70,27 @@ def has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
+def blueprint() -> tuple[Any, dict[str, Any]]:
+    """The default layout and its views by name (``world``, ``degeneracy``, ``points``,
+    ``sigma``). Each view's ``id`` is fixed (a UUID5 of its name), so a script can address a
+    view of a running viewer, e.g. ``ViewerClient.save_screenshot(path, view_id=...)``."""
+    import rerun.blueprint as rrb
+
+    views = {
+        "world": rrb.Spatial3DView(origin="/world", name="world (map, scan, trajectory)"),
+        "degeneracy": rrb.TimeSeriesView(origin="/plots/degeneracy", name="degeneracy"),
+        "points": rrb.TimeSeriesView(origin="/plots/points", name="points per scan"),
+        "sigma": rrb.TimeSeriesView(origin="/plots/sigma", name="sigma (cm, deg)"),
+    }
+    for name, view in views.items():
+        view.id = uuid.uuid5(uuid.NAMESPACE_URL, f"https://adalio/view/{name}")
+    layout = rrb.Horizontal(
+        views["world"],
+        rrb.Vertical(views["degeneracy"], views["points"], views["sigma"]),
+        column_shares=[3, 2])
+    return rrb.Blueprint(layout, collapse_panels=True), views
+
+
 def viewer_executable() -> str | None:
     """The ``rerun`` viewer binary of the rerun-sdk wheel (this environment first, then PATH)."""
     here = shutil.which("rerun", path=str(Path(sys.executable).parent))
@@ -78,7 +106,7 @@ class RerunView:
     """
 
     def __init__(self, *, spawn: bool = False, rrd_path: str | Path | None = None,
-                 map_voxel_m: float = 0.2, map_every_scans: int = 10, port: int = 9876,
+                 map_voxel_m: float = 0.2, map_every_scans: int = 10, port: int | None = None,
                  application_id: str = "adalio") -> None:
         if not spawn and rrd_path is None:
             raise AdalioError("RerunView needs spawn=True or an rrd_path")
@@ -102,12 +130,14 @@ class RerunView:
             if exe is None:
                 raise AdalioError("--view: the rerun viewer binary is not on PATH; reinstall "
                                   "with pip install 'adalio[view]'")
+            port = VIEWER_PORT if port is None else int(port)
             rr.spawn(port=port, connect=False, executable_path=exe, recording=self._rec)
             sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy"))
         if self.rrd_path is not None:
             self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
             sinks.append(rr.FileSink(str(self.rrd_path)))
-        self._rec.set_sinks(*sinks)
+        layout, self.views = blueprint()
+        self._rec.set_sinks(*sinks, default_blueprint=layout)
         self._rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.map_voxel_m = float(map_voxel_m)
         self.map_every_scans = int(map_every_scans)
