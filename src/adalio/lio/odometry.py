@@ -55,9 +55,16 @@ from adalio.lio.degeneracy import (
 )
 from adalio.lio.ieskf import iterated_update
 from adalio.lio.ivox import IVox
+from adalio.lio.map_uncertainty import MapProvenance
 from adalio.lio.measurement import point_to_plane, points_to_world, residual_weights
 from adalio.lio.motion_init import MovingInit
-from adalio.lio.state import DIM, State, initial_covariance, world_sigmas
+from adalio.lio.state import (
+    DIM,
+    State,
+    initial_covariance,
+    pose_covariance_world,
+    sigmas_from_world_covariance,
+)
 from adalio.lio.voxel import voxel_downsample
 from adalio.types import Estimate, InitReport, ScanStats
 
@@ -254,6 +261,9 @@ class Odometry:
         self._warned_gap_ns: int | None = None
         self._units_check: MovingInit | None = None
         """After a still start: LiDAR-only registrations to compare the gyro's rotation with."""
+        self._provenance = MapProvenance(config.filter.map_provenance_cell_m)
+        self._W_map = np.zeros((6, 6))
+        """World covariance the latest scan inherited from the map (filter.map_uncertainty)."""
 
     # ------------------------------------------------------------------ public API
     @property
@@ -393,9 +403,17 @@ class Odometry:
         # 8. map insertion with the updated pose (§7)
         s = self._state
         p_world = points_to_world(down, s.R, s.p, s.R_LI, s.t_LI)
-        if down.shape[0] >= MIN_POINTS_FOR_UPDATE:
+        inserted = down.shape[0] >= MIN_POINTS_FOR_UPDATE
+        if inserted:
             self._ivox.add_points(p_world, cell_m)
             self._finest_cell_m = min(self._finest_cell_m, cell_m)
+        if cfg.filter.map_uncertainty:
+            if loc is not None:
+                matched = assoc.nearest[assoc.selected]
+                self._W_map = self._provenance.map_covariance(s.p, matched[np.isfinite(
+                    matched).all(axis=1)])
+            self._provenance.add_scan(s.p, pose_covariance_world(s.R, self._P) + self._W_map,
+                                      p_world if inserted else p_world[:0])
         t0 = _timer(stage_ms, "map", t0)
 
         stats.n_down, stats.n_down_general = int(down.shape[0]), int(down_general.shape[0])
@@ -436,6 +454,9 @@ class Odometry:
         p_world = points_to_world(pts_e, s.R, s.p, s.R_LI, s.t_LI)
         self._ivox.add_points(p_world)
         self._t_first_map_ns = t_e
+        # This pose anchors the map, so it defines the world: no error relative to it.
+        self._W_map = np.zeros((6, 6))
+        self._provenance.add_scan(s.p, np.zeros((6, 6)), p_world)
         _timer(stage_ms, "map", t0)
         g = self.cfg.adaptive.general
         stats.n_down = stats.n_down_general = int(pts_e.shape[0])
@@ -714,7 +735,10 @@ class Odometry:
         stats.stage_ms = {k: stage_ms.get(k, 0.0) for k in STAGES}
         stats.wall_ms = (time.perf_counter() - t_start) * 1e3
         s = self._state
-        stats.sigma_p_world_m, stats.sigma_rot_world_deg = world_sigmas(s.R, self._P)
+        W = pose_covariance_world(s.R, self._P)
+        if self.cfg.filter.map_uncertainty:
+            W = W + self._W_map
+        stats.sigma_p_world_m, stats.sigma_rot_world_deg = sigmas_from_world_covariance(W)
         return Estimate(t_ns=stats.t_ns, T_world_imu=s.T_world_imu(), velocity_world_m_s=s.v.copy(),
                         gyro_bias_rad_s=s.b_g.copy(), accel_bias_m_s2=s.b_a.copy(),
                         gravity_world_m_s2=s.g.copy(), cov_diag=np.diag(self._P).copy(),

@@ -91,15 +91,26 @@ def initial_covariance(estimate_extrinsic: bool) -> np.ndarray:
     return P
 
 
-def world_sigmas(R_world_imu: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World-frame standard deviations of the pose from the error-state covariance ``P``.
+def pose_covariance_world(R_world_imu: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """6x6 covariance of (world position, small rotation about the world axes) from the
+    error-state covariance ``P``. The position error is already world-frame; ``R ⊞ δθ =
+    R Exp(δθ)`` puts δθ in the body frame, and the same rotation seen in the world frame is
+    ``R δθ``: ``W = G P_pose Gᵀ`` with ``G = diag(I, R)``."""
+    G = np.zeros((6, 6))
+    G[:3, :3] = np.eye(3)
+    G[3:, 3:] = R_world_imu
+    idx = np.r_[np.arange(P_.start, P_.stop), np.arange(TH.start, TH.stop)]
+    return G @ P[np.ix_(idx, idx)] @ G.T
 
-    Position: ``sqrt(diag(P_pp))`` (the position error is already world-frame, m). Attitude:
-    ``R ⊞ δθ = R Exp(δθ)`` puts δθ in the body frame; the same rotation seen in the world frame is
-    ``R δθ``, so its covariance is ``R P_θθ Rᵀ`` and the result is the standard deviation of a
-    small rotation about the world x, y, z axes, in degrees.
-    """
-    sig_p = np.sqrt(np.clip(np.diag(P[P_, P_]), 0.0, None))
-    C = R_world_imu @ P[TH, TH] @ R_world_imu.T
-    sig_th = np.degrees(np.sqrt(np.clip(np.diag(C), 0.0, None)))
-    return sig_p, sig_th
+
+def sigmas_from_world_covariance(W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(position sigmas in m, rotation sigmas about world x, y, z in degrees) of a 6x6 W."""
+    sig = np.sqrt(np.clip(np.diag(W), 0.0, None))
+    return sig[:3], np.degrees(sig[3:])
+
+
+def world_sigmas(R_world_imu: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World-frame standard deviations of the pose from the error-state covariance ``P``:
+    ``sqrt(diag(P_pp))`` in metres and, in degrees, those of ``R P_θθ Rᵀ``, a small rotation
+    about the world x, y, z axes (see :func:`pose_covariance_world`)."""
+    return sigmas_from_world_covariance(pose_covariance_world(R_world_imu, P))

@@ -1,0 +1,169 @@
+"""Map uncertainty: the world-frame pose covariance a scan inherits from the map it registered to.
+
+The filter treats the map as exact, so its covariance ``P`` is the pose uncertainty *relative to
+the map*. The map itself was placed by earlier, uncertain poses: a part of the map inserted by
+scan ``j`` is displaced rigidly by that scan's pose error ``(δp_j, δφ_j)`` (world frame), so a map
+point ``x`` sits at ``x + δp_j + δφ_j × (x - p_j)``. A pose registered against that part of the
+map follows it: its error is ``δp = δp_j - [p_k - p_j]× δφ_j``, ``δφ = δφ_j``, i.e. the map's
+covariance transported with the lever arm ``d = p_k - p_j`` (VoxelMap and PV-LIO carry the
+inserting pose's covariance with every map point for the same reason)::
+
+    T(d) = [[I, -[d]×], [0, I]],    W_map,k = Σ_j c_j T(d_j) W_j T(d_j)ᵀ / Σ_j c_j
+
+over the scans ``j`` that inserted the map points the scan matched (``c_j`` correspondences
+each), and the scan's world covariance is ``W_k = W_rel,k + W_map,k``, where ``W_rel,k`` is the
+filter's pose covariance turned into world axes (position, then small world rotations). ``W_k``
+is stored as the covariance of the map cells scan ``k`` is the first to fill, so the uncertainty
+accumulates as the map is extended (odometry drift) and stays put while the sensor re-observes
+the same map. The first scan anchors the world: ``W_0 = 0``.
+
+Chosen approximations, both conservative or neutral for the 3σ test: the map errors of different
+scans are averaged (fully correlated, not independent, which would shrink ``W_map``), and the
+correlation between ``W_rel,k`` and ``W_map,k`` is ignored (in a direction no scan constrains,
+the IMU growth since then is in both terms, so the sum over-states it by up to 2x in variance).
+Provenance is kept per ``cell_m`` cell (first scan to insert a point there), not per point,
+and from regular strides of the inserted and matched points (``MAX_*_SAMPLES``).
+The trajectory is unchanged: this only feeds the reported sigmas.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from adalio.lio.state import pose_covariance_world
+
+MAX_MATCHED_SAMPLES = 512
+"""The owners' mean is taken over at most this many matched points (a regular stride)."""
+MAX_INSERTED_SAMPLES = 1024
+"""Cells are claimed from at most this many of a scan's inserted points (a regular stride): a
+cell a scan fills holds several of its points, and a cell missed is claimed by a scan or two
+later, with nearly the same covariance."""
+_OFFSET = 1 << 20
+"""Cell indices are shifted by this before packing 21 bits per axis (±2^20 cells)."""
+
+
+def transport(W: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Covariance (..., 6, 6) moved by the lever arm d (..., 3): T(d) W T(d)ᵀ (module doc)."""
+    d = np.asarray(d, dtype=np.float64)
+    T = np.broadcast_to(np.eye(6), d.shape[:-1] + (6, 6)).copy()
+    S = np.zeros(d.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -d[..., 2], d[..., 1], -d[..., 0]
+    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = d[..., 2], -d[..., 1], d[..., 0]
+    T[..., :3, 3:] = -S
+    return T @ W @ np.swapaxes(T, -1, -2)
+
+
+@njit(cache=True)
+def _cell_keys(points: np.ndarray, cell_m: float) -> np.ndarray:
+    """One int64 per point: its cell (x, y, z) shifted by _OFFSET, 21 bits each (non-finite
+    rows and cells beyond ±2^20 are clipped to the edge)."""
+    n = points.shape[0]
+    keys = np.empty(n, np.int64)
+    top = (1 << 21) - 1
+    for i in range(n):
+        key = 0
+        for a in range(3):
+            v = points[i, a] / cell_m
+            c = int(np.floor(v)) + _OFFSET if np.isfinite(v) and abs(v) < 2.0**21 else 0
+            key = (key << 21) | min(max(c, 0), top)
+        keys[i] = key
+    return keys
+
+
+@njit(cache=True)
+def _mean_transported(scans: np.ndarray, weights: np.ndarray, covariances: np.ndarray,
+                      positions: np.ndarray, p_world: np.ndarray) -> np.ndarray:
+    """sum_i weights[i] T(d) W T(d)^T for W = covariances[scans[i]], d = p_world -
+    positions[scans[i]] (what :func:`transport` computes, one scan at a time)."""
+    out = np.zeros((6, 6))
+    T = np.eye(6)
+    for i in range(scans.shape[0]):
+        j = scans[i]
+        d0 = p_world[0] - positions[j, 0]
+        d1 = p_world[1] - positions[j, 1]
+        d2 = p_world[2] - positions[j, 2]
+        # -[d]x in the position-rotation block
+        T[0, 4], T[0, 5] = d2, -d1
+        T[1, 3], T[1, 5] = -d2, d0
+        T[2, 3], T[2, 4] = d1, -d0
+        out += weights[i] * (T @ covariances[j] @ T.T)
+    return out
+
+
+class MapProvenance:
+    """Which scan first filled each map cell, and each such scan's world pose covariance."""
+
+    def __init__(self, cell_m: float) -> None:
+        if not cell_m > 0:
+            raise ValueError("MapProvenance: cell_m must be > 0")
+        self.cell_m = float(cell_m)
+        self._keys = np.empty(0, np.int64)
+        self._owner = np.empty(0, np.int64)
+        self._positions = np.empty((64, 3))
+        self._covariances = np.empty((64, 6, 6))
+        self._n_scans = 0
+        """Scans kept: only those that own at least one cell."""
+
+    def __len__(self) -> int:
+        return int(self._keys.shape[0])
+
+    def _pack(self, points_world: np.ndarray) -> np.ndarray:
+        return _cell_keys(np.ascontiguousarray(points_world, dtype=np.float64), self.cell_m)
+
+    def owners(self, points_world: np.ndarray) -> np.ndarray:
+        """Index of the scan that first filled each point's cell (-1: no scan recorded)."""
+        keys = self._pack(points_world)
+        out = np.full(keys.shape[0], -1, np.int64)
+        if len(self):
+            pos = np.minimum(np.searchsorted(self._keys, keys), len(self) - 1)
+            found = self._keys[pos] == keys
+            out[found] = self._owner[pos[found]]
+        return out
+
+    def map_covariance(self, p_world: np.ndarray, matched_world: np.ndarray) -> np.ndarray:
+        """W_map (6x6) for a pose at ``p_world`` registered against the map points
+        ``matched_world`` (M, 3): the mean of their owners' covariances, each transported by
+        its lever arm (over a regular stride of at most ``MAX_MATCHED_SAMPLES`` of them). Zero
+        when nothing matched a recorded cell."""
+        if not self._n_scans or matched_world.shape[0] == 0:
+            return np.zeros((6, 6))
+        stride = -(-matched_world.shape[0] // MAX_MATCHED_SAMPLES)
+        own = self.owners(matched_world[::stride])
+        own = own[own >= 0]
+        if own.shape[0] == 0:
+            return np.zeros((6, 6))
+        counts = np.bincount(own)
+        scans = np.flatnonzero(counts)
+        counts = counts[scans]
+        return _mean_transported(scans, counts / counts.sum(), self._covariances,
+                                 self._positions, np.asarray(p_world, dtype=np.float64))
+
+    def add_scan(self, p_world: np.ndarray, W_world: np.ndarray,
+                 inserted_world: np.ndarray) -> int:
+        """The cells of ``inserted_world`` not yet owned become this scan's, and its pose and
+        world covariance are kept. Returns the scan's index, or -1 if it owns no new cell (then
+        nothing is kept: no map point will ever refer to it)."""
+        stride = max(1, -(-inserted_world.shape[0] // MAX_INSERTED_SAMPLES))
+        keys = self._pack(inserted_world[::stride])
+        if len(self) and keys.shape[0]:
+            pos = np.minimum(np.searchsorted(self._keys, keys), len(self) - 1)
+            keys = keys[self._keys[pos] != keys]
+        if not keys.shape[0]:
+            return -1
+        j = self._n_scans
+        if j == self._positions.shape[0]:
+            self._positions = np.concatenate([self._positions, np.empty_like(self._positions)])
+            self._covariances = np.concatenate([self._covariances,
+                                                np.empty_like(self._covariances)])
+        self._positions[j] = p_world
+        self._covariances[j] = W_world
+        self._n_scans = j + 1
+        keys = np.unique(keys)
+        at = np.searchsorted(self._keys, keys)  # sorted insertion points of the sorted keys
+        self._keys = np.insert(self._keys, at, keys)
+        self._owner = np.insert(self._owner, at, j)
+        return j
+
+
+__all__ = ["MapProvenance", "pose_covariance_world", "transport"]
