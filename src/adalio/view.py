@@ -14,8 +14,8 @@ the timeline ``scan_time`` (the scan end, absolute ns) and the sequence ``scan``
   at the IMU scaled by the degeneracy score (1 m for a pure translation at score 1), labelled
   with the score;
 * ``plots/...``: the degeneracy score and flag, the point counts (raw, downsampled, matched)
-  and the filter's position and yaw standard deviations (square roots of the covariance
-  diagonal, cm and degrees).
+  and the position and yaw standard deviations of ``scans.csv`` (the filter's covariance plus
+  the map's, see :mod:`adalio.lio.map_uncertainty`; cm and degrees).
 
 The recording carries a default layout (:func:`blueprint`): the 3D view of ``world`` on the left,
 three stacked time series (degeneracy, points, sigma) on the right. A layout the user arranged
