@@ -136,8 +136,7 @@ class RerunView:
         if self.rrd_path is not None:
             self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
             sinks.append(rr.FileSink(str(self.rrd_path)))
-        layout, self.views = blueprint()
-        self._rec.set_sinks(*sinks, default_blueprint=layout)
+        self._rec.set_sinks(*sinks, default_blueprint=blueprint()[0])
         self._rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.map_voxel_m = float(map_voxel_m)
         self.map_every_scans = int(map_every_scans)

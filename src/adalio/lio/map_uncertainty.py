@@ -31,8 +31,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from adalio.lio.state import pose_covariance_world
-
 MAX_MATCHED_SAMPLES = 512
 """The owners' mean is taken over at most this many matched points (a regular stride)."""
 MAX_INSERTED_SAMPLES = 1024
@@ -43,15 +41,15 @@ _OFFSET = 1 << 20
 """Cell indices are shifted by this before packing 21 bits per axis (±2^20 cells)."""
 
 
+@njit(cache=True)
 def transport(W: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Covariance (..., 6, 6) moved by the lever arm d (..., 3): T(d) W T(d)ᵀ (module doc)."""
-    d = np.asarray(d, dtype=np.float64)
-    T = np.broadcast_to(np.eye(6), d.shape[:-1] + (6, 6)).copy()
-    S = np.zeros(d.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -d[..., 2], d[..., 1], -d[..., 0]
-    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = d[..., 2], -d[..., 1], d[..., 0]
-    T[..., :3, 3:] = -S
-    return T @ W @ np.swapaxes(T, -1, -2)
+    """A 6x6 covariance moved by the lever arm d (3,): T(d) W T(d)ᵀ (module doc)."""
+    T = np.eye(6)
+    # -[d]x in the position-rotation block
+    T[0, 4], T[0, 5] = d[2], -d[1]
+    T[1, 3], T[1, 5] = -d[2], d[0]
+    T[2, 3], T[2, 4] = d[1], -d[0]
+    return T @ W @ T.T
 
 
 @njit(cache=True)
@@ -74,20 +72,11 @@ def _cell_keys(points: np.ndarray, cell_m: float) -> np.ndarray:
 @njit(cache=True)
 def _mean_transported(scans: np.ndarray, weights: np.ndarray, covariances: np.ndarray,
                       positions: np.ndarray, p_world: np.ndarray) -> np.ndarray:
-    """sum_i weights[i] T(d) W T(d)^T for W = covariances[scans[i]], d = p_world -
-    positions[scans[i]] (what :func:`transport` computes, one scan at a time)."""
+    """sum_i weights[i] transport(covariances[scans[i]], p_world - positions[scans[i]])."""
     out = np.zeros((6, 6))
-    T = np.eye(6)
     for i in range(scans.shape[0]):
         j = scans[i]
-        d0 = p_world[0] - positions[j, 0]
-        d1 = p_world[1] - positions[j, 1]
-        d2 = p_world[2] - positions[j, 2]
-        # -[d]x in the position-rotation block
-        T[0, 4], T[0, 5] = d2, -d1
-        T[1, 3], T[1, 5] = -d2, d0
-        T[2, 3], T[2, 4] = d1, -d0
-        out += weights[i] * (T @ covariances[j] @ T.T)
+        out += weights[i] * transport(covariances[j], p_world - positions[j])
     return out
 
 
@@ -166,4 +155,4 @@ class MapProvenance:
         return j
 
 
-__all__ = ["MapProvenance", "pose_covariance_world", "transport"]
+__all__ = ["MapProvenance", "transport"]

@@ -412,7 +412,7 @@ class Odometry:
                 matched = assoc.nearest[assoc.selected]
                 self._W_map = self._provenance.map_covariance(s.p, matched[np.isfinite(
                     matched).all(axis=1)])
-            self._provenance.add_scan(s.p, pose_covariance_world(s.R, self._P) + self._W_map,
+            self._provenance.add_scan(s.p, self._world_covariance(),
                                       p_world if inserted else p_world[:0])
         t0 = _timer(stage_ms, "map", t0)
 
@@ -728,6 +728,12 @@ class Odometry:
         for k, v in stage_ms.items():
             self.stage_ms_total[k] = self.stage_ms_total.get(k, 0.0) + v
 
+    def _world_covariance(self) -> np.ndarray:
+        """6x6 world covariance of the pose: the filter's, plus the map's if
+        ``filter.map_uncertainty`` (lio/map_uncertainty.py)."""
+        W = pose_covariance_world(self._state.R, self._P)
+        return W + self._W_map if self.cfg.filter.map_uncertainty else W
+
     def _emit(self, stats: ScanStats, stage_ms: dict[str, float], t_start: float,
               p_world: np.ndarray) -> Estimate:
         self._accumulate(stage_ms)
@@ -735,10 +741,8 @@ class Odometry:
         stats.stage_ms = {k: stage_ms.get(k, 0.0) for k in STAGES}
         stats.wall_ms = (time.perf_counter() - t_start) * 1e3
         s = self._state
-        W = pose_covariance_world(s.R, self._P)
-        if self.cfg.filter.map_uncertainty:
-            W = W + self._W_map
-        stats.sigma_p_world_m, stats.sigma_rot_world_deg = sigmas_from_world_covariance(W)
+        stats.sigma_p_world_m, stats.sigma_rot_world_deg = sigmas_from_world_covariance(
+            self._world_covariance())
         return Estimate(t_ns=stats.t_ns, T_world_imu=s.T_world_imu(), velocity_world_m_s=s.v.copy(),
                         gyro_bias_rad_s=s.b_g.copy(), accel_bias_m_s2=s.b_a.copy(),
                         gravity_world_m_s2=s.g.copy(), cov_diag=np.diag(self._P).copy(),
