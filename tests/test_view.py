@@ -94,6 +94,25 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _x_server_answers(display: str, timeout_s: float = 10.0) -> bool:
+    """Whether the X server on ``:display`` completes a connection handshake (protocol 11.0, no
+    auth) within the timeout. Xvfb reports its display number before it accepts clients."""
+    setup = b"l\x00\x0b\x00\x00\x00\x00\x00\x00\x00\x00\x00"
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+                s.settimeout(2.0)
+                s.connect(f"/tmp/.X11-unix/X{display}")
+                s.sendall(setup)
+                if s.recv(1) == b"\x01":
+                    return True
+        except OSError:
+            pass
+        time.sleep(0.1)
+    return False
+
+
 def _pixels_near(rgb_image: np.ndarray, rgb: tuple[int, int, int], tol: int = 30) -> int:
     return int((np.abs(rgb_image - np.asarray(rgb)).max(axis=-1) < tol).sum())
 
@@ -111,14 +130,16 @@ def test_live_view_on_a_virtual_display(corridor, tmp_path, monkeypatch):
 
     read_fd, write_fd = os.pipe()
     with open(tmp_path / "xvfb.log", "w") as xlog:
-        xvfb = subprocess.Popen(["Xvfb", "-displayfd", str(write_fd), "-screen", "0",
+        # Xvfb may write its display number again (after a reset, when its last client leaves,
+        # e.g. the handshake probe): the read end stays open until it exits, and -noreset
+        # keeps the probe from resetting it
+        xvfb = subprocess.Popen(["Xvfb", "-displayfd", str(write_fd), "-noreset", "-screen", "0",
                                  "1280x800x24"], pass_fds=(write_fd,), stderr=xlog)
     os.close(write_fd)
     port = _free_port()
     try:
         display = os.read(read_fd, 32).decode().strip()
-        os.close(read_fd)
-        assert display, (tmp_path / "xvfb.log").read_text()
+        assert display and _x_server_answers(display), (tmp_path / "xvfb.log").read_text()
         monkeypatch.setenv("DISPLAY", f":{display}")
         monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
         monkeypatch.setattr(adalio.view, "VIEWER_PORT", port)
@@ -139,8 +160,9 @@ def test_live_view_on_a_virtual_display(corridor, tmp_path, monkeypatch):
         # the viewer first (it panics when its display goes away), then the display
         subprocess.run(["pkill", "-f", f"rerun.*port={port}"], check=False)
         time.sleep(0.5)
-        xvfb.kill()
+        xvfb.terminate()
         xvfb.wait(timeout=10)
+        os.close(read_fd)
     image = (mpimg.imread(world)[..., :3] * 255).round().astype(int)
     assert image.shape[0] > 300 and image.shape[1] > 300, image.shape
     scan = (_pixels_near(image, adalio.view.DEGENERATE_RGB)
