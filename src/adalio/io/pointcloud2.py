@@ -24,10 +24,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numba import njit
 
 from adalio.config import SensorConfig
 from adalio.errors import BagError
+from adalio.jit import kernel
 from adalio.types import Scan
 
 POINTFIELD_DTYPES: dict[int, str] = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4",
@@ -170,7 +170,7 @@ def decode_fields(data: Any, layout: CloudLayout, names: list[str],
     return out
 
 
-@njit(cache=True)
+@kernel()
 def _xyz_rows(x, y, z):
     """(N,3) float64 points from the x/y/z columns in one pass, and which rows are usable:
     ``ok`` is False for a non-finite coordinate or for (0,0,0) ("no return" on many drivers).

@@ -19,9 +19,10 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from adalio.errors import ConfigError
+from adalio.jit import kernel
 from adalio.lio.ivox import IVox, _knn_row
 from adalio.lio.plane import PLANE_METHODS, _middle_eigenvalue, _scatter, fit_plane, within_margin
 
@@ -53,7 +54,7 @@ class Correspondences:
     """(M,3) nearest neighbour (NaN when none)."""
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
                    radius2, margin_m, min_extent_m, use_ls, nb, d2, scratch, normals, dist,
                    valid, counts, mu, lam_mid, nearest):
@@ -82,7 +83,7 @@ def _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min
     valid[i] = True
 
 
-@njit(cache=True)
+@kernel()
 def _associate_serial(queries, k, max_d2, resolution_m, offsets, cap, store, min_count, radius2,
                       margin_m, min_extent_m, use_ls, normals, dist, valid, counts, mu, lam_mid,
                       nearest):
@@ -96,7 +97,7 @@ def _associate_serial(queries, k, max_d2, resolution_m, offsets, cap, store, min
                        valid, counts, mu, lam_mid, nearest)
 
 
-@njit(cache=True, parallel=True)
+@kernel(parallel=True)
 def _associate_parallel(queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
                         radius2, margin_m, min_extent_m, use_ls, normals, dist, valid, counts,
                         mu, lam_mid, nearest):

@@ -11,9 +11,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from adalio.config import ImuConfig
+from adalio.jit import kernel
 from adalio.lio import so3
 from adalio.lio.state import DIM, State
 
@@ -171,18 +172,18 @@ def gap_noise(cfg: ImuConfig, q_diag: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- propagation (§3)
-@njit(cache=True)
+@kernel()
 def discrete_step(p, R, v, b_g, b_a, g, gyro_rad_s, accel_m_s2, dt):
     """One explicit-Euler step on the manifold (§3.1): returns (p, R, v)."""
     omega = gyro_rad_s - b_g
     acc = accel_m_s2 - b_a
     p_new = p + v * dt
-    R_new = R @ so3.exp(omega * dt)
-    v_new = v + (R @ acc + g) * dt
+    R_new = so3.mul(R, so3.exp(omega * dt))
+    v_new = v + (so3.mul_vec(R, acc) + g) * dt
     return p_new, R_new, v_new
 
 
-@njit(cache=True)
+@kernel()
 def jacobians_fg(R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s2, dt):
     """F (23×23) and G (23×12) of the discrete step (§3.2), noise order (n_g, n_a, n_bg, n_ba)."""
     omega = gyro_rad_s - b_g
@@ -205,7 +206,7 @@ def jacobians_fg(R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s2, dt):
     return F, Gm
 
 
-@njit(cache=True)
+@kernel()
 def _sparse_left(A, B):
     """A @ B skipping the zeros of A."""
     n, k = A.shape
@@ -220,7 +221,7 @@ def _sparse_left(A, B):
     return out
 
 
-@njit(cache=True)
+@kernel()
 def propagate_covariance(P, F, Gm, q_diag):
     """``F P Fᵀ + G diag(q) Gᵀ`` exploiting the sparsity of F and G."""
     FP = _sparse_left(F, P)
@@ -230,7 +231,7 @@ def propagate_covariance(P, F, Gm, q_diag):
     return out
 
 
-@njit(cache=True)
+@kernel()
 def _left_mul_F(M, E_th, J_bg, A_vth, B_vba, C_vg, dt):
     """``F @ M`` using the block structure of F (§3.2); rows not listed are identity rows."""
     out = M.copy()
@@ -249,7 +250,7 @@ def _left_mul_F(M, E_th, J_bg, A_vth, B_vba, C_vg, dt):
     return out
 
 
-@njit(cache=True)
+@kernel()
 def propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s2, dt, q_diag,
                               measured_accel=True):
     """``F P Fᵀ + G diag(q) Gᵀ`` (§3.2) from the blocks of F and G, without forming them.
@@ -263,16 +264,16 @@ def propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s
     Jr = so3.jr(omega * dt)
     E_th = so3.exp(-omega * dt)
     J_bg = -Jr * dt
-    A_vth = -(R @ so3.hat(acc)) * dt
+    A_vth = -so3.mul(R, so3.hat(acc)) * dt
     B_vba = -R * dt
-    C_vg = -(so3.hat(g) @ so3.s2_basis(g, g_anchor)) * dt
+    C_vg = -so3.mul(so3.hat(g), so3.s2_basis(g, g_anchor)) * dt
     if not measured_accel:
         A_vth[:] = 0.0
         B_vba[:] = 0.0
         C_vg[:] = 0.0
     FP = _left_mul_F(P, E_th, J_bg, A_vth, B_vba, C_vg, dt)
     out = _left_mul_F(FP.T.copy(), E_th, J_bg, A_vth, B_vba, C_vg, dt).T.copy()
-    JJt = Jr @ Jr.T
+    JJt = so3.mul_abt(Jr, Jr)
     dt2 = dt * dt
     for i in range(3):
         for k in range(3):
@@ -283,7 +284,7 @@ def propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s
     return out
 
 
-@njit(cache=True)
+@kernel()
 def _gap_inputs(R, b_a, g, gyro, k):
     """Motion-model inputs across an IMU gap: the body rate of the last samples before it, and
     the specific force that keeps the world velocity constant (R (a − b_a) + g = 0)."""
@@ -291,10 +292,24 @@ def _gap_inputs(R, b_a, g, gyro, k):
     rate = np.zeros(3)
     for j in range(lo, k + 1):
         rate += gyro[j]
-    return rate / (k + 1 - lo), R.T @ (-g) + b_a
+    return rate / (k + 1 - lo), so3.mul_t_vec(R, -g) + b_a
 
 
-@njit(cache=True)
+@kernel()
+def _record(m, tau, R, p, v, w, a, rec_tau, rec_R, rec_p, rec_v, rec_w, rec_a):
+    """Write pose record ``m`` element by element (an array assigned to a slice costs numba a
+    shape-checked broadcast, slow to compile)."""
+    rec_tau[m] = tau
+    for i in range(3):
+        rec_p[m, i] = p[i]
+        rec_v[m, i] = v[i]
+        rec_w[m, i] = w[i]
+        rec_a[m, i] = a[i]
+        for j in range(3):
+            rec_R[m, i, j] = R[i, j]
+
+
+@kernel()
 def propagate_scan(p, R, v, b_g, b_a, g, g_anchor, P, imu_tau, gyro, accel, tau_start, tau_end,
                    q_diag, noise_dt, gap_s, q_gap):
     """Forward propagation over one scan with pose records (§5.2).
@@ -338,12 +353,8 @@ def propagate_scan(p, R, v, b_g, b_a, g, g_anchor, P, imu_tau, gyro, accel, tau_
             broke = True
             break
         dt = t1 - max(imu_tau[k], tau)
-        rec_tau[m] = tau
-        rec_R[m] = R
-        rec_p[m] = p
-        rec_v[m] = v
-        rec_w[m] = gyro_in - b_g
-        rec_a[m] = R @ (acc_in - b_a) + g
+        _record(m, tau, R, p, v, gyro_in - b_g, so3.mul_vec(R, acc_in - b_a) + g, rec_tau,
+                rec_R, rec_p, rec_v, rec_w, rec_a)
         m += 1
         q = q_gap / dt if gap else (q_diag if not noise_dt else q_diag / dt)
         P = propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_in, acc_in, dt, q,
@@ -354,12 +365,8 @@ def propagate_scan(p, R, v, b_g, b_a, g, g_anchor, P, imu_tau, gyro, accel, tau_
         gap = tau_end - imu_tau[n - 1] > gap_s
         if gap:
             gyro_in, acc_in = _gap_inputs(R, b_a, g, gyro, n - 1)
-    rec_tau[m] = tau
-    rec_R[m] = R
-    rec_p[m] = p
-    rec_v[m] = v
-    rec_w[m] = gyro_in - b_g
-    rec_a[m] = R @ (acc_in - b_a) + g
+    _record(m, tau, R, p, v, gyro_in - b_g, so3.mul_vec(R, acc_in - b_a) + g, rec_tau, rec_R,
+            rec_p, rec_v, rec_w, rec_a)
     m += 1
     dt = tau_end - tau
     if dt > 0.0:
@@ -400,7 +407,7 @@ def propagate(state: State, P: np.ndarray, imu_tau_s: np.ndarray, gyro_rad_s: np
 
 
 # --------------------------------------------------------------------------- undistortion (§5.3)
-@njit(cache=True, parallel=True)
+@kernel(parallel=True)
 def _undistort_kernel(points_lidar, tau_s, rec_tau, rec_R, rec_p, rec_v, rec_w, rec_a, R_end,
                       p_end, R_LI, t_LI):
     """Rows are independent, so they run on all numba threads; the result does not depend on

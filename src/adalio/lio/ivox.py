@@ -28,10 +28,11 @@ Deviations from upstream, documented in lio-design.md §7:
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from adalio.config import MapConfig
 from adalio.errors import ConfigError, InputError
+from adalio.jit import kernel
 
 BLOCK_POINTS = 8
 """Points per storage block of a voxel (memory granularity, not an algorithm constant)."""
@@ -59,7 +60,7 @@ _HASH_Y = _as_int64(0xC2B2AE3D27D4EB4F)
 _HASH_Z = _as_int64(0x165667B19E3779F9)
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def hash_key3(kx: int, ky: int, kz: int, mask: int) -> int:
     """Slot of an integer voxel key in a power-of-two open-addressing table (§7 "Hash")."""
     h = kx * _HASH_X + ky * _HASH_Y + kz * _HASH_Z
@@ -82,7 +83,7 @@ def nearby_offsets(nearby_type: int) -> np.ndarray:
     return np.ascontiguousarray(np.array(offs[:n], dtype=np.int64))
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def _key_of(x: float, y: float, z: float, resolution_m: float):
     """(ok, kx, ky, kz) = floor(p / s + 1/2), i.e. round(p / s) half up (§7 "Key")."""
     fx = np.floor(x / resolution_m + 0.5)
@@ -94,7 +95,7 @@ def _key_of(x: float, y: float, z: float, resolution_m: float):
     return True, np.int64(fx), np.int64(fy), np.int64(fz)
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def _lookup(table: np.ndarray, vkeys: np.ndarray, kx: int, ky: int, kz: int) -> int:
     """Voxel id of a key by linear probing, or -1 if absent."""
     mask = table.shape[0] - 1
@@ -108,7 +109,7 @@ def _lookup(table: np.ndarray, vkeys: np.ndarray, kx: int, ky: int, kz: int) -> 
         h = (h + 1) & mask
 
 
-@njit(cache=True)
+@kernel()
 def _rebuild_table(table: np.ndarray, vkeys: np.ndarray, nv: int) -> None:
     table[:] = -1
     mask = table.shape[0] - 1
@@ -119,7 +120,7 @@ def _rebuild_table(table: np.ndarray, vkeys: np.ndarray, nv: int) -> None:
         table[h] = v
 
 
-@njit(cache=True)
+@kernel()
 def _cell_occupied(
     x: float,
     y: float,
@@ -165,7 +166,7 @@ def _cell_occupied(
     return False
 
 
-@njit(cache=True)
+@kernel()
 def _insert_points(
     points: np.ndarray,
     start: int,
@@ -265,7 +266,7 @@ def _insert_points(
     return i
 
 
-@njit(cache=True)
+@kernel()
 def _evict(
     evict: np.ndarray,
     cap: int,
@@ -291,10 +292,12 @@ def _evict(
             n_points -= count
             continue
         if w != v:
-            vkeys[w] = vkeys[v]
+            for c in range(vkeys.shape[1]):
+                vkeys[w, c] = vkeys[v, c]
             vstamp[w] = vstamp[v]
             vtotal[w] = vtotal[v]
-            vblocks[w] = vblocks[v]
+            for c in range(vblocks.shape[1]):
+                vblocks[w, c] = vblocks[v, c]
         w += 1
     state[_S_NV] = w
     state[_S_NFREE] = n_free
@@ -302,7 +305,7 @@ def _evict(
     _rebuild_table(table, vkeys, w)
 
 
-@njit(cache=True)
+@kernel()
 def _knn_row(
     qi: int,
     queries: np.ndarray,
@@ -373,7 +376,7 @@ def _knn_row(
     return cnt
 
 
-@njit(cache=True)
+@kernel()
 def _knn_serial(
     queries, k, max_d2, resolution_m, offsets, cap, store, out_nbrs, out_d2, out_counts
 ):
@@ -384,7 +387,7 @@ def _knn_serial(
         )
 
 
-@njit(cache=True, parallel=True)
+@kernel(parallel=True)
 def _knn_parallel(
     queries, k, max_d2, resolution_m, offsets, cap, store, out_nbrs, out_d2, out_counts
 ):
@@ -395,7 +398,7 @@ def _knn_parallel(
         )
 
 
-@njit(cache=True)
+@kernel()
 def _gather_points(
     nv: int, n_points: int, cap: int, vtotal: np.ndarray, vblocks: np.ndarray, pool: np.ndarray
 ) -> np.ndarray:
@@ -403,7 +406,9 @@ def _gather_points(
     w = 0
     for v in range(nv):
         for j in range(min(vtotal[v], cap)):
-            out[w] = pool[vblocks[v, j >> _BLOCK_SHIFT], j & (BLOCK_POINTS - 1)]
+            blk, slot = vblocks[v, j >> _BLOCK_SHIFT], j & (BLOCK_POINTS - 1)
+            for c in range(3):
+                out[w, c] = pool[blk, slot, c]
             w += 1
     return out
 

@@ -29,7 +29,9 @@ The trajectory is unchanged: this only feeds the reported sigmas.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from adalio.jit import kernel
+from adalio.lio import so3
 
 MAX_MATCHED_SAMPLES = 512
 """The owners' mean is taken over at most this many matched points (a regular stride)."""
@@ -41,7 +43,7 @@ _OFFSET = 1 << 20
 """Cell indices are shifted by this before packing 21 bits per axis (±2^20 cells)."""
 
 
-@njit(cache=True)
+@kernel()
 def transport(W: np.ndarray, d: np.ndarray) -> np.ndarray:
     """A 6x6 covariance moved by the lever arm d (3,): T(d) W T(d)ᵀ (module doc)."""
     T = np.eye(6)
@@ -49,10 +51,10 @@ def transport(W: np.ndarray, d: np.ndarray) -> np.ndarray:
     T[0, 4], T[0, 5] = d[2], -d[1]
     T[1, 3], T[1, 5] = -d[2], d[0]
     T[2, 3], T[2, 4] = d[1], -d[0]
-    return T @ W @ T.T
+    return so3.mul_abt(so3.mul(T, W), T)
 
 
-@njit(cache=True)
+@kernel()
 def _cell_keys(points: np.ndarray, cell_m: float) -> np.ndarray:
     """One int64 per point: its cell (x, y, z) shifted by _OFFSET, 21 bits each (non-finite
     rows and cells beyond ±2^20 are clipped to the edge)."""
@@ -69,7 +71,7 @@ def _cell_keys(points: np.ndarray, cell_m: float) -> np.ndarray:
     return keys
 
 
-@njit(cache=True)
+@kernel()
 def _mean_transported(scans: np.ndarray, weights: np.ndarray, covariances: np.ndarray,
                       positions: np.ndarray, p_world: np.ndarray) -> np.ndarray:
     """sum_i weights[i] transport(covariances[scans[i]], p_world - positions[scans[i]])."""

@@ -7,13 +7,15 @@ Inputs are undistorted, downsampled LiDAR-frame points ``p_L`` (m) and world pla
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from adalio.jit import kernel
+from adalio.lio import so3
 
 GATE_FACTOR = 81.0
 """Accept a residual iff ``|p_L| > 81 r²`` (FAST-LIO2's ``s > 0.9`` test, §6.3)."""
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def _world_point(points_lidar, i, M, t):
     """``M p_L + t`` of row i, with ``M = R R_LI`` and ``t = R t_LI + p`` (§1)."""
     x, y, z = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
@@ -22,19 +24,19 @@ def _world_point(points_lidar, i, M, t):
             M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + t[2])
 
 
-@njit(cache=True)
+@kernel()
 def points_to_world(points_lidar, R, p, R_LI, t_LI):
     """``p_W = R (R_LI p_L + t_LI) + p`` for all points (§1)."""
     n = points_lidar.shape[0]
-    M = R @ R_LI
-    t = R @ t_LI + p
+    M = so3.mul(R, R_LI)
+    t = so3.mul_vec(R, t_LI) + p
     out = np.empty((n, 3))
     for i in range(n):
         out[i, 0], out[i, 1], out[i, 2] = _world_point(points_lidar, i, M, t)
     return out
 
 
-@njit(cache=True)
+@kernel()
 def point_to_plane(points_lidar, R, p, R_LI, t_LI, normals, d, selected, estimate_extrinsic):
     """Residuals and Jacobian rows of the accepted points (§6.3), all points in one call.
 
@@ -46,8 +48,8 @@ def point_to_plane(points_lidar, R, p, R_LI, t_LI, normals, d, selected, estimat
     n = points_lidar.shape[0]
     accepted = np.zeros(n, dtype=np.bool_)
     res = np.empty(n)
-    M = R @ R_LI
-    tw = R @ t_LI + p
+    M = so3.mul(R, R_LI)
+    tw = so3.mul_vec(R, t_LI) + p
     m = 0
     for i in range(n):
         if not selected[i]:
@@ -97,7 +99,7 @@ def point_to_plane(points_lidar, R, p, R_LI, t_LI, normals, d, selected, estimat
     return H, r_out, accepted
 
 
-@njit(cache=True)
+@kernel()
 def residual_weights(points_lidar, accepted, R, p, R_LI, t_LI, normals, mu, lam_mid, counts,
                      group_id, n_groups, plane_variance, share):
     """1/sigma factor of each accepted row (point order) of :func:`point_to_plane`.
@@ -117,8 +119,8 @@ def residual_weights(points_lidar, accepted, R, p, R_LI, t_LI, normals, mu, lam_
             if share:
                 size[group_id[i]] += 1
     w = np.empty(m)
-    M = R @ R_LI
-    tw = R @ t_LI + p
+    M = so3.mul(R, R_LI)
+    tw = so3.mul_vec(R, t_LI) + p
     j = 0
     for i in range(n):
         if not accepted[i]:

@@ -32,9 +32,9 @@ from dataclasses import dataclass
 from itertools import pairwise
 
 import numpy as np
-from numba import njit
 
 from adalio.config import Config
+from adalio.jit import kernel
 from adalio.lio import imu, so3
 from adalio.lio.ieskf import iterated_update
 from adalio.lio.ivox import IVox
@@ -52,7 +52,7 @@ PRIOR_SIGMA_TH_RAD = 0.1
 GRAVITY_NORM_TOLERANCE = 0.1
 
 
-@njit(cache=True)
+@kernel()
 def preintegrate(imu_tau, gyro, accel, b_g, query_tau):
     """Rotation, velocity and position increments from ``query_tau[0]`` to each query time.
 
@@ -75,9 +75,11 @@ def preintegrate(imu_tau, gyro, accel, b_g, query_tau):
         k += 1
     while q < m:
         if query_tau[q] <= tau:
-            out_R[q] = R
-            out_v[q] = v
-            out_p[q] = p
+            for i in range(3):
+                out_v[q, i] = v[i]
+                out_p[q, i] = p[i]
+                for j in range(3):
+                    out_R[q, i, j] = R[i, j]
             q += 1
             continue
         w = 0.5 * (gyro[k] + gyro[k + 1]) - b_g
@@ -86,10 +88,10 @@ def preintegrate(imu_tau, gyro, accel, b_g, query_tau):
         if k < n - 2 and imu_tau[k + 1] < t_next:
             t_next = imu_tau[k + 1]
         dt = t_next - tau
-        Ra = R @ a
+        Ra = so3.mul_vec(R, a)
         p = p + v * dt + 0.5 * Ra * dt * dt
         v = v + Ra * dt
-        R = R @ so3.exp(w * dt)
+        R = so3.mul(R, so3.exp(w * dt))
         tau = t_next
         if k < n - 2 and imu_tau[k + 1] <= tau:
             k += 1

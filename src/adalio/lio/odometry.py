@@ -39,10 +39,10 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from adalio.config import Config
 from adalio.errors import InputError
+from adalio.jit import kernel
 from adalio.lio import imu, so3
 from adalio.lio.associate import associate
 from adalio.lio.degeneracy import (
@@ -83,7 +83,7 @@ UNITS_CHECK_S = 10.0
 """After a still start, the unit check registers scans LiDAR-only for at most this long."""
 
 
-@njit(cache=True)
+@kernel()
 def _range_gate(points, t_ns, blind_m, max_range_m, point_filter_num):
     """§6.1 steps 1-2: keep every ``point_filter_num``-th point (message index) whose range is in
     ``[blind_m, max_range_m]``; non-finite points dropped. Returns (points, t_ns, n_finite)."""

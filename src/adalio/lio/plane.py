@@ -23,9 +23,10 @@ Rows with a fit keep it even when invalid by margin; rows without one are NaN.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from adalio.errors import ConfigError, InputError
+from adalio.jit import kernel
 
 LS_MIN_RCOND = 1e-10
 """LS falls back to PCA when the reciprocal condition number of A^T A (estimated as
@@ -42,7 +43,7 @@ below this size; see benchmarks/bench_map_kernels.py."""
 _JACOBI_SWEEPS = 12
 
 
-@njit(cache=True)
+@kernel()
 def _jacobi_eigen(c: np.ndarray, v: np.ndarray):
     """Eigen-decomposition of a symmetric 3x3 matrix by cyclic Jacobi rotations (§6.2 PCA).
 
@@ -94,7 +95,7 @@ def _jacobi_eigen(c: np.ndarray, v: np.ndarray):
     return i0, 3 - i0 - i2, i2
 
 
-@njit(cache=True)
+@kernel()
 def _fit_pca(nbrs: np.ndarray, cnt: int, c: np.ndarray, v: np.ndarray, out_n: np.ndarray) -> float:
     """PCA plane through the neighbour mean (§6.2 option); returns d, or NaN if degenerate.
 
@@ -125,7 +126,7 @@ def _fit_pca(nbrs: np.ndarray, cnt: int, c: np.ndarray, v: np.ndarray, out_n: np
     return d + 0.0
 
 
-@njit(cache=True)
+@kernel()
 def _scatter(nbrs: np.ndarray, cnt: int, c: np.ndarray) -> tuple[float, float, float]:
     """Centroid of the first cnt neighbours; their scatter matrix sum (x-mu)(x-mu)^T -> ``c``."""
     mx = 0.0
@@ -155,7 +156,7 @@ def _scatter(nbrs: np.ndarray, cnt: int, c: np.ndarray) -> tuple[float, float, f
     return mx, my, mz
 
 
-@njit(cache=True)
+@kernel()
 def _middle_eigenvalue(c: np.ndarray) -> float:
     """Middle eigenvalue of a symmetric 3x3 matrix, closed form (trigonometric solution of the
     characteristic cubic)."""
@@ -186,7 +187,7 @@ def _middle_eigenvalue(c: np.ndarray) -> float:
     return max(3.0 * q - e_max - e_min, 0.0)
 
 
-@njit(cache=True)
+@kernel()
 def _middle_variance(nbrs: np.ndarray, cnt: int, c: np.ndarray) -> float:
     """Middle eigenvalue (m²) of the covariance (divided by cnt) of the first cnt neighbours;
     ``c`` is 3x3 scratch."""
@@ -194,7 +195,7 @@ def _middle_variance(nbrs: np.ndarray, cnt: int, c: np.ndarray) -> float:
     return _middle_eigenvalue(c) / cnt
 
 
-@njit(cache=True)
+@kernel()
 def _fit_ls(nbrs: np.ndarray, cnt: int, out_n: np.ndarray) -> float:
     """a^T x = -1 least squares via 3x3 normal equations (§6.2); NaN when it must fall back."""
     s00 = 0.0
@@ -241,7 +242,7 @@ def _fit_ls(nbrs: np.ndarray, cnt: int, out_n: np.ndarray) -> float:
     return d
 
 
-@njit(cache=True)
+@kernel()
 def fit_plane(nbrs: np.ndarray, cnt: int, use_ls: bool, scratch: np.ndarray,
               out_n: np.ndarray) -> float:
     """The plane through the first ``cnt`` neighbours (§6.2): LS, or PCA where LS must fall
@@ -257,7 +258,7 @@ def fit_plane(nbrs: np.ndarray, cnt: int, use_ls: bool, scratch: np.ndarray,
     return d
 
 
-@njit(cache=True)
+@kernel()
 def within_margin(nbrs: np.ndarray, cnt: int, n: np.ndarray, d: float, margin_m: float) -> bool:
     """The all-neighbours margin test of §6.2: every |n . q_j + d| <= margin_m."""
     for j in range(cnt):
@@ -267,7 +268,7 @@ def within_margin(nbrs: np.ndarray, cnt: int, n: np.ndarray, d: float, margin_m:
     return True
 
 
-@njit(cache=True)
+@kernel()
 def _fit_row(
     i: int,
     nbrs: np.ndarray,
@@ -297,7 +298,7 @@ def _fit_row(
     valid[i] = True
 
 
-@njit(cache=True)
+@kernel()
 def _fit_planes_serial(
     nbrs, counts, min_count, margin_m, min_extent_m, use_ls, normals, dist, valid
 ):
@@ -319,7 +320,7 @@ def _fit_planes_serial(
         )
 
 
-@njit(cache=True, parallel=True)
+@kernel(parallel=True)
 def _fit_planes_parallel(
     nbrs, counts, min_count, margin_m, min_extent_m, use_ls, normals, dist, valid
 ):
@@ -385,7 +386,7 @@ def fit_planes(
     return normals, dist, valid
 
 
-@njit(cache=True)
+@kernel()
 def _neighbour_moments(nbrs, counts):
     """Centroid (M,3) and middle covariance eigenvalue (M,) of each row's first counts[i]
     neighbours (NaN / 0 for rows with fewer than 3)."""

@@ -9,12 +9,69 @@ gravity measured at initialization, so the singularity is never approached).
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from adalio.jit import kernel
 
 _SMALL = 1e-10
 
 
-@njit(cache=True)
+# Small dense products as plain loops. Numba's ``@`` calls BLAS: for 3x3 operands the call costs
+# more than the arithmetic, and each layout combination is a separate, slow compilation.
+@kernel()
+def mul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A B`` for small matrices."""
+    n, k = A.shape
+    m = B.shape[1]
+    out = np.zeros((n, m))
+    for i in range(n):
+        for j in range(k):
+            a = A[i, j]
+            for c in range(m):
+                out[i, c] += a * B[j, c]
+    return out
+
+
+@kernel()
+def mul_abt(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A Bᵀ`` for small matrices."""
+    n, k = A.shape
+    m = B.shape[0]
+    out = np.zeros((n, m))
+    for i in range(n):
+        for c in range(m):
+            s = 0.0
+            for j in range(k):
+                s += A[i, j] * B[c, j]
+            out[i, c] = s
+    return out
+
+
+@kernel()
+def mul_vec(A: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``A x``."""
+    n, k = A.shape
+    out = np.zeros(n)
+    for i in range(n):
+        s = 0.0
+        for j in range(k):
+            s += A[i, j] * x[j]
+        out[i] = s
+    return out
+
+
+@kernel()
+def mul_t_vec(A: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``Aᵀ x``."""
+    n, k = A.shape
+    out = np.zeros(k)
+    for i in range(n):
+        a = x[i]
+        for j in range(k):
+            out[j] += A[i, j] * a
+    return out
+
+
+@kernel()
 def hat(v: np.ndarray) -> np.ndarray:
     """Skew-symmetric matrix ``[v]×``."""
     out = np.zeros((3, 3))
@@ -27,23 +84,36 @@ def hat(v: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@kernel()
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a × b`` of two 3-vectors."""
+    out = np.empty(3)
+    out[0] = a[1] * b[2] - a[2] * b[1]
+    out[1] = a[2] * b[0] - a[0] * b[2]
+    out[2] = a[0] * b[1] - a[1] * b[0]
+    return out
+
+
+@kernel()
 def exp(phi: np.ndarray) -> np.ndarray:
     """Rodrigues ``Exp(φ)``."""
     theta2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
     K = hat(phi)
     if theta2 < _SMALL:
-        return np.eye(3) + K + 0.5 * (K @ K)
+        return np.eye(3) + K + 0.5 * mul(K, K)
     theta = np.sqrt(theta2)
-    return np.eye(3) + (np.sin(theta) / theta) * K + ((1.0 - np.cos(theta)) / theta2) * (K @ K)
+    return np.eye(3) + (np.sin(theta) / theta) * K + ((1.0 - np.cos(theta)) / theta2) * mul(K, K)
 
 
-@njit(cache=True)
+@kernel()
 def log(R: np.ndarray) -> np.ndarray:
     """``Log(R)`` in (-π, π]."""
     cos_t = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
     cos_t = min(1.0, max(-1.0, cos_t))
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    w = np.empty(3)
+    w[0] = R[2, 1] - R[1, 2]
+    w[1] = R[0, 2] - R[2, 0]
+    w[2] = R[1, 0] - R[0, 1]
     theta = np.arccos(cos_t)
     if theta < 1e-6:
         return 0.5 * w
@@ -60,28 +130,28 @@ def log(R: np.ndarray) -> np.ndarray:
     return (theta / (2.0 * np.sin(theta))) * w
 
 
-@njit(cache=True)
+@kernel()
 def jr(phi: np.ndarray) -> np.ndarray:
     """Right Jacobian ``J_r(φ) = I − (1−cos θ)/θ² [φ]× + (θ−sin θ)/θ³ [φ]×²`` (§1)."""
     theta2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
     K = hat(phi)
     if theta2 < _SMALL:
-        return np.eye(3) - 0.5 * K + (1.0 / 6.0) * (K @ K)
+        return np.eye(3) - 0.5 * K + (1.0 / 6.0) * mul(K, K)
     theta = np.sqrt(theta2)
     return (np.eye(3) - ((1.0 - np.cos(theta)) / theta2) * K
-            + ((theta - np.sin(theta)) / (theta2 * theta)) * (K @ K))
+            + ((theta - np.sin(theta)) / (theta2 * theta)) * mul(K, K))
 
 
-@njit(cache=True)
+@kernel()
 def jr_inv(phi: np.ndarray) -> np.ndarray:
     """Inverse right Jacobian."""
     theta2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
     K = hat(phi)
     if theta2 < _SMALL:
-        return np.eye(3) + 0.5 * K + (1.0 / 12.0) * (K @ K)
+        return np.eye(3) + 0.5 * K + (1.0 / 12.0) * mul(K, K)
     theta = np.sqrt(theta2)
     c = 1.0 / theta2 - (1.0 + np.cos(theta)) / (2.0 * theta * np.sin(theta))
-    return np.eye(3) + 0.5 * K + c * (K @ K)
+    return np.eye(3) + 0.5 * K + c * mul(K, K)
 
 
 def exp_batch(phi: np.ndarray) -> np.ndarray:
@@ -119,7 +189,7 @@ def anchor_frame(axis: np.ndarray) -> np.ndarray:
     return np.column_stack([a, b1, b2])
 
 
-@njit(cache=True)
+@kernel()
 def s2_basis(g: np.ndarray, anchor: np.ndarray) -> np.ndarray:
     """Tangent basis ``B(g)`` (3×2, orthonormal, ⟂ g) of the gravity sphere (§2).
 
@@ -128,26 +198,26 @@ def s2_basis(g: np.ndarray, anchor: np.ndarray) -> np.ndarray:
     """
     u = g / np.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
     a = anchor[:, 0].copy()
-    w = np.cross(a, u)
+    w = cross(a, u)
     W = hat(w)
-    Rau = np.eye(3) + W + (W @ W) / (1.0 + a[0] * u[0] + a[1] * u[1] + a[2] * u[2])
-    return Rau @ np.ascontiguousarray(anchor[:, 1:3])
+    Rau = np.eye(3) + W + mul(W, W) / (1.0 + a[0] * u[0] + a[1] * u[1] + a[2] * u[2])
+    return mul(Rau, anchor[:, 1:3])
 
 
-@njit(cache=True)
+@kernel()
 def s2_boxplus(g: np.ndarray, delta: np.ndarray, anchor: np.ndarray) -> np.ndarray:
     """``g ⊞ δ = Exp(B(g) δ) g`` (§2)."""
-    return exp(s2_basis(g, anchor) @ delta) @ g
+    return mul_vec(exp(mul_vec(s2_basis(g, anchor), delta)), g)
 
 
-@njit(cache=True)
+@kernel()
 def s2_boxminus(ga: np.ndarray, gb: np.ndarray, anchor: np.ndarray) -> np.ndarray:
     """``g_a ⊟ g_b = θ B(g_b)ᵀ u``, θ = ∠(g_b, g_a), u = unit(g_b × g_a) (§2)."""
-    c = np.cross(gb, ga)
+    c = cross(gb, ga)
     sn = np.sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2])
     cs = gb[0] * ga[0] + gb[1] * ga[1] + gb[2] * ga[2]
     B = s2_basis(gb, anchor)
     if sn < 1e-300:
         return np.zeros(2)
     theta = np.arctan2(sn, cs)
-    return (theta / sn) * (B.T @ c)
+    return (theta / sn) * mul_t_vec(B, c)

@@ -10,14 +10,14 @@ does not depend on the input order. Non-finite points are ignored.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from adalio.errors import InputError
+from adalio.jit import kernel
 
 _MAX_ABS_KEY = 4.0e15
 
 
-@njit(cache=True)
+@kernel()
 def _voxel_keys(points: np.ndarray, leaf_m: float):
     """Integer keys floor(p / leaf_m) of the finite points (§6.1 step 4) and their bounds.
 
@@ -52,7 +52,7 @@ def _voxel_keys(points: np.ndarray, leaf_m: float):
     return keys[:nvalid], rows[:nvalid], lo, hi
 
 
-@njit(cache=True)
+@kernel()
 def _bit_width(span: int) -> int:
     bits = 0
     while span > 0:
@@ -61,7 +61,7 @@ def _bit_width(span: int) -> int:
     return bits
 
 
-@njit(cache=True)
+@kernel()
 def pack_keys(keys: np.ndarray, lo: np.ndarray, hi: np.ndarray):
     """One int64 per key, (kx, ky, kz) - lo bit-packed so that integer order = lexicographic order.
 
@@ -82,7 +82,7 @@ def pack_keys(keys: np.ndarray, lo: np.ndarray, hi: np.ndarray):
     return packed, n_bits
 
 
-@njit(cache=True)
+@kernel()
 def radix_argsort(keys: np.ndarray, n_bits: int) -> np.ndarray:
     """Stable LSD radix argsort of non-negative int64 keys below 2**n_bits (<= 11-bit digits)."""
     n = keys.shape[0]
@@ -113,7 +113,7 @@ def radix_argsort(keys: np.ndarray, n_bits: int) -> np.ndarray:
     return order
 
 
-@njit(cache=True)
+@kernel()
 def _centroids_of_runs(
     points: np.ndarray, rows: np.ndarray, packed: np.ndarray, order: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
