@@ -69,3 +69,29 @@ def test_state_boxplus_boxminus_inverse():
     assert np.allclose(x.boxminus(x), 0.0)
     P = initial_covariance(estimate_extrinsic=False)
     assert P.shape == (DIM, DIM) and P[6, 6] < 1e-8 and P[15, 15] == 1e-4 and P[0, 0] == 1.0
+
+
+@pytest.mark.parametrize("shape", [(3, 3, 3), (6, 6, 6), (3, 2, 4), (1, 5, 2)])
+def test_small_products_match_numpy(shape):
+    """The loop products the kernels use instead of numba's BLAS ``@``, against numpy's, on
+    C-ordered and strided (transposed, sliced) operands."""
+    n, k, m = shape
+    A = rng.normal(size=(n, k))
+    B = rng.normal(size=(k, m))
+    Bt = np.ascontiguousarray(B.T)
+    x = rng.normal(size=k)
+    y = rng.normal(size=n)
+    assert np.allclose(so3.mul(A, B), A @ B, rtol=1e-13, atol=1e-13)
+    assert np.allclose(so3.mul(A, Bt.T), A @ B, rtol=1e-13, atol=1e-13)
+    assert np.allclose(so3.mul_abt(A, Bt), A @ B, rtol=1e-13, atol=1e-13)
+    assert np.allclose(so3.mul_vec(A, x), A @ x, rtol=1e-13, atol=1e-13)
+    assert np.allclose(so3.mul_t_vec(A, y), A.T @ y, rtol=1e-13, atol=1e-13)
+    wide = rng.normal(size=(n, k + 2))
+    assert np.allclose(so3.mul(wide[:, 1:k + 1], B), wide[:, 1:k + 1] @ B, rtol=1e-13,
+                       atol=1e-13)
+
+
+def test_cross_matches_numpy():
+    for _ in range(20):
+        a, b = rng.normal(size=3), rng.normal(size=3)
+        assert np.allclose(so3.cross(a, b), np.cross(a, b), rtol=1e-14, atol=1e-14)
