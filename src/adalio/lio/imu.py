@@ -207,27 +207,12 @@ def jacobians_fg(R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s2, dt):
 
 
 @kernel()
-def _sparse_left(A, B):
-    """A @ B skipping the zeros of A."""
-    n, k = A.shape
-    m = B.shape[1]
-    out = np.zeros((n, m))
-    for i in range(n):
-        for j in range(k):
-            a = A[i, j]
-            if a != 0.0:
-                for c in range(m):
-                    out[i, c] += a * B[j, c]
-    return out
-
-
-@kernel()
 def propagate_covariance(P, F, Gm, q_diag):
     """``F P Fᵀ + G diag(q) Gᵀ`` exploiting the sparsity of F and G."""
-    FP = _sparse_left(F, P)
-    out = _sparse_left(F, FP.T).T
+    FP = so3.mul(F, P)
+    out = so3.mul(F, FP.T).T
     GQ = Gm * q_diag
-    out += _sparse_left(Gm, GQ.T).T
+    out += so3.mul(Gm, GQ.T).T
     return out
 
 
@@ -273,7 +258,7 @@ def propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s
         C_vg[:] = 0.0
     FP = _left_mul_F(P, E_th, J_bg, A_vth, B_vba, C_vg, dt)
     out = _left_mul_F(FP.T.copy(), E_th, J_bg, A_vth, B_vba, C_vg, dt).T.copy()
-    JJt = so3.mul_abt(Jr, Jr)
+    JJt = so3.mul(Jr, Jr.T)
     dt2 = dt * dt
     for i in range(3):
         for k in range(3):
@@ -292,7 +277,7 @@ def _gap_inputs(R, b_a, g, gyro, k):
     rate = np.zeros(3)
     for j in range(lo, k + 1):
         rate += gyro[j]
-    return rate / (k + 1 - lo), so3.mul_t_vec(R, -g) + b_a
+    return rate / (k + 1 - lo), so3.mul_vec(R.T, -g) + b_a
 
 
 @kernel()

@@ -51,7 +51,7 @@ def transport(W: np.ndarray, d: np.ndarray) -> np.ndarray:
     T[0, 4], T[0, 5] = d[2], -d[1]
     T[1, 3], T[1, 5] = -d[2], d[0]
     T[2, 3], T[2, 4] = d[1], -d[0]
-    return so3.mul_abt(so3.mul(T, W), T)
+    return so3.mul(so3.mul(T, W), T.T)
 
 
 @kernel()

@@ -16,33 +16,21 @@ _SMALL = 1e-10
 
 
 # Small dense products as plain loops. Numba's ``@`` calls BLAS: for 3x3 operands the call costs
-# more than the arithmetic, and each layout combination is a separate, slow compilation.
+# more than the arithmetic, and each layout combination is a separate, slow compilation. A
+# transposed operand is passed as ``M.T``.
 @kernel()
 def mul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """``A B`` for small matrices."""
+    """``A B`` for small matrices, skipping the zeros of ``A`` (a sparse left factor, such as the
+    filter's F, costs only its nonzeros)."""
     n, k = A.shape
     m = B.shape[1]
     out = np.zeros((n, m))
     for i in range(n):
         for j in range(k):
             a = A[i, j]
-            for c in range(m):
-                out[i, c] += a * B[j, c]
-    return out
-
-
-@kernel()
-def mul_abt(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """``A Bᵀ`` for small matrices."""
-    n, k = A.shape
-    m = B.shape[0]
-    out = np.zeros((n, m))
-    for i in range(n):
-        for c in range(m):
-            s = 0.0
-            for j in range(k):
-                s += A[i, j] * B[c, j]
-            out[i, c] = s
+            if a != 0.0:
+                for c in range(m):
+                    out[i, c] += a * B[j, c]
     return out
 
 
@@ -56,18 +44,6 @@ def mul_vec(A: np.ndarray, x: np.ndarray) -> np.ndarray:
         for j in range(k):
             s += A[i, j] * x[j]
         out[i] = s
-    return out
-
-
-@kernel()
-def mul_t_vec(A: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """``Aᵀ x``."""
-    n, k = A.shape
-    out = np.zeros(k)
-    for i in range(n):
-        a = x[i]
-        for j in range(k):
-            out[j] += A[i, j] * a
     return out
 
 
@@ -220,4 +196,4 @@ def s2_boxminus(ga: np.ndarray, gb: np.ndarray, anchor: np.ndarray) -> np.ndarra
     if sn < 1e-300:
         return np.zeros(2)
     theta = np.arctan2(sn, cs)
-    return (theta / sn) * mul_t_vec(B, c)
+    return (theta / sn) * mul_vec(B.T, c)
