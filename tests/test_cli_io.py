@@ -404,3 +404,36 @@ def test_sigma_warn_default_is_the_pipeline_default():
     from adalio.pipeline import DEFAULT_SIGMA_WARN_M
 
     assert inspect.signature(run).parameters["sigma_warn_m"].default == DEFAULT_SIGMA_WARN_M
+
+
+@pytest.mark.parametrize(("method", "refused", "without", "flagged"), [
+    ("moving", 272, 282, True),   # refused fits left 282 of 540 scans without a pose
+    ("moving", 3, 40, False),     # 7 % of the scans: under the 10 % line
+    ("static", 0, 282, False),    # a still window's scans rest at the first pose
+])
+def test_summary_flags_a_long_moving_start_wait(tmp_path, method, refused, without, flagged):
+    """The run summary names the scans a refused moving start left without a pose, with the
+    count, the wait and the last refusal, once they pass 10 % of the scans read."""
+    import io
+
+    from rich.console import Console
+
+    from adalio.io.cli import _summary
+    from adalio.pipeline import RunResult
+    from adalio.types import InitReport
+
+    rep = InitReport(method=method, t_ns=28_300_000_000, gyro_bias_rad_s=np.zeros(3),
+                     gravity_imu_m_s2=np.array([0.0, 0.0, -9.81]), window_s=1.0,
+                     wait_s=28.3, scans_without_pose=without, refused_fits=refused,
+                     last_refusal="the motion fit over 11 scans leaves 3.1 cm RMS")
+    res = RunResult(out_dir=tmp_path, trajectory_path=tmp_path, scans_csv_path=tmp_path,
+                    map_path=tmp_path, config_path=tmp_path, n_scans=540 - without,
+                    n_degenerate=0, wall_s=1.0, ms_per_scan_median=1.0, stage_ms={},
+                    interrupted=False, n_scans_in=540, init_report=rep)
+    buf = io.StringIO()
+    _summary(Console(file=buf, width=400), res, profile=False)
+    text = buf.getvalue()
+    assert f"first pose 28.3 s after the first scan ({without} scans without a pose)" in text
+    line = f"at risk: {without}/540 scans, the first 28.3 s, have no pose ({refused} moving-start"
+    assert (line in text) is flagged
+    assert ("3.1 cm RMS" in text) is flagged

@@ -144,6 +144,23 @@ class InitReport:
     """Which densities the filter uses: 'config' or 'measured'."""
     detail: str = ""
     """The stillness test's figures (static) or the fit's (moving)."""
+    wait_s: float = float("nan")
+    """From the start of the first scan to the end of the initialization (s)."""
+    scans_without_pose: int = 0
+    """Scans handed in before the initialization, which got no pose."""
+    refused_fits: int = 0
+    """Moving start: fits refused before one passed (motion_init.MovingInit.solve)."""
+    last_refusal: str = ""
+    """Moving start: why the last refused fit was refused."""
+
+    def describe_wait(self) -> str:
+        """Why the scans before the initialization got no pose ('' if none went without)."""
+        if self.scans_without_pose == 0:
+            return ""
+        if self.refused_fits:
+            return (f"{self.refused_fits} moving-start fits refused, the last because "
+                    f"{self.last_refusal}")
+        return "no still window and no moving-start fit before"
 
     def describe(self) -> str:
         """One line for the run summary."""
@@ -151,7 +168,11 @@ class InitReport:
         text = f"{self.method} start, gyro bias ({bias}) rad/s"
         if np.isfinite(self.accel_norm_m_s2):
             text += f", mean |accel| {self.accel_norm_m_s2:.3f}"
-        return text + f"; the filter uses the {self.noise_used} noise densities; {self.detail}"
+        text += f"; the filter uses the {self.noise_used} noise densities; {self.detail}"
+        if self.scans_without_pose:
+            text += (f"; first pose {self.wait_s:.1f} s after the first scan "
+                     f"({self.scans_without_pose} scans without a pose)")
+        return text
 
     def to_dict(self) -> dict:
         def num(x: float) -> float | None:
@@ -164,4 +185,7 @@ class InitReport:
                 "accel_norm_m_s2": num(self.accel_norm_m_s2),
                 "gyro_noise_rad_s_sqrt_hz": num(self.gyro_noise_rad_s_sqrt_hz),
                 "accel_noise_m_s2_sqrt_hz": num(self.accel_noise_m_s2_sqrt_hz),
-                "filter_noise": self.noise_used, "detail": self.detail}
+                "filter_noise": self.noise_used, "detail": self.detail,
+                "init_wait_s": num(self.wait_s),
+                "init_scans_without_pose": int(self.scans_without_pose),
+                "init_refused_fits": int(self.refused_fits)}

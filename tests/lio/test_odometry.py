@@ -183,6 +183,11 @@ def test_motion_is_not_taken_for_rest():
         assert not odom.initialized
     assert odom.add_scan(pts, np.full(100, int(0.96e9), np.int64)) is not None
     assert odom.initialized
+    # the report counts the two scans that got no pose and the wait from the first one
+    rep = odom.init_report
+    assert rep.method == "static" and rep.scans_without_pose == 2 and rep.refused_fits == 0
+    assert rep.wait_s == pytest.approx(0.46, abs=1e-9)
+    assert "first pose 0.5 s after the first scan (2 scans without a pose)" in rep.describe()
 
 
 @pytest.mark.parametrize("align", [False, True])
@@ -199,6 +204,13 @@ def test_moving_start_initializes_from_registered_scans(align):
     first = est[0]
     assert first.t_ns * 1e-9 <= 1.6 + cfg.imu.init_timeout_s + 0.25
     assert len(est) >= 12
+    # every scan before the one that gives the first pose was fed without a pose
+    starts = np.arange(1.6, 4.0, 0.1)
+    assert rep.scans_without_pose == int(np.sum(starts < first.t_ns * 1e-9 - 0.15))
+    assert rep.wait_s == pytest.approx(first.t_ns * 1e-9 - 1.6, abs=1e-3)
+    # the first fit after the timeout passes on this clean walk: nothing refused
+    assert rep.refused_fits == 0 and rep.last_refusal == ""
+    assert rep.wait_s < cfg.imu.init_timeout_s + 0.2
     t = np.array([e.t_ns for e in est]) * 1e-9
     gt_p, gt_R, gt_v, *_ = trajectory(t)
     R_est = first.T_world_imu[:3, :3]

@@ -270,6 +270,12 @@ def _ranges_text(ranges_s: list[tuple[float, float]], limit: int = 8) -> str:
     return text + (" ..." if len(ranges_s) > limit else "")
 
 
+NO_POSE_WARN_FRACTION = 0.1
+"""The summary flags a moving start whose refused fits left more than this share of the scans
+read without a pose (issue #12's target for a moving start is a pose for 90 % of them). The
+scans of a still start's window are not flagged: the sensor rests there, at the first pose."""
+
+
 def _summary(con: Console, res: Any, profile: bool) -> None:
     status = "[yellow]interrupted[/]" if res.interrupted else "[green]done[/]"
     con.print(f"{status}: {res.n_scans} poses from {res.n_scans_in} scans in {res.wall_s:.1f} s "
@@ -279,9 +285,15 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
     con.print(f"topics: {res.lidar_topic} + {res.imu_topic}; extrinsic from "
               f"{res.extrinsic_source}; point time {res.time_spec}", highlight=False,
               soft_wrap=True)
-    if res.init_report is not None:
-        con.print(f"initialization: {res.init_report.describe()}", highlight=False,
-                  soft_wrap=True)
+    rep = res.init_report
+    if rep is not None:
+        con.print(f"initialization: {rep.describe()}", highlight=False, soft_wrap=True)
+        if rep.refused_fits and rep.scans_without_pose > NO_POSE_WARN_FRACTION * res.n_scans_in:
+            con.print(f"[yellow]at risk:[/] {rep.scans_without_pose}/{res.n_scans_in} scans, the "
+                      f"first {rep.wait_s:.1f} s, have no pose ({rep.describe_wait()}); the "
+                      "trajectory and map start after them; a recording that begins with the sensor at rest (imu.init_window_s) "
+                      "initializes at once (README, Initialization)",
+                      highlight=False, soft_wrap=True)
     ranges = _ranges_text(res.degenerate_ranges_s)
     con.print(f"degenerate scans: {res.n_degenerate}/{res.n_scans}"
               + (f" at {ranges}" if ranges else ""), highlight=False, soft_wrap=True)

@@ -251,6 +251,10 @@ class Odometry:
         self.init_report: InitReport | None = None
         """How the filter initialized (None until it has)."""
         self._t_first_scan_ns: int | None = None
+        self._scans_without_pose = 0
+        """Scans handed to the initialization that left it uninitialized (no pose)."""
+        self._refused_fits = 0
+        self._moving_failure = ""
         self._closest_still: imu.StillnessTest | None = None
         self._moving: MovingInit | None = None
         self._gap_s = np.inf
@@ -345,8 +349,10 @@ class Odometry:
             pts_e = self._try_initialize(pts, t_pts, t_b, t_e)
             t0 = _timer(stage_ms, "undistort", t0)
             if not self.initialized:
+                self._scans_without_pose += 1
                 self._accumulate(stage_ms)
                 return None
+            self._report_wait()
             if pts_e is not None:
                 return self._first_map(pts_e, t_e, stats, stage_ms, t_start, t0)
 
@@ -498,8 +504,18 @@ class Odometry:
         self._judge_gyro_units(self._moving, np.zeros(3))
         fit = self._moving.solve()
         if fit is None:
+            self._refused_fits += 1
             return None
         return self._moving_initialize(fit)
+
+    def _report_wait(self) -> None:
+        """Add to the init report how long the run went without a pose, and why."""
+        rep = self.init_report
+        rep.wait_s = (rep.t_ns - self._t_first_scan_ns) * 1e-9
+        rep.scans_without_pose = self._scans_without_pose
+        rep.refused_fits = self._refused_fits
+        if self._refused_fits and self._moving_failure:
+            rep.last_refusal = self._moving_failure
 
     def _static_initialize(self, window: slice, t_b_ns: int, test: imu.StillnessTest) -> None:
         cfg = self.cfg.imu
@@ -517,6 +533,7 @@ class Odometry:
             self._q_diag = imu.process_noise(imu.measured_noise_config(cfg, test))
         self._set_gap_model(b.t_ns[window])
         self._buf = _ImuBuffer(b.t_ns[window.stop:], b.gyro[window.stop:], b.accel[window.stop:])
+        self._moving_failure = self._moving.failure if self._moving is not None else ""
         self._moving = None
         self.initialized = True
         self._units_check = MovingInit(self.cfg, self._R_LI, self._t_LI, use_gyro=False)
@@ -548,6 +565,7 @@ class Odometry:
         last = max(int(np.searchsorted(b.t_ns, fit.t_ns, side="right")) - 1, 0)
         self._prev_sample = (int(b.t_ns[last]), b.gyro[last].copy(), b.accel[last].copy())
         self._buf = _ImuBuffer(b.t_ns[last + 1:], b.gyro[last + 1:], b.accel[last + 1:])
+        self._moving_failure = self._moving.failure
         self._moving = None
         self.initialized = True
         self.init_report = InitReport(
