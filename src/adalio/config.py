@@ -116,6 +116,10 @@ class ImuConfig:
     """Moving start: LiDAR-registered scans over this long are fitted against the IMU (s)."""
     moving_init_max_residual_m: float = 0.03
     """Moving start: largest RMS position residual of that fit accepted (m)."""
+    moving_init_map_leaf_m: float = 0.05
+    """Moving start: map cell of the local map the scans are registered against, LiDAR only (m;
+    the finer of this and map.map_leaf_m). That map starts from one viewpoint, whose ring lines
+    coarse cells sample; measured on the sensor matrix (README, Initialization)."""
     gap_periods: float = 5.0
     """An IMU gap: consecutive samples (or the last one and the scan end) further apart than
     this many nominal sample periods (measured at initialization)."""
@@ -394,6 +398,7 @@ RANGES: dict[str, Range] = {
     "imu.init_timeout_s": NON_NEGATIVE,
     "imu.moving_init_window_s": POSITIVE,
     "imu.moving_init_max_residual_m": POSITIVE,
+    "imu.moving_init_map_leaf_m": POSITIVE,
     "imu.gap_periods": Range(1, lo_open=True),
     "imu.gap_motion_gyro_rad_s_sqrt_hz": POSITIVE,
     "imu.gap_motion_accel_m_s2_sqrt_hz": POSITIVE,

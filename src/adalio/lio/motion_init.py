@@ -5,7 +5,8 @@ started late, a hand that never rests), the static initialization of lio-design.
 run. Instead, as in LiDAR-inertial initializers such as LI-Init and the visual-inertial alignment
 of VINS-Mono:
 
-1. **Register** each incoming scan against a small local map, LiDAR only: every point is
+1. **Register** each incoming scan against a small local map (one point per
+   ``imu.moving_init_map_leaf_m`` cell), LiDAR only: every point is
    deskewed with the raw gyro rotation and a constant-velocity translation (from the previous
    two registrations), then the pose is refined point-to-plane by the iterated update of
    ``ieskf.py`` under a loose prior (the constant-velocity prediction). World = the IMU frame at
@@ -28,7 +29,7 @@ acceleration of the window; a window too short for the fit to pass waits for mor
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from itertools import pairwise
 
 import numpy as np
@@ -133,7 +134,8 @@ class MovingInit:
         """False: deskew and predict with zero rotation instead of the gyro, so the
         registration is independent of the gyro (the unit check)."""
         self.R_LI, self.t_LI = R_LI, t_LI
-        self.ivox = IVox.from_config(cfg.map)
+        self.cell_m = min(cfg.map.map_leaf_m, cfg.imu.moving_init_map_leaf_m)
+        self.ivox = IVox.from_config(replace(cfg.map, map_leaf_m=self.cell_m))
         self.scans: list[_Registered] = []
         self.imu_t_ns = np.empty(0, np.int64)
         self.gyro = np.empty((0, 3))
@@ -199,7 +201,7 @@ class MovingInit:
             P[P_, P_] = np.eye(3) * PRIOR_SIGMA_P_M**2
             P[TH, TH] = np.eye(3) * PRIOR_SIGMA_TH_RAD**2
             assoc = _Association(down, self.ivox, self.cfg, general.search_radius_m,
-                                 general.plane_margin_m, self.cfg.map.map_leaf_m)
+                                 general.plane_margin_m, self.cell_m)
             state = iterated_update(x_pred, P, assoc.measure, self.cfg.filter).state
         self.ivox.add_points(points_to_world(down, state.R, state.p, self.R_LI, self.t_LI))
         self.scans.append(_Registered(t_e, state.R.copy(), state.p.copy()))
