@@ -291,8 +291,9 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
         if rep.refused_fits and rep.scans_without_pose > NO_POSE_WARN_FRACTION * res.n_scans_in:
             con.print(f"[yellow]at risk:[/] {rep.scans_without_pose}/{res.n_scans_in} scans, the "
                       f"first {rep.wait_s:.1f} s, have no pose ({rep.describe_wait()}); the "
-                      "trajectory and map start after them; a recording that begins with the sensor at rest (imu.init_window_s) "
-                      "initializes at once (README, Initialization)",
+                      "trajectory and map start after them; a recording that begins with the "
+                      "sensor at rest (imu.init_window_s) initializes at once (README, "
+                      "Initialization)",
                       highlight=False, soft_wrap=True)
     ranges = _ranges_text(res.degenerate_ranges_s)
     con.print(f"degenerate scans: {res.n_degenerate}/{res.n_scans}"

@@ -254,7 +254,6 @@ class Odometry:
         self._scans_without_pose = 0
         """Scans handed to the initialization that left it uninitialized (no pose)."""
         self._refused_fits = 0
-        self._moving_failure = ""
         self._closest_still: imu.StillnessTest | None = None
         self._moving: MovingInit | None = None
         self._gap_s = np.inf
@@ -352,7 +351,6 @@ class Odometry:
                 self._scans_without_pose += 1
                 self._accumulate(stage_ms)
                 return None
-            self._report_wait()
             if pts_e is not None:
                 return self._first_map(pts_e, t_e, stats, stage_ms, t_start, t0)
 
@@ -508,14 +506,13 @@ class Odometry:
             return None
         return self._moving_initialize(fit)
 
-    def _report_wait(self) -> None:
-        """Add to the init report how long the run went without a pose, and why."""
-        rep = self.init_report
-        rep.wait_s = (rep.t_ns - self._t_first_scan_ns) * 1e-9
-        rep.scans_without_pose = self._scans_without_pose
-        rep.refused_fits = self._refused_fits
-        if self._refused_fits and self._moving_failure:
-            rep.last_refusal = self._moving_failure
+    def _wait_fields(self, t_init_ns: int) -> dict:
+        """The InitReport fields on how long the run went without a pose, and why (called
+        before the moving-start registrar is dropped)."""
+        return {"wait_s": (t_init_ns - self._t_first_scan_ns) * 1e-9,
+                "scans_without_pose": self._scans_without_pose,
+                "refused_fits": self._refused_fits,
+                "last_refusal": self._moving.failure if self._refused_fits else ""}
 
     def _static_initialize(self, window: slice, t_b_ns: int, test: imu.StillnessTest) -> None:
         cfg = self.cfg.imu
@@ -533,7 +530,7 @@ class Odometry:
             self._q_diag = imu.process_noise(imu.measured_noise_config(cfg, test))
         self._set_gap_model(b.t_ns[window])
         self._buf = _ImuBuffer(b.t_ns[window.stop:], b.gyro[window.stop:], b.accel[window.stop:])
-        self._moving_failure = self._moving.failure if self._moving is not None else ""
+        wait = self._wait_fields(t_b_ns)
         self._moving = None
         self.initialized = True
         self._units_check = MovingInit(self.cfg, self._R_LI, self._t_LI, use_gyro=False)
@@ -544,7 +541,7 @@ class Odometry:
             accel_norm_m_s2=float(np.linalg.norm(acc_mean)),
             gyro_noise_rad_s_sqrt_hz=test.gyro_noise_rad_s_sqrt_hz,
             accel_noise_m_s2_sqrt_hz=test.accel_noise_m_s2_sqrt_hz,
-            noise_used=cfg.noise_source, detail=test.describe())
+            noise_used=cfg.noise_source, detail=test.describe(), **wait)
 
     def _moving_initialize(self, fit) -> np.ndarray:
         """Hand the moving-start fit (``motion_init.MovingInitResult``) over to the filter."""
@@ -565,7 +562,7 @@ class Odometry:
         last = max(int(np.searchsorted(b.t_ns, fit.t_ns, side="right")) - 1, 0)
         self._prev_sample = (int(b.t_ns[last]), b.gyro[last].copy(), b.accel[last].copy())
         self._buf = _ImuBuffer(b.t_ns[last + 1:], b.gyro[last + 1:], b.accel[last + 1:])
-        self._moving_failure = self._moving.failure
+        wait = self._wait_fields(fit.t_ns)
         self._moving = None
         self.initialized = True
         self.init_report = InitReport(
@@ -574,7 +571,7 @@ class Odometry:
             window_s=fit.window_s, noise_used="config",
             detail=(f"{fit.n_scans} scans over {fit.window_s:.1f} s, position residual "
                     f"{fit.residual_m * 100:.1f} cm RMS, unconstrained |g| "
-                    f"{fit.gravity_norm_fit_m_s2:.2f} m/s^2"))
+                    f"{fit.gravity_norm_fit_m_s2:.2f} m/s^2"), **wait)
         return fit.points_lidar_end
 
     def _check_gyro_units(self, pts: np.ndarray, t_pts: np.ndarray, t_e_ns: int) -> None:
