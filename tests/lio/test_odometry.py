@@ -9,6 +9,7 @@ from adalio.config import Config
 from adalio.errors import InputError
 from adalio.lio import Odometry, so3
 from adalio.lio.odometry import STAGES
+from adalio.lio.state import V
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 ROOM_LO = np.array([-9.0, -6.0, -1.6])
@@ -224,6 +225,12 @@ def test_moving_start_initializes_from_registered_scans(align):
     v_imu_gt = gt_R[0].T @ gt_v[0]
     assert np.linalg.norm(v_imu_gt) > 0.3
     assert np.linalg.norm(v_imu_est - v_imu_gt) < 0.05
+    # the filter starts from the fit's uncertainty (not the static start's 1 m/s): the
+    # hand-over velocity error lies within 3 sigma of it
+    sig_v = np.sqrt(first.cov_diag[V])
+    assert np.all(sig_v < 0.3)
+    v_err_world = first.velocity_world_m_s - R_est @ v_imu_gt
+    assert np.all(np.abs(v_err_world) <= 3 * sig_v)
     if align:
         assert np.allclose(first.gravity_world_m_s2, [0.0, 0.0, -9.81], atol=1e-9)
     est_p = np.array([e.T_world_imu[:3, 3] for e in est])

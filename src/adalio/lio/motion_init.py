@@ -20,6 +20,14 @@ of VINS-Mono:
    ``(p_0, v_0)`` solved again. The fit is accepted when its RMS position residual is below
    ``imu.moving_init_max_residual_m`` and the unconstrained ``|g|`` is within 10 % of
    ``imu.gravity_m_s2``.
+4. **Hand-over covariance**: the filter starts from the fit's own uncertainty, not the static
+   start's generic one. Position and attitude: the RMS residuals of the two fits (the hand-over
+   pose anchors the new map, so it is known to the registration's scatter); velocity at the
+   window's end: the least-squares covariance ``σ² (AᵀA)⁻¹`` of the motion fit, ``σ²`` its
+   residual variance, through ``v_end = v_0 + g t`` (so gravity's share is in it). The gyro bias
+   keeps the static start's P₀: the rotation residuals accumulate the gyro's noise from the
+   window's first scan on, so they are correlated and their least-squares covariance is several
+   times too small (measured: the bias error is 6-11 of its sigmas on the test walk).
 
 Limits: the accelerometer bias is not separated from gravity (as in the static case); a window
 whose registration is degenerate along a direction (a featureless corridor) leaves that
@@ -40,7 +48,7 @@ from adalio.lio import imu, so3
 from adalio.lio.ieskf import iterated_update
 from adalio.lio.ivox import IVox
 from adalio.lio.measurement import points_to_world
-from adalio.lio.state import DIM, P_, TH, State
+from adalio.lio.state import DIM, P_, TH, State, V, initial_covariance
 from adalio.lio.voxel import voxel_downsample
 
 MIN_SCANS = 5
@@ -115,6 +123,10 @@ class MovingInitResult:
     window_s: float
     points_lidar_end: np.ndarray
     """The last scan, deskewed to its end (LiDAR frame), for the first map."""
+    rotation_residual_rad: float = 0.0
+    """RMS of the gyro-bias fit's rotation residuals."""
+    velocity_cov_m2_s2: np.ndarray | None = None
+    """(3,3) covariance of ``v_world_m_s`` (least squares of the motion fit)."""
 
 
 @dataclass
@@ -266,6 +278,7 @@ class MovingInit:
             J = np.column_stack([(rot_err(b_g + eps * np.eye(3)[k]) - e0) / eps
                                  for k in range(3)])
             b_g = b_g - np.linalg.lstsq(J, e0, rcond=None)[0]
+        rot_rms = float(np.sqrt(np.mean(rot_err(b_g) ** 2) * 3))
         _, dv, dp = preintegrate(tau_imu, self.gyro, self.accel, b_g, tau_q)
         P = np.array([s.p for s in win])
         n = len(win)
@@ -291,10 +304,36 @@ class MovingInit:
                             f"{cfg.moving_init_max_residual_m * 100:g} cm)")
             return None
         v_end = pv[3:6] + g * tau_q[-1] + R0 @ dv[-1]
+        C = _lsq_covariance(A, A @ sol - rhs, 9)
+        Jv = np.hstack([np.eye(3), tau_q[-1] * np.eye(3)])
+        v_cov = Jv @ C[3:9, 3:9] @ Jv.T
         last = win[-1]
         assert self.last_points is not None
         return MovingInitResult(
             t_ns=last.t_ns, R_world_imu=last.R.copy(), p_world_imu_m=last.p.copy(),
             v_world_m_s=v_end, gyro_bias_rad_s=b_g, gravity_world_m_s2=g, residual_m=residual,
             gravity_norm_fit_m_s2=g_norm, n_scans=n, window_s=float(tau_q[-1]),
-            points_lidar_end=self.last_points)
+            points_lidar_end=self.last_points, rotation_residual_rad=rot_rms,
+            velocity_cov_m2_s2=v_cov)
+
+
+def _lsq_covariance(A: np.ndarray, residual: np.ndarray, n_params: int) -> np.ndarray:
+    """``σ² (AᵀA)⁻¹`` of a linear least-squares fit, ``σ²`` = residual sum of squares over
+    the degrees of freedom (at least one)."""
+    dof = max(A.shape[0] - n_params, 1)
+    s2 = float(residual @ residual) / dof
+    return s2 * np.linalg.pinv(A.T @ A)
+
+
+def handover_covariance(fit: MovingInitResult, R_align: np.ndarray,
+                        estimate_extrinsic: bool) -> np.ndarray:
+    """P₀ of the filter after a moving start (step 4 of the module docstring): the static
+    start's P₀ (extrinsic, biases, gravity) with position, attitude and velocity from the
+    fit. ``R_align`` rotates the fit's world into the filter's (gravity alignment);
+    position and velocity are world-frame errors, attitude body-frame."""
+    P = initial_covariance(estimate_extrinsic)
+    P[P_, P_] = np.eye(3) * (fit.residual_m**2 / 3.0)
+    P[TH, TH] = np.eye(3) * (fit.rotation_residual_rad**2 / 3.0)
+    if fit.velocity_cov_m2_s2 is not None:
+        P[V, V] = R_align @ fit.velocity_cov_m2_s2 @ R_align.T
+    return P

@@ -57,7 +57,7 @@ from adalio.lio.ieskf import iterated_update
 from adalio.lio.ivox import IVox
 from adalio.lio.map_uncertainty import MapProvenance
 from adalio.lio.measurement import point_to_plane, points_to_world, residual_weights
-from adalio.lio.motion_init import MovingInit
+from adalio.lio.motion_init import MovingInit, handover_covariance
 from adalio.lio.state import (
     DIM,
     State,
@@ -556,7 +556,7 @@ class Odometry:
                             v=R_align @ fit.v_world_m_s, R_LI=self._R_LI.copy(),
                             t_LI=self._t_LI.copy(), b_g=fit.gyro_bias_rad_s.copy(), g=g,
                             g_anchor=so3.anchor_frame(g))
-        self._P = initial_covariance(self.cfg.filter.estimate_extrinsic)
+        self._P = handover_covariance(fit, R_align, self.cfg.filter.estimate_extrinsic)
         self._t_state_ns = fit.t_ns
         self._set_gap_model(self._moving.imu_t_ns)
         last = max(int(np.searchsorted(b.t_ns, fit.t_ns, side="right")) - 1, 0)
