@@ -123,9 +123,9 @@ class MovingInitResult:
     window_s: float
     points_lidar_end: np.ndarray
     """The last scan, deskewed to its end (LiDAR frame), for the first map."""
-    rotation_residual_rad: float = 0.0
+    rotation_residual_rad: float
     """RMS of the gyro-bias fit's rotation residuals."""
-    velocity_cov_m2_s2: np.ndarray | None = None
+    velocity_cov_m2_s2: np.ndarray
     """(3,3) covariance of ``v_world_m_s`` (least squares of the motion fit)."""
 
 
@@ -334,6 +334,5 @@ def handover_covariance(fit: MovingInitResult, R_align: np.ndarray,
     P = initial_covariance(estimate_extrinsic)
     P[P_, P_] = np.eye(3) * (fit.residual_m**2 / 3.0)
     P[TH, TH] = np.eye(3) * (fit.rotation_residual_rad**2 / 3.0)
-    if fit.velocity_cov_m2_s2 is not None:
-        P[V, V] = R_align @ fit.velocity_cov_m2_s2 @ R_align.T
+    P[V, V] = R_align @ fit.velocity_cov_m2_s2 @ R_align.T
     return P
