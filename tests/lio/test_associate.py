@@ -64,3 +64,74 @@ def test_empty_map_and_empty_queries() -> None:
     ivox.add_points(np.random.default_rng(0).uniform(0, 1, (100, 3)))
     got = associate(ivox, np.zeros((0, 3)), 5, 5.0, 3, 3.0, 0.05)
     assert got.valid.shape == (0,)
+
+
+def _support_mask(nbrs, counts, normals, mu, q):
+    """Brute force of plane.within_support: in-plane offset of q from its neighbours' centroid
+    against the farthest neighbour's projection on it."""
+    o = q - mu
+    o = o - np.sum(o * normals, axis=1, keepdims=True) * normals
+    proj = np.einsum("mkj,mj->mk", nbrs - mu[:, None, :], o)
+    proj[np.arange(nbrs.shape[1])[None, :] >= counts[:, None]] = -np.inf
+    reach = np.maximum(proj.max(axis=1), 0.0)
+    o2 = np.sum(o * o, axis=1)
+    return o2 <= reach, o2 - reach
+
+
+@pytest.mark.parametrize("parallel", [False, True])
+def test_support_test_equals_brute_force(parallel: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    rng = np.random.default_rng(5)
+    ivox = _room_map(rng)
+    q = np.vstack([ivox.points()[rng.choice(ivox.num_points, 1500)] + rng.normal(0, 0.05, (1500, 3)),
+                   rng.uniform([-1, -1, -1], [7, 5, 4], (1500, 3))])
+    monkeypatch.setattr(assoc_mod, "PARALLEL_MIN_QUERIES", 1 if parallel else 10**9)
+    plain = associate(ivox, q, 5, 5.0, 3, 3.0, 0.05, "ls", 0.05)
+    got = associate(ivox, q, 5, 5.0, 3, 3.0, 0.05, "ls", 0.05, support_test=True)
+    for name in ("normals", "d", "counts", "mu", "lam_mid", "nearest"):
+        np.testing.assert_array_equal(getattr(plain, name), getattr(got, name), err_msg=name)
+    nbrs, counts, _ = ivox.knn(q, 5, 5.0)
+    inside, margin = _support_mask(nbrs, counts, plain.normals, plain.mu, q)
+    expect = plain.valid & inside
+    differ = got.valid != expect
+    assert np.all(np.abs(margin[differ]) < 1e-12)  # only rounding ties may differ
+    # the test removes some planes and keeps most: both branches are exercised
+    assert 0 < (plain.valid & ~got.valid).sum() < 0.5 * plain.valid.sum()
+    assert not (got.valid & ~plain.valid).any()
+
+
+def _cylinder_map(radius_m: float, angle_max_rad: float) -> IVox:
+    """A vertical cylinder wall (axis z through the origin) sampled every 2 cm along the arc from
+    angle 0 to angle_max and every 4 cm in height: a curved wall whose map ends at
+    a leading edge."""
+    ang = np.arange(0.0, angle_max_rad, 0.02 / radius_m)
+    z = np.arange(0.0, 2.0, 0.04)
+    a, zz = np.meshgrid(ang, z)
+    pts = np.c_[radius_m * np.cos(a.ravel()), radius_m * np.sin(a.ravel()), zz.ravel()]
+    ivox = IVox(resolution_m=0.5, nearby_type=18, max_points_per_voxel=1000, cell_m=0.02)
+    ivox.add_points(pts)
+    return ivox
+
+
+def test_support_test_rejects_extrapolated_planes_on_a_curved_wall() -> None:
+    """Queries on the true wall: inside the mapped arc the fitted planes fit them; beyond its
+    edge the plane of the last mapped strip is extrapolated and misses the true wall by a
+    distance that grows with the gap. The support test keeps the first, drops the second."""
+    radius = 1.3
+    edge = np.deg2rad(60.0)
+    ivox = _cylinder_map(radius, edge)
+    inner = np.deg2rad(np.linspace(15.0, 45.0, 40))
+    outer = edge + np.deg2rad(np.linspace(1.5, 3.0, 40))  # 3-7 cm beyond the mapped arc
+    z = np.full(40, 1.02)  # between two sampled rows: a query level with its outermost neighbours
+    # lies on the boundary of their span, where rounding decides
+    resid = {}
+    for name, ang in (("inner", inner), ("outer", outer)):
+        q = np.c_[radius * np.cos(ang), radius * np.sin(ang), z]
+        plain = associate(ivox, q, 5, 5.0, 3, 3.0, 0.05, "pca", 0.0)
+        got = associate(ivox, q, 5, 5.0, 3, 3.0, 0.05, "pca", 0.0, support_test=True)
+        assert plain.valid.all()  # without the test every query has a plane
+        assert got.valid.all() if name == "inner" else not got.valid.any()
+        resid[name] = np.abs(np.sum(q * plain.normals, axis=1) + plain.d)  # true wall point
+    # interpolated planes pass (nearly) through the true wall; extrapolated ones miss it, by more
+    # the farther beyond the edge
+    assert resid["outer"].min() > 2 * resid["inner"].max()
+    assert resid["outer"][-1] > 2 * resid["outer"][0]

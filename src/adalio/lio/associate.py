@@ -9,7 +9,8 @@ path (``tests/lio/test_associate.py`` checks that).
 
 Output per query row (world frame, metres): the plane ``n . x + d = 0`` and its §6.2 validity
 combined with the §9.4 search-radius gate (enough neighbours and the farthest of them within
-``radius_m``), the neighbours' centroid and middle covariance eigenvalue (for the plane-fit
+``radius_m``) and, optionally, the support test (the query not beyond all its neighbours), the
+neighbours' centroid and middle covariance eigenvalue (for the plane-fit
 variance), the neighbour count and the nearest neighbour (for the shared-neighbour weighting).
 """
 
@@ -24,7 +25,14 @@ from numba import prange
 from adalio.errors import ConfigError
 from adalio.jit import kernel
 from adalio.lio.ivox import IVox, _knn_row
-from adalio.lio.plane import PLANE_METHODS, _middle_eigenvalue, _scatter, fit_plane, within_margin
+from adalio.lio.plane import (
+    PLANE_METHODS,
+    _middle_eigenvalue,
+    _scatter,
+    fit_plane,
+    within_margin,
+    within_support,
+)
 
 PARALLEL_MIN_QUERIES = 256
 """Batches of at least this many queries run on all numba threads (``NUMBA_NUM_THREADS``). On the
@@ -56,8 +64,8 @@ class Correspondences:
 
 @kernel(inline="always")
 def _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
-                   radius2, margin_m, min_extent_m, use_ls, nb, d2, scratch, normals, dist,
-                   valid, counts, mu, lam_mid, nearest):
+                   radius2, margin_m, min_extent_m, use_ls, support_test, nb, d2, scratch,
+                   normals, dist, valid, counts, mu, lam_mid, nearest):
     for j in range(k):
         d2[0, j] = np.inf
         nb[0, j, 0] = np.nan
@@ -80,46 +88,50 @@ def _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min
         return
     if min_extent_m > 0.0 and not lam_mid[i] >= min_extent_m * min_extent_m:
         return
+    if support_test and not within_support(nb[0], c, normals[i], mu[i, 0], mu[i, 1], mu[i, 2],
+                                           queries[i, 0], queries[i, 1], queries[i, 2]):
+        return
     valid[i] = True
 
 
 @kernel()
 def _associate_serial(queries, k, max_d2, resolution_m, offsets, cap, store, min_count, radius2,
-                      margin_m, min_extent_m, use_ls, normals, dist, valid, counts, mu, lam_mid,
-                      nearest):
+                      margin_m, min_extent_m, use_ls, support_test, normals, dist, valid, counts,
+                      mu, lam_mid, nearest):
     """All rows, one thread, one scratch buffer."""
     nb = np.empty((1, k, 3))
     d2 = np.empty((1, k))
     scratch = np.empty((2, 3, 3))
     for i in range(queries.shape[0]):
         _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
-                       radius2, margin_m, min_extent_m, use_ls, nb, d2, scratch, normals, dist,
-                       valid, counts, mu, lam_mid, nearest)
+                       radius2, margin_m, min_extent_m, use_ls, support_test, nb, d2, scratch,
+                       normals, dist, valid, counts, mu, lam_mid, nearest)
 
 
 @kernel(parallel=True)
 def _associate_parallel(queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
-                        radius2, margin_m, min_extent_m, use_ls, normals, dist, valid, counts,
-                        mu, lam_mid, nearest):
+                        radius2, margin_m, min_extent_m, use_ls, support_test, normals, dist,
+                        valid, counts, mu, lam_mid, nearest):
     """All rows on all numba threads; rows are independent (own scratch), so deterministic."""
     for i in prange(queries.shape[0]):
         nb = np.empty((1, k, 3))
         d2 = np.empty((1, k))
         scratch = np.empty((2, 3, 3))
         _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
-                       radius2, margin_m, min_extent_m, use_ls, nb, d2, scratch, normals, dist,
-                       valid, counts, mu, lam_mid, nearest)
+                       radius2, margin_m, min_extent_m, use_ls, support_test, nb, d2, scratch,
+                       normals, dist, valid, counts, mu, lam_mid, nearest)
 
 
 def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
               min_neighbors: int, radius_m: float, margin_m: float, method: str = "ls",
-              min_extent_m: float = 0.0) -> Correspondences:
+              min_extent_m: float = 0.0, support_test: bool = False) -> Correspondences:
     """Planes from the k nearest map points of each world point (§6.2, §7, §9.4).
 
     Same arguments and result as ``ivox.knn(points_world, k, max_range_m)``, then
     ``fit_planes(nbrs, counts, min_neighbors, margin_m, method, min_extent_m)`` with the search
     radius gate ``counts >= min_neighbors and dist2[count - 1] <= radius_m²`` folded into
-    ``valid``, and ``neighbour_moments``.
+    ``valid``, and ``neighbour_moments``. With ``support_test`` a plane is also valid only where
+    the query lies within its neighbours' span (:func:`adalio.lio.plane.within_support`).
     """
     if method not in PLANE_METHODS:
         raise ConfigError(f"filter.plane_fit must be 'ls' or 'pca', got {method!r}")
@@ -139,6 +151,6 @@ def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
            ivox.max_points_per_voxel,
            (ivox._table, ivox._vkeys, ivox._vtotal, ivox._vblocks, ivox._pool),
            max(int(min_neighbors), 3), float(radius_m) ** 2, float(margin_m),
-           float(min_extent_m), method == "ls", out.normals, out.d, out.valid, out.counts,
-           out.mu, out.lam_mid, out.nearest)
+           float(min_extent_m), method == "ls", bool(support_test), out.normals, out.d,
+           out.valid, out.counts, out.mu, out.lam_mid, out.nearest)
     return out

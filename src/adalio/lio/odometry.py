@@ -10,7 +10,10 @@ Search radius (§9.4): the kNN query returns up to k neighbours within ``filter.
 correspondence is rejected when fewer than ``filter.min_neighbors`` were found or when the
 farthest of the found neighbours lies beyond the active ``search_radius_m`` (FAST-LIO2-style gate
 on the k-th neighbour). The plane margin of the active set is the §6.2 validity threshold; a plane
-must also be spanned by its neighbours (``filter.plane_min_extent_fraction``). Residuals sharing
+must also be spanned by its neighbours (``filter.plane_min_extent_fraction``) and, optionally,
+the query must lie within their span along the plane, not beyond every one of them
+(``filter.plane_within_support``): an extrapolated plane's error grows with the distance and does
+not average out (a curved wall, the map's leading edge). Residuals sharing
 their nearest map point are down-weighted as one measurement (``filter.share_weighting``): a finer scan
 leaf than the map cell would otherwise count the same map error several times and make the
 filter over-confident along weakly observable directions. Each residual's variance is also
@@ -177,7 +180,8 @@ class _Association:
             self.n_searches += 1
             self._p_world_searched = p_world
             c = associate(self.ivox, p_world, f.knn_k, f.knn_max_range_m, f.min_neighbors,
-                          self.radius_m, self.margin_m, f.plane_fit, self.min_extent_m)
+                          self.radius_m, self.margin_m, f.plane_fit, self.min_extent_m,
+                          f.plane_within_support)
             self.normals, self.d, self.counts = c.normals, c.d, c.counts
             self.mu, self.lam_mid, self.nearest = c.mu, c.lam_mid, c.nearest
             self.selected = c.valid

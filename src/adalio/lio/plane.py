@@ -269,6 +269,30 @@ def within_margin(nbrs: np.ndarray, cnt: int, n: np.ndarray, d: float, margin_m:
 
 
 @kernel()
+def within_support(nbrs: np.ndarray, cnt: int, n: np.ndarray, mx: float, my: float, mz: float,
+                   qx: float, qy: float, qz: float) -> bool:
+    """The query ``q`` lies within its neighbours' span along the plane: its in-plane offset
+    ``o`` from the neighbours' centroid ``(mx, my, mz)`` is no longer than the farthest
+    neighbour's projection on it, ``|o|² <= max_j (q_j - mu) . o``. A query beyond every
+    neighbour would be matched to an extrapolated plane (a leading edge of the map, a curved
+    wall seen from its mapped side), whose error grows with the distance instead of averaging
+    out (README, deviations)."""
+    ox = qx - mx
+    oy = qy - my
+    oz = qz - mz
+    along = ox * n[0] + oy * n[1] + oz * n[2]
+    ox -= along * n[0]
+    oy -= along * n[1]
+    oz -= along * n[2]
+    o2 = ox * ox + oy * oy + oz * oz
+    reach = 0.0
+    for j in range(cnt):
+        reach = max(reach, (nbrs[j, 0] - mx) * ox + (nbrs[j, 1] - my) * oy
+                    + (nbrs[j, 2] - mz) * oz)
+    return o2 <= reach
+
+
+@kernel()
 def _fit_row(
     i: int,
     nbrs: np.ndarray,
