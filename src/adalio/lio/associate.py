@@ -4,8 +4,9 @@ The same computation as :meth:`adalio.lio.ivox.IVox.knn` followed by
 :func:`adalio.lio.plane.fit_planes` and :func:`adalio.lio.plane.neighbour_moments` (lio-design.md
 §6.2, §7), fused into one numba loop over the queries: each row's k neighbours live in a small
 scratch buffer instead of an (M, k, 3) array that three kernels read in turn, so the search
-touches memory once and allocates nothing per row. Results are bit-identical to the three-step
-path (``tests/lio/test_associate.py`` checks that).
+touches memory once and allocates nothing per row. Without the support test, results are
+bit-identical to the three-step path (``tests/lio/test_associate.py`` checks that; the support
+test has no three-step twin and is checked against brute force there).
 
 Output per query row (world frame, metres): the plane ``n . x + d = 0`` and its §6.2 validity
 combined with the §9.4 search-radius gate (enough neighbours and the farthest of them within

@@ -276,7 +276,7 @@ def within_support(nbrs: np.ndarray, cnt: int, n: np.ndarray, mx: float, my: flo
     neighbour's projection on it, ``|o|² <= max_j (q_j - mu) . o``. A query beyond every
     neighbour would be matched to an extrapolated plane (a leading edge of the map, a curved
     wall seen from its mapped side), whose error grows with the distance instead of averaging
-    out (README, deviations)."""
+    out (README, "Planes within their support")."""
     ox = qx - mx
     oy = qy - my
     oz = qz - mz
