@@ -178,9 +178,10 @@ class FilterConfig:
     the map cell; rejects fits on stray clusters (0 disables)."""
     plane_within_support: bool = False
     """Use a plane only where the query lies within its neighbours' span along the plane (not
-    beyond every neighbour): no residuals against extrapolated planes. Off (Faster-LIO's rule)
-    by default: it helps the 2000-column scenes but made a 512-column moving start diverge
-    (README, "Planes within their support")."""
+    beyond every neighbour): no residuals against extrapolated planes. Applies to the filter,
+    not to the moving start's registration. Off (Faster-LIO's rule) by default: it helps the
+    still-start corridor and spiral but costs the corridor's moving start 2-3 cm (README,
+    "Planes within their support")."""
     share_weighting: bool = True
     """Residuals whose nearest map point is the same count as one measurement (each row's
     variance is multiplied by the group size)."""
