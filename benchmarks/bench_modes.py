@@ -17,6 +17,8 @@ runs, whose detector still reports them) with the share of scans each threshold 
 so that tau_n / tau_near are judged on all scenes, not tuned on one.
 
     python benchmarks/bench_modes.py --scenes hall corridor --seeds 2 --duration 30
+    python benchmarks/bench_modes.py --motion-from \
+        tests/data/real/hilti2022_gt/exp_04_construction_upper_level_easy_2_2022-03-03-11-48-59_imu.txt
 """
 
 from __future__ import annotations
@@ -82,12 +84,13 @@ def run_dir(out_root: Path, scene: str, seed: int, mode: str) -> Path:
     return out_root / f"{scene}_s{seed}_{mode.replace('+', 'plus')}"
 
 
-def sequences(client, scenes: list[str], seeds: int, duration_s: float | None) -> dict:
+def sequences(client, scenes: list[str], seeds: int, duration_s: float | None,
+              motion_from: Path | None = None) -> dict:
     """(scene, seed) -> SimResult, or the one-line reason the simulator failed; generated (or
     taken from the cache) as tasks on the cluster."""
     keys = [(scene, seed) for scene in scenes for seed in range(seeds)]
     futures = [client.submit(cached_sequence, scene, seed=seed, duration_s=duration_s,
-                             pure=False) for scene, seed in keys]
+                             motion_from=motion_from, pure=False) for scene, seed in keys]
     out: dict = {}
     for key, fut in zip(keys, futures, strict=True):
         try:
@@ -231,7 +234,7 @@ def run_all(args: argparse.Namespace, overrides: dict[str, str], out_root: Path,
     failed_sims: list[RunRow] = []
     jobs: list[BagJob] = []
     with dask_client(args.workers, args.scheduler) as client:
-        sims = sequences(client, args.scenes, args.seeds, args.duration)
+        sims = sequences(client, args.scenes, args.seeds, args.duration, args.motion_from)
         for scene in args.scenes:
             for seed in range(args.seeds):
                 sim = sims[(scene, seed)]
@@ -278,6 +281,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--diverge-m", type=float, default=1.0,
                     help="a run diverged if its max first-pose-aligned error exceeds this")
     ap.add_argument("--out", type=Path, default=Path(".cache/bench_modes"))
+    ap.add_argument("--motion-from", type=Path, default=None, metavar="TUM",
+                    help="walk with the handheld motion of this real trajectory (e.g. "
+                    "tests/data/real/hilti2022_gt/exp_04_..._imu.txt) instead of the "
+                    "simulator's synthetic one")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for every run, e.g. --set adaptive.tau_n=1500")
     ap.add_argument("--resume", action="store_true",

@@ -28,7 +28,7 @@ from adalio.sim.bagout import FORMATS, SimBagWriter, bag_path_for
 from adalio.sim.imu import GRAVITY_M_S2, ImuNoise, synthesize_imu
 from adalio.sim.lidar import LIDAR_MODELS, Occluder, RayCaster, SweepSimulator, lidar_model
 from adalio.sim.scenes import build_scene
-from adalio.sim.trajectory import Trajectory
+from adalio.sim.trajectory import HandheldMotion, Trajectory
 
 SCENES = ("hall", "corridor", "spiral", "stairs_garage")
 START_NS = 1_646_304_541_527_137_000
@@ -69,10 +69,13 @@ def _check_args(scene: str, duration_s: float | None, lidar: str, fmt: str,
         raise InputError(f"--noise-scale must be >= 0 (got {noise_scale})")
 
 
-def build_trajectory(scene_obj, T_imu_lidar: np.ndarray, seed: int) -> Trajectory:
-    """The walking trajectory of a scene for a seed."""
+def build_trajectory(scene_obj, T_imu_lidar: np.ndarray, seed: int,
+                     handheld: HandheldMotion | None = None) -> Trajectory:
+    """The walking trajectory of a scene for a seed (with a recorded walk's handheld motion
+    instead of the synthetic one when ``handheld`` is given)."""
     return Trajectory(scene_obj.waypoints_m, scene_obj.speed_limit_m_s,
-                      T_imu_lidar[:3, :3].T, seed=seed, fillet_m=scene_obj.fillet_m)
+                      T_imu_lidar[:3, :3].T, seed=seed, fillet_m=scene_obj.fillet_m,
+                      handheld=handheld)
 
 
 def mesh_distance_m(caster: RayCaster, points: np.ndarray, n_dirs: int = 256) -> np.ndarray:
@@ -119,7 +122,8 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
              noise_scale: float = 1.0, progress: bool = False,
              T_imu_lidar: list[list[float]] | np.ndarray | None = None,
              occluder: bool = True, scene_params: dict | None = None,
-             imu_noise_scale: float = 1.0) -> SimResult:
+             imu_noise_scale: float = 1.0,
+             motion_from: str | Path | None = None) -> SimResult:
     """Generate one sequence of ``scene`` into ``out_dir`` (created; the bag must not exist).
 
     ``duration_s`` None walks the whole route; shorter values truncate it (static start kept).
@@ -128,6 +132,8 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     ``scene_params`` overrides the scene builder's sizes (see :mod:`adalio.sim.scenes`).
     ``imu_noise_scale`` further multiplies the IMU's white-noise densities only (x10: a 10x
     noisier IMU than the HILTI BMI085, whose bias walks and initial biases stay as they are).
+    ``motion_from``: a TUM trajectory (>= 10 Hz) whose handheld motion replaces the synthetic
+    one (:class:`adalio.sim.trajectory.HandheldMotion`; the seed picks where in it to start).
     """
     if not imu_noise_scale >= 0:
         raise InputError(f"--imu-noise-scale must be >= 0 (got {imu_noise_scale})")
@@ -140,8 +146,9 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     bag_path = bag_path_for(out_dir, scene, fmt)
     if bag_path.exists():
         raise InputError(f"{bag_path} already exists: delete it or choose another --out")
+    handheld = None if motion_from is None else HandheldMotion.from_tum(motion_from)
     scn = build_scene(scene, seed, **(scene_params or {}))
-    traj = build_trajectory(scn, T_il, seed)
+    traj = build_trajectory(scn, T_il, seed, handheld)
     dur = math.floor(traj.duration_s * 10.0) / 10.0 if duration_s is None else float(duration_s)
     dur_ns = round(dur * 1e9)
     t0 = START_NS
@@ -219,6 +226,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
         "format": fmt, "columns": model.columns, "channels": model.channels,
         "noise_scale": float(noise_scale), "imu_noise_scale": float(imu_noise_scale),
         "occluder": bool(occluder),
+        "motion_from": None if handheld is None else handheld.source,
         "topics": {"lidar": model.lidar_topic, "imu": model.imu_topic},
         "frame_ids": {"lidar": model.lidar_frame, "imu": model.imu_frame},
         "T_imu_lidar": T_il.tolist(), "T_scene_world": T_scene_world.tolist(),
@@ -259,13 +267,23 @@ def _code_version() -> str:
 
 def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = None,
                     lidar: str = "xt32", fmt: str = "ros1",
-                    columns: int | None = None, imu_noise_scale: float = 1.0) -> SimResult:
-    """Generate once (atomically: temp folder + rename + completion marker) and reuse."""
+                    columns: int | None = None, imu_noise_scale: float = 1.0,
+                    motion_from: str | Path | None = None) -> SimResult:
+    """Generate once (atomically: temp folder + rename + completion marker) and reuse
+    (the key includes a hash of ``motion_from``'s content)."""
     _check_args(scene, duration_s, lidar, fmt, 1.0)
     cols = lidar_model(lidar, columns).columns
     dur = "full" if duration_s is None else f"{float(duration_s):g}"
     imu = "" if imu_noise_scale == 1.0 else f"-imu{imu_noise_scale:g}"
-    key = f"{scene}-s{seed}-d{dur}-{lidar}-{fmt}-c{cols}{imu}-v{_code_version()}"
+    hh = ""
+    if motion_from is not None:
+        import hashlib
+
+        try:
+            hh = "-hh" + hashlib.sha1(Path(motion_from).read_bytes()).hexdigest()[:8]
+        except OSError as exc:
+            raise InputError(f"{motion_from}: cannot read the motion file ({exc})") from None
+    key = f"{scene}-s{seed}-d{dur}-{lidar}-{fmt}-c{cols}{imu}{hh}-v{_code_version()}"
     final = cache_root() / key
 
     def result(d: Path) -> SimResult:
@@ -278,7 +296,7 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     tmp = final.parent / f".{key}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     try:
         simulate(scene, tmp, seed=seed, duration_s=duration_s, lidar=lidar, fmt=fmt,
-                 columns=columns, imu_noise_scale=imu_noise_scale)
+                 columns=columns, imu_noise_scale=imu_noise_scale, motion_from=motion_from)
         (tmp / "COMPLETE").write_text("ok\n")
         if final.exists() and not (final / "COMPLETE").is_file():
             shutil.rmtree(final, ignore_errors=True)

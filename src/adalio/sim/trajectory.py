@@ -13,10 +13,18 @@ step bobbing (~1.9 Hz), lateral sway, slow hand wander and small pitch/roll are 
 envelope that is zero while still. Position and yaw/pitch/roll are then interpolated at 100 Hz by
 quintic splines, which ARE the ground truth: velocity, acceleration, body rate and angular
 acceleration are their analytic derivatives.
+
+With a :class:`HandheldMotion` (``motion=``), the synthetic bobbing, sway, wander and small
+attitude motion are replaced by those of a recorded walk (e.g. the dense HILTI 2022 exp04-06
+ground truth): its translation away from its own smoothed path, in that path's forward / left /
+up frame, and its attitude away from its smoothed attitude, as roll / pitch / yaw about the same
+axes. The route and its speed profile stay the scene's, so the recorded operator's hand and gait
+are carried through the scene.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,12 +91,99 @@ def _wander(rng: np.random.Generator, tau: np.ndarray, amplitude: float) -> np.n
     return amplitude * w / 1.8
 
 
+@dataclass
+class HandheldMotion:
+    """The handheld part of a recorded walk, at ``SAMPLE_HZ`` (see the module docstring).
+
+    ``offset_path_m``: (N, 3) forward / left / up translation away from the smoothed path;
+    ``attitude_rad``: (N, 3) yaw / pitch / roll away from the smoothed attitude (small angles,
+    about up / left / forward); ``smooth_s``: the Gaussian sigma (s) that defines "smoothed".
+    0.5 s (-3 dB at about 0.37 Hz) keeps the gait (~2 Hz) and the hand's wobble and leaves the
+    slower motion (where the operator walks and looks) to the scene's route, the band the
+    synthetic model's wander (0.08-0.45 Hz) also covers.
+    """
+
+    offset_path_m: np.ndarray
+    attitude_rad: np.ndarray
+    smooth_s: float
+    source: str = ""
+
+    @classmethod
+    def from_tum(cls, path, smooth_s: float = 0.5) -> HandheldMotion:
+        """Extract the handheld motion of a TUM trajectory (``t x y z qx qy qz qw``, >= 10 Hz,
+        lines starting with # ignored)."""
+        from pathlib import Path
+
+        from scipy.spatial.transform import Rotation, RotationSpline
+
+        from adalio.errors import InputError
+
+        path = Path(path)
+        try:
+            with warnings.catch_warnings():  # an empty file is refused below, not warned about
+                warnings.simplefilter("ignore", UserWarning)
+                data = np.loadtxt(path, comments="#", ndmin=2)
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{path}: not a readable TUM trajectory ({exc})") from None
+        if data.shape[1] != 8 or data.shape[0] < 20 or not np.all(np.diff(data[:, 0]) > 0):
+            raise InputError(f"{path}: a TUM trajectory needs >= 20 lines 't x y z qx qy qz qw' "
+                             "with increasing times")
+        t = data[:, 0] - data[0, 0]
+        if t[-1] / (len(t) - 1) > 0.15:
+            raise InputError(f"{path}: poses every {t[-1] / (len(t) - 1):.2f} s; the handheld "
+                             "motion needs >= 10 Hz")
+        tau = np.arange(0.0, t[-1], 1.0 / SAMPLE_HZ)
+        p = make_interp_spline(t, data[:, 1:4], k=3)(tau)
+        R = RotationSpline(t, Rotation.from_quat(data[:, 4:8]))(tau)
+        sig = smooth_s * SAMPLE_HZ
+        fwd = _hold_heading(np.gradient(gaussian_filter1d(p, 2.0 * sig, axis=0,
+                                                          mode="nearest"), axis=0))
+        left = np.cross([0.0, 0.0, 1.0], fwd)
+        dp = p - gaussian_filter1d(p, sig, axis=0, mode="nearest")
+        offset = np.column_stack([np.sum(dp * fwd, 1), np.sum(dp * left, 1), dp[:, 2]])
+        # smoothed attitude: the chordal mean of the rotation matrices under the same window
+        U, _, Vt = np.linalg.svd(gaussian_filter1d(R.as_matrix(), sig, axis=0, mode="nearest"))
+        U[:, :, 2] *= np.sign(np.linalg.det(U @ Vt))[:, None]
+        R_s = Rotation.from_matrix(U @ Vt)
+        delta_world = R_s.apply((R_s.inv() * R).as_rotvec())
+        att = np.column_stack([delta_world[:, 2], np.sum(delta_world * left, 1),
+                               np.sum(delta_world * fwd, 1)])
+        return cls(offset, att, float(smooth_s), path.name)
+
+    def window(self, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """``n`` consecutive samples from a seed-dependent start, the recording played back
+        and forth (time-reversed at its ends) when the walk is longer, so it stays continuous."""
+        m = len(self.offset_path_m)
+        start = int(np.random.default_rng([seed, 11]).integers(0, m))
+        k = (start + np.arange(n)) % (2 * m - 2)
+        idx = np.where(k < m, k, 2 * m - 2 - k)
+        return self.offset_path_m[idx], self.attitude_rad[idx]
+
+
+def _hold_heading(d: np.ndarray) -> np.ndarray:
+    """Unit horizontal direction of ``d`` per row; rows with almost no horizontal motion keep
+    the last defined heading (the first defined one before it; +x if none)."""
+    h = np.column_stack([d[:, 0], d[:, 1], np.zeros(len(d))])
+    n = np.linalg.norm(h, axis=1)
+    ok = n > 1e-3 * max(float(n.max()), 1e-12)
+    out = np.zeros_like(h)
+    if not ok.any():
+        out[:, 0] = 1.0
+        return out
+    idx = np.where(ok, np.arange(len(d)), 0)
+    idx = np.maximum.accumulate(idx)
+    first = int(np.argmax(ok))
+    idx[:first] = first
+    return h[idx] / n[idx][:, None]
+
+
 class Trajectory:
     """Analytic rig trajectory; evaluate with :meth:`sample` at arrays of times (seconds)."""
 
     def __init__(self, waypoints_m: np.ndarray, speed_limit_m_s: np.ndarray,
                  R_rig_imu: np.ndarray, *, seed: int = 0, static_s: float = 2.5,
-                 fillet_m: float = 1.0, tail_s: float = 1.5, motion: bool = True) -> None:
+                 fillet_m: float = 1.0, tail_s: float = 1.5, motion: bool = True,
+                 handheld: HandheldMotion | None = None) -> None:
         rng = np.random.default_rng([seed, 7])
         self.static_s = float(static_s)
         self.R_rig_imu = np.asarray(R_rig_imu, dtype=np.float64)
@@ -145,18 +240,28 @@ class Trajectory:
         env *= _smootherstep(tau_k / 1.5) * (1.0 - _smootherstep((tau_k - moving_until) / 1.0))
         if not motion:
             env[:] = 0.0
-        f_step = rng.uniform(1.8, 2.0)
-        ph = 2 * np.pi * f_step * tau_k
         lat = np.column_stack([-np.sin(psi), np.cos(psi), np.zeros_like(psi)])
-        bob = (0.012 * np.sin(0.5 * ph + rng.uniform(0, 6.3)))[:, None] * lat
-        bob[:, 2] += 0.02 * np.sin(ph)
-        wander = np.column_stack([_wander(rng, tau_k, 0.02) for _ in range(3)])
-        pos = base + env[:, None] * (bob + wander)
-        deg = np.pi / 180.0
-        yaw = psi + env * (1.5 * deg * np.sin(0.5 * ph + 1.1) + _wander(rng, tau_k, 3.0 * deg))
-        pitch = 0.4 * descent + env * (1.0 * deg * np.sin(ph + 0.3)
-                                       + _wander(rng, tau_k, 2.0 * deg))
-        roll = env * (1.5 * deg * np.sin(0.5 * ph + 0.7) + _wander(rng, tau_k, 1.5 * deg))
+        if handheld is None:
+            f_step = rng.uniform(1.8, 2.0)
+            ph = 2 * np.pi * f_step * tau_k
+            bob = (0.012 * np.sin(0.5 * ph + rng.uniform(0, 6.3)))[:, None] * lat
+            bob[:, 2] += 0.02 * np.sin(ph)
+            wander = np.column_stack([_wander(rng, tau_k, 0.02) for _ in range(3)])
+            pos = base + env[:, None] * (bob + wander)
+            deg = np.pi / 180.0
+            d_yaw = 1.5 * deg * np.sin(0.5 * ph + 1.1) + _wander(rng, tau_k, 3.0 * deg)
+            d_pitch = 1.0 * deg * np.sin(ph + 0.3) + _wander(rng, tau_k, 2.0 * deg)
+            d_roll = 1.5 * deg * np.sin(0.5 * ph + 0.7) + _wander(rng, tau_k, 1.5 * deg)
+        else:
+            off, att = handheld.window(len(tau_k), seed)
+            d_yaw, d_pitch, d_roll = att.T
+            fwd = np.column_stack([np.cos(psi), np.sin(psi), np.zeros_like(psi)])
+            shift = off[:, :1] * fwd + off[:, 1:2] * lat
+            shift[:, 2] += off[:, 2]
+            pos = base + env[:, None] * shift
+        yaw = psi + env * d_yaw
+        pitch = 0.4 * descent + env * d_pitch
+        roll = env * d_roll
         pitch = pitch - pitch[0]
         euler = np.column_stack([yaw, pitch, roll])
         zero = np.zeros(3)
