@@ -14,7 +14,7 @@ envelope that is zero while still. Position and yaw/pitch/roll are then interpol
 quintic splines, which ARE the ground truth: velocity, acceleration, body rate and angular
 acceleration are their analytic derivatives.
 
-With a :class:`HandheldMotion` (``motion=``), the synthetic bobbing, sway, wander and small
+With a :class:`HandheldMotion` (``handheld=``), the synthetic bobbing, sway, wander and small
 attitude motion are replaced by those of a recorded walk (e.g. the dense HILTI 2022 exp04-06
 ground truth): its translation away from its own smoothed path, in that path's forward / left /
 up frame, and its attitude away from its smoothed attitude, as roll / pitch / yaw about the same
@@ -24,12 +24,15 @@ are carried through the scene.
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy.interpolate import BSpline, make_interp_spline
 from scipy.ndimage import gaussian_filter1d, minimum_filter1d
+from scipy.spatial.transform import Rotation, RotationSpline
+
+from adalio.errors import InputError
 
 SAMPLE_HZ = 100.0
 YAW_RATE_MAX_RAD_S = 0.9
@@ -111,30 +114,24 @@ class HandheldMotion:
     @classmethod
     def from_tum(cls, path, smooth_s: float = 0.5) -> HandheldMotion:
         """Extract the handheld motion of a TUM trajectory (``t x y z qx qy qz qw``, >= 10 Hz,
-        lines starting with # ignored)."""
-        from pathlib import Path
-
-        from scipy.spatial.transform import Rotation, RotationSpline
-
-        from adalio.errors import InputError
+        lines starting with # ignored; read and checked by
+        :func:`adalio.eval.files.read_trajectory`)."""
+        from adalio.eval.files import read_trajectory
 
         path = Path(path)
-        try:
-            with warnings.catch_warnings():  # an empty file is refused below, not warned about
-                warnings.simplefilter("ignore", UserWarning)
-                data = np.loadtxt(path, comments="#", ndmin=2)
-        except (OSError, ValueError) as exc:
-            raise InputError(f"{path}: not a readable TUM trajectory ({exc})") from None
-        if data.shape[1] != 8 or data.shape[0] < 20 or not np.all(np.diff(data[:, 0]) > 0):
-            raise InputError(f"{path}: a TUM trajectory needs >= 20 lines 't x y z qx qy qz qw' "
-                             "with increasing times")
-        t = data[:, 0] - data[0, 0]
+        traj = read_trajectory(path, "motion")
+        stamps = np.asarray(traj.timestamps, dtype=np.float64)
+        if stamps.size < 20 or not np.all(np.diff(stamps) > 0):
+            raise InputError(f"motion file {path}: needs >= 20 poses with increasing times "
+                             f"(has {stamps.size})")
+        t = stamps - stamps[0]
         if t[-1] / (len(t) - 1) > 0.15:
-            raise InputError(f"{path}: poses every {t[-1] / (len(t) - 1):.2f} s; the handheld "
-                             "motion needs >= 10 Hz")
+            raise InputError(f"motion file {path}: poses every {t[-1] / (len(t) - 1):.2f} s; "
+                             "the handheld motion needs >= 10 Hz")
         tau = np.arange(0.0, t[-1], 1.0 / SAMPLE_HZ)
-        p = make_interp_spline(t, data[:, 1:4], k=3)(tau)
-        R = RotationSpline(t, Rotation.from_quat(data[:, 4:8]))(tau)
+        p = make_interp_spline(t, traj.positions_xyz, k=3)(tau)
+        quat_xyzw = np.roll(traj.orientations_quat_wxyz, -1, axis=1)
+        R = RotationSpline(t, Rotation.from_quat(quat_xyzw))(tau)
         sig = smooth_s * SAMPLE_HZ
         fwd = _hold_heading(np.gradient(gaussian_filter1d(p, 2.0 * sig, axis=0,
                                                           mode="nearest"), axis=0))
