@@ -631,7 +631,7 @@ def test_ctrl_c_after_first_poses_keeps_outputs(base: Base, tmp_path: Path) -> N
 @pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs Linux /proc")
 @pytest.mark.parametrize("delay_s", [0.3, 1.0])
 def test_ctrl_c_during_simulate(tmp_path: Path, delay_s: float) -> None:
-    argv = ["simulate", "--scene", "hall", "--duration", "3", "--columns", "256", "--out",
+    argv = ["simulate", "--scene", "hall", "--duration", "30", "--columns", "256", "--out",
             str(tmp_path / "sim")]
     code, text = _interrupt(argv, tmp_path, delay_s)
     assert code == 130, text

@@ -132,7 +132,7 @@ def test_demo_writes_under_runs_by_default(monkeypatch):
 
 
 def test_generated_sequences_stay_out_of_the_repository():
-    from adalio.sim.generate import cache_root
+    from adalio.sim.cache import cache_root
 
     assert not cache_root().resolve().is_relative_to(REPO), cache_root()
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +16,7 @@ from adalio.errors import InputError
 from adalio.io.bag import Bag
 from adalio.io.sequencer import Sequencer
 from adalio.sim import cached_sequence, simulate
+from adalio.sim.cache import evict_cache
 from adalio.types import ImuBatch, Scan
 
 
@@ -120,6 +123,55 @@ def test_cached_sequence_generates_once(tmp_path, monkeypatch):
     assert r2 == r1 and r2.bag_path.stat().st_mtime_ns == mtime
     assert [p.name for p in (tmp_path / "sim").iterdir()] == [r1.bag_path.parent.name]
     assert r1.bag_path.parent.name.startswith("corridor-s0-d1-xt32-ros1-c36-v")
+
+
+def _fake_entry(root: Path, name: str, n_bytes: int, last_use_s: float,
+                complete: bool = True) -> Path:
+    d = root / name
+    d.mkdir(parents=True)
+    (d / "data.bin").write_bytes(b"x" * n_bytes)
+    if complete:
+        (d / "COMPLETE").write_text("ok\n")
+        os.utime(d / "COMPLETE", (last_use_s, last_use_s))
+    else:
+        os.utime(d, (last_use_s, last_use_s))
+    return d
+
+
+def test_cache_eviction_removes_least_recently_used_first(tmp_path):
+    now = time.time()
+    root = tmp_path / "sim"
+    a = _fake_entry(root, "a", 3000, now - 300)
+    b = _fake_entry(root, "b", 3000, now - 200)
+    c = _fake_entry(root, "c", 3000, now - 100)
+    dead = _fake_entry(root, ".x.tmp-1", 100, now - 2 * 86400, complete=False)
+    busy = _fake_entry(root, ".y.tmp-2", 100, now - 60, complete=False)
+    sizes = {d: sum(f.stat().st_size for f in d.rglob("*") if f.is_file()) for d in (a, b, c)}
+    # a budget that holds two entries: only the oldest one goes (with the dead generation)
+    budget = sizes[b] + sizes[c] + 200
+    removed = evict_cache(root, budget, keep=c)
+    assert sorted(p.name for p in removed) == sorted([a.name, dead.name])
+    assert not a.exists() and not dead.exists() and b.exists() and c.exists() and busy.exists()
+    # a budget of zero empties it all but the one being kept, even if that one is the oldest
+    os.utime(c / "COMPLETE", (now - 900, now - 900))
+    evict_cache(root, 0, keep=c)
+    assert c.exists() and not b.exists() and busy.exists()
+
+
+def test_cached_sequence_reuse_marks_last_use_and_cap_applies(tmp_path, monkeypatch):
+    monkeypatch.setenv("ADALIO_CACHE_DIR", str(tmp_path))
+    r1 = cached_sequence("corridor", duration_s=1.0, columns=36)
+    marker = r1.bag_path.parent / "COMPLETE"
+    os.utime(marker, (1e9, 1e9))
+    cached_sequence("corridor", duration_s=1.0, columns=36)
+    assert marker.stat().st_mtime > time.time() - 600  # the reuse touched it
+    # a zero cap: the next generated sequence evicts the older one and is kept itself
+    monkeypatch.setenv("ADALIO_SIM_CACHE_GB", "0")
+    r2 = cached_sequence("corridor", seed=1, duration_s=1.0, columns=36)
+    assert [p.name for p in (tmp_path / "sim").iterdir()] == [r2.bag_path.parent.name]
+    monkeypatch.setenv("ADALIO_SIM_CACHE_GB", "lots")
+    with pytest.raises(InputError, match="ADALIO_SIM_CACHE_GB"):
+        cached_sequence("corridor", seed=2, duration_s=1.0, columns=36)
 
 
 def test_bad_input_is_one_line_error(tmp_path):

@@ -42,7 +42,10 @@ def __getattr__(name: str) -> Any:
     """The simulator is imported on first use, so that the command line registers ``simulate``
     without loading trimesh."""
     if name in _LAZY:
-        return getattr(_import_generate(), name)
+        module = _import_generate()
+        if name == "cached_sequence":
+            from adalio.sim import cache as module
+        return getattr(module, name)
     raise AttributeError(f"module 'adalio.sim' has no attribute {name!r}")
 
 

@@ -11,9 +11,7 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import shutil
-import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -248,64 +246,3 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
                                           default_flow_style=None))
     return SimResult(bag_path=bag_path, gt_path=gt_path, meta_path=meta_path,
                      config_path=config_path)
-
-
-def cache_root() -> Path:
-    """``$ADALIO_CACHE_DIR`` (default ``~/.cache/adalio``) / sim."""
-    return Path(os.environ.get("ADALIO_CACHE_DIR", "~/.cache/adalio")).expanduser() / "sim"
-
-
-def _code_version() -> str:
-    """Short hash of the simulator's own source, so a changed simulator never reuses old data."""
-    import hashlib
-
-    digest = hashlib.sha1()
-    for path in sorted(Path(__file__).parent.glob("*.py")):
-        digest.update(path.read_bytes())
-    return digest.hexdigest()[:8]
-
-
-def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = None,
-                    lidar: str = "xt32", fmt: str = "ros1",
-                    columns: int | None = None, imu_noise_scale: float = 1.0,
-                    motion_from: str | Path | None = None) -> SimResult:
-    """Generate once (atomically: temp folder + rename + completion marker) and reuse
-    (the key includes a hash of ``motion_from``'s content)."""
-    _check_args(scene, duration_s, lidar, fmt, 1.0)
-    cols = lidar_model(lidar, columns).columns
-    dur = "full" if duration_s is None else f"{float(duration_s):g}"
-    imu = "" if imu_noise_scale == 1.0 else f"-imu{imu_noise_scale:g}"
-    hh = ""
-    if motion_from is not None:
-        import hashlib
-
-        try:
-            hh = "-hh" + hashlib.sha1(Path(motion_from).read_bytes()).hexdigest()[:8]
-        except OSError as exc:
-            raise InputError(f"{motion_from}: cannot read the motion file ({exc})") from None
-    key = f"{scene}-s{seed}-d{dur}-{lidar}-{fmt}-c{cols}{imu}{hh}-v{_code_version()}"
-    final = cache_root() / key
-
-    def result(d: Path) -> SimResult:
-        return SimResult(bag_path=bag_path_for(d, scene, fmt), gt_path=d / "gt.tum",
-                         meta_path=d / "meta.json", config_path=d / "config.yaml")
-
-    if (final / "COMPLETE").is_file():
-        return result(final)
-    final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = final.parent / f".{key}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    try:
-        simulate(scene, tmp, seed=seed, duration_s=duration_s, lidar=lidar, fmt=fmt,
-                 columns=columns, imu_noise_scale=imu_noise_scale, motion_from=motion_from)
-        (tmp / "COMPLETE").write_text("ok\n")
-        if final.exists() and not (final / "COMPLETE").is_file():
-            shutil.rmtree(final, ignore_errors=True)
-        try:
-            os.rename(tmp, final)
-        except OSError:
-            if not (final / "COMPLETE").is_file():
-                raise
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
-    return result(final)
