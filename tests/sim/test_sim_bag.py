@@ -149,13 +149,17 @@ def test_cache_eviction_removes_least_recently_used_first(tmp_path):
     sizes = {d: sum(f.stat().st_size for f in d.rglob("*") if f.is_file()) for d in (a, b, c)}
     # a budget that holds two entries: only the oldest one goes (with the dead generation)
     budget = sizes[b] + sizes[c] + 200
-    removed = evict_cache(root, budget, keep=c)
+    removed = evict_cache(root, budget, keep=c, protect_s=60)
     assert sorted(p.name for p in removed) == sorted([a.name, dead.name])
     assert not a.exists() and not dead.exists() and b.exists() and c.exists() and busy.exists()
+    # a sequence used within protect_s stays whatever the budget (a running benchmark's)
+    evict_cache(root, 0, keep=None, protect_s=150)
+    assert not b.exists() and c.exists()
     # a budget of zero empties it all but the one being kept, even if that one is the oldest
+    d = _fake_entry(root, "d", 3000, now - 50)
     os.utime(c / "COMPLETE", (now - 900, now - 900))
-    evict_cache(root, 0, keep=c)
-    assert c.exists() and not b.exists() and busy.exists()
+    evict_cache(root, 0, keep=c, protect_s=0)
+    assert c.exists() and not d.exists() and busy.exists()
 
 
 def test_cached_sequence_reuse_marks_last_use_and_cap_applies(tmp_path, monkeypatch):
@@ -165,7 +169,9 @@ def test_cached_sequence_reuse_marks_last_use_and_cap_applies(tmp_path, monkeypa
     os.utime(marker, (1e9, 1e9))
     cached_sequence("corridor", duration_s=1.0, columns=36)
     assert marker.stat().st_mtime > time.time() - 600  # the reuse touched it
-    # a zero cap: the next generated sequence evicts the older one and is kept itself
+    # a zero cap: the next generated sequence evicts the older one (unused for more than
+    # a day) and is kept itself
+    os.utime(marker, (1e9, 1e9))
     monkeypatch.setenv("ADALIO_SIM_CACHE_GB", "0")
     r2 = cached_sequence("corridor", seed=1, duration_s=1.0, columns=36)
     assert [p.name for p in (tmp_path / "sim").iterdir()] == [r2.bag_path.parent.name]

@@ -25,6 +25,10 @@ CACHE_BUDGET_GB = 20.0
 """Default size cap of the sequence cache (``$ADALIO_SIM_CACHE_GB`` overrides it)."""
 STALE_TMP_S = 24 * 3600.0
 """An unfinished generation folder this old belonged to a process that died: removed."""
+PROTECT_S = 24 * 3600.0
+"""Sequences used within this long are never evicted, whatever the cap: a benchmark that needs
+more than the cap keeps every sequence it generated while it runs (the folder then exceeds
+the cap until they age)."""
 
 
 def cache_budget_bytes() -> int:
@@ -44,11 +48,13 @@ def _folder_bytes(d: Path) -> int:
     return sum(f.stat().st_size for f in d.rglob("*") if f.is_file())
 
 
-def evict_cache(root: Path, budget_bytes: int, keep: Path | None = None) -> list[Path]:
+def evict_cache(root: Path, budget_bytes: int, keep: Path | None = None,
+                protect_s: float = PROTECT_S) -> list[Path]:
     """Least-recently-used eviction: delete finished sequences, the least recently used first
     (last use = the ``COMPLETE`` marker's mtime, touched on every reuse), until the folder holds
-    at most ``budget_bytes``; never ``keep``. Unfinished folders older than a day (a generation
-    that died) go too. Returns the folders removed."""
+    at most ``budget_bytes``; never ``keep`` nor a sequence used within ``protect_s``.
+    Unfinished folders older than a day (a generation that died) go too. Returns the folders
+    removed."""
     removed: list[Path] = []
     if not root.is_dir():
         return removed
@@ -67,11 +73,13 @@ def evict_cache(root: Path, budget_bytes: int, keep: Path | None = None) -> list
         except OSError:  # another process removed it meanwhile
             continue
     total = sum(size for _, size, _ in entries)
-    for _, size, d in sorted(entries, key=lambda e: e[0]):
+    for last_use, size, d in sorted(entries, key=lambda e: e[0]):
         if total <= budget_bytes:
             break
         if keep is not None and d.resolve() == keep.resolve():
             continue
+        if now - last_use < protect_s:
+            break  # sorted by last use: every later one is at least as recent
         shutil.rmtree(d, ignore_errors=True)
         removed.append(d)
         total -= size
