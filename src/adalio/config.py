@@ -132,6 +132,13 @@ class ImuConfig:
     """A longer IMU gap stops the run with an error (outputs so far kept)."""
     gravity_align_world: bool = False
     """Rotate the world frame so that its z axis points up (default: world = IMU at init)."""
+    rest_prior: bool = False
+    """After a static initialization, condition the filter covariance on the still window's
+    gyro and specific-force means (lio/state.py, condition_on_rest): the gyro bias and the sum
+    of accelerometer bias and gravity tilt start as well known as the window measured them,
+    instead of Faster-LIO's independent priors (b_g 0.01 rad/s, b_a 0.03 m/s^2, gravity 0.2 deg).
+    Off (Faster-LIO's P0) by default: on, the robot-like corridor diverges less but the
+    stairwell loses (README, "Rest prior")."""
 
 
 @dataclass

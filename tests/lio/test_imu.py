@@ -244,3 +244,59 @@ def test_propagate_scan_equals_stepwise_midpoint_integration():
     assert rec.tau_s.shape[0] == 5
     assert np.allclose(y.R, ref.R) and np.allclose(y.p, ref.p) and np.allclose(y.v, ref.v)
     assert np.allclose(P_out, P_ref)
+
+
+def test_rest_mean_variances_match_the_spread_of_window_means():
+    """Batch-means variance of a window mean against the variance of many such means."""
+    gen = np.random.default_rng(7)
+    n, n_block, sig_g, sig_a = 200, 40, 2e-3, 2e-2
+    est_g, est_a, means_g, means_a = [], [], [], []
+    for _ in range(400):
+        g = gen.normal(0.0, sig_g, (n, 3))
+        a = gen.normal(0.0, sig_a, (n, 3)) + np.array([0.0, 0.0, 9.81])
+        vg, va = imu.rest_mean_variances(g, a, n_block)
+        est_g.append(vg)
+        est_a.append(va)
+        means_g.append(g.mean(axis=0))
+        means_a.append(a.mean(axis=0))
+    for est, means, sig in ((est_g, means_g, sig_g), (est_a, means_a, sig_a)):
+        truth = np.var(np.asarray(means), axis=0).mean()
+        assert np.mean(est) == pytest.approx(truth, rel=0.12)
+        assert truth == pytest.approx(sig**2 / n, rel=0.12)
+    # slow sway within the window (what the stillness test may accept) widens it
+    t = np.arange(n) / 400.0
+    sway = 0.05 * np.sin(2 * np.pi * 1.5 * t)[:, None] * np.ones(3)
+    _, va_sway = imu.rest_mean_variances(g, a + sway, n_block)
+    _, va_quiet = imu.rest_mean_variances(g, a, n_block)
+    assert va_sway > 3 * va_quiet
+
+
+def test_condition_on_rest_is_the_information_form_update_with_numerical_jacobian():
+    """P after condition_on_rest = (P0^-1 + J^T Rn^-1 J)^-1, with J of the rest measurement
+    z = [b_g; -R^T g + b_a] taken by central differences through the state's boxplus."""
+    from adalio.lio.state import condition_on_rest, initial_covariance
+
+    x = _random_state()
+    P0 = initial_covariance(False) + np.diag(rng.uniform(0, 1e-4, DIM))
+
+    def z(s: State) -> np.ndarray:
+        return np.concatenate([s.b_g, -s.R.T @ s.g + s.b_a])
+
+    J = np.zeros((6, DIM))
+    h = 1e-6
+    for i in range(DIM):
+        e = np.zeros(DIM)
+        e[i] = h
+        J[:, i] = (z(x.boxplus(e)) - z(x.boxplus(-e))) / (2 * h)
+    # the attitude is left out on purpose (the world frame is the IMU's at rest)
+    J[:, 3:6] = 0.0
+    var_g, var_a = 1e-8, 4e-6
+    P1 = condition_on_rest(P0, x, var_g, var_a)
+    Rn_inv = np.diag([1 / var_g] * 3 + [1 / var_a] * 3)
+    expected = np.linalg.inv(np.linalg.inv(P0) + J.T @ Rn_inv @ J)
+    assert np.allclose(P1, expected, rtol=1e-5, atol=1e-12)
+    # what it means: the predicted specific force is as certain as the window mean, while the
+    # accelerometer bias alone stays almost as uncertain as before
+    S_a = J[3:6] @ P1 @ J[3:6].T
+    assert np.all(np.diag(S_a) < 1.01 * var_a)
+    assert np.all(np.diag(P1)[18:21] > 0.25 * np.diag(P0)[18:21])

@@ -502,3 +502,30 @@ def test_moving_start_registers_with_faster_lio_planes_whatever_the_filter_uses(
     (t0, T0, v0, g0), (t1, T1, v1, g1) = states
     assert t0 == t1
     assert np.array_equal(T0, T1) and np.array_equal(v0, v1) and np.array_equal(g0, g1)
+
+
+@pytest.mark.parametrize("rest_prior", [False, True])
+def test_rest_prior_knows_the_specific_force_as_well_as_the_still_window(rest_prior):
+    """After a static start, the predicted specific force -R^T g + b_a has the variance of the
+    still window's mean (the test IMU's 0.01 m/s^2 per-sample noise over 200 samples) with
+    imu.rest_prior, and Faster-LIO's independent prior (~1e-3) without it; the Jacobian is taken
+    by finite differences through the state's boxplus."""
+    cfg = _config()
+    cfg.imu.rest_prior = rest_prior
+    odom, _ = _run(cfg, 0.55, 300)
+    assert odom.initialized and odom.init_report.method == "static"
+    x, P = odom.state, odom.covariance
+    J = np.zeros((3, P.shape[0]))
+    for i in range(P.shape[0]):
+        if 3 <= i < 6:  # the attitude: the world frame is the IMU's at rest
+            continue
+        e = np.zeros(P.shape[0])
+        e[i] = 1e-6
+        a, b = x.boxplus(e), x.boxplus(-e)
+        J[:, i] = ((-a.R.T @ a.g + a.b_a) - (-b.R.T @ b.g + b.b_a)) / 2e-6
+    var = np.diag(J @ P @ J.T)
+    window_mean_var = 0.01**2 / 200
+    if rest_prior:
+        assert np.all(var < 5 * window_mean_var) and np.all(var > 0.1 * window_mean_var)
+    else:
+        assert np.all(var > 100 * window_mean_var)

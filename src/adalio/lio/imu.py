@@ -121,6 +121,26 @@ def stillness_test(t_ns: np.ndarray, gyro_rad_s: np.ndarray, accel: np.ndarray,
                          span_s)
 
 
+def rest_mean_variances(gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray,
+                        n_block: int) -> tuple[float, float]:
+    """Variance of the gyro and accelerometer window means of a still window (batch means).
+
+    The window is cut into blocks of ``n_block`` samples; the spread of the block means around
+    their mean, pooled over the three axes, divided by the number of blocks, is the variance of
+    the window mean. It includes what the stillness test accepted as rest (slow sway, drift) as
+    well as white noise, and needs no configured density.
+    """
+    out = []
+    for x in (gyro_rad_s, accel_m_s2):
+        n_blocks = x.shape[0] // n_block
+        if n_blocks < 2:
+            raise ValueError("rest_mean_variances: fewer than 2 blocks")
+        means = x[: n_blocks * n_block].reshape(n_blocks, n_block, 3).mean(axis=1)
+        spread = float(np.sum((means - means.mean(axis=0)) ** 2)) / (3 * (n_blocks - 1))
+        out.append(spread / n_blocks)
+    return out[0], out[1]
+
+
 def static_init(gyro_rad_s: np.ndarray, accel: np.ndarray, cfg: ImuConfig) -> StaticInit:
     """Gravity and gyro bias from the static mean (§4): ``g = −|g| ā/|ā|``, ``b_g = ω̄``.
 

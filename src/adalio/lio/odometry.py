@@ -64,6 +64,7 @@ from adalio.lio.motion_init import MovingInit, handover_covariance
 from adalio.lio.state import (
     DIM,
     State,
+    condition_on_rest,
     initial_covariance,
     pose_covariance_world,
     sigmas_from_world_covariance,
@@ -527,6 +528,11 @@ class Odometry:
         self._state = State(R=init.R_world_imu, R_LI=self._R_LI.copy(), t_LI=self._t_LI.copy(),
                             b_g=init.gyro_bias_rad_s, g=g, g_anchor=so3.anchor_frame(g))
         self._P = initial_covariance(self.cfg.filter.estimate_extrinsic)
+        if cfg.rest_prior:
+            n_block = max(round(cfg.still_block_s * test.rate_hz), 2)
+            var_g, var_a = imu.rest_mean_variances(b.gyro[window],
+                                                   b.accel[window] * init.accel_scale, n_block)
+            self._P = condition_on_rest(self._P, self._state, var_g, var_a)
         self._t_state_ns = t_b_ns
         last = window.stop - 1
         self._prev_sample = (int(b.t_ns[last]), b.gyro[last].copy(), b.accel[last].copy())

@@ -91,6 +91,32 @@ def initial_covariance(estimate_extrinsic: bool) -> np.ndarray:
     return P
 
 
+def condition_on_rest(P: np.ndarray, state: State, gyro_mean_var: float,
+                      accel_mean_var: float) -> np.ndarray:
+    """P conditioned on what a still window measured (adalio's rule, lio-design.md §4).
+
+    At rest the mean gyro reading is ``b_g`` and the mean specific force is ``-Rᵀg + b_a``, each
+    known to the variance of its window mean. The static initialization already put the state
+    there (zero residual), so only the covariance changes: a Kalman update with
+    ``H = [I on b_g]`` and ``H = [I on b_a, Rᵀ[g]× B(g) on g]``. The attitude is left out, since
+    the world frame is defined by the IMU at that instant. What this adds to P is the
+    correlation: a horizontal accelerometer bias and a gravity tilt are inseparable at rest, but
+    their sum is known to millimetres per second squared. Without it the filter may take a
+    LiDAR pull along a weak direction (a corridor's axis) as a bias plus a tilt and integrate
+    the error at the sum's prior spread (about 0.04 m/s² here)."""
+    B = so3.s2_basis(state.g, state.g_anchor)
+    H = np.zeros((6, DIM))
+    H[0:3, BG] = np.eye(3)
+    H[3:6, BA] = np.eye(3)
+    H[3:6, G] = state.R.T @ so3.hat(state.g) @ B
+    Rn = np.diag([gyro_mean_var] * 3 + [accel_mean_var] * 3)
+    S = H @ P @ H.T + Rn
+    K = np.linalg.solve(S, H @ P).T
+    A = np.eye(DIM) - K @ H
+    out = A @ P @ A.T + K @ Rn @ K.T
+    return 0.5 * (out + out.T)
+
+
 def pose_covariance_world(R_world_imu: np.ndarray, P: np.ndarray) -> np.ndarray:
     """6x6 covariance of (world position, small rotation about the world axes) from the
     error-state covariance ``P``. The position error is already world-frame; ``R ⊞ δθ =
