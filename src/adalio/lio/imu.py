@@ -68,6 +68,17 @@ class StillnessTest:
                 f"{self.accel_noise_m_s2_sqrt_hz:.2e} m/s^2/sqrt(Hz))")
 
 
+def block_samples(cfg: ImuConfig, rate_hz: float) -> int:
+    """Samples per block of ``imu.still_block_s`` at ``rate_hz`` (at least 2)."""
+    return max(round(cfg.still_block_s * rate_hz), 2)
+
+
+def _blocks(x: np.ndarray, n_block: int) -> np.ndarray:
+    """(n_blocks, n_block, 3): ``x`` (n, 3) cut into whole blocks (a partial last one dropped)."""
+    n_blocks = x.shape[0] // n_block
+    return x[: n_blocks * n_block].reshape(n_blocks, n_block, 3)
+
+
 def _block_statistic(x: np.ndarray, n_block: int, floor: float) -> tuple[float, int, float]:
     """Chi-square statistic of the block means of ``x`` (n, 3) around their mean.
 
@@ -75,8 +86,8 @@ def _block_statistic(x: np.ndarray, n_block: int, floor: float) -> tuple[float, 
     noise, tremor, vibration); a block mean of n_b samples then has variance s²/n_b at rest.
     ``floor`` is a motion amplitude still counted as rest. Returns (statistic, dof, mean s²).
     """
-    n_blocks = x.shape[0] // n_block
-    blocks = x[: n_blocks * n_block].reshape(n_blocks, n_block, 3)
+    blocks = _blocks(x, n_block)
+    n_blocks = blocks.shape[0]
     means = blocks.mean(axis=1)
     within = blocks.var(axis=1, ddof=1).mean(axis=0)
     dev2 = (means - means.mean(axis=0)) ** 2
@@ -104,7 +115,7 @@ def stillness_test(t_ns: np.ndarray, gyro_rad_s: np.ndarray, accel: np.ndarray,
     n = int(gyro_rad_s.shape[0])
     span_s = float(t_ns[-1] - t_ns[0]) * 1e-9 if n > 1 else 0.0
     rate = (n - 1) / span_s if span_s > 0 else 0.0
-    n_block = max(round(cfg.still_block_s * rate), 2)
+    n_block = block_samples(cfg, rate)
     nan = float("nan")
     if n < max(cfg.init_samples, 3 * n_block) or not rate > 0:
         return StillnessTest(False, nan, nan, nan, nan, rate, n, span_s)
@@ -132,10 +143,10 @@ def rest_mean_variances(gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray,
     """
     out = []
     for x in (gyro_rad_s, accel_m_s2):
-        n_blocks = x.shape[0] // n_block
+        means = _blocks(x, n_block).mean(axis=1)
+        n_blocks = means.shape[0]
         if n_blocks < 2:
             raise ValueError("rest_mean_variances: fewer than 2 blocks")
-        means = x[: n_blocks * n_block].reshape(n_blocks, n_block, 3).mean(axis=1)
         spread = float(np.sum((means - means.mean(axis=0)) ** 2)) / (3 * (n_blocks - 1))
         out.append(spread / n_blocks)
     return out[0], out[1]

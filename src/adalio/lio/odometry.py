@@ -529,9 +529,9 @@ class Odometry:
                             b_g=init.gyro_bias_rad_s, g=g, g_anchor=so3.anchor_frame(g))
         self._P = initial_covariance(self.cfg.filter.estimate_extrinsic)
         if cfg.rest_prior:
-            n_block = max(round(cfg.still_block_s * test.rate_hz), 2)
             var_g, var_a = imu.rest_mean_variances(b.gyro[window],
-                                                   b.accel[window] * init.accel_scale, n_block)
+                                                   b.accel[window] * init.accel_scale,
+                                                   imu.block_samples(cfg, test.rate_hz))
             self._P = condition_on_rest(self._P, self._state, var_g, var_a)
         self._t_state_ns = t_b_ns
         last = window.stop - 1

@@ -4,6 +4,7 @@ used first out)."""
 
 from __future__ import annotations
 
+import hashlib
 import os
 import shutil
 import time
@@ -90,8 +91,6 @@ def _code_version() -> str:
     """Short hash of the simulator's own source, so a changed simulator never reuses old data.
     This module is left out: it stores and finds sequences but never changes their content,
     so editing the cache's housekeeping does not invalidate every cached sequence."""
-    import hashlib
-
     digest = hashlib.sha1()
     for path in sorted(Path(__file__).parent.glob("*.py")):
         if path.name != Path(__file__).name:
@@ -113,8 +112,6 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     imu = "" if imu_noise_scale == 1.0 else f"-imu{imu_noise_scale:g}"
     hh = ""
     if motion_from is not None:
-        import hashlib
-
         try:
             hh = "-hh" + hashlib.sha1(Path(motion_from).read_bytes()).hexdigest()[:8]
         except OSError as exc:
