@@ -20,6 +20,10 @@ def test_readme_python_api_example_tracks_ground_truth():
                 est = odom.add_scan(item.points_lidar, item.t_ns)
                 if est is not None:
                     estimates.append(est)
+                estimates += odom.take_backfill()  # the README prints them
+    odom.finish()
+    estimates += odom.take_backfill()
+    estimates.sort(key=lambda e: e.t_ns)
     assert len(estimates) > 40
     assert odom.map_points().shape[1] == 3 and len(odom.map_points()) > 1000
 

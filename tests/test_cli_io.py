@@ -383,9 +383,13 @@ def test_run_writes_sigma_columns_and_names_risky_stretches(monkeypatch, capsys,
     cols = ["sigma_x_m", "sigma_y_m", "sigma_z_m", "sigma_roll_deg", "sigma_pitch_deg",
             "sigma_yaw_deg"]
     sig = np.column_stack([scans[c] for c in cols])
-    assert np.all(sig[0] == 0.0)  # the first map scan defines the world
-    assert np.all(np.isfinite(sig[1:])) and np.all(sig[1:] > 0.0)
-    assert np.all(sig[1:, :3] < 0.1)
+    # the first scan of the filter (after the backfilled ones read before the IMU window was
+    # full) is its first map: it defines the world
+    anchor = int(np.argmax(np.asarray(scans["backfill"]) == 0))
+    assert np.all(sig[anchor] == 0.0)
+    rest = np.delete(sig, anchor, axis=0)
+    assert np.all(np.isfinite(rest)) and np.all(rest > 0.0)
+    assert np.all(rest[:, :3] < 0.1)
     # a threshold below every sigma names the whole run after the first scan
     code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--out", tmp_path / "sig2",
                            "--no-progress", "--sigma-warn-m", "1e-9")
@@ -406,14 +410,18 @@ def test_sigma_warn_default_is_the_pipeline_default():
     assert inspect.signature(run).parameters["sigma_warn_m"].default == DEFAULT_SIGMA_WARN_M
 
 
-@pytest.mark.parametrize(("method", "refused", "without", "flagged"), [
-    ("moving", 272, 282, True),   # refused fits left 282 of 540 scans without a pose
-    ("moving", 3, 40, False),     # 7 % of the scans: under the 10 % line
-    ("static", 0, 282, False),    # a still window's scans rest at the first pose
+@pytest.mark.parametrize(("method", "refused", "without", "backfilled", "flagged"), [
+    ("moving", 272, 282, 0, True),     # refused fits left 282 of 540 scans without a pose
+    ("moving", 272, 282, 230, False),  # the backfill reached all but 52 (< 10 %)
+    ("moving", 272, 282, 200, True),   # 82 left (15 %)
+    ("moving", 3, 40, 0, False),       # 7 % of the scans: under the 10 % line
+    ("static", 0, 282, 0, False),      # a still window's scans rest at the first pose
 ])
-def test_summary_flags_a_long_moving_start_wait(tmp_path, method, refused, without, flagged):
-    """The run summary names the scans a refused moving start left without a pose, with the
-    count, the wait and the last refusal, once they pass 10 % of the scans read."""
+def test_summary_flags_a_long_moving_start_wait(tmp_path, method, refused, without, backfilled,
+                                                flagged):
+    """The run summary names the scans a refused moving start left without a pose (those the
+    backfill did not reach either), with the count, the wait and the last refusal, once they
+    pass 10 % of the scans read."""
     import io
 
     from rich.console import Console
@@ -425,15 +433,18 @@ def test_summary_flags_a_long_moving_start_wait(tmp_path, method, refused, witho
     rep = InitReport(method=method, t_ns=28_300_000_000, gyro_bias_rad_s=np.zeros(3),
                      gravity_imu_m_s2=np.array([0.0, 0.0, -9.81]), window_s=1.0,
                      wait_s=28.3, scans_without_pose=without, refused_fits=refused,
-                     last_refusal="the motion fit over 11 scans leaves 3.1 cm RMS")
+                     last_refusal="the motion fit over 11 scans leaves 3.1 cm RMS",
+                     backfilled=backfilled)
     res = RunResult(out_dir=tmp_path, trajectory_path=tmp_path, scans_csv_path=tmp_path,
-                    map_path=tmp_path, config_path=tmp_path, n_scans=540 - without,
+                    map_path=tmp_path, config_path=tmp_path, n_scans=540 - without + backfilled,
                     n_degenerate=0, wall_s=1.0, ms_per_scan_median=1.0, stage_ms={},
                     interrupted=False, n_scans_in=540, init_report=rep)
     buf = io.StringIO()
     _summary(Console(file=buf, width=400), res, profile=False)
     text = buf.getvalue()
-    assert f"first pose 28.3 s after the first scan ({without} scans without a pose)" in text
-    line = f"at risk: {without}/540 scans, the first 28.3 s, have no pose ({refused} moving-start"
+    assert (f"first filter pose 28.3 s after the first scan ({without} scans read before it, "
+            f"{backfilled} of them given a pose by the backfill)") in text
+    line = (f"at risk: {without - backfilled}/540 scans have no pose: the filter started 28.3 s "
+            f"after the first scan ({refused} moving-start")
     assert (line in text) is flagged
     assert ("3.1 cm RMS" in text) is flagged

@@ -1,7 +1,8 @@
 """``run_bag``: bag → sequencer → :class:`adalio.lio.Odometry` → writers.
 
 Writes into ``out_dir``: ``trajectory.tum`` (IMU pose in the world frame, stamped at each scan
-end, rows flushed as produced), ``scans.csv`` (one row per estimated scan), ``map.ply`` or
+end, rows flushed as produced; the backfill's rows for the scans before the initialization come
+later and both files are sorted by time at the end), ``scans.csv`` (one row per estimated scan), ``map.ply`` or
 ``map.pcd`` (world-frame map, metres) and ``config.yaml`` (the effective config, with the
 extrinsic actually used). The map and config are also written when the run stops early
 (Ctrl-C, a damaged bag), so partial outputs stay valid.
@@ -26,7 +27,7 @@ from adalio.config import Config, validate_transform
 from adalio.errors import AdalioError, BagError, ConfigError, InputError
 from adalio.io.bag import Bag, chain_transform
 from adalio.io.sequencer import Sequencer, SequencerStats
-from adalio.io.writers import ScansCsvWriter, TumWriter, write_map
+from adalio.io.writers import ScansCsvWriter, TumWriter, sort_rows_by_time, write_map
 from adalio.types import Estimate, ImuBatch
 
 DEFAULT_SIGMA_WARN_M = 0.10
@@ -253,6 +254,27 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         degen: list[bool] = []
         held: list[bool] = []
         risky: list[bool] = []
+        late = [False]
+        """A backfilled row was written after later ones: the files are sorted at the end."""
+
+        def write(e: Estimate, ms: float) -> None:
+            if e.stats.backfill and est_t and int(e.t_ns) < est_t[-1]:
+                late[0] = True
+            tum.write(e.t_ns, e.T_world_imu)
+            stats = e.stats
+            stats.t_ns = int(e.t_ns)
+            if not stats.wall_ms:
+                stats.wall_ms = ms
+            csvw.write(stats)
+            if not stats.backfill:
+                wall_ms.append(ms)
+            est_t.append(int(e.t_ns))
+            degen.append(bool(stats.degenerate))
+            held.append(stats.held_directions > 0)
+            risky.append(bool(np.nanmax(stats.sigma_p_world_m) > sigma_warn_m))
+            if on_estimate is not None:
+                on_estimate(e)
+
         n_in = 0
         interrupted = False
         t_start = time.perf_counter()
@@ -271,31 +293,28 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                     est = odom.add_scan(item.points_lidar, item.t_ns)
                     ms = (time.perf_counter() - t0) * 1e3
                     n_in += 1
+                    for e in odom.take_backfill():
+                        write(e, 0.0)
                     if est is not None:
-                        tum.write(est.t_ns, est.T_world_imu)
-                        stats = est.stats
-                        stats.t_ns = int(est.t_ns)
-                        if not stats.wall_ms:
-                            stats.wall_ms = ms
-                        csvw.write(stats)
-                        wall_ms.append(ms)
-                        est_t.append(int(est.t_ns))
-                        degen.append(bool(stats.degenerate))
-                        held.append(stats.held_directions > 0)
-                        risky.append(bool(np.nanmax(stats.sigma_p_world_m) > sigma_warn_m))
-                        if on_estimate is not None:
-                            on_estimate(est)
+                        write(est, ms)
                     elapsed = time.perf_counter() - t_start
                     bar.update(task, advance=1, rate=f"{n_in / max(elapsed, 1e-9):.1f} scans/s")
                     if on_scan is not None:
                         on_scan(n_in)
                     if max_scans is not None and n_in >= max_scans:
                         break
+            if not interrupted:
+                odom.finish()
+                for e in odom.take_backfill():
+                    write(e, 0.0)
         except KeyboardInterrupt:
             interrupted = True
         finally:
             tum.close()
             csvw.close()
+            if late[0]:
+                with contextlib.suppress(Exception):  # never mask the error that stopped the run
+                    sort_rows_by_time(paths["trajectory"], paths["scans"])
             try:
                 pts = odom.map_points()
             except Exception:  # noqa: BLE001  (never mask the error that stopped the run)
@@ -311,6 +330,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         wall_s = time.perf_counter() - t_start
     finally:
         bag.close()
+    order = np.argsort(np.asarray(est_t, dtype=np.int64), kind="stable")
+    est_t, degen, held, risky = ([seq_[i] for i in order] for seq_ in (est_t, degen, held, risky))
     result = RunResult(
         out_dir=out, trajectory_path=paths["trajectory"], scans_csv_path=paths["scans"],
         map_path=paths["map"], config_path=paths["config"], n_scans=len(est_t),

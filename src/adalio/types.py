@@ -98,6 +98,9 @@ class ScanStats:
     sigma_rot_world_deg: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
     """Standard deviations of small rotations about the world x, y, z axes (deg): roll, pitch
     and yaw of a level sensor (yaw exactly)."""
+    backfill: bool = False
+    """The pose comes from the backfill (the filter run backwards from the initialization over
+    the scans read before it), stamped at the scan's start rather than its end."""
     stage_ms: dict[str, float] = field(default_factory=dict)
     """Wall time per pipeline stage (undistort, downsample, degeneracy, update, map)."""
 
@@ -152,6 +155,13 @@ class InitReport:
     """Moving start: fits refused before one passed (motion_init.MovingInit.solve)."""
     last_refusal: str = ""
     """Moving start: why the last refused fit was refused."""
+    backfilled: int = 0
+    """Of the scans without a pose, those the backfill gave one (imu.backfill_s)."""
+
+    @property
+    def scans_left_without_pose(self) -> int:
+        """Scans read before the initialization that the backfill did not reach either."""
+        return self.scans_without_pose - self.backfilled
 
     def describe_wait(self) -> str:
         """Why the scans before the initialization got no pose ('' if none went without)."""
@@ -170,8 +180,9 @@ class InitReport:
             text += f", mean |accel| {self.accel_norm_m_s2:.3f}"
         text += f"; the filter uses the {self.noise_used} noise densities; {self.detail}"
         if self.scans_without_pose:
-            text += (f"; first pose {self.wait_s:.1f} s after the first scan "
-                     f"({self.scans_without_pose} scans without a pose)")
+            text += (f"; first filter pose {self.wait_s:.1f} s after the first scan "
+                     f"({self.scans_without_pose} scans read before it, {self.backfilled} of "
+                     "them given a pose by the backfill)")
         return text
 
     def to_dict(self) -> dict:
@@ -188,4 +199,5 @@ class InitReport:
                 "filter_noise": self.noise_used, "detail": self.detail,
                 "init_wait_s": num(self.wait_s),
                 "init_scans_without_pose": int(self.scans_without_pose),
-                "init_refused_fits": int(self.refused_fits)}
+                "init_refused_fits": int(self.refused_fits),
+                "init_backfilled": int(self.backfilled)}

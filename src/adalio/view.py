@@ -27,6 +27,7 @@ extra ``adalio[view]``.
 
 from __future__ import annotations
 
+import bisect
 import os
 import shutil
 import sys
@@ -144,6 +145,8 @@ class RerunView:
         self._map_new: list[np.ndarray] = []
         self._map_chunks = 0
         self._positions: list[np.ndarray] = []
+        self._times_ns: list[int] = []
+        """Stamps of ``_positions``, ascending (backfilled poses arrive after later ones)."""
         self.n_scans = 0
 
     # -------------------------------------------------------------------------------- logging
@@ -155,7 +158,9 @@ class RerunView:
         stats = est.stats
         T = np.asarray(est.T_world_imu, dtype=np.float64)
         p = T[:3, 3]
-        self._positions.append(p.copy())
+        k = bisect.bisect_right(self._times_ns, int(est.t_ns))
+        self._times_ns.insert(k, int(est.t_ns))
+        self._positions.insert(k, p.copy())
         color = DEGENERATE_RGB if stats.degenerate else GENERAL_RGB
         pts = est.points_world
         if pts is None:

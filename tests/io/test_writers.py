@@ -15,6 +15,7 @@ from adalio.io.writers import (
     ns_to_s_str,
     read_pcd_points,
     read_tum,
+    sort_rows_by_time,
     write_pcd,
     write_ply,
 )
@@ -90,3 +91,31 @@ def test_flag_ranges():
     t = [0, 10**8, 2 * 10**8, 3 * 10**8, 4 * 10**8, 5 * 10**8]
     f = [False, True, True, False, True, True]
     assert _flag_ranges(t, f) == [(0.1, 0.2), (0.4, 0.5)]
+
+
+def test_rows_written_late_are_sorted_into_time_order(tmp_path):
+    """The backfill's rows arrive after later ones: sort_rows_by_time puts both files in time
+    order (by the exact stamps, also across a change in the number of integer digits), header
+    first, every row kept as written."""
+    rng = np.random.default_rng(1)
+    stamps = [9_000_000_000, 10_000_000_001, 10_000_000_002, 3, 999_999_999, 9_500_000_000]
+    poses = {}
+    with TumWriter(tmp_path / "t.tum") as w, ScansCsvWriter(tmp_path / "s.csv") as c:
+        for t in stamps:
+            T = np.eye(4)
+            T[:3, :3] = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+            T[:3, 3] = rng.normal(size=3)
+            poses[t] = T
+            w.write(t, T)
+            c.write(ScanStats(t_ns=t, n_raw=t % 1000, backfill=t < 9_000_000_000))
+    before_tum = sorted((tmp_path / "t.tum").read_text().splitlines())
+    sort_rows_by_time(tmp_path / "t.tum", tmp_path / "s.csv")
+    assert sorted((tmp_path / "t.tum").read_text().splitlines()) == before_tum
+    t_ns, pose = read_tum(tmp_path / "t.tum")
+    assert list(t_ns) == sorted(stamps)
+    for t, row in zip(t_ns, pose, strict=True):
+        assert np.allclose(row[:3], poses[int(t)][:3, 3], atol=1e-9)
+    rows = list(csv.DictReader((tmp_path / "s.csv").open()))
+    assert [r["t_s"] for r in rows] == [ns_to_s_str(t) for t in sorted(stamps)]
+    assert [int(r["n_raw"]) for r in rows] == [t % 1000 for t in sorted(stamps)]
+    assert [int(r["backfill"]) for r in rows] == [int(t < 9_000_000_000) for t in sorted(stamps)]

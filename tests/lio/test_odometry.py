@@ -103,9 +103,11 @@ def _config() -> Config:
 
 
 def _run(cfg: Config, duration: float, n_cols: int, seed: int = 0, accel_unit: float = 1.0,
-         before_scan=None, t_begin: float = 0.0, gyro_unit: float = 1.0):
+         before_scan=None, t_begin: float = 0.0, gyro_unit: float = 1.0,
+         backfill: list | None = None):
     """Feed the box-room sequence from ``t_begin`` to ``duration`` (s); ``before_scan(t_start_s)``
-    runs before each sweep."""
+    runs before each sweep; ``backfill`` (a list) collects ``take_backfill`` after each scan and
+    after ``finish`` at the end."""
     rng = np.random.default_rng(seed)
     odom = Odometry(cfg)
     t_imu, gyro, acc = imu_samples(t_begin, duration + 0.05, 400.0, rng, noise=0.01)
@@ -123,6 +125,11 @@ def _run(cfg: Config, duration: float, n_cols: int, seed: int = 0, accel_unit: f
         est = odom.add_scan(pts, t_ns)
         if est is not None:
             estimates.append(est)
+        if backfill is not None:
+            backfill.extend(odom.take_backfill())
+    if backfill is not None:
+        odom.finish()
+        backfill.extend(odom.take_backfill())
     return odom, estimates
 
 
@@ -188,7 +195,8 @@ def test_motion_is_not_taken_for_rest():
     rep = odom.init_report
     assert rep.method == "static" and rep.scans_without_pose == 2 and rep.refused_fits == 0
     assert rep.wait_s == pytest.approx(0.46, abs=1e-9)
-    assert "first pose 0.5 s after the first scan (2 scans without a pose)" in rep.describe()
+    assert ("first filter pose 0.5 s after the first scan (2 scans read before it"
+            in rep.describe())
 
 
 @pytest.mark.parametrize("align", [False, True])
@@ -484,6 +492,64 @@ def test_research_skipped_only_below_the_shift_and_accuracy_kept():
     assert np.abs(p1 - p0).max() < 1e-3
     assert (s0 >= 2).all() or s0.mean() > 1.5  # converged at least once: a re-search each scan
     assert s1.mean() < s0.mean() and (s1 >= 1).all()
+
+
+def test_backfill_gives_the_scans_before_a_moving_start_their_poses():
+    """A moving start that waits 2 s (imu.init_timeout_s) leaves about 20 scans without a
+    pose; once the filter has tracked imu.backfill_after_s, the time-reversed pass gives each
+    its pose at the scan's start, in time order before the first forward pose. Checked against
+    the analytic truth: positions, and the velocity and gyro bias, whose signs the time
+    reversal flips and flips back. The forward poses are bit-identical to a run without the
+    backfill."""
+    cfg = _config()
+    cfg.imu.init_timeout_s = 2.0
+    cfg.imu.backfill_after_s = 1.0
+    back: list = []
+    odom, est = _run(cfg, 4.5, 600, seed=4, t_begin=1.6, backfill=back)
+    rep = odom.init_report
+    assert rep.method == "moving" and rep.scans_without_pose >= 19
+    assert len(back) == rep.backfilled == rep.scans_without_pose
+    assert rep.scans_left_without_pose == 0
+    t_back = np.array([e.t_ns for e in back]) * 1e-9
+    assert np.allclose(t_back, 1.6 + 0.1 * np.arange(len(back)), atol=1e-6)  # scan starts
+    assert t_back[-1] < est[0].t_ns * 1e-9
+    assert all(e.stats.backfill for e in back) and not any(e.stats.backfill for e in est)
+    every = back + est
+    gt_p, gt_R, gt_v, *_ = trajectory(np.array([e.t_ns for e in every]) * 1e-9)
+    assert umeyama_ate(np.array([e.T_world_imu[:3, 3] for e in every]), gt_p) < 0.01
+    for e, R_gt, v_gt in zip(back, gt_R, gt_v, strict=False):
+        R = e.T_world_imu[:3, :3]
+        assert np.linalg.norm(R.T @ e.velocity_world_m_s - R_gt.T @ v_gt) < 0.05
+        assert np.linalg.norm(e.gyro_bias_rad_s - GYRO_BIAS) < 2e-3
+    cfg.imu.backfill_s = 0.0
+    back_off: list = []
+    odom_off, est_off = _run(cfg, 4.5, 600, seed=4, t_begin=1.6, backfill=back_off)
+    assert back_off == [] and odom_off.init_report.backfilled == 0
+    assert [e.t_ns for e in est_off] == [e.t_ns for e in est]
+    assert all(np.array_equal(a.T_world_imu, b.T_world_imu) for a, b in zip(est, est_off))
+
+
+def test_backfill_keeps_the_latest_backfill_s_and_runs_at_the_end_if_it_must():
+    """With imu.backfill_s = 0.55 s only the scans starting within 0.55 s of the last held
+    scan's end are kept (the latest five of 20) and get a pose; with imu.backfill_after_s longer
+    than the data, ``finish`` runs the backfill from the last state."""
+    cfg = _config()
+    cfg.imu.init_timeout_s = 2.0
+    cfg.imu.backfill_s = 0.55
+    cfg.imu.backfill_after_s = 100.0
+    back: list = []
+    odom, est = _run(cfg, 3.9, 600, seed=4, t_begin=1.6, backfill=back)
+    rep = odom.init_report
+    n_held = rep.scans_without_pose
+    last_end = 1.6 + 0.1 * (n_held - 1) + 0.1 * 599 / 600
+    expect = [k for k in range(n_held) if 1.6 + 0.1 * k >= last_end - 0.55 - 1e-9]
+    assert rep.backfilled == len(back) == len(expect) == 5
+    t_back = np.array([e.t_ns for e in back]) * 1e-9
+    assert np.allclose(t_back, 1.6 + 0.1 * np.array(expect), atol=1e-6)
+    assert rep.scans_left_without_pose == n_held - 5
+    p = np.array([e.T_world_imu[:3, 3] for e in back + est])
+    gt_all, *_ = trajectory(np.array([e.t_ns for e in back + est]) * 1e-9)
+    assert umeyama_ate(p, gt_all) < 0.01
 
 
 def test_moving_start_registers_with_faster_lio_planes_whatever_the_filter_uses():

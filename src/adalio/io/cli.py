@@ -288,9 +288,12 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
     rep = res.init_report
     if rep is not None:
         con.print(f"initialization: {rep.describe()}", highlight=False, soft_wrap=True)
-        if rep.refused_fits and rep.scans_without_pose > NO_POSE_WARN_FRACTION * res.n_scans_in:
-            con.print(f"[yellow]at risk:[/] {rep.scans_without_pose}/{res.n_scans_in} scans, the "
-                      f"first {rep.wait_s:.1f} s, have no pose ({rep.describe_wait()}); the "
+        left = rep.scans_left_without_pose
+        if rep.refused_fits and left > NO_POSE_WARN_FRACTION * res.n_scans_in:
+            con.print(f"[yellow]at risk:[/] {left}/{res.n_scans_in} scans have no pose: the "
+                      f"filter started {rep.wait_s:.1f} s after the first scan "
+                      f"({rep.describe_wait()}) and the backfill reached {rep.backfilled} of the "
+                      f"{rep.scans_without_pose} scans before it (imu.backfill_s); the "
                       "trajectory and map start after them; a recording that begins with the "
                       "sensor at rest (imu.init_window_s) initializes at once (README, "
                       "Initialization)",

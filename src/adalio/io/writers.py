@@ -21,6 +21,7 @@ SCANS_CSV_COLUMNS: tuple[str, ...] = (
     "eig0", "eig1", "eig2", "eig3", "eig4", "eig5", "weak_rx", "weak_ry", "weak_rz", "weak_tx",
     "weak_ty", "weak_tz", "degeneracy_score", "held_dirs", "restoring_min", "imu_gap",
     "sigma_x_m", "sigma_y_m", "sigma_z_m", "sigma_roll_deg", "sigma_pitch_deg", "sigma_yaw_deg",
+    "backfill",
 )
 
 
@@ -115,11 +116,33 @@ class ScansCsvWriter(_RowFile):
                stats.held_directions, f"{stats.min_restoring:.4g}",
                f"{stats.imu_gap_s:.4g}",
                *[f"{v:.4g}" for v in np.resize(np.asarray(stats.sigma_p_world_m, float), 3)],
-               *[f"{v:.4g}" for v in np.resize(np.asarray(stats.sigma_rot_world_deg, float), 3)]]
+               *[f"{v:.4g}" for v in np.resize(np.asarray(stats.sigma_rot_world_deg, float), 3)],
+               int(bool(stats.backfill))]
         assert self._fh is not None
         self._csv.writerow(row)
         self._fh.flush()
         self.rows += 1
+
+
+def _time_ns(line: str) -> int:
+    """Time of a row that starts with exact decimal seconds (``ns_to_s_str``), in ns."""
+    field = line.split(",", 1)[0].split(" ", 1)[0].strip()
+    sign = -1 if field.startswith("-") else 1
+    sec, _, frac = field.lstrip("-").partition(".")
+    return sign * (int(sec) * 1_000_000_000 + int((frac + "000000000")[:9]))
+
+
+def sort_rows_by_time(*paths: str | Path) -> None:
+    """Rewrite row files (``trajectory.tum``, ``scans.csv``) with their data rows in time order
+    (stable; header and comment lines first): the backfill's rows arrive after later ones."""
+    for path in paths:
+        path = Path(path)
+        lines = path.read_text().splitlines(keepends=True)
+        head = [ln for ln in lines if ln.startswith(("#", "t_s"))]
+        rows = [ln for ln in lines if ln.strip() and not ln.startswith(("#", "t_s"))]
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text("".join(head + sorted(rows, key=_time_ns)))
+        tmp.replace(path)
 
 
 def _points_f4(points: np.ndarray) -> np.ndarray:

@@ -27,6 +27,11 @@ INIT_TIME insert-all window is not needed), is offered whole to the iVox map, wh
 whose plane fits have arbitrary normals; in degenerate scenes those fake constraints hold the
 estimate against the IMU (corridor ATE 11 m → 2 cm in the simulator).
 
+Backfill (not in Faster-LIO): the scans read before the initialization (a moving start's
+refused fits, motion before a still window) are kept (``imu.backfill_s``) and, once the filter
+has tracked ``imu.backfill_after_s``, get their poses from a copy of the filter run backwards in
+time (``_backfill``, ``take_backfill``).
+
 AdaLIO hooks (§9, degeneracy.py): the detector sees the general-leaf cloud and a "weak geometry"
 flag from the previous scan's localizability (translation eigenvalue ratio below
 ``adaptive.min_eigen_ratio``, if ``use_localizability_trigger``). In mode ``adaptive+`` a
@@ -38,8 +43,10 @@ searches; ``undistort`` includes the IMU propagation.
 
 from __future__ import annotations
 
+import copy
 import time
-from dataclasses import dataclass
+import warnings
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -62,8 +69,10 @@ from adalio.lio.map_uncertainty import MapProvenance
 from adalio.lio.measurement import point_to_plane, points_to_world, residual_weights
 from adalio.lio.motion_init import MovingInit, handover_covariance
 from adalio.lio.state import (
+    BG,
     DIM,
     State,
+    V,
     condition_on_rest,
     initial_covariance,
     pose_covariance_world,
@@ -272,6 +281,13 @@ class Odometry:
         self._provenance = MapProvenance(config.filter.map_provenance_cell_m)
         self._W_map = np.zeros((6, 6))
         """World covariance the latest scan inherited from the map (filter.map_uncertainty)."""
+        self._held_scans: list[tuple[np.ndarray, np.ndarray]] = []
+        """Preprocessed scans (LiDAR points, int64 ns) read before the initialization, kept
+        for the backfill (imu.backfill_s)."""
+        self._held_imu: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._backfilled: list[Estimate] = []
+        self._backfill_map = np.zeros((0, 3))
+        """The backfill's map (world), part of ``map_points`` but not of the filter's map."""
 
     # ------------------------------------------------------------------ public API
     @property
@@ -315,16 +331,33 @@ class Odometry:
         self._pending.append((t, gyro.copy(), acc.copy()))
 
     def map_points(self) -> np.ndarray:
-        """All map points (M,3) float64, world frame."""
-        return self._ivox.points()
+        """All map points (M,3) float64, world frame (the backfill's included)."""
+        pts = self._ivox.points()
+        return np.vstack([self._backfill_map, pts]) if self._backfill_map.shape[0] else pts
+
+    def take_backfill(self) -> list[Estimate]:
+        """Poses of the scans read before the initialization, in time order (the backfill,
+        ``imu.backfill_s``), each stamped at the start of its scan; empty until the
+        initialization, then handed out once."""
+        out, self._backfilled = self._backfilled, []
+        return out
 
     def add_scan(self, points_lidar: np.ndarray, t_ns: np.ndarray) -> Estimate | None:
         """Process one sweep (§10) and return the IMU pose at the scan end.
 
         Returns None while initializing, for a scan with no point left after preprocessing, and
         for a scan ending at or before the previous one (counted in ``n_skipped_scans``).
-        Raises InputError for malformed arrays or per-point times spanning > 1 s.
+        Raises InputError for malformed arrays or per-point times spanning > 1 s. Once the
+        filter has tracked ``imu.backfill_after_s``, the scans read before the initialization
+        get their poses (``take_backfill``).
         """
+        est = self._add_scan(points_lidar, t_ns)
+        if (est is not None and self._held_scans and self._t_state_ns - self.init_report.t_ns
+                >= round(self.cfg.imu.backfill_after_s * 1e9)):
+            self._backfill()
+        return est
+
+    def _add_scan(self, points_lidar: np.ndarray, t_ns: np.ndarray) -> Estimate | None:
         t_start = time.perf_counter()
         stage_ms: dict[str, float] = {}
         cfg = self.cfg
@@ -354,10 +387,16 @@ class Odometry:
             t0 = _timer(stage_ms, "undistort", t0)
             if not self.initialized:
                 self._scans_without_pose += 1
+                self._hold(pts, t_pts)
                 self._accumulate(stage_ms)
                 return None
             if pts_e is not None:
+                if self._held_scans:
+                    self._hold(pts, t_pts)
                 return self._first_map(pts_e, t_e, stats, stage_ms, t_start, t0)
+
+        if self._held_scans:
+            self._hold(pts, t_pts)
 
         # 3-4. propagate with pose records, undistort to the scan end (§5)
         pts_e = self._propagate_and_undistort(pts, t_pts, t_e)
@@ -450,6 +489,8 @@ class Odometry:
     def _merge_imu(self) -> None:
         if not self._pending:
             return
+        if (not self.initialized or self._held_scans) and self.cfg.imu.backfill_s > 0:
+            self._held_imu.extend(self._pending)
         b = self._buf
         self._buf = _ImuBuffer(np.concatenate([b.t_ns] + [p[0] for p in self._pending]),
                                np.concatenate([b.gyro] + [p[1] for p in self._pending]),
@@ -475,6 +516,122 @@ class Odometry:
         # This pose anchors the map, so it defines the world: no error relative to it.
         stats.sigma_p_world_m, stats.sigma_rot_world_deg = np.zeros(3), np.zeros(3)
         return est
+
+    # ------------------------------------------------------------------ backfill
+    @property
+    def backfill_pending(self) -> bool:
+        """Scans read before the initialization wait for the backfill (``take_backfill``)."""
+        return bool(self._held_scans)
+
+    def finish(self) -> None:
+        """End of the data: run a pending backfill now, from the latest state."""
+        if self._held_scans and self.initialized:
+            self._backfill()
+
+    def _hold(self, pts: np.ndarray, t_pts: np.ndarray) -> None:
+        """Keep a scan for the backfill: before the initialization the latest
+        ``imu.backfill_s`` of them (points as float32), after it every scan until the backfill
+        runs; and the IMU samples they span."""
+        keep_s = self.cfg.imu.backfill_s
+        if not keep_s > 0:
+            self._held_imu.clear()
+            return
+        self._held_scans.append((pts.astype(np.float32), t_pts.copy()))
+        if self.initialized:
+            return
+        horizon = int(t_pts.max()) - round(keep_s * 1e9)
+        while len(self._held_scans) > 1 and int(self._held_scans[0][1].min()) < horizon:
+            self._held_scans.pop(0)
+        t_from = int(self._held_scans[0][1].min()) - round(self.cfg.imu.init_window_s * 1e9)
+        while len(self._held_imu) > 1 and int(self._held_imu[1][0][0]) <= t_from:
+            self._held_imu.pop(0)
+
+    def _backfill(self) -> None:
+        """Poses for the scans read before the initialization: the filter run backwards in
+        time from its latest state, with its map, through the scans since the first one held
+        (``take_backfill``; README, Initialization, *Backfill*).
+
+        Time reversal maps the same kinematics onto itself: with mirrored times
+        ``t' = c - t``, a gyro reading ``-omega``, the same specific force, velocity ``-v`` and
+        gyro bias ``-b_g`` (their covariance rows and columns negated likewise), position,
+        attitude, accelerometer bias and gravity unchanged. So a copy of this filter, handed
+        the mirrored state and data, runs the reverse pass; the pose it reports at the end of
+        a mirrored scan is the pose at that scan's start. It re-registers the scans since the
+        initialization against the map they built (their forward poses stand), then continues
+        into the held ones, whose poses and points (``map_points``) it adds. The forward run
+        is the same with or without the backfill.
+        """
+        held, chunks = self._held_scans, self._held_imu
+        self._held_scans, self._held_imu = [], []
+        t_init, t_now = self.init_report.t_ns, self._t_state_ns
+        scans = [(p, t) for p, t in held if int(t.max()) < t_now]
+        if not scans or not any(int(t.max()) < t_init for _, t in scans) or not chunks:
+            return
+        t_imu = np.concatenate([c[0] for c in chunks])
+        gyro = np.concatenate([c[1] for c in chunks])
+        acc = np.concatenate([c[2] for c in chunks])
+        mirror = t_now + int(scans[0][1].min())
+        rev = self._reversed_copy(mirror)
+        k = int(np.argmin(np.abs(t_imu - t_now)))
+        rev._prev_sample = (mirror - t_now, -gyro[k], acc[k].copy())
+        before = t_imu < t_now
+        rev.add_imu(mirror - t_imu[before][::-1], -gyro[before][::-1], acc[before][::-1])
+        out: list[Estimate] = []
+        stopped = ""
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # an IMU gap's time would be a mirrored one
+            for pts, t_pts in reversed(scans):
+                try:
+                    est = rev.add_scan(pts, mirror - t_pts)
+                except InputError as exc:
+                    stopped = (f"the backfill stopped at the scan starting at "
+                               f"t = {int(t_pts.min()) * 1e-9:.3f} s: {exc}")
+                    break
+                if est is None or int(t_pts.max()) >= t_init:
+                    continue
+                st = est.stats
+                st.t_ns = mirror - st.t_ns
+                st.backfill = True
+                out.append(Estimate(
+                    t_ns=st.t_ns, T_world_imu=est.T_world_imu,
+                    velocity_world_m_s=-est.velocity_world_m_s,
+                    gyro_bias_rad_s=-est.gyro_bias_rad_s, accel_bias_m_s2=est.accel_bias_m_s2,
+                    gravity_world_m_s2=est.gravity_world_m_s2, cov_diag=est.cov_diag,
+                    stats=st, points_world=est.points_world))
+        if stopped:
+            warnings.warn(stopped, stacklevel=3)
+        self._backfilled = out[::-1]
+        if out:
+            self._backfill_map = voxel_downsample(
+                np.vstack([e.points_world for e in out]), self.cfg.map.map_leaf_m)
+        self._accumulate(rev.stage_ms_total)
+        if self.init_report is not None:
+            self.init_report.backfilled = len(out)
+
+    def _reversed_copy(self, mirror_ns: int) -> Odometry:
+        """This filter (state, covariance, map) in mirrored time ``mirror_ns - t``, without IMU
+        data or held scans (``_backfill``)."""
+        rev = copy.copy(self)
+        rev.__dict__.update({k: copy.deepcopy(v) for k, v in self.__dict__.items()
+                             if k in ("_ivox", "_detector", "_provenance", "_W_map")})
+        cfg = self.cfg
+        rev.cfg = replace(cfg, preprocess=replace(cfg.preprocess, point_filter_num=1),
+                          imu=replace(cfg.imu, backfill_s=0.0))
+        x = self._state
+        rev._state = State(p=x.p.copy(), R=x.R.copy(), R_LI=x.R_LI.copy(), t_LI=x.t_LI.copy(),
+                           v=-x.v, b_g=-x.b_g, b_a=x.b_a.copy(), g=x.g.copy(),
+                           g_anchor=x.g_anchor)
+        flip = np.ones(DIM)
+        flip[V] = flip[BG] = -1.0
+        rev._P = self._P * np.outer(flip, flip)
+        rev._t_state_ns = mirror_ns - self._t_state_ns
+        rev._buf = _ImuBuffer(np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)))
+        rev._pending, rev._last_imu_t_ns = [], None
+        rev._held_scans, rev._held_imu, rev._backfilled = [], [], []
+        rev._backfill_map = np.zeros((0, 3))
+        rev._last_gap = rev._warned_gap_ns = rev._units_check = None
+        rev.stage_ms_total = dict.fromkeys(STAGES, 0.0)
+        return rev
 
     def _try_initialize(self, pts: np.ndarray, t_pts: np.ndarray, t_b_ns: int,
                         t_e_ns: int) -> np.ndarray | None:
