@@ -1,9 +1,9 @@
 """``run_bag``: bag → sequencer → :class:`adalio.lio.Odometry` → writers.
 
 Writes into ``out_dir``: ``trajectory.tum`` (IMU pose in the world frame, stamped at each scan
-end, rows flushed as produced; the backfill's rows for the scans before the initialization come
-later and both files are sorted by time at the end), ``scans.csv`` (one row per estimated scan), ``map.ply`` or
-``map.pcd`` (world-frame map, metres) and ``config.yaml`` (the effective config, with the
+end, rows flushed as produced), ``scans.csv`` (one row per estimated scan; the backfill's rows
+for the scans read before the initialization come later, and both files are sorted by time at
+the end), ``map.ply`` or ``map.pcd`` (world-frame map, metres) and ``config.yaml`` (the effective config, with the
 extrinsic actually used). The map and config are also written when the run stops early
 (Ctrl-C, a damaged bag), so partial outputs stay valid.
 """
@@ -254,12 +254,12 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         degen: list[bool] = []
         held: list[bool] = []
         risky: list[bool] = []
-        late = [False]
+        late = False
         """A backfilled row was written after later ones: the files are sorted at the end."""
 
         def write(e: Estimate, ms: float) -> None:
-            if e.stats.backfill and est_t and int(e.t_ns) < est_t[-1]:
-                late[0] = True
+            nonlocal late
+            late = late or bool(est_t and int(e.t_ns) < est_t[-1])
             tum.write(e.t_ns, e.T_world_imu)
             stats = e.stats
             stats.t_ns = int(e.t_ns)
@@ -303,16 +303,16 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                         on_scan(n_in)
                     if max_scans is not None and n_in >= max_scans:
                         break
-            if not interrupted:
-                odom.finish()
-                for e in odom.take_backfill():
-                    write(e, 0.0)
+                if not interrupted:  # a pending backfill runs now (a Ctrl-C lets it finish)
+                    odom.finish()
+                    for e in odom.take_backfill():
+                        write(e, 0.0)
         except KeyboardInterrupt:
             interrupted = True
         finally:
             tum.close()
             csvw.close()
-            if late[0]:
+            if late:
                 with contextlib.suppress(Exception):  # never mask the error that stopped the run
                     sort_rows_by_time(paths["trajectory"], paths["scans"])
             try:
