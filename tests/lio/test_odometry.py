@@ -543,6 +543,7 @@ def test_backfill_keeps_the_latest_backfill_s_and_runs_at_the_end_if_it_must():
     n_held = rep.scans_without_pose
     last_end = 1.6 + 0.1 * (n_held - 1) + 0.1 * 599 / 600
     expect = [k for k in range(n_held) if 1.6 + 0.1 * k >= last_end - 0.55 - 1e-9]
+    assert not odom.backfill_pending  # finish ran it
     assert rep.backfilled == len(back) == len(expect) == 5
     t_back = np.array([e.t_ns for e in back]) * 1e-9
     assert np.allclose(t_back, 1.6 + 0.1 * np.array(expect), atol=1e-6)

@@ -33,6 +33,13 @@ def ns_to_s_str(t_ns: int) -> str:
     return f"{sign}{q}.{r:09d}"
 
 
+def s_str_to_ns(field: str) -> int:
+    """Exact int64 ns of decimal seconds as ``ns_to_s_str`` writes them (no float rounding)."""
+    sec, _, frac = field.strip().partition(".")
+    sign = -1 if sec.startswith("-") else 1
+    return sign * (abs(int(sec)) * 1_000_000_000 + int((frac + "000000000")[:9]))
+
+
 def matrix_to_tum_fields(T: np.ndarray) -> list[float]:
     from scipy.spatial.transform import Rotation
 
@@ -83,10 +90,7 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         if not line or line.startswith("#"):
             continue
         parts = line.split()
-        sec, _, frac = parts[0].partition(".")
-        frac = (frac + "000000000")[:9]
-        sign = -1 if sec.startswith("-") else 1
-        t.append(sign * (abs(int(sec)) * 1_000_000_000 + int(frac)))
+        t.append(s_str_to_ns(parts[0]))
         vals.append([float(v) for v in parts[1:8]])
     return np.array(t, dtype=np.int64), np.array(vals, dtype=np.float64).reshape(-1, 7)
 
@@ -124,14 +128,6 @@ class ScansCsvWriter(_RowFile):
         self.rows += 1
 
 
-def _time_ns(line: str) -> int:
-    """Time of a row that starts with exact decimal seconds (``ns_to_s_str``), in ns."""
-    field = line.split(",", 1)[0].split(" ", 1)[0].strip()
-    sign = -1 if field.startswith("-") else 1
-    sec, _, frac = field.lstrip("-").partition(".")
-    return sign * (int(sec) * 1_000_000_000 + int((frac + "000000000")[:9]))
-
-
 def sort_rows_by_time(*paths: str | Path) -> None:
     """Rewrite row files (``trajectory.tum``, ``scans.csv``) with their data rows in time order
     (stable; header and comment lines first): the backfill's rows arrive after later ones."""
@@ -140,8 +136,9 @@ def sort_rows_by_time(*paths: str | Path) -> None:
         lines = path.read_text().splitlines(keepends=True)
         head = [ln for ln in lines if ln.startswith(("#", "t_s"))]
         rows = [ln for ln in lines if ln.strip() and not ln.startswith(("#", "t_s"))]
+        rows.sort(key=lambda ln: s_str_to_ns(ln.split(",", 1)[0].split()[0]))  # stable
         tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text("".join(head + sorted(rows, key=_time_ns)))
+        tmp.write_text("".join(head + rows))
         tmp.replace(path)
 
 

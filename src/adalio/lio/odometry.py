@@ -534,7 +534,6 @@ class Odometry:
         runs; and the IMU samples they span."""
         keep_s = self.cfg.imu.backfill_s
         if not keep_s > 0:
-            self._held_imu.clear()
             return
         self._held_scans.append((pts.astype(np.float32), t_pts.copy()))
         if self.initialized:
@@ -605,15 +604,14 @@ class Odometry:
             self._backfill_map = voxel_downsample(
                 np.vstack([e.points_world for e in out]), self.cfg.map.map_leaf_m)
         self._accumulate(rev.stage_ms_total)
-        if self.init_report is not None:
-            self.init_report.backfilled = len(out)
+        self.init_report.backfilled = len(out)
 
     def _reversed_copy(self, mirror_ns: int) -> Odometry:
         """This filter (state, covariance, map) in mirrored time ``mirror_ns - t``, without IMU
         data or held scans (``_backfill``)."""
         rev = copy.copy(self)
-        rev.__dict__.update({k: copy.deepcopy(v) for k, v in self.__dict__.items()
-                             if k in ("_ivox", "_detector", "_provenance", "_W_map")})
+        for name in ("_ivox", "_detector", "_provenance"):  # what add_scan changes in place
+            setattr(rev, name, copy.deepcopy(getattr(self, name)))
         cfg = self.cfg
         rev.cfg = replace(cfg, preprocess=replace(cfg.preprocess, point_filter_num=1),
                           imu=replace(cfg.imu, backfill_s=0.0))
