@@ -2,8 +2,8 @@
 
 Run: ``python benchmarks/bench_map_kernels.py``. Prints the median and the minimum over repeats
 (ms) after a warm-up call (numba compile / cache load excluded). kNN and plane fits are timed on
-one thread and split over ``NUMBA_NUM_THREADS`` threads (``adalio.jit.for_rows``); on a loaded
-machine the minimum is the more telling figure.
+the single-threaded path and on the numba-parallel path (``NUMBA_NUM_THREADS`` threads); on a
+loaded machine the minimum is the more telling figure.
 """
 
 from __future__ import annotations

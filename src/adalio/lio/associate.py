@@ -19,10 +19,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
+from numba import prange
 
 from adalio.errors import ConfigError
-from adalio.jit import for_rows, kernel
+from adalio.jit import kernel
 from adalio.lio.ivox import IVox, _knn_row
 from adalio.lio.plane import (
     PLANE_METHODS,
@@ -33,15 +35,12 @@ from adalio.lio.plane import (
     within_support,
 )
 
-PARALLEL_MIN_QUERIES = 512
-"""Batches of at least this many queries are split over numba's threads (``NUMBA_NUM_THREADS``)
-by :func:`adalio.jit.for_rows`. On the 2-core dev machine a hand-over to the second thread costs
-about 0.14 ms, and two threads beat one from about 512 queries on: 0.27-0.37 vs 0.24-0.39 ms at
-256, 0.53 vs 0.61-0.78 ms at 512, 2.1 vs 3.3-4.2 ms at 2800 (a 512-column XT-32 scan),
-8.0-8.2 vs 12.7-13.1 ms at 11000, the same as numba's ``parallel=True`` loop this replaced
-(2.0-2.1 and 8.2-8.3 ms). Python threads do not spin-wait, but more threads than cores still
-slow each other, hence one numba thread per ``adalio batch`` worker when the workers fill the
-cores."""
+PARALLEL_MIN_QUERIES = 256
+"""Batches of at least this many queries run on all numba threads (``NUMBA_NUM_THREADS``). On the
+quiet 2-core dev machine (OpenMP layer) two threads beat one from 128 queries on: 0.23 vs 0.36 ms
+at 512, 1.6 vs 2.7 ms at 2842 (a 512-column XT-32 scan). On a machine whose cores are all busy,
+OpenMP's spin-waiting makes them slower (8 vs 3.8 ms measured), hence one numba thread per
+``adalio batch`` worker when the workers fill the cores."""
 
 
 @dataclass
@@ -96,16 +95,29 @@ def _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min
     valid[i] = True
 
 
-@kernel(nogil=True)
-def _associate_rows(lo, hi, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
-                    radius2, margin_m, min_extent_m, use_ls, support_test, normals, dist, valid,
-                    counts, mu, lam_mid, nearest):
-    """Rows ``lo..hi-1``, one scratch buffer; rows are independent, so ranges may run on
-    several threads at once (:func:`adalio.jit.for_rows`) with the same result."""
+@kernel()
+def _associate_serial(queries, k, max_d2, resolution_m, offsets, cap, store, min_count, radius2,
+                      margin_m, min_extent_m, use_ls, support_test, normals, dist, valid, counts,
+                      mu, lam_mid, nearest):
+    """All rows, one thread, one scratch buffer."""
     nb = np.empty((1, k, 3))
     d2 = np.empty((1, k))
     scratch = np.empty((2, 3, 3))
-    for i in range(lo, hi):
+    for i in range(queries.shape[0]):
+        _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
+                       radius2, margin_m, min_extent_m, use_ls, support_test, nb, d2, scratch,
+                       normals, dist, valid, counts, mu, lam_mid, nearest)
+
+
+@kernel(parallel=True)
+def _associate_parallel(queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
+                        radius2, margin_m, min_extent_m, use_ls, support_test, normals, dist,
+                        valid, counts, mu, lam_mid, nearest):
+    """All rows on all numba threads; rows are independent (own scratch), so deterministic."""
+    for i in prange(queries.shape[0]):
+        nb = np.empty((1, k, 3))
+        d2 = np.empty((1, k))
+        scratch = np.empty((2, 3, 3))
         _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
                        radius2, margin_m, min_extent_m, use_ls, support_test, nb, d2, scratch,
                        normals, dist, valid, counts, mu, lam_mid, nearest)
@@ -134,11 +146,12 @@ def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
                           nearest=np.full((m, 3), np.nan))
     if m == 0 or ivox.num_voxels == 0:
         return out
-    for_rows(_associate_rows, m, q, int(k), float(max_range_m) ** 2, ivox.resolution_m,
-             ivox._offsets, ivox.max_points_per_voxel,
-             (ivox._table, ivox._vkeys, ivox._vtotal, ivox._vblocks, ivox._pool),
-             max(int(min_neighbors), 3), float(radius_m) ** 2, float(margin_m),
-             float(min_extent_m), method == "ls", bool(support_test), out.normals, out.d,
-             out.valid, out.counts, out.mu, out.lam_mid, out.nearest,
-             min_rows=PARALLEL_MIN_QUERIES)
+    parallel = m >= PARALLEL_MIN_QUERIES and numba.get_num_threads() > 1
+    kernel = _associate_parallel if parallel else _associate_serial
+    kernel(q, int(k), float(max_range_m) ** 2, ivox.resolution_m, ivox._offsets,
+           ivox.max_points_per_voxel,
+           (ivox._table, ivox._vkeys, ivox._vtotal, ivox._vblocks, ivox._pool),
+           max(int(min_neighbors), 3), float(radius_m) ** 2, float(margin_m),
+           float(min_extent_m), method == "ls", bool(support_test), out.normals, out.d,
+           out.valid, out.counts, out.mu, out.lam_mid, out.nearest)
     return out

@@ -28,10 +28,11 @@ Deviations from upstream, documented in lio-design.md §7:
 from __future__ import annotations
 
 import numpy as np
+from numba import prange
 
 from adalio.config import MapConfig
 from adalio.errors import ConfigError, InputError
-from adalio.jit import for_rows, kernel
+from adalio.jit import kernel
 
 BLOCK_POINTS = 8
 """Points per storage block of a voxel (memory granularity, not an algorithm constant)."""
@@ -375,13 +376,23 @@ def _knn_row(
     return cnt
 
 
-@kernel(nogil=True)
-def _knn_rows(
-    lo, hi, queries, k, max_d2, resolution_m, offsets, cap, store, out_nbrs, out_d2, out_counts
+@kernel()
+def _knn_serial(
+    queries, k, max_d2, resolution_m, offsets, cap, store, out_nbrs, out_d2, out_counts
 ):
-    """kNN of query rows ``lo..hi-1`` (§7); rows are independent, so ranges may run on several
-    threads at once (:func:`adalio.jit.for_rows`) with the same result."""
-    for qi in range(lo, hi):
+    """kNN of every query row (§7), one thread."""
+    for qi in range(queries.shape[0]):
+        out_counts[qi] = _knn_row(
+            qi, queries, k, max_d2, resolution_m, offsets, cap, store, out_nbrs, out_d2
+        )
+
+
+@kernel(parallel=True)
+def _knn_parallel(
+    queries, k, max_d2, resolution_m, offsets, cap, store, out_nbrs, out_d2, out_counts
+):
+    """kNN of every query row (§7); rows are independent, so the result is deterministic."""
+    for qi in prange(queries.shape[0]):
         out_counts[qi] = _knn_row(
             qi, queries, k, max_d2, resolution_m, offsets, cap, store, out_nbrs, out_d2
         )
@@ -566,9 +577,8 @@ class IVox:
         counts = np.zeros(m, np.int64)
         if m == 0 or self.num_voxels == 0:
             return nbrs, counts, dist2
-        for_rows(
-            _knn_rows,
-            m,
+        kernel = _knn_parallel if m >= PARALLEL_MIN_ROWS else _knn_serial
+        kernel(
             q,
             k,
             float(max_range_m) ** 2,
@@ -579,7 +589,6 @@ class IVox:
             nbrs,
             dist2,
             counts,
-            min_rows=PARALLEL_MIN_ROWS,
         )
         return nbrs, counts, dist2
 

@@ -23,9 +23,10 @@ Rows with a fit keep it even when invalid by margin; rows without one are NaN.
 from __future__ import annotations
 
 import numpy as np
+from numba import prange
 
 from adalio.errors import ConfigError, InputError
-from adalio.jit import for_rows, kernel
+from adalio.jit import kernel
 
 LS_MIN_RCOND = 1e-10
 """LS falls back to PCA when the reciprocal condition number of A^T A (estimated as
@@ -321,14 +322,13 @@ def _fit_row(
     valid[i] = True
 
 
-@kernel(nogil=True)
-def _fit_planes_rows(
-    lo, hi, nbrs, counts, min_count, margin_m, min_extent_m, use_ls, normals, dist, valid
+@kernel()
+def _fit_planes_serial(
+    nbrs, counts, min_count, margin_m, min_extent_m, use_ls, normals, dist, valid
 ):
-    """Rows ``lo..hi-1``, one scratch buffer; rows are independent, so ranges may run on
-    several threads at once (:func:`adalio.jit.for_rows`) with the same result."""
+    """All rows, one thread."""
     scratch = np.empty((2, 3, 3))
-    for i in range(lo, hi):
+    for i in range(nbrs.shape[0]):
         _fit_row(
             i,
             nbrs,
@@ -338,6 +338,28 @@ def _fit_planes_rows(
             min_extent_m,
             use_ls,
             scratch,
+            normals,
+            dist,
+            valid,
+        )
+
+
+@kernel(parallel=True)
+def _fit_planes_parallel(
+    nbrs, counts, min_count, margin_m, min_extent_m, use_ls, normals, dist, valid
+):
+    """All rows; rows are independent (own scratch), so the result is deterministic."""
+    scratch = np.empty((nbrs.shape[0], 2, 3, 3))
+    for i in prange(nbrs.shape[0]):
+        _fit_row(
+            i,
+            nbrs,
+            counts,
+            min_count,
+            margin_m,
+            min_extent_m,
+            use_ls,
+            scratch[i],
             normals,
             dist,
             valid,
@@ -371,11 +393,10 @@ def fit_planes(
     normals = np.full((m, 3), np.nan)
     dist = np.full(m, np.nan)
     valid = np.zeros(m, np.bool_)
+    kernel = _fit_planes_parallel if m >= PARALLEL_MIN_ROWS else _fit_planes_serial
     if not (np.isfinite(min_extent_m) and min_extent_m >= 0.0):
         raise ConfigError(f"plane min_extent_m must be >= 0 metres, got {min_extent_m!r}")
-    for_rows(
-        _fit_planes_rows,
-        m,
+    kernel(
         nb,
         cn,
         max(int(min_neighbors), 3),
@@ -385,7 +406,6 @@ def fit_planes(
         normals,
         dist,
         valid,
-        min_rows=PARALLEL_MIN_ROWS,
     )
     return normals, dist, valid
 
