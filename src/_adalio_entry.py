@@ -1,15 +1,39 @@
 """Console entry point of ``adalio``, outside the package so that it loads before anything else:
 Ctrl-C while the command line is still being imported (numpy, typer, ...) exits 130 with one
-line instead of a traceback. Everything else is :func:`adalio.cli.main`."""
+line instead of a traceback. Everything else is :func:`adalio.cli.main`.
 
+Ctrl-C is also remembered, not only raised: some libraries wrap their optional imports in
+``except BaseException`` (or a bare ``except``), which swallows the KeyboardInterrupt raised
+while they are being imported, and the command would then run to the end and exit 0. The
+handler installed here keeps ``received`` set; :func:`adalio.cli.main` and the run's Ctrl-C guard
+(``adalio.pipeline``) read it from whatever handler is installed, and stop with exit 130."""
+
+import signal
 import sys
+
+
+class StickyInterrupt:
+    """SIGINT handler: raise KeyboardInterrupt, as Python's default handler does, and remember
+    that it happened (``received``) in case the exception is swallowed."""
+
+    def __init__(self) -> None:
+        self.received = False
+
+    def __call__(self, signum: int, frame: object) -> None:
+        self.received = True
+        raise KeyboardInterrupt
 
 
 def main() -> None:
     """Run the adalio command line."""
+    handler = StickyInterrupt()
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, handler)
     try:
         from adalio.cli import main as cli_main
     except KeyboardInterrupt:
+        handler.received = True
+    if handler.received:
         sys.stderr.write("interrupted\n")
         raise SystemExit(130) from None
     cli_main()

@@ -612,6 +612,44 @@ def test_ctrl_c_during_run_start(base: Base, tmp_path: Path, delay_s: float) -> 
         assert all(len(r) == 8 for r in rows)
 
 
+_SWALLOWED_CTRL_C = """
+import os, signal, sys
+import _adalio_entry
+handler = _adalio_entry.StickyInterrupt()
+signal.signal(signal.SIGINT, handler)
+swallowed = False
+try:  # a library import that wraps itself in 'except BaseException'
+    os.kill(os.getpid(), signal.SIGINT)
+    sum(range(10))
+except BaseException:
+    swallowed = True
+if not (swallowed and handler.received):
+    sys.exit(3)
+from adalio.cli import main
+sys.argv = ["adalio", *sys.argv[1:]]
+main()
+"""
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="needs POSIX signals")
+@pytest.mark.parametrize("command", ["version", "run"])
+def test_ctrl_c_swallowed_by_an_import_still_stops_with_130(base: Base, tmp_path: Path,
+                                                            command: str) -> None:
+    """A KeyboardInterrupt that a library swallowed while it was imported (seen in a cold venv:
+    the run went on to the end and exited 0) still ends the command with exit 130, and a run
+    stops before its first scan."""
+    argv = ["version"] if command == "version" else run_args(base, base.bag, tmp_path)
+    proc = subprocess.run([sys.executable, "-c", _SWALLOWED_CTRL_C, *argv], check=False,
+                          cwd=tmp_path, capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "COLUMNS": "400"})
+    text = proc.stdout + proc.stderr
+    assert proc.returncode == 130, text
+    assert "Traceback" not in text and "interrupted" in text, text
+    if command == "run":
+        tum = tmp_path / "out" / "trajectory.tum"
+        assert not tum.is_file() or tum.read_text().strip() == "", text
+
+
 @pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs Linux /proc")
 def test_ctrl_c_after_first_poses_keeps_outputs(base: Base, tmp_path: Path) -> None:
     tum = tmp_path / "out" / "trajectory.tum"

@@ -9,6 +9,7 @@ stderr and a non-zero exit; Ctrl-C exits with 130 after the writers have flushed
 from __future__ import annotations
 
 import importlib
+import signal
 import sys
 
 import typer
@@ -78,6 +79,8 @@ def main() -> None:
                           highlight=False, soft_wrap=True)
             sys.exit(exc.exit_code)
         code = code if isinstance(code, int) else 0
+        if getattr(signal.getsignal(signal.SIGINT), "received", False):
+            code = 130  # a Ctrl-C that an import swallowed (_adalio_entry.StickyInterrupt)
         if code == 130:  # typer turns a KeyboardInterrupt inside a command into exit 130
             err.print(ctrl_c)
         sys.exit(code)

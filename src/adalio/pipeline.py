@@ -150,6 +150,8 @@ class _GracefulStop:
     def __enter__(self) -> Self:
         if threading.current_thread() is threading.main_thread():
             self._old = signal.signal(signal.SIGINT, self._handler)
+            # a Ctrl-C that an import swallowed earlier (_adalio_entry.StickyInterrupt)
+            self.requested = bool(getattr(self._old, "received", False))
         return self
 
     def __exit__(self, *exc: object) -> None:
