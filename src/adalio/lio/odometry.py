@@ -390,13 +390,12 @@ class Odometry:
                 self._hold(pts, t_pts)
                 self._accumulate(stage_ms)
                 return None
-            if pts_e is not None:
-                if self._held_scans:
-                    self._hold(pts, t_pts)
-                return self._first_map(pts_e, t_e, stats, stage_ms, t_start, t0)
-
-        if self._held_scans:
+        else:
+            pts_e = None
+        if self._held_scans:  # tracked since the initialization, until the backfill runs
             self._hold(pts, t_pts)
+        if pts_e is not None:
+            return self._first_map(pts_e, t_e, stats, stage_ms, t_start, t0)
 
         # 3-4. propagate with pose records, undistort to the scan end (§5)
         pts_e = self._propagate_and_undistort(pts, t_pts, t_e)
