@@ -305,6 +305,29 @@ def test_one_point_per_cell_matches_first_come_model(resolution_m: float, cell_m
         np.testing.assert_array_equal(np.array(sorted(map(tuple, stored))), expected)
 
 
+@pytest.mark.parametrize("origin_m", [0.0, -3000.0, 12345.6])
+def test_one_point_per_cell_on_cell_edges_far_from_the_origin(origin_m: float) -> None:
+    """Points on and a few ulps either side of cell edges, far from the origin (where a cell's
+    floor(p / cell) and the points' distance disagree the most): the map still equals the
+    first-come model."""
+    rng = np.random.default_rng(5)
+    cell_m = 0.2
+    ivox = IVox(0.5, 18, 10**6, 64, cell_m=cell_m)
+    kept: dict[tuple[int, int, int], np.ndarray] = {}
+    for _ in range(4):
+        edges = (np.floor(origin_m / cell_m) + rng.integers(-6, 7, size=(600, 3))) * cell_m
+        ulps = rng.integers(-3, 4, size=(600, 3))
+        batch = edges + ulps * np.spacing(np.abs(edges) + cell_m)
+        batch[::3] += rng.uniform(-cell_m, cell_m, size=batch[::3].shape)
+        ivox.add_points(batch)
+        for p in batch:
+            kept.setdefault(tuple(np.floor(p / cell_m).astype(int)), p)
+        stored = ivox.points()
+        assert ivox.num_points == len(kept)
+        expected = np.array(sorted(map(tuple, kept.values())))
+        np.testing.assert_array_equal(np.array(sorted(map(tuple, stored))), expected)
+
+
 def test_one_point_per_cell_frees_evicted_cells() -> None:
     ivox = IVox(1.0, 18, 1, 8, cell_m=0.25)
     a = np.array([[0.1, 0.1, 0.1]])

@@ -8,7 +8,7 @@ import pytest
 from adalio.config import Config
 from adalio.errors import InputError
 from adalio.lio import Odometry, so3
-from adalio.lio.odometry import STAGES
+from adalio.lio.odometry import STAGES, _group_ids
 from adalio.lio.state import V
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -596,3 +596,20 @@ def test_rest_prior_knows_the_specific_force_as_well_as_the_still_window(rest_pr
         assert np.all(var < 5 * window_mean_var) and np.all(var > 0.1 * window_mean_var)
     else:
         assert np.all(var > 100 * window_mean_var)
+
+
+def test_group_ids_partition_rows_by_identical_point() -> None:
+    """Rows holding the same point (bit for bit, NaN rows included) share a group id, others
+    do not (brute force over all pairs); ids run 0 .. n_groups - 1."""
+    rng = np.random.default_rng(3)
+    pool = rng.normal(size=(40, 3))
+    pool[5] = np.nan
+    pool[6] = pool[7] = np.array([0.1, 0.2, 0.3])
+    pool[8] = np.array([0.1, 0.2, np.nextafter(0.3, 1.0)])
+    rows = pool[rng.integers(0, 40, 500)]
+    gid, n_groups = _group_ids(rows)
+    bits = rows.view(np.int64)
+    same = (bits[:, None, :] == bits[None, :, :]).all(axis=2)
+    np.testing.assert_array_equal(gid[:, None] == gid[None, :], same)
+    assert n_groups == len({tuple(b) for b in bits}) == gid.max() + 1
+    assert _group_ids(np.zeros((0, 3)))[1] == 0

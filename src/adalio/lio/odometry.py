@@ -64,7 +64,7 @@ from adalio.lio.degeneracy import (
     weak_directions,
 )
 from adalio.lio.ieskf import iterated_update
-from adalio.lio.ivox import IVox
+from adalio.lio.ivox import IVox, hash_key3
 from adalio.lio.map_uncertainty import MapProvenance
 from adalio.lio.measurement import point_to_plane, points_to_world, residual_weights
 from adalio.lio.motion_init import MovingInit, handover_covariance
@@ -125,17 +125,35 @@ def _range_gate(points, t_ns, blind_m, max_range_m, point_filter_num):
     return out, t_out, n_finite
 
 
-_KEY_MIX = np.array([0x9E3779B97F4A7C15 - (1 << 64), 0xC2B2AE3D27D4EB4F - (1 << 64),
-                     0x165667B19E3779F9], dtype=np.int64)
-
-
+@kernel()
 def _group_ids(points: np.ndarray) -> tuple[np.ndarray, int]:
-    """Group index of each row (rows holding exactly the same point share one; hash of the
-    float bits) and the number of groups."""
-    bits = np.ascontiguousarray(points, dtype=np.float64).view(np.int64)
-    key = (bits * _KEY_MIX).sum(axis=1)
-    uniq, inverse = np.unique(key, return_inverse=True)
-    return inverse.reshape(-1), int(uniq.shape[0])
+    """Group index of each row (rows holding bit-for-bit the same point share one, numbered in
+    order of first appearance) and the number of groups: an open-addressing table over the
+    rows' float bits, sized to at most half full."""
+    n = points.shape[0]
+    bits = points.view(np.int64)
+    size = 2
+    while size < 2 * n:
+        size *= 2
+    mask = size - 1
+    first = np.full(size, -1, np.int64)
+    gid = np.empty(n, np.int64)
+    n_groups = 0
+    for i in range(n):
+        a, b, c = bits[i, 0], bits[i, 1], bits[i, 2]
+        slot = hash_key3(a, b, c, mask)
+        while True:
+            j = first[slot]
+            if j < 0:
+                first[slot] = i
+                gid[i] = n_groups
+                n_groups += 1
+                break
+            if bits[j, 0] == a and bits[j, 1] == b and bits[j, 2] == c:
+                gid[i] = gid[j]
+                break
+            slot = (slot + 1) & mask
+    return gid, n_groups
 
 
 class _Association:
