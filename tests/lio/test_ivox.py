@@ -328,6 +328,45 @@ def test_one_point_per_cell_on_cell_edges_far_from_the_origin(origin_m: float) -
         np.testing.assert_array_equal(np.array(sorted(map(tuple, stored))), expected)
 
 
+def test_cells_with_overwrites_evictions_and_mixed_cell_edges_match_a_plain_model() -> None:
+    """Batches with changing cell edges (0, 0.1, 0.2, 0.25 m), a per-voxel cap that overwrites
+    and a capacity that evicts: a row is kept iff no point *still stored* lies in its cell of
+    that batch's edge (a plain-Python model of voxels, FIFO, LRU and cells, brute force)."""
+    rng = np.random.default_rng(23)
+    resolution, cap, capacity = 0.5, 6, 60
+    ivox = IVox(resolution, 18, capacity, cap, cell_m=0.2)
+    voxels: dict[tuple, list[tuple]] = {}
+    stamp: dict[tuple, int] = {}
+    seq = 0
+    centre = np.zeros(3)
+    n_overwrites = n_evicted = 0
+    for _ in range(40):
+        centre = centre + rng.normal(scale=0.4, size=3)
+        batch = centre + rng.normal(scale=0.6, size=(int(rng.integers(20, 120)), 3))
+        cell = float(rng.choice([0.0, 0.1, 0.2, 0.25]))
+        ivox.add_points(batch, cell_m=cell)
+        for p, key in zip(batch, voxel_keys(batch, resolution), strict=True):
+            if cell > 0:
+                c = tuple(np.floor(p / cell))
+                stored = [q for v in voxels.values() for q in v]
+                if any(tuple(np.floor(np.array(q) / cell)) == c for q in stored):
+                    continue
+            key = tuple(key)
+            voxels.setdefault(key, []).append(tuple(p))
+            n_overwrites += len(voxels[key]) > cap
+            voxels[key] = voxels[key][-cap:]
+            stamp[key] = seq
+            seq += 1
+        if len(voxels) > capacity:
+            while len(voxels) > capacity - capacity // EVICT_SLACK_DIVISOR:
+                oldest = min(voxels, key=stamp.__getitem__)
+                del voxels[oldest]
+                del stamp[oldest]
+                n_evicted += 1
+        assert voxel_sets(ivox) == {k: set(v) for k, v in voxels.items()}
+    assert n_overwrites > 20 and n_evicted > 20
+
+
 def test_one_point_per_cell_frees_evicted_cells() -> None:
     ivox = IVox(1.0, 18, 1, 8, cell_m=0.25)
     a = np.array([[0.1, 0.1, 0.1]])

@@ -18,9 +18,11 @@ Deviations from upstream, documented in lio-design.md §7:
 * kNN returns the exact k nearest of all points of the searched voxels with squared distance
   < max_range_m**2, sorted ascending (upstream only guarantees element 0 is the nearest).
 * One point per cell (``cell_m > 0``, set to ``map.map_leaf_m`` by :meth:`IVox.from_config`): a
-  point is inserted only if no stored point lies in its cell floor(p / cell_m), checked against
-  the stored points of the iVox voxels overlapping that cell, so earlier rows of the same batch
-  count and an evicted voxel frees its cells. Upstream's rule (lio-design.md §7) lets
+  point is inserted only if no stored point lies in its cell floor(p / cell_m), so earlier rows
+  of the same batch count, and a point overwritten or evicted frees its cell. The stored points
+  are counted per cell in a hash table, for every cell edge used so far (a scan may use a finer
+  one), updated on insertion and overwrite and recounted after an eviction: one lookup per row
+  instead of a scan of the voxels overlapping its cell. Upstream's rule (lio-design.md §7) lets
   a cell accumulate points creeping towards its centre; plane fits over such clusters have
   arbitrary normals and act as fake constraints (degenerate corridors "stick").
 """
@@ -120,60 +122,69 @@ def _rebuild_table(table: np.ndarray, vkeys: np.ndarray, nv: int) -> None:
         table[h] = v
 
 
-@kernel()
-def _cell_occupied(
-    x: float,
-    y: float,
-    z: float,
-    cell_m: float,
-    resolution_m: float,
-    cap: int,
-    table: np.ndarray,
-    vkeys: np.ndarray,
-    vtotal: np.ndarray,
-    vblocks: np.ndarray,
-    pool: np.ndarray,
-) -> bool:
-    """Whether a stored point shares the cell floor(p / cell_m) of p (searches every iVox voxel
-    overlapping the cell).
+@kernel(inline="always")
+def _occ_slot(okeys: np.ndarray, si: int, kx: int, ky: int, kz: int, insert: bool) -> int:
+    """Slot of cell (kx, ky, kz) of edge number ``si`` in the occupancy table (linear probing;
+    an empty slot has ``okeys[slot, 0] == -1``); -1 when absent and not ``insert``."""
+    mask = okeys.shape[0] - 1
+    h = hash_key3(kx, ky, kz + si * _HASH_Y, mask)
+    while True:
+        if okeys[h, 0] < 0:
+            if not insert:
+                return -1
+            okeys[h, 0] = si
+            okeys[h, 1] = kx
+            okeys[h, 2] = ky
+            okeys[h, 3] = kz
+            return h
+        if okeys[h, 0] == si and okeys[h, 1] == kx and okeys[h, 2] == ky and okeys[h, 3] == kz:
+            return h
+        h = (h + 1) & mask
 
-    A stored point farther than ``near`` from p along any axis cannot share its cell (two values
-    whose quotients by cell_m floor to the same integer differ by less than cell_m, up to the
-    rounding of the two divisions, which ``near`` covers with a wide relative margin), so it is
-    passed over without the three divisions: the same answer, faster.
-    """
+
+@kernel(inline="always")
+def _cell_of(x: float, y: float, z: float, cell_m: float):
+    """(ok, cx, cy, cz): the cell floor(p / cell_m) of p; not ok beyond ±_MAX_ABS_KEY cells."""
     cx = np.floor(x / cell_m)
     cy = np.floor(y / cell_m)
     cz = np.floor(z / cell_m)
     if not (abs(cx) < _MAX_ABS_KEY and abs(cy) < _MAX_ABS_KEY and abs(cz) < _MAX_ABS_KEY):
-        return False
-    near = cell_m + 1e-9 * (cell_m + abs(x) + abs(y) + abs(z))
-    slack = _BOX_SLACK * resolution_m
-    lx = np.int64(np.floor((cx * cell_m - slack) / resolution_m + 0.5))
-    hx = np.int64(np.floor(((cx + 1.0) * cell_m + slack) / resolution_m + 0.5))
-    ly = np.int64(np.floor((cy * cell_m - slack) / resolution_m + 0.5))
-    hy = np.int64(np.floor(((cy + 1.0) * cell_m + slack) / resolution_m + 0.5))
-    lz = np.int64(np.floor((cz * cell_m - slack) / resolution_m + 0.5))
-    hz = np.int64(np.floor(((cz + 1.0) * cell_m + slack) / resolution_m + 0.5))
-    for kx in range(lx, hx + 1):
-        for ky in range(ly, hy + 1):
-            for kz in range(lz, hz + 1):
-                v = _lookup(table, vkeys, kx, ky, kz)
-                if v < 0:
-                    continue
-                for j in range(min(vtotal[v], cap)):
-                    b = vblocks[v, j >> _BLOCK_SHIFT]
-                    s = j & (BLOCK_POINTS - 1)
-                    if not (abs(pool[b, s, 0] - x) <= near and abs(pool[b, s, 1] - y) <= near
-                            and abs(pool[b, s, 2] - z) <= near):
-                        continue
-                    if (
-                        np.floor(pool[b, s, 0] / cell_m) == cx
-                        and np.floor(pool[b, s, 1] / cell_m) == cy
-                        and np.floor(pool[b, s, 2] / cell_m) == cz
-                    ):
-                        return True
-    return False
+        return False, 0, 0, 0
+    return True, np.int64(cx), np.int64(cy), np.int64(cz)
+
+
+@kernel(inline="always")
+def _occ_add(okeys: np.ndarray, ocount: np.ndarray, ostate: np.ndarray, cell_sizes: np.ndarray,
+             x: float, y: float, z: float, delta: int) -> None:
+    """Count a stored point in (``delta`` = 1) or out of (-1) its cell of every tracked edge."""
+    for si in range(cell_sizes.shape[0]):
+        ok, cx, cy, cz = _cell_of(x, y, z, cell_sizes[si])
+        if not ok:
+            continue
+        h = _occ_slot(okeys, si, cx, cy, cz, delta > 0)
+        if h < 0:
+            continue
+        if ocount[h] < 0:
+            ocount[h] = 0
+            ostate[0] += 1
+        ocount[h] += delta
+
+
+@kernel()
+def _occ_rebuild(okeys: np.ndarray, ocount: np.ndarray, ostate: np.ndarray,
+                 cell_sizes: np.ndarray, nv: int, cap: int, vtotal: np.ndarray,
+                 vblocks: np.ndarray, pool: np.ndarray) -> None:
+    """The occupancy table counted afresh from every stored point."""
+    for h in range(okeys.shape[0]):
+        okeys[h, 0] = -1
+        ocount[h] = -1
+    ostate[0] = 0
+    for v in range(nv):
+        for j in range(min(vtotal[v], cap)):
+            b = vblocks[v, j >> _BLOCK_SHIFT]
+            s = j & (BLOCK_POINTS - 1)
+            _occ_add(okeys, ocount, ostate, cell_sizes, pool[b, s, 0], pool[b, s, 1],
+                     pool[b, s, 2], 1)
 
 
 @kernel()
@@ -191,12 +202,19 @@ def _insert_points(
     pool: np.ndarray,
     free_blocks: np.ndarray,
     state: np.ndarray,
+    cell_index: int,
+    cell_sizes: np.ndarray,
+    okeys: np.ndarray,
+    ocount: np.ndarray,
+    ostate: np.ndarray,
 ) -> int:
     """Sequential, deterministic insertion of world points into their round(p/s) voxels (§7).
 
     Processes rows from ``start`` on; a voxel holding ``cap`` points overwrites its oldest point
     (ring order). With ``cell_m > 0`` a row whose cell floor(p / cell_m) already holds a stored
-    point is skipped. Stops before a row that might need a voxel, table slot or block the arrays do
+    point is skipped: ``cell_sizes[cell_index] == cell_m``, and the occupancy table (``okeys``,
+    ``ocount``, ``ostate``) counts the stored points per cell of every edge in ``cell_sizes``; it
+    must have room for ``len(cell_sizes)`` new cells per row. Stops before a row that might need a voxel, table slot or block the arrays do
     not have, and returns that row (``len(points)`` when done) so the caller can grow them.
     ``state`` = [nv, n_points, n_blocks, n_free, seq] is updated in place.
     """
@@ -217,20 +235,12 @@ def _insert_points(
         ok, kx, ky, kz = _key_of(points[row, 0], points[row, 1], points[row, 2], resolution_m)
         if not ok:
             continue
-        if cell_m > 0.0 and _cell_occupied(
-            points[row, 0],
-            points[row, 1],
-            points[row, 2],
-            cell_m,
-            resolution_m,
-            cap,
-            table,
-            vkeys,
-            vtotal,
-            vblocks,
-            pool,
-        ):
-            continue
+        if cell_m > 0.0:
+            ok, cx, cy, cz = _cell_of(points[row, 0], points[row, 1], points[row, 2], cell_m)
+            if ok:
+                h = _occ_slot(okeys, cell_index, cx, cy, cz, False)
+                if h >= 0 and ocount[h] > 0:
+                    continue
         h = hash_key3(kx, ky, kz, mask)
         while True:
             v = table[h]
@@ -262,6 +272,11 @@ def _insert_points(
             slot = t % cap
         b = vblocks[v, slot >> _BLOCK_SHIFT]
         j = slot & (BLOCK_POINTS - 1)
+        if t >= cap:  # the oldest point of the voxel leaves its cells
+            _occ_add(okeys, ocount, ostate, cell_sizes, pool[b, j, 0], pool[b, j, 1],
+                     pool[b, j, 2], -1)
+        _occ_add(okeys, ocount, ostate, cell_sizes, points[row, 0], points[row, 1],
+                 points[row, 2], 1)
         pool[b, j, 0] = points[row, 0]
         pool[b, j, 1] = points[row, 1]
         pool[b, j, 2] = points[row, 2]
@@ -474,6 +489,11 @@ class IVox:
         self._pool = np.empty((0, BLOCK_POINTS, 3), np.float64)
         self._free = np.empty(0, np.int64)
         self._state = np.zeros(5, np.int64)
+        # one-point-per-cell: stored points counted per cell of every cell edge used so far
+        self._cell_sizes = np.empty(0, np.float64)
+        self._okeys = np.full((16, 4), -1, np.int64)
+        self._ocount = np.full(16, -1, np.int64)
+        self._ostate = np.zeros(1, np.int64)
 
     @classmethod
     def from_config(cls, cfg: MapConfig) -> IVox:
@@ -507,6 +527,13 @@ class IVox:
         n = pts.shape[0]
         if n == 0:
             return
+        if cell > 0.0 and cell not in self._cell_sizes:
+            self._cell_sizes = np.append(self._cell_sizes, cell)
+            self._rebuild_occupancy(n)
+        cell_index = int(np.flatnonzero(self._cell_sizes == cell)[0]) if cell > 0.0 else -1
+        if self._cell_sizes.size and 2 * (self._ostate[0] + self._cell_sizes.size * n) > \
+                self._okeys.shape[0]:
+            self._rebuild_occupancy(n)
         start = 0
         while start < n:
             self._make_room()
@@ -524,6 +551,11 @@ class IVox:
                 self._pool,
                 self._free,
                 self._state,
+                cell_index,
+                self._cell_sizes,
+                self._okeys,
+                self._ocount,
+                self._ostate,
             )
         nv = self.num_voxels
         if nv > self.capacity_voxels:
@@ -543,6 +575,19 @@ class IVox:
                 self._free,
                 self._state,
             )
+            if self._cell_sizes.size:
+                self._rebuild_occupancy(0)
+
+    def _rebuild_occupancy(self, n_new: int) -> None:
+        """Count the stored points per cell afresh, in a table at most half full once ``n_new``
+        more points are in (each adds at most one cell per tracked edge)."""
+        need = 2 * self._cell_sizes.size * (self.num_points + n_new)
+        size = max(16, 1 << int(need - 1).bit_length())
+        if size != self._okeys.shape[0]:
+            self._okeys = np.empty((size, 4), np.int64)
+            self._ocount = np.empty(size, np.int64)
+        _occ_rebuild(self._okeys, self._ocount, self._ostate, self._cell_sizes, self.num_voxels,
+                     self.max_points_per_voxel, self._vtotal, self._vblocks, self._pool)
 
     def _make_room(self) -> None:
         """Double whichever store is full (voxel rows, hash table at load 1/2, block pool)."""
