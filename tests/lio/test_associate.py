@@ -57,6 +57,43 @@ def test_fused_association_equals_search_then_fit(method: str, parallel: bool,
         assert (got.counts == 0).sum() >= 50
 
 
+@pytest.mark.parametrize("parallel", [False, True])
+def test_warm_started_search_equals_a_cold_one(parallel: bool,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """A search started from the same rows' previous neighbours returns what a cold search
+    returns, bit for bit: rows moved by millimetres (same voxel), by decimetres (many cross into
+    another voxel), and on a grid map whose equidistant neighbours make ties."""
+    rng = np.random.default_rng(9)
+    monkeypatch.setattr(assoc_mod, "PARALLEL_MIN_QUERIES", 1 if parallel else 10**9)
+    grid = np.stack(np.meshgrid(*[np.arange(0.0, 2.0, 0.1)] * 2, [0.0], indexing="ij"),
+                    -1).reshape(-1, 3)
+    grid_map = IVox(resolution_m=0.5, nearby_type=18, max_points_per_voxel=32)
+    grid_map.add_points(grid)
+    cases = [(_room_map(rng), None), (grid_map, grid)]
+    n_crossed = 0
+    for ivox, on_grid in cases:
+        if on_grid is None:
+            q0 = np.vstack([ivox.points()[rng.choice(ivox.num_points, 1500)]
+                            + rng.normal(0, 0.05, (1500, 3)),
+                            rng.uniform([-1, -1, -1], [7, 5, 4], (500, 3))])
+        else:  # grid nodes and cell centres: many neighbours at exactly equal distances
+            q0 = np.vstack([on_grid[::3], on_grid[::5] + [0.05, 0.05, 0.0]])
+        first = associate(ivox, q0, 5, 5.0, 3, 3.0, 0.05, keep_neighbours=True)
+        for step in (0.003, 0.02, 0.2):
+            q1 = q0 + rng.normal(0, step, q0.shape) * (on_grid is None)
+            if on_grid is not None:  # move along the grid, keeping the ties
+                q1 = q0 + np.array([step, 0.0, 0.0])
+            cold = associate(ivox, q1, 5, 5.0, 3, 3.0, 0.05, keep_neighbours=True)
+            warm = associate(ivox, q1, 5, 5.0, 3, 3.0, 0.05, keep_neighbours=True,
+                             warm_from=first)
+            for name in ("normals", "d", "valid", "counts", "mu", "lam_mid", "nearest",
+                         "neighbours"):
+                np.testing.assert_array_equal(getattr(warm, name), getattr(cold, name),
+                                              err_msg=f"{name} step {step}")
+            n_crossed += int(np.any(np.round(q1 / 0.5) != np.round(q0 / 0.5), axis=1).sum())
+    assert n_crossed > 100
+
+
 def test_empty_map_and_empty_queries() -> None:
     ivox = IVox(resolution_m=0.5, nearby_type=18, max_points_per_voxel=32)
     got = associate(ivox, np.zeros((4, 3)), 5, 5.0, 3, 3.0, 0.05)

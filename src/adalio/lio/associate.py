@@ -25,7 +25,7 @@ from numba import prange
 
 from adalio.errors import ConfigError
 from adalio.jit import kernel
-from adalio.lio.ivox import IVox, _knn_row
+from adalio.lio.ivox import IVox, _key_of, _knn_row
 from adalio.lio.plane import (
     PLANE_METHODS,
     _middle_eigenvalue,
@@ -61,18 +61,52 @@ class Correspondences:
     """(M,) middle eigenvalue of the neighbour covariance, m² (0 for fewer than 3)."""
     nearest: np.ndarray
     """(M,3) nearest neighbour (NaN when none)."""
+    queries: np.ndarray | None = None
+    """(M,3) the searched world points (with ``keep_neighbours``)."""
+    neighbours: np.ndarray | None = None
+    """(M,k,3) the k nearest, ascending (NaN-padded; with ``keep_neighbours``)."""
+
+
+@kernel(inline="always")
+def _warm_bound(queries, prev_queries, prev_nbrs, i, k, max_d2, resolution_m):
+    """A squared distance that the k nearest of query ``i`` all lie below: just above the
+    farthest of the k neighbours its previous position had, when both positions search the same
+    voxels (same query voxel) and the map has not changed since; else ``max_d2``. The search
+    started with it returns the same neighbours, in the same order, as one started with
+    ``max_d2`` (every point it passes over is farther than k points it keeps), and prunes more."""
+    ok, kx, ky, kz = _key_of(queries[i, 0], queries[i, 1], queries[i, 2], resolution_m)
+    ok0, kx0, ky0, kz0 = _key_of(prev_queries[i, 0], prev_queries[i, 1], prev_queries[i, 2],
+                                 resolution_m)
+    if not (ok and ok0 and kx == kx0 and ky == ky0 and kz == kz0):
+        return max_d2
+    far = 0.0
+    for j in range(k):
+        d = ((prev_nbrs[i, j, 0] - queries[i, 0]) ** 2 + (prev_nbrs[i, j, 1] - queries[i, 1]) ** 2
+             + (prev_nbrs[i, j, 2] - queries[i, 2]) ** 2)
+        far = max(far, d)
+    bound = np.nextafter(far, np.inf)
+    return min(max_d2, bound)
 
 
 @kernel(inline="always")
 def _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
                    radius2, margin_m, min_extent_m, use_ls, support_test, nb, d2, scratch,
-                   normals, dist, valid, counts, mu, lam_mid, nearest):
+                   normals, dist, valid, counts, mu, lam_mid, nearest, warm, prev_queries,
+                   prev_nbrs, prev_counts, out_nbrs):
     for j in range(k):
         d2[0, j] = np.inf
         nb[0, j, 0] = np.nan
         nb[0, j, 1] = np.nan
         nb[0, j, 2] = np.nan
-    c = _knn_row(0, queries[i:i + 1], k, max_d2, resolution_m, offsets, cap, store, nb, d2)
+    bound = max_d2
+    if warm and prev_counts[i] == k:
+        bound = _warm_bound(queries, prev_queries, prev_nbrs, i, k, max_d2, resolution_m)
+    c = _knn_row(0, queries[i:i + 1], k, bound, resolution_m, offsets, cap, store, nb, d2)
+    if out_nbrs.shape[0]:
+        for j in range(k):
+            out_nbrs[i, j, 0] = nb[0, j, 0]
+            out_nbrs[i, j, 1] = nb[0, j, 1]
+            out_nbrs[i, j, 2] = nb[0, j, 2]
     counts[i] = c
     nearest[i, 0] = nb[0, 0, 0]
     nearest[i, 1] = nb[0, 0, 1]
@@ -98,7 +132,7 @@ def _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min
 @kernel()
 def _associate_serial(queries, k, max_d2, resolution_m, offsets, cap, store, min_count, radius2,
                       margin_m, min_extent_m, use_ls, support_test, normals, dist, valid, counts,
-                      mu, lam_mid, nearest):
+                      mu, lam_mid, nearest, warm, prev_queries, prev_nbrs, prev_counts, out_nbrs):
     """All rows, one thread, one scratch buffer."""
     nb = np.empty((1, k, 3))
     d2 = np.empty((1, k))
@@ -106,13 +140,15 @@ def _associate_serial(queries, k, max_d2, resolution_m, offsets, cap, store, min
     for i in range(queries.shape[0]):
         _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
                        radius2, margin_m, min_extent_m, use_ls, support_test, nb, d2, scratch,
-                       normals, dist, valid, counts, mu, lam_mid, nearest)
+                       normals, dist, valid, counts, mu, lam_mid, nearest, warm, prev_queries,
+                       prev_nbrs, prev_counts, out_nbrs)
 
 
 @kernel(parallel=True)
 def _associate_parallel(queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
                         radius2, margin_m, min_extent_m, use_ls, support_test, normals, dist,
-                        valid, counts, mu, lam_mid, nearest):
+                        valid, counts, mu, lam_mid, nearest, warm, prev_queries, prev_nbrs,
+                        prev_counts, out_nbrs):
     """All rows on all numba threads; rows are independent (own scratch), so deterministic."""
     for i in prange(queries.shape[0]):
         nb = np.empty((1, k, 3))
@@ -120,12 +156,15 @@ def _associate_parallel(queries, k, max_d2, resolution_m, offsets, cap, store, m
         scratch = np.empty((2, 3, 3))
         _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
                        radius2, margin_m, min_extent_m, use_ls, support_test, nb, d2, scratch,
-                       normals, dist, valid, counts, mu, lam_mid, nearest)
+                       normals, dist, valid, counts, mu, lam_mid, nearest, warm, prev_queries,
+                       prev_nbrs, prev_counts, out_nbrs)
 
 
 def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
               min_neighbors: int, radius_m: float, margin_m: float, method: str = "ls",
-              min_extent_m: float = 0.0, support_test: bool = False) -> Correspondences:
+              min_extent_m: float = 0.0, support_test: bool = False,
+              keep_neighbours: bool = False,
+              warm_from: Correspondences | None = None) -> Correspondences:
     """Planes from the k nearest map points of each world point (§6.2, §7, §9.4).
 
     Same arguments and result as ``ivox.knn(points_world, k, max_range_m)``, then
@@ -133,6 +172,11 @@ def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
     radius gate ``counts >= min_neighbors and dist2[count - 1] <= radius_m²`` folded into
     ``valid``, and ``neighbour_moments``. With ``support_test`` a plane is also valid only where
     the query lies within its neighbours' span (:func:`adalio.lio.plane.within_support`).
+
+    ``keep_neighbours`` also returns the queries and their neighbours. ``warm_from``, such a
+    result for the same rows (e.g. the same scan points at an earlier pose) on the *unchanged*
+    map, starts each row's search from its previous neighbours' farthest distance: the same
+    result, bit for bit, with fewer points and voxels visited (:func:`_warm_bound`).
     """
     if method not in PLANE_METHODS:
         raise ConfigError(f"filter.plane_fit must be 'ls' or 'pca', got {method!r}")
@@ -140,18 +184,30 @@ def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
         raise ConfigError(f"plane min_extent_m must be >= 0 metres, got {min_extent_m!r}")
     q = np.ascontiguousarray(points_world, dtype=np.float64)
     m = q.shape[0]
+    k = int(k)
     out = Correspondences(normals=np.full((m, 3), np.nan), d=np.full(m, np.nan),
                           valid=np.zeros(m, np.bool_), counts=np.zeros(m, np.int64),
                           mu=np.full((m, 3), np.nan), lam_mid=np.zeros(m),
                           nearest=np.full((m, 3), np.nan))
+    if keep_neighbours:
+        out.queries = q
+        out.neighbours = np.full((m, k, 3), np.nan)
     if m == 0 or ivox.num_voxels == 0:
         return out
+    warm = (warm_from is not None and warm_from.neighbours is not None
+            and warm_from.neighbours.shape == (m, k, 3))
+    if warm:
+        prev_q, prev_nb, prev_c = warm_from.queries, warm_from.neighbours, warm_from.counts
+    else:
+        prev_q, prev_nb, prev_c = np.empty((0, 3)), np.empty((0, k, 3)), np.empty(0, np.int64)
+    out_nb = out.neighbours if keep_neighbours else np.empty((0, k, 3))
     parallel = m >= PARALLEL_MIN_QUERIES and numba.get_num_threads() > 1
     kernel = _associate_parallel if parallel else _associate_serial
-    kernel(q, int(k), float(max_range_m) ** 2, ivox.resolution_m, ivox._offsets,
+    kernel(q, k, float(max_range_m) ** 2, ivox.resolution_m, ivox._offsets,
            ivox.max_points_per_voxel,
            (ivox._table, ivox._vkeys, ivox._vtotal, ivox._vblocks, ivox._pool),
            max(int(min_neighbors), 3), float(radius_m) ** 2, float(margin_m),
            float(min_extent_m), method == "ls", bool(support_test), out.normals, out.d,
-           out.valid, out.counts, out.mu, out.lam_mid, out.nearest)
+           out.valid, out.counts, out.mu, out.lam_mid, out.nearest, warm, prev_q, prev_nb,
+           prev_c, out_nb)
     return out

@@ -54,7 +54,7 @@ from adalio.config import Config
 from adalio.errors import InputError
 from adalio.jit import kernel
 from adalio.lio import imu, so3
-from adalio.lio.associate import associate
+from adalio.lio.associate import Correspondences, associate
 from adalio.lio.degeneracy import (
     DegeneracyDetector,
     Localizability,
@@ -180,6 +180,7 @@ class _Association:
         self.H = np.zeros((0, 12))
         self._searched_at: tuple[np.ndarray, ...] | None = None
         self._p_world_searched: np.ndarray | None = None
+        self._last: Correspondences | None = None
         self.n_searches = 0
 
     def _same_pose(self, x: State) -> bool:
@@ -209,7 +210,8 @@ class _Association:
             self._p_world_searched = p_world
             c = associate(self.ivox, p_world, f.knn_k, f.knn_max_range_m, f.min_neighbors,
                           self.radius_m, self.margin_m, f.plane_fit, self.min_extent_m,
-                          f.plane_within_support)
+                          f.plane_within_support, keep_neighbours=True, warm_from=self._last)
+            self._last = c  # the map does not change while this scan is being registered
             self.normals, self.d, self.counts = c.normals, c.d, c.counts
             self.mu, self.lam_mid, self.nearest = c.mu, c.lam_mid, c.nearest
             self.selected = c.valid
