@@ -4,8 +4,8 @@ Writes into ``out_dir``: ``trajectory.tum`` (IMU pose in the world frame, stampe
 end, rows flushed as produced), ``scans.csv`` (one row per estimated scan; the backfill's rows
 for the scans read before the initialization come later, and both files are sorted by time at
 the end), ``map.ply`` or ``map.pcd`` (world-frame map, metres) and ``config.yaml`` (the
-effective config, with the extrinsic actually used). The map and config are also written when the run stops early
-(Ctrl-C, a damaged bag), so partial outputs stay valid.
+effective config, with the extrinsic actually used). The map and config are also written when
+the run stops early (Ctrl-C, a damaged bag), so partial outputs stay valid.
 """
 
 from __future__ import annotations

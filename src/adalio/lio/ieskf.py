@@ -49,8 +49,8 @@ def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: 
     ``δ̃ = J (x_j ⊟ x̂)``, ``P_j = J P̂ Jᵀ``, ``S = HᵀH/R + P_j⁻¹`` (HᵀH fills the 12×12 corner),
     ``K = S⁻¹ Hᵀ/R`` (its 12 columns as ``P_j E (I + Λ Eᵀ P_j E)⁻¹``, Λ = HᵀH/R, E the first 12
     error columns: the push-through identity, one 12×12 solve), ``δ = K h + (K H − I) δ̃``,
-    ``x_{j+1} = x_j ⊞ δ``. Converged when every ``|δ_i| ≤ ε``; forced before the last iteration; stop after two converged steps or N_max+1
-    evaluations. ``P⁺ = (I − K H) P_j``.
+    ``x_{j+1} = x_j ⊞ δ``. Converged when every ``|δ_i| ≤ ε``; forced before the last
+    iteration; stop after two converged steps or N_max+1 evaluations. ``P⁺ = (I − K H) P_j``.
 
     ``pose_projector`` (6×6, error order [δp, δθ]) restricts the update to observable pose
     directions (AdaLIO+, degeneracy.py §3): ``H_pose ← H_pose P_obs`` and the gain rows of the

@@ -179,7 +179,7 @@ class _Association:
         self.selected = np.zeros(n, np.bool_)
         self.H = np.zeros((0, 12))
         self._searched_at: tuple[np.ndarray, ...] | None = None
-        self._p_world_searched: np.ndarray | None = None
+        # the last search (its queries and neighbours); the map does not change meanwhile
         self._last: Correspondences | None = None
         self.n_searches = 0
 
@@ -190,7 +190,7 @@ class _Association:
 
     def _small_shift(self, p_world: np.ndarray) -> bool:
         """No scan point moved more than ``filter.research_min_shift_m`` since the last search."""
-        last = self._p_world_searched
+        last = None if self._last is None else self._last.queries
         tol = self.cfg.research_min_shift_m
         if last is None or not tol > 0:
             return False
@@ -207,11 +207,10 @@ class _Association:
             self.selected = self._valid_after_search.copy()
         elif research:
             self.n_searches += 1
-            self._p_world_searched = p_world
             c = associate(self.ivox, p_world, f.knn_k, f.knn_max_range_m, f.min_neighbors,
                           self.radius_m, self.margin_m, f.plane_fit, self.min_extent_m,
                           f.plane_within_support, keep_neighbours=True, warm_from=self._last)
-            self._last = c  # the map does not change while this scan is being registered
+            self._last = c
             self.normals, self.d, self.counts = c.normals, c.d, c.counts
             self.mu, self.lam_mid, self.nearest = c.mu, c.lam_mid, c.nearest
             self.selected = c.valid
