@@ -80,8 +80,9 @@ def test_warm_started_search_equals_a_cold_one(parallel: bool,
             q0 = np.vstack([on_grid[::3], on_grid[::5] + [0.05, 0.05, 0.0]])
         first = associate(ivox, q0, 5, 5.0, 3, 3.0, 0.05, keep_neighbours=True)
         for step in (0.003, 0.02, 0.2):
-            q1 = q0 + rng.normal(0, step, q0.shape) * (on_grid is None)
-            if on_grid is not None:  # move along the grid, keeping the ties
+            if on_grid is None:
+                q1 = q0 + rng.normal(0, step, q0.shape)
+            else:  # move along the grid, keeping the ties
                 q1 = q0 + np.array([step, 0.0, 0.0])
             cold = associate(ivox, q1, 5, 5.0, 3, 3.0, 0.05, keep_neighbours=True)
             warm = associate(ivox, q1, 5, 5.0, 3, 3.0, 0.05, keep_neighbours=True,
