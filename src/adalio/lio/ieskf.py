@@ -47,10 +47,9 @@ def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: 
 
     Loop ``j = −1 … N_max−1``: evaluate ``H, r`` at ``x_j`` (re-search while ``research``),
     ``δ̃ = J (x_j ⊟ x̂)``, ``P_j = J P̂ Jᵀ``, ``S = HᵀH/R + P_j⁻¹`` (HᵀH fills the 12×12 corner),
-    ``K = S⁻¹ Hᵀ/R`` (its 12 columns as ``P_j E (I + Λ Eᵀ P_j E)⁻¹``, Λ = HᵀH/R, E the first 12
-    error columns: the push-through identity, one 12×12 solve), ``δ = K h + (K H − I) δ̃``,
-    ``x_{j+1} = x_j ⊞ δ``. Converged when every ``|δ_i| ≤ ε``; forced before the last
-    iteration; stop after two converged steps or N_max+1 evaluations. ``P⁺ = (I − K H) P_j``.
+    ``K = S⁻¹ Hᵀ/R``, ``δ = K h + (K H − I) δ̃``, ``x_{j+1} = x_j ⊞ δ``. Converged when every
+    ``|δ_i| ≤ ε``; forced before the last iteration; stop after two converged steps or N_max+1
+    evaluations. ``P⁺ = (I − K H) P_j``.
 
     ``pose_projector`` (6×6, error order [δp, δθ]) restricts the update to observable pose
     directions (AdaLIO+, degeneracy.py §3): ``H_pose ← H_pose P_obs`` and the gain rows of the
@@ -91,13 +90,11 @@ def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: 
         else:
             HTH = H.T @ H
             HTh = -(H.T @ r)
-            # (P_j⁻¹ + E Λ Eᵀ)⁻¹ E = P_j E (I + Λ Eᵀ P_j E)⁻¹ with Λ = HᵀH/R in the first 12
-            # error columns E, transposed (P_j, Λ symmetric): one 12x12 solve instead of
-            # inverting P_j and S (23x23)
-            S_inv12 = np.linalg.solve(np.eye(12) + P_j[:12, :12] @ (HTH * inv_r),
-                                      P_j[:12, :]).T
-            K_h = S_inv12 @ HTh * inv_r
-            KH[:, :12] = S_inv12 @ HTH * inv_r
+            S = np.linalg.inv(P_j)
+            S[:12, :12] += HTH * inv_r
+            S_inv = np.linalg.inv(S)
+            K_h = S_inv[:, :12] @ HTh * inv_r
+            KH[:, :12] = S_inv[:, :12] @ HTH * inv_r
             if M is not None:
                 K_h = M @ K_h
                 KH = M @ KH
@@ -118,7 +115,7 @@ def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: 
                 P_out = (np.eye(DIM) - KH) @ P_j
             else:
                 A = np.eye(DIM) - KH
-                KRK = S_inv12 @ HTH @ S_inv12.T * inv_r
+                KRK = S_inv[:, :12] @ HTH @ S_inv[:12, :] * inv_r
                 P_out = A @ P_j @ A.T + M @ KRK @ M.T
             break
     P_out = 0.5 * (P_out + P_out.T)
