@@ -219,6 +219,11 @@ class FilterConfig:
     the reported sigmas change, never the trajectory."""
     map_provenance_cell_m: float = 0.5
     """Cell (m) at which map_uncertainty remembers which scan first filled the map."""
+    map_error_correlated: bool = True
+    """With map_uncertainty: add the filter's covariance and the map's with a bound that holds
+    whatever their correlation (lio/map_uncertainty.py, ``world_covariance``), instead of as
+    independent errors. In shafts and stairwells a scan's registration bias has the sign of the
+    bias of the map it registers to, so the map's error grows linearly, not as a random walk."""
 
 
 @dataclass

@@ -1,12 +1,13 @@
 """Map uncertainty (lio/map_uncertainty.py): the lever-arm transport against Monte Carlo rigid
-perturbations of a map, cell ownership and the matched-point average against brute force."""
+perturbations of a map, cell ownership and the matched-point average against brute force, the
+correlated combination against sampled correlated errors and a chain of map extensions."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from adalio.lio.map_uncertainty import MapProvenance, transport
+from adalio.lio.map_uncertainty import MapProvenance, transport, world_covariance
 
 
 def _random_covariance(rng: np.random.Generator, pos_m: float, rot_rad: float) -> np.ndarray:
@@ -70,6 +71,54 @@ def test_map_covariance_is_the_matched_points_mean_of_transported_owner_covarian
     np.testing.assert_allclose(prov.map_covariance(p_now, matched), brute, rtol=1e-12,
                                atol=1e-18)
     np.testing.assert_array_equal(prov.map_covariance(p_now, matched[-1:]), np.zeros((6, 6)))
+
+
+def test_world_covariance_bounds_the_sum_of_two_errors_whatever_their_correlation():
+    """For joint covariances of (a, b) with random cross-covariances, from none to (nearly)
+    full, the sampled covariance of a + b stays below the bound in the PSD order, while the
+    independent sum is exceeded when the two errors are positively correlated; the bound is
+    exact when b is a positive multiple of a."""
+    rng = np.random.default_rng(11)
+    n = 200000
+    exceeded = 0
+    for trial in range(12):
+        A_half = rng.normal(size=(6, 6)) * np.r_[[0.02] * 3, [0.004] * 3][:, None]
+        B_half = rng.normal(size=(6, 6)) * np.r_[[0.05] * 3, [0.002] * 3][:, None]
+        shared = trial / 11  # 0: independent ... 1: a and b driven by one noise
+        u = rng.normal(size=(n, 6))
+        v = np.sqrt(shared) * u + np.sqrt(1 - shared) * rng.normal(size=(n, 6))
+        a, b = u @ A_half.T, v @ B_half.T
+        W_rel, W_map = np.cov(a.T), np.cov(b.T)
+        C = np.cov((a + b).T)
+        bound = world_covariance(W_rel, W_map, correlated=True)
+        assert np.linalg.eigvalsh(bound - C).min() > -1e-3 * np.linalg.eigvalsh(C).max()
+        independent = world_covariance(W_rel, W_map, correlated=False)
+        np.testing.assert_allclose(independent, W_rel + W_map)
+        exceeded += np.trace(C[:3, :3]) > 1.05 * np.trace(independent[:3, :3])
+    assert exceeded >= 4
+    W = np.cov(rng.normal(size=(1000, 6)).T)
+    np.testing.assert_allclose(world_covariance(W, 4.0 * W, correlated=True), 9.0 * W,
+                               rtol=1e-12)
+    np.testing.assert_array_equal(world_covariance(W, np.zeros((6, 6)), correlated=True), W)
+
+
+def test_a_chain_of_map_extensions_adds_standard_deviations_not_variances():
+    """Scan k registers against the cells scan k-1 filled (no lever arm) with its own position
+    covariance σ² I: with the correlated combination the k-th scan's sigma is (k+1) σ, as for a
+    bias repeated at every extension; as independent errors it is sqrt(k+1) σ."""
+    sigma = 0.01
+    W_rel = np.diag([sigma**2] * 3 + [0.0] * 3)
+    for correlated, expected in ((True, lambda k: (k + 1) * sigma),
+                                 (False, lambda k: np.sqrt(k + 1) * sigma)):
+        prov = MapProvenance(cell_m=1.0)
+        block = np.array([[0.5, 0.5, 0.5]])
+        W_map = np.zeros((6, 6))
+        for k in range(8):
+            if k:
+                W_map = prov.map_covariance(np.zeros(3), block + [3.0 * (k - 1), 0, 0])
+            W = world_covariance(W_rel, W_map, correlated)
+            np.testing.assert_allclose(np.sqrt(np.diag(W)[:3]), expected(k), rtol=1e-12)
+            prov.add_scan(np.zeros(3), W, block + [3.0 * k, 0, 0])
 
 
 def test_odometry_sigmas_add_the_map_and_leave_the_trajectory_alone(tmp_path):

@@ -202,6 +202,10 @@ class SigmaConsistency:
     mean_nees: float
     """Mean of ``Σ_axis (error / sigma)²`` (3 for a consistent filter; the covariance's
     off-diagonal terms are not in scans.csv, so this is the diagonal NEES)."""
+    increment_correlation: np.ndarray
+    """(3,) per axis, the correlation of consecutive ``INCREMENT_S`` increments of the error
+    (lag 1): about 0 when the error grows as a random walk, towards +1 when it drifts the same
+    way for a long time (a bias), negative when it swings back. NaN for fewer than 3 increments."""
 
 
 def sigma_consistency(est_tum: TrajectoryLike, gt_tum: TrajectoryLike,
@@ -233,4 +237,32 @@ def sigma_consistency(est_tum: TrajectoryLike, gt_tum: TrajectoryLike,
     z = err / sig
     return SigmaConsistency(t_s=t_est[ok], errors_world_m=err, sigma_world_m=sig,
                             within_3sigma=np.mean(np.abs(z) <= 3.0, axis=0),
-                            mean_nees=float(np.mean(np.sum(z * z, axis=1))))
+                            mean_nees=float(np.mean(np.sum(z * z, axis=1))),
+                            increment_correlation=increment_correlation(t_est[ok], err))
+
+
+INCREMENT_S = 1.0
+"""Step (s) of the error increments whose correlation :func:`increment_correlation` reports."""
+
+
+def increment_correlation(t_s: np.ndarray, errors: np.ndarray,
+                          step_s: float = INCREMENT_S) -> np.ndarray:
+    """Per column of ``errors`` (n, d) at times ``t_s`` (n,): the lag-1 correlation of the
+    error's increments over consecutive ``step_s`` intervals (the error sampled at the first
+    time at or after each multiple of ``step_s`` from the start). NaN where fewer than 3
+    increments exist or an increment series is constant."""
+    t = np.asarray(t_s, dtype=np.float64)
+    e = np.asarray(errors, dtype=np.float64).reshape(len(t), -1)
+    out = np.full(e.shape[1], np.nan)
+    if len(t) < 2:
+        return out
+    marks = t[0] + step_s * np.arange(int(np.floor((t[-1] - t[0]) / step_s)) + 1)
+    idx = np.unique(np.searchsorted(t, marks - 1e-9))
+    d = np.diff(e[idx[idx < len(t)]], axis=0)
+    if d.shape[0] < 3:
+        return out
+    for a in range(e.shape[1]):
+        x, y = d[:-1, a], d[1:, a]
+        if np.std(x) > 0 and np.std(y) > 0:
+            out[a] = float(np.corrcoef(x, y)[0, 1])
+    return out

@@ -17,10 +17,23 @@ is stored as the covariance of the map cells scan ``k`` is the first to fill, so
 accumulates as the map is extended (odometry drift) and stays put while the sensor re-observes
 the same map. The first scan anchors the world: ``W_0 = 0``.
 
-Chosen approximations, both conservative or neutral for the 3σ test: the map errors of different
-scans are averaged (fully correlated, not independent, which would shrink ``W_map``), and the
-correlation between ``W_rel,k`` and ``W_map,k`` is ignored (in a direction no scan constrains,
-the IMU growth since then is in both terms, so the sum over-states it by up to 2x in variance).
+The two terms are not independent. Where the scans are weakly constrained (a spiral shaft, a
+stairwell's height) each scan's registration is biased the same way as the scans that built the
+map it registers to, so ``W_rel,k`` and ``W_map,k`` are positively correlated and the map error
+grows with the distance travelled, not with its square root (measured: the 1 s increments of the
+error are correlated from one second to the next by +0.5 to +0.9 there, by -0.2 to -0.4 in the
+open hall; ``benchmarks/bench_modes.py``). The correlation is unknown, so by default
+(``filter.map_error_correlated``) ``W_k`` is the bound that holds for any correlation between
+two errors ``a`` and ``b``: ``Cov(a + b) ⪯ (1 + α) Cov(a) + (1 + 1/α) Cov(b)`` for every
+``α > 0``, with ``α = sqrt(tr W_map,pp / tr W_rel,pp)``, the value that minimises the position
+trace, which then is ``(sqrt(tr W_rel,pp) + sqrt(tr W_map,pp))²``: the position standard
+deviations of a chain of map extensions add up instead of their variances
+(:func:`world_covariance`). ``filter.map_error_correlated: false`` adds them as independent.
+
+Chosen approximations, conservative or neutral for the 3σ test: the map errors of different
+scans are averaged (fully correlated, not independent, which would shrink ``W_map``), and in a
+direction no scan constrains, the IMU growth since then is in both terms, so the sum over-states
+it by up to 2x in variance (4x with the bound).
 Provenance is kept per ``cell_m`` cell (first scan to insert a point there), not per point,
 and from regular strides of the inserted and matched points (``MAX_*_SAMPLES``).
 The trajectory is unchanged: this only feeds the reported sigmas.
@@ -41,6 +54,22 @@ cell a scan fills holds several of its points, and a cell missed is claimed by a
 later, with nearly the same covariance."""
 _OFFSET = 1 << 20
 """Cell indices are shifted by this before packing 21 bits per axis (±2^20 cells)."""
+
+
+def world_covariance(W_rel: np.ndarray, W_map: np.ndarray, correlated: bool) -> np.ndarray:
+    """The 6x6 world covariance ``W_k`` of a pose from the filter's ``W_rel`` and the map's
+    ``W_map``: their sum (``correlated=False``), or the bound
+    ``(1 + α) W_rel + (1 + 1/α) W_map`` with ``α = sqrt(tr W_map,pp / tr W_rel,pp)`` on the
+    covariance of the sum of two errors whatever their correlation (module doc). The bound is
+    the sum when either position block is zero (the other term then holds no position error to
+    correlate with), and it is tight when one error is a positive multiple of the other."""
+    W_rel = np.asarray(W_rel, dtype=np.float64)
+    W_map = np.asarray(W_map, dtype=np.float64)
+    a, b = float(np.trace(W_rel[:3, :3])), float(np.trace(W_map[:3, :3]))
+    if not (correlated and a > 0.0 and b > 0.0):
+        return W_rel + W_map
+    alpha = np.sqrt(b / a)
+    return (1.0 + alpha) * W_rel + (1.0 + 1.0 / alpha) * W_map
 
 
 @kernel()
@@ -157,4 +186,4 @@ class MapProvenance:
         return j
 
 
-__all__ = ["MapProvenance", "transport"]
+__all__ = ["MapProvenance", "transport", "world_covariance"]

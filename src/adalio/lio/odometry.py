@@ -65,7 +65,7 @@ from adalio.lio.degeneracy import (
 )
 from adalio.lio.ieskf import iterated_update
 from adalio.lio.ivox import IVox, hash_key3
-from adalio.lio.map_uncertainty import MapProvenance
+from adalio.lio.map_uncertainty import MapProvenance, world_covariance
 from adalio.lio.measurement import point_to_plane, points_to_world, residual_weights
 from adalio.lio.motion_init import MovingInit, handover_covariance
 from adalio.lio.state import (
@@ -927,10 +927,11 @@ class Odometry:
             self.stage_ms_total[k] = self.stage_ms_total.get(k, 0.0) + v
 
     def _world_covariance(self) -> np.ndarray:
-        """6x6 world covariance of the pose: the filter's, plus the map's if
-        ``filter.map_uncertainty`` (lio/map_uncertainty.py)."""
+        """6x6 world covariance of the pose: the filter's, combined with the map's if
+        ``filter.map_uncertainty`` (``map_uncertainty.world_covariance``)."""
         W = pose_covariance_world(self._state.R, self._P)
-        return W + self._W_map if self.cfg.filter.map_uncertainty else W
+        f = self.cfg.filter
+        return world_covariance(W, self._W_map, f.map_error_correlated) if f.map_uncertainty else W
 
     def _emit(self, stats: ScanStats, stage_ms: dict[str, float], t_start: float,
               p_world: np.ndarray) -> Estimate:
