@@ -135,3 +135,29 @@ def test_report_detects_hilti_control_points(tmp_path):
     assert_png_image(run / "trajectory_top.png")
     with pytest.raises(InputError, match="--hilti"):
         ate(dense[0], sparse)
+
+
+def test_report_states_sigma_consistency_and_how_the_error_drifts(tmp_path):
+    """With honest sigma columns (3 cm, the estimate's white noise) the report finds about
+    99.7 % of the scans within 3σ and a mean NEES near 3, and the increments of a white error
+    swing back (their lag-1 correlation is -0.5 in theory; 11 increments per axis here, so the
+    three axes' mean is checked)."""
+    out, gt = make_run_dir(tmp_path)
+    rows = read_scans_csv(out / "scans.csv")
+    csvw = ScansCsvWriter(out / "scans.csv")
+    for t_s in rows["t_s"]:
+        csvw.write(ScanStats(t_ns=round(float(t_s) * 1e9), n_raw=20000, n_down=1500,
+                             n_down_general=1400, n_near=300, voxel_size_m=0.2,
+                             search_radius_m=3.0, plane_margin_m=0.05, n_matched=900,
+                             iterations=3, wall_ms=12.0, eigenvalues=np.geomspace(1e1, 1e5, 6),
+                             sigma_p_world_m=np.full(3, 0.03),
+                             sigma_rot_world_deg=np.full(3, 0.1)))
+    csvw.close()
+    text = make_report(out, gt).read_text()
+    sigma = json.loads((out / "metrics.json").read_text())["sigma"]
+    assert sigma["n"] == 120
+    assert min(sigma["within_3sigma_xyz"]) > 0.95
+    assert 2.0 < sigma["mean_nees"] < 4.0
+    r = np.array(sigma["increment_correlation_xyz"])
+    assert -0.8 < r.mean() < -0.2, r
+    assert "Correlation of consecutive 1 s increments" in text

@@ -151,7 +151,10 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
             cons = sigma_consistency(est_path, gt, scans, max_diff_s)
     if cons is not None:
         metrics["sigma"] = {"within_3sigma_xyz": cons.within_3sigma.tolist(),
-                            "mean_nees": cons.mean_nees, "n": len(cons.t_s)}
+                            "mean_nees": cons.mean_nees, "n": len(cons.t_s),
+                            "increment_correlation_xyz": [
+                                float(v) if np.isfinite(v) else None
+                                for v in cons.increment_correlation]}
         figures.append(("Position error against the filter's ±3σ", plots.plot_error_sigma(
             cons.t_s - t0, cons.errors_world_m, cons.sigma_world_m, run_dir / "error_sigma.png")))
     if scans is not None:
@@ -208,6 +211,13 @@ def _markdown(metrics: dict[str, Any], figures: list[tuple[str, Path]],
                    f"y {100 * w[1]:.1f} %, z {100 * w[2]:.1f} % (99.7 % if the σ were honest "
                    f"and Gaussian); mean NEES {c['mean_nees']:.1f} (3 if consistent), "
                    f"{c['n']} scans."), ""]
+        r = c.get("increment_correlation_xyz") or []
+        if any(v is not None for v in r):
+            cells = ", ".join(f"{a} {'n/a' if v is None else f'{v:+.2f}'}"
+                              for a, v in zip("xyz", r, strict=False))
+            lines += [(f"Correlation of consecutive 1 s increments of that error: {cells} (near"
+                       " +1: the error drifts one way, as with a biased map; near 0: a random"
+                       " walk; below 0: it swings back)."), ""]
     if "hilti" in metrics:
         h = metrics["hilti"]
         lines += ["## HILTI 2022 score", "",
