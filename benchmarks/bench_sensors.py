@@ -12,8 +12,9 @@ LiDAR (XT-32 at 512 / 2000 columns, Ouster OS1-64), the simulator's sequence is 
   so the first message already moves.
 
 Per cell: poses / scans in the part of the bag that was read, how the estimator initialized
-(static / moving), SE(3)-aligned ATE RMSE against ground truth (evo), and the median time per
-scan. The summary gives mean and worst per scene, start and noise level and checks the issue's
+(static / moving), SE(3)-aligned ATE RMSE against ground truth (evo), the median time per
+scan, and the share of scans whose first-pose-aligned error lies within 3 sigma of the
+``scans.csv`` sigmas on x / y / z (``adalio.eval.metrics.sigma_consistency``). The summary gives mean and worst per scene, start and noise level and checks the issue's
 targets: poses >= 95 % of scans (still) / >= 90 % (moving); hall ATE <= 1 cm (still) / <= 2 cm
 (moving).
 
@@ -24,17 +25,20 @@ targets: poses >= 95 % of scans (still) / >= 90 % (moving); hall ATE <= 1 cm (st
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import shlex
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from adalio.config import load_config
-from adalio.eval.metrics import ate
+from adalio.errors import InputError
+from adalio.eval.files import read_scans_csv
+from adalio.eval.metrics import ate, sigma_consistency
 from adalio.pipeline import run_bag
 from adalio.sim import cached_sequence
 
@@ -56,6 +60,9 @@ class Cell:
     ate_m: float = float("nan")
     ms_per_scan: float = float("nan")
     error: str = ""
+    within_3sigma: list[float] = field(default_factory=lambda: [float("nan")] * 3)
+    """Share of scans whose first-pose-aligned error is within 3 sigma on x, y, z."""
+    mean_nees: float = float("nan")
 
     @property
     def pose_ratio(self) -> float:
@@ -87,7 +94,20 @@ def run_cell(cell: Cell, duration_s: float | None, cut_s: float, out_root: Path,
     cell.init = res.init_report.method if res.init_report is not None else "none"
     cell.ms_per_scan = res.ms_per_scan_median
     cell.ate_m = float(ate(res.trajectory_path, sim.gt_path, align="se3")["rmse_m"])
+    with contextlib.suppress(InputError):
+        cons = sigma_consistency(res.trajectory_path, sim.gt_path,
+                                 read_scans_csv(out / "scans.csv"))
+        cell.within_3sigma = [float(v) for v in cons.within_3sigma]
+        cell.mean_nees = cons.mean_nees
     return cell
+
+
+def sigma_cells(w: np.ndarray) -> str:
+    """'x / y / z %' of within-3-sigma shares (rows: cells; mean with the worst in brackets)."""
+    if not np.isfinite(w).any():
+        return "–"
+    return " / ".join(f"{100 * np.nanmean(w[:, k]):.0f} ({100 * np.nanmin(w[:, k]):.0f})"
+                      for k in range(3)) + " %"
 
 
 def cm(x: float) -> str:
@@ -96,7 +116,7 @@ def cm(x: float) -> str:
 
 def summary_table(cells: list[Cell]) -> str:
     lines = [("| scene | start | IMU noise | LiDARs | poses/scans min | ATE mean | ATE worst | "
-             "init | target |"), "|---|---|---|---|---|---|---|---|---|"]
+             "init | target | within 3σ x / y / z |"), "|---|---|---|---|---|---|---|---|---|---|"]
     keys = sorted({(c.scene, c.start, c.imu_noise) for c in cells},
                   key=lambda k: (k[0], k[1] != "still", k[2]))
     for scene, start, noise in keys:
@@ -110,7 +130,8 @@ def summary_table(cells: list[Cell]) -> str:
             f"{100 * min(c.pose_ratio for c in cs):.1f} % | "
             f"{cm(float(finite.mean())) if finite.size else '–'} | "
             f"{cm(float(ates.max())) if finite.size == ates.size else 'failed'} | "
-            f"{'/'.join(inits)} | {'pass' if ok else 'FAIL'} |")
+            f"{'/'.join(inits)} | {'pass' if ok else 'FAIL'} | "
+            f"{sigma_cells(np.array([c.within_3sigma for c in cs]))} |")
     return "\n".join(lines)
 
 
@@ -134,7 +155,8 @@ def main(argv: list[str] | None = None) -> int:
     cells = []
     t0 = time.perf_counter()
     print("| scene | seed | IMU noise | LiDAR | start | poses/scans | init | ATE SE(3) | "
-          "ms/scan | error |\n|---|---|---|---|---|---|---|---|---|---|", flush=True)
+          "ms/scan | within 3σ x / y / z | error |\n|---|---|---|---|---|---|---|---|---|---|---|",
+          flush=True)
     for scene in args.scenes:
         for seed in range(args.seeds):
             for noise in args.imu_noise:
@@ -145,7 +167,9 @@ def main(argv: list[str] | None = None) -> int:
                         cells.append(c)
                         print(f"| {scene} | {seed} | x{noise:g} | {lidar} | {start} | "
                               f"{c.poses}/{c.scans} ({100 * c.pose_ratio:.0f} %) | {c.init} | "
-                              f"{cm(c.ate_m)} | {c.ms_per_scan:.1f} | {c.error} |", flush=True)
+                              f"{cm(c.ate_m)} | {c.ms_per_scan:.1f} | "
+                              f"{sigma_cells(np.array([c.within_3sigma]))} | {c.error} |",
+                              flush=True)
     print()
     print(summary_table(cells))
     print(f"\n{len(cells)} runs in {time.perf_counter() - t0:.0f} s; command: python "
