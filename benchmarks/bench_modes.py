@@ -57,7 +57,8 @@ class RunRow:
     n_scans: int = 0
     sim_failed: bool = False
     within_3sigma: tuple[float, float, float] = (float("nan"),) * 3
-    """Share of scans whose first-pose-aligned error is within 3 sigma on x, y, z."""
+    """Share of scans whose error (aligned on the filter's first scan) is within 3 sigma on x, y,
+    z."""
     mean_nees: float = float("nan")
     increment_corr: tuple[float, float, float] = (float("nan"),) * 3
     """Lag-1 correlation of the error's 1 s increments on x, y, z (+1: drift, 0: random walk)."""

@@ -13,7 +13,7 @@ LiDAR (XT-32 at 512 / 2000 columns, Ouster OS1-64), the simulator's sequence is 
 
 Per cell: poses / scans in the part of the bag that was read, how the estimator initialized
 (static / moving), SE(3)-aligned ATE RMSE against ground truth (evo), the median time per
-scan, and the share of scans whose first-pose-aligned error lies within 3 sigma of the
+scan, and the share of scans whose error (aligned on the filter's first scan) lies within 3 sigma of the
 ``scans.csv`` sigmas on x / y / z (``adalio.eval.metrics.sigma_consistency``). The summary gives mean and worst per scene, start and noise level and checks the issue's
 targets: poses >= 95 % of scans (still) / >= 90 % (moving); hall ATE <= 1 cm (still) / <= 2 cm
 (moving).
@@ -61,7 +61,8 @@ class Cell:
     ms_per_scan: float = float("nan")
     error: str = ""
     within_3sigma: list[float] = field(default_factory=lambda: [float("nan")] * 3)
-    """Share of scans whose first-pose-aligned error is within 3 sigma on x, y, z."""
+    """Share of scans whose error (aligned on the filter's first scan) is within 3 sigma on x, y,
+    z."""
     mean_nees: float = float("nan")
 
     @property

@@ -262,3 +262,34 @@ def test_increment_correlation_tells_drift_from_random_walk_and_swing():
     r = increment_correlation(t, err)
     np.testing.assert_allclose(r, [0.0, 0.8, -0.5], atol=0.06)
     assert np.isnan(increment_correlation(t[:25], err[:25])).all()
+
+
+def test_sigma_consistency_aligns_on_the_filter_s_first_scan_not_the_backfill(tmp_path):
+    """With a backfill (poses before the filter's first scan, written after it), the sigmas are
+    relative to the filter's first scan: the errors must be measured from there too. The
+    estimate is the GT rigidly moved, with a drift that is zero at the anchor scan and grows on
+    both sides; the recovered errors are that drift exactly, also for the backfilled poses."""
+    from adalio.eval.metrics import sigma_consistency
+
+    n, anchor = 300, 120
+    t = 50.0 + 0.1 * np.arange(n)
+    xyz_gt = np.column_stack([np.cos(0.05 * t), np.sin(0.04 * t), 0.01 * t]) * 3.0
+    rot_gt = Rotation.from_euler("z", 0.03 * t[:, None])
+    T = Rotation.from_euler("zyx", [-1.1, 0.1, 0.3])
+    drift = np.column_stack([0.01, -0.02, 0.005]) * (t - t[anchor])[:, None]
+    xyz_est = T.apply(xyz_gt - xyz_gt[anchor]) + np.array([1.0, 2.0, -0.3]) + drift
+    gt = write_tum(tmp_path / "gt.tum", t, xyz_gt, rot_gt)
+    est = write_tum(tmp_path / "est.tum", t, xyz_est, T * rot_gt)
+    sigma = 0.01 + np.abs(t - t[anchor])[:, None] * np.array([0.01, 0.02, 0.005])
+    backfill = (np.arange(n) < anchor).astype(float)
+    rows = np.r_[np.arange(anchor, n), np.arange(anchor)]  # backfill rows written last
+    scans = {"t_s": t[rows], "backfill": backfill[rows], "sigma_x_m": sigma[rows, 0],
+             "sigma_y_m": sigma[rows, 1], "sigma_z_m": sigma[rows, 2]}
+    c = sigma_consistency(est, gt, scans)
+    np.testing.assert_allclose(c.errors_world_m, drift, atol=1e-6)
+    np.testing.assert_allclose(c.sigma_world_m, sigma, atol=1e-12)
+    assert np.all(c.within_3sigma == 1.0)
+    # without the backfill column the first pose is the anchor, as before
+    del scans["backfill"]
+    c0 = sigma_consistency(est, gt, scans)
+    np.testing.assert_allclose(c0.errors_world_m, drift - drift[0], atol=1e-6)

@@ -194,7 +194,10 @@ class SigmaConsistency:
     """(n,) associated times (s)."""
     errors_world_m: np.ndarray
     """(n, 3) estimate minus ground truth in the estimate's world frame, the ground truth aligned
-    on the first associated pose (the filter's covariance grows from there too)."""
+    on the pose of the filter's first scan, which defines the world and has sigma 0 (the
+    first associated pose whose ``scans.csv`` row has ``backfill`` 0; the first associated pose
+    if the file has no ``backfill`` column). Poses given by the backfill come before it in
+    time and have sigmas that grow backwards from it."""
     sigma_world_m: np.ndarray
     """(n, 3) the filter's sigma_x/y/z_m at those scans."""
     within_3sigma: np.ndarray
@@ -218,16 +221,23 @@ def sigma_consistency(est_tum: TrajectoryLike, gt_tum: TrajectoryLike,
         raise InputError(f"scans.csv has no {', '.join(missing)} column: it was written by an "
                          "adalio without sigma columns; re-run the bag")
     gt_s, est_s = associate(est_tum, gt_tum, max_diff_s)
-    T_est0, T_gt0 = est_s.poses_se3[0], gt_s.poses_se3[0]
-    T = T_est0 @ np.linalg.inv(T_gt0)
-    p_gt = gt_s.positions_xyz @ T[:3, :3].T + T[:3, 3]
-    err = est_s.positions_xyz - p_gt
     t_est = np.asarray(est_s.timestamps, dtype=np.float64)
     t_csv = np.asarray(scans["t_s"], dtype=np.float64)
-    idx = np.clip(np.searchsorted(t_csv, t_est), 0, max(len(t_csv) - 1, 0))
-    prev = np.clip(idx - 1, 0, None)
-    idx = np.where(np.abs(t_csv[prev] - t_est) < np.abs(t_csv[idx] - t_est), prev, idx)
+    order = np.argsort(t_csv, kind="stable")  # the backfill's rows are written after later ones
+    t_sorted = t_csv[order]
+    pos = np.clip(np.searchsorted(t_sorted, t_est), 0, max(len(t_csv) - 1, 0))
+    prev = np.clip(pos - 1, 0, None)
+    pos = np.where(np.abs(t_sorted[prev] - t_est) < np.abs(t_sorted[pos] - t_est), prev, pos)
+    idx = order[pos]
     ok = np.abs(t_csv[idx] - t_est) <= 1e-6
+    anchor = 0
+    if "backfill" in scans:
+        forward = ok & (np.asarray(scans["backfill"], dtype=np.float64)[idx] == 0)
+        if forward.any():
+            anchor = int(np.argmax(forward))
+    T = est_s.poses_se3[anchor] @ np.linalg.inv(gt_s.poses_se3[anchor])
+    p_gt = gt_s.positions_xyz @ T[:3, :3].T + T[:3, 3]
+    err = est_s.positions_xyz - p_gt
     sig = np.column_stack([np.asarray(scans[c], dtype=np.float64)[idx] for c in SIGMA_COLUMNS])
     ok &= np.all(np.isfinite(sig) & (sig > 0), axis=1)
     if not np.any(ok):

@@ -175,7 +175,8 @@ def plot_map_top(points_world: np.ndarray, path: Path, traj_xyz: np.ndarray | No
 
 def plot_error_sigma(t_s: np.ndarray, errors_m: np.ndarray, sigma_m: np.ndarray,
                      path: Path) -> Path:
-    """Per-axis error (first-pose aligned, world frame) against the filter's ±3σ band."""
+    """Per-axis error (aligned on the filter's first scan, world frame) against the filter's
+    ±3σ band."""
     fig, axes = plt.subplots(3, 1, figsize=(8, 6.5), sharex=True)
     for k, (ax, name) in enumerate(zip(axes, "xyz", strict=True)):
         ax.fill_between(t_s, -300 * sigma_m[:, k], 300 * sigma_m[:, k], color="tab:blue",
@@ -185,5 +186,5 @@ def plot_error_sigma(t_s: np.ndarray, errors_m: np.ndarray, sigma_m: np.ndarray,
         ax.grid(alpha=0.3)
     axes[0].legend(loc="upper left", fontsize=8)
     axes[-1].set_xlabel("time (s)")
-    axes[0].set_title("position error vs. the filter's 3σ (first-pose aligned, world frame)")
+    axes[0].set_title("position error vs. the filter's 3σ (aligned on its first scan, world frame)")
     return _save(fig, path)

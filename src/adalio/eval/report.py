@@ -207,7 +207,7 @@ def _markdown(metrics: dict[str, Any], figures: list[tuple[str, Path]],
         c = metrics["sigma"]
         w = c["within_3sigma_xyz"]
         lines += ["## Uncertainty (scans.csv sigma columns against the ground truth)", "",
-                  (f"Scans whose first-pose-aligned error lies within 3σ: x {100 * w[0]:.1f} %, "
+                  (f"Scans whose error (aligned on the filter's first scan) lies within 3σ: x {100 * w[0]:.1f} %, "
                    f"y {100 * w[1]:.1f} %, z {100 * w[2]:.1f} % (99.7 % if the σ were honest "
                    f"and Gaussian); mean NEES {c['mean_nees']:.1f} (3 if consistent), "
                    f"{c['n']} scans."), ""]
