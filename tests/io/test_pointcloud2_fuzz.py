@@ -23,6 +23,11 @@ from adalio.io.pointcloud2 import POINTFIELD_DTYPES, CloudDecoder, encode_pointc
 NAMES = ["x", "y", "z", "t", "time", "timestamp", "timestamps", "offset_time", "t_ns",
          "intensity", "ring", "reflectivity", "X", "", "q"]
 SETTINGS = settings(max_examples=300, deadline=None, suppress_health_check=list(HealthCheck))
+FUZZ_SETTINGS = settings(SETTINGS, derandomize=True)
+"""The malformed-message fuzzer draws the same examples on every run (264 refused, 28 empty, 8
+decoded). With random draws the decodable share varies widely (5-32 of 300 in ten seeded runs)
+and one CI run drew none, which failed ``test_fuzz_reached_the_decoding_paths`` for no fault of
+the decoder."""
 
 
 def message(fields, step, width, height, row_step, big, data, sec=1_700_000_000, nsec=0):
@@ -71,7 +76,7 @@ def field_lists(draw, wild: bool):
 OUTCOMES: dict[str, int] = {}
 
 
-@SETTINGS
+@FUZZ_SETTINGS
 @given(wild=st.booleans(), data=st.data(), width=st.integers(0, 40), height=st.integers(0, 4),
        big=st.booleans(), size_delta=st.one_of(st.integers(-16, 16), st.none()),
        seed=st.integers(0, 2**32 - 1), nsec=st.integers(-10, 2 * 10**9),
