@@ -13,8 +13,9 @@ LiDAR (XT-32 at 512 / 2000 columns, Ouster OS1-64), the simulator's sequence is 
 
 Per cell: poses / scans in the part of the bag that was read, how the estimator initialized
 (static / moving), SE(3)-aligned ATE RMSE against ground truth (evo), the median time per
-scan, and the share of scans whose error (aligned on the filter's first scan) lies within 3 sigma of the
-``scans.csv`` sigmas on x / y / z (``adalio.eval.metrics.sigma_consistency``). The summary gives mean and worst per scene, start and noise level and checks the issue's
+scan, and the share of scans whose error (aligned on the filter's first scan) lies within 3
+sigma of the ``scans.csv`` sigmas on x / y / z (``adalio.eval.metrics.sigma_consistency``).
+The summary gives mean and worst per scene, start and noise level and checks the issue's
 targets: poses >= 95 % of scans (still) / >= 90 % (moving); hall ATE <= 1 cm (still) / <= 2 cm
 (moving).
 

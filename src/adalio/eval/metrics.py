@@ -267,8 +267,8 @@ def increment_correlation(t_s: np.ndarray, errors: np.ndarray,
     if len(t) < 2:
         return out
     marks = t[0] + step_s * np.arange(int(np.floor((t[-1] - t[0]) / step_s)) + 1)
-    idx = np.unique(np.searchsorted(t, marks - 1e-9))
-    d = np.diff(e[idx[idx < len(t)]], axis=0)
+    idx = np.unique(np.searchsorted(t, marks - 1e-9))  # marks <= t[-1]: every index is valid
+    d = np.diff(e[idx], axis=0)
     if d.shape[0] < 3:
         return out
     for a in range(e.shape[1]):

@@ -186,5 +186,6 @@ def plot_error_sigma(t_s: np.ndarray, errors_m: np.ndarray, sigma_m: np.ndarray,
         ax.grid(alpha=0.3)
     axes[0].legend(loc="upper left", fontsize=8)
     axes[-1].set_xlabel("time (s)")
-    axes[0].set_title("position error vs. the filter's 3σ (aligned on its first scan, world frame)")
+    axes[0].set_title("position error vs. the filter's 3σ "
+                      "(aligned on its first scan, world frame)")
     return _save(fig, path)

@@ -207,10 +207,10 @@ def _markdown(metrics: dict[str, Any], figures: list[tuple[str, Path]],
         c = metrics["sigma"]
         w = c["within_3sigma_xyz"]
         lines += ["## Uncertainty (scans.csv sigma columns against the ground truth)", "",
-                  (f"Scans whose error (aligned on the filter's first scan) lies within 3σ: x {100 * w[0]:.1f} %, "
-                   f"y {100 * w[1]:.1f} %, z {100 * w[2]:.1f} % (99.7 % if the σ were honest "
-                   f"and Gaussian); mean NEES {c['mean_nees']:.1f} (3 if consistent), "
-                   f"{c['n']} scans."), ""]
+                  (f"Scans whose error (aligned on the filter's first scan) lies within 3σ: "
+                   f"x {100 * w[0]:.1f} %, y {100 * w[1]:.1f} %, z {100 * w[2]:.1f} % "
+                   f"(99.7 % if the σ were honest and Gaussian); "
+                   f"mean NEES {c['mean_nees']:.1f} (3 if consistent), {c['n']} scans."), ""]
         r = c.get("increment_correlation_xyz") or []
         if any(v is not None for v in r):
             cells = ", ".join(f"{a} {'n/a' if v is None else f'{v:+.2f}'}"

@@ -216,7 +216,8 @@ def _insert_points(
     ``ocount``, ``ostate``) counts the stored points per cell of every edge in ``cell_sizes``; it
     must have room for ``len(cell_sizes)`` new cells per row. Stops before a row that might need
     a voxel, table slot or block the arrays do not have, and returns that row (``len(points)``
-    when done) so the caller can grow them. ``state`` = [nv, n_points, n_blocks, n_free, seq] is updated in place.
+    when done) so the caller can grow them. ``state`` = [nv, n_points, n_blocks, n_free, seq]
+    is updated in place.
     """
     mask = table.shape[0] - 1
     nv = state[_S_NV]
