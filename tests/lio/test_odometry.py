@@ -613,3 +613,44 @@ def test_group_ids_partition_rows_by_identical_point() -> None:
     np.testing.assert_array_equal(gid[:, None] == gid[None, :], same)
     assert n_groups == len({tuple(b) for b in bits}) == gid.max() + 1
     assert _group_ids(np.zeros((0, 3)))[1] == 0
+
+
+def test_moving_start_first_map_is_deskewed_with_the_fitted_motion():
+    """The hand-over scan becomes the filter's first map: it is deskewed again with the fitted
+    velocity, gravity and gyro bias, not with the velocity between the registrar's last two
+    poses. Checked against the scan deskewed with the true trajectory, point by point."""
+    from adalio.lio.motion_init import MovingInit
+
+    cfg = _config()
+    cfg.imu.init_timeout_s = 1.0
+    cfg.imu.moving_init_window_s = 1.0
+    rng = np.random.default_rng(4)
+    t_imu, gyro, acc = imu_samples(1.6, 4.0, 400.0, rng, noise=0.01)
+    reg = MovingInit(cfg, R_LI, T_LI)
+    k, fit = 0, None
+    for s in np.arange(1.6, 4.0, 0.1):
+        pts, t_ns = lidar_scan(s, 600, rng)
+        hi = int(np.searchsorted(t_imu, t_ns.max(), side="right"))
+        reg.add_imu(t_imu[k:hi], gyro[k:hi], acc[k:hi])
+        k = hi
+        reg.add_scan(pts, t_ns)
+        if s >= 2.6 - 1e-9:
+            fit = reg.solve()
+            if fit is not None:
+                break
+    assert fit is not None and fit.t_ns == t_ns.max()
+    # truth: every point moved from the LiDAR frame at its own time to the one at the scan end
+    t = t_ns * 1e-9
+    p, R, *_ = trajectory(t)
+    x_world = np.einsum("nij,nj->ni", R, pts @ R_LI.T + T_LI) + p
+    p_e, R_e, *_ = trajectory(t.max())
+    truth = ((x_world - p_e[0]) @ R_e[0] - T_LI) @ R_LI
+    err = np.linalg.norm(fit.points_lidar_end - truth, axis=1)
+    err_registrar = np.linalg.norm(reg.last_points - truth, axis=1)
+    # a velocity error dv bends the sweep by dv * (t_end - t) (the gyro bias by far less):
+    # the fitted velocity's 3-sigma bound over the sweep caps the error of every point
+    sigma_v = np.sqrt(np.trace(fit.velocity_cov_m2_s2))
+    bound = 3 * sigma_v * (t.max() - t.min()) + 1e-4
+    assert err.max() <= bound, (err.max(), bound)
+    # and the registrar's finite-difference velocity bends it more than that bound allows
+    assert err_registrar.max() > bound, (err_registrar.max(), bound)

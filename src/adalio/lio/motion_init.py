@@ -122,7 +122,8 @@ class MovingInitResult:
     n_scans: int
     window_s: float
     points_lidar_end: np.ndarray
-    """The last scan, deskewed to its end (LiDAR frame), for the first map."""
+    """The last scan, deskewed to its end (LiDAR frame) with the fitted velocity, gravity and
+    gyro bias (:meth:`MovingInit._deskew_last`), for the first map."""
     rotation_residual_rad: float
     """RMS of the gyro-bias fit's rotation residuals."""
     velocity_cov_m2_s2: np.ndarray
@@ -157,6 +158,9 @@ class MovingInit:
         self.gyro = np.empty((0, 3))
         self.accel = np.empty((0, 3))
         self.last_points: np.ndarray | None = None
+        self._last_raw: tuple[np.ndarray, np.ndarray, int, np.ndarray] | None = None
+        """The last registered scan as handed in (points, times) with the time and rotation it
+        was deskewed from, to deskew it again with the fitted motion (:meth:`solve`)."""
         self.failure = "no scan registered yet"
         self.last_t_ns = np.iinfo(np.int64).min
         """End of the latest scan handed in (int64 ns)."""
@@ -222,6 +226,7 @@ class MovingInit:
         self.ivox.add_points(points_to_world(down, state.R, state.p, self.R_LI, self.t_LI))
         self.scans.append(_Registered(t_e, state.R.copy(), state.p.copy()))
         self.last_points = pts_e
+        self._last_raw = (pts, t_pts, t_ref, R0.copy())
         if len(self.scans) > 1000:
             del self.scans[:500]
 
@@ -230,6 +235,34 @@ class MovingInit:
             return np.zeros(3)
         a, b = self.scans[-2], self.scans[-1]
         return (b.p - a.p) / ((b.t_ns - a.t_ns) * 1e-9)
+
+    def _deskew_last(self, v0: np.ndarray, g: np.ndarray, b_g: np.ndarray, t0_ns: int,
+                     R0: np.ndarray) -> np.ndarray:
+        """The last scan deskewed again to its end, with the fitted motion: the velocity
+        ``v0 + g τ + R0 Δv(τ)`` of the fit at the time the scan was deskewed from, the IMU's
+        specific force with the fitted gravity, and the gyro with the fitted bias. The
+        registration deskewed it with the velocity between its last two registered poses, whose
+        noise (the fit's residual over one scan period, 10-30 cm/s) bends the scan by
+        centimetres; the filter's first map is this scan."""
+        assert self._last_raw is not None
+        pts, t_pts, t_ref, R_ref = self._last_raw
+        if t_ref < t0_ns:
+            return self.last_points
+        tau_imu = (self.imu_t_ns - t0_ns) * 1e-9
+        tau_ref = (t_ref - t0_ns) * 1e-9
+        dv_ref = preintegrate(tau_imu, self.gyro, self.accel, b_g, np.array([0.0, tau_ref]))[1][1]
+        v_ref = v0 + g * tau_ref + R0 @ dv_ref
+        t_e = int(t_pts.max())
+        x = State(R=R_ref.copy(), v=v_ref, R_LI=self.R_LI.copy(), t_LI=self.t_LI.copy(),
+                  b_g=b_g.copy(), g=g.copy(), g_anchor=so3.anchor_frame(g))
+        lo = max(int(np.searchsorted(self.imu_t_ns, t_ref, side="right")) - 1, 0)
+        hi = int(np.searchsorted(self.imu_t_ns, t_e, side="right"))
+        tau = (self.imu_t_ns[lo:hi] - t_ref) * 1e-9
+        x_end, _, rec = imu.propagate(x, np.zeros((DIM, DIM)), tau, self.gyro[lo:hi],
+                                      self.accel[lo:hi], 0.0, (t_e - t_ref) * 1e-9,
+                                      np.zeros(12))
+        return imu.undistort(pts, (t_pts - t_ref) * 1e-9, rec, x_end.R, x_end.p, self.R_LI,
+                             self.t_LI)
 
     def rotation_ratio(self, b_g: np.ndarray) -> tuple[float, float]:
         """(k, s): the scale k of the gyro's rotation increments between consecutive
@@ -313,11 +346,12 @@ class MovingInit:
         v_cov = Jv @ C[3:9, 3:9] @ Jv.T
         last = win[-1]
         assert self.last_points is not None
+        points_end = self._deskew_last(pv[3:6], g, b_g, t0, R0)
         return MovingInitResult(
             t_ns=last.t_ns, R_world_imu=last.R.copy(), p_world_imu_m=last.p.copy(),
             v_world_m_s=v_end, gyro_bias_rad_s=b_g, gravity_world_m_s2=g, residual_m=residual,
             gravity_norm_fit_m_s2=g_norm, n_scans=n, window_s=float(tau_q[-1]),
-            points_lidar_end=self.last_points, rotation_residual_rad=rot_rms,
+            points_lidar_end=points_end, rotation_residual_rad=rot_rms,
             velocity_cov_m2_s2=v_cov)
 
 
