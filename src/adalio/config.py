@@ -116,6 +116,12 @@ class ImuConfig:
     """Moving start: LiDAR-registered scans over this long are fitted against the IMU (s)."""
     moving_init_max_residual_m: float = 0.03
     """Moving start: largest RMS position residual of that fit accepted (m)."""
+    moving_init_min_restoring_ratio: float = 0.6
+    """Moving start: the fit is refused while the median of its window's LiDAR-only
+    registrations restores less than this share of the information it claims along its weakest
+    translation (re-searched 5 cm either way, the probe of ``adaptive.min_restoring_ratio``). A
+    registration stuck to its map's viewpoint in a corridor fits as well as the true walk, since
+    the IMU does not see a constant velocity (README, Initialization)."""
     moving_init_map_leaf_m: float = 0.05
     """Moving start: map cell of the local map the scans are registered against, LiDAR only (m;
     the finer of this and map.map_leaf_m). That map starts from one viewpoint, whose ring lines
@@ -426,6 +432,7 @@ RANGES: dict[str, Range] = {
     "imu.moving_init_window_s": POSITIVE,
     "imu.moving_init_max_residual_m": POSITIVE,
     "imu.moving_init_map_leaf_m": POSITIVE,
+    "imu.moving_init_min_restoring_ratio": FRACTION,
     "imu.backfill_s": NON_NEGATIVE,
     "imu.backfill_after_s": NON_NEGATIVE,
     "imu.gap_periods": Range(1, lo_open=True),

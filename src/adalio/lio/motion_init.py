@@ -135,6 +135,9 @@ class _Registered:
     t_ns: int
     R: np.ndarray
     p: np.ndarray
+    restoring: float = float("nan")
+    """Restoring ratio of the registration along its weakest translation (NaN: not
+    registered, or not probed)."""
 
 
 class MovingInit:
@@ -214,6 +217,7 @@ class MovingInit:
             self.failure = "scans with too few points to register"
             return
         state = x_pred
+        restoring = float("nan")
         if self.scans:
             from adalio.lio.odometry import _Association
 
@@ -223,8 +227,11 @@ class MovingInit:
             assoc = _Association(down, self.ivox, self.cfg, general.search_radius_m,
                                  general.plane_margin_m, self.cell_m)
             state = iterated_update(x_pred, P, assoc.measure, self.cfg.filter).state
+            if self.use_gyro:  # the unit check never fits
+                restoring = _restoring_along_weakest_translation(
+                    assoc, state, self.cfg.adaptive.probe_step_m)
         self.ivox.add_points(points_to_world(down, state.R, state.p, self.R_LI, self.t_LI))
-        self.scans.append(_Registered(t_e, state.R.copy(), state.p.copy()))
+        self.scans.append(_Registered(t_e, state.R.copy(), state.p.copy(), restoring))
         self.last_points = pts_e
         self._last_raw = (pts, t_pts, t_ref, R0.copy())
         if len(self.scans) > 1000:
@@ -340,6 +347,15 @@ class MovingInit:
                             f"(limit imu.moving_init_max_residual_m = "
                             f"{cfg.moving_init_max_residual_m * 100:g} cm)")
             return None
+        probed = np.array([s.restoring for s in win if np.isfinite(s.restoring)])
+        restoring = float(np.median(probed)) if probed.size else 0.0
+        need = cfg.moving_init_min_restoring_ratio
+        if not restoring >= need:
+            self.failure = (f"the LiDAR-only registrations of the {n} scans restore {restoring:.2f} "
+                            "(median) of the information they claim along their weakest "
+                            f"translation (limit imu.moving_init_min_restoring_ratio = {need:g}): "
+                            "they cannot vouch for the velocity along it")
+            return None
         v_end = pv[3:6] + g * tau_q[-1] + R0 @ dv[-1]
         C = _lsq_covariance(A, A @ sol - rhs, 9)
         Jv = np.hstack([np.eye(3), tau_q[-1] * np.eye(3)])
@@ -353,6 +369,21 @@ class MovingInit:
             gravity_norm_fit_m_s2=g_norm, n_scans=n, window_s=float(tau_q[-1]),
             points_lidar_end=points_end, rotation_residual_rad=rot_rms,
             velocity_cov_m2_s2=v_cov)
+
+
+def _restoring_along_weakest_translation(assoc, x: State, step_m: float) -> float:
+    """Restoring ratio (``odometry.restoring_ratios``) of a registration at ``x`` for a
+    ``step_m`` shift along the weakest eigenvector of its translation information. 0 when the
+    registration has no residual."""
+    from adalio.lio.odometry import restoring_ratios
+
+    H, _ = assoc.measure(x, True)
+    if H.shape[0] == 0:
+        return 0.0
+    Ht = H[:, :3]
+    e = np.linalg.eigh(Ht.T @ Ht)[1][:, 0]
+    d = np.concatenate([step_m * e, np.zeros(3)])
+    return float(restoring_ratios(assoc, x, d[None])[0])
 
 
 def _lsq_covariance(A: np.ndarray, residual: np.ndarray, n_params: int) -> np.ndarray:

@@ -248,6 +248,27 @@ def _timer(stage_ms: dict[str, float], name: str, t0: float) -> float:
     return now
 
 
+def restoring_ratios(assoc: _Association, x: State, dirs: np.ndarray) -> np.ndarray:
+    """For each pose displacement d (error order [dp, dtheta]): re-associate at x ⊞ ±d and
+    compare the restoring gradient with the information H^T H claims at x,
+    rho = d^T (g(+d) - g(-d)) / (2 d^T H^T H d), g = H^T r (degeneracy.py §4); 0 where H^T H
+    claims nothing along d. ``assoc`` must hold its measurement at ``x``."""
+    H0 = assoc.H[:, :6]
+    rho = np.zeros(len(dirs))
+    for k, d in enumerate(dirs):
+        claimed = float(np.sum((H0 @ d) ** 2))
+        if not claimed > 0:
+            continue
+        g = []
+        for sgn in (1.0, -1.0):
+            delta = np.zeros(DIM)
+            delta[:6] = sgn * d
+            H, r = assoc.measure(x.boxplus(delta), True)
+            g.append(H[:, :6].T @ r)
+        rho[k] = float(d @ (g[0] - g[1])) / (2.0 * claimed)
+    return rho
+
+
 class Odometry:
     """Faster-LIO-style iterated-ESKF LiDAR-inertial odometry with AdaLIO switching.
 
@@ -892,31 +913,12 @@ class Odometry:
             loc = probe(assoc)
         if ada.probe_directions > 0 and assoc.H.shape[0]:
             dirs = weak_directions(loc, ada.probe_directions, ada.probe_step_m)
-            rho = self._restoring_ratios(assoc, x, dirs)
+            rho = restoring_ratios(assoc, x, dirs)
             projector = consistent_projector(loc, ada.observable_eigen_ratio, dirs, rho,
                                              ada.min_restoring_ratio)
             return down, assoc, leaf_m, projector, float(rho.min())
         projector = observable_projector(loc, ada.observable_eigen_ratio)
         return down, assoc, leaf_m, projector, float("nan")
-
-    def _restoring_ratios(self, assoc: _Association, x: State, dirs: np.ndarray) -> np.ndarray:
-        """For each pose displacement d (error order [dp, dtheta]): re-associate at x ⊞ ±d and
-        compare the restoring gradient with the information H^T H claims,
-        rho = d^T (g(+d) - g(-d)) / (2 d^T H^T H d), g = H^T r (degeneracy.py §4)."""
-        H0 = assoc.H[:, :6]
-        rho = np.zeros(len(dirs))
-        for k, d in enumerate(dirs):
-            claimed = float(np.sum((H0 @ d) ** 2))
-            if not claimed > 0:
-                continue
-            g = []
-            for sgn in (1.0, -1.0):
-                delta = np.zeros(DIM)
-                delta[:6] = sgn * d
-                H, r = assoc.measure(x.boxplus(delta), True)
-                g.append(H[:, :6].T @ r)
-            rho[k] = float(d @ (g[0] - g[1])) / (2.0 * claimed)
-        return rho
 
     def _map_cell(self, voxel_size_m: float) -> float:
         leaf = self.cfg.map.map_leaf_m
