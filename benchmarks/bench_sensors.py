@@ -95,7 +95,8 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     start_s = cell.cut_s
     cell.scans = int(meta["n_scans"] - round(start_s * meta["lidar_rate_hz"]))
     cut = f"{cell.cut_s:g}" if cell.start == "moving" else ""
-    out = out_root / f"{cell.scene}_s{cell.seed}_imu{cell.imu_noise:g}_{cell.lidar}_{cell.start}{cut}"
+    out = out_root / (f"{cell.scene}_s{cell.seed}_imu{cell.imu_noise:g}_{cell.lidar}_"
+                      f"{cell.start}{cut}")
     try:
         res = run_bag(sim.bag_path, cfg, out, progress=False, start_s=start_s)
     except Exception as exc:  # noqa: BLE001 - a failed cell is reported, the matrix goes on
@@ -126,8 +127,8 @@ def cm(x: float) -> str:
 
 
 def summary_table(cells: list[Cell]) -> str:
-    lines = [("| scene | start | IMU noise | LiDARs | runs | poses/scans min | ATE mean | ATE worst | "
-              "runs > 1 m or failed | init | target | within 3σ x / y / z |"),
+    lines = [("| scene | start | IMU noise | LiDARs | runs | poses/scans min | ATE mean | "
+              "ATE worst | runs > 1 m or failed | init | target | within 3σ x / y / z |"),
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     keys = sorted({(c.scene, c.start, c.imu_noise) for c in cells},
                   key=lambda k: (k[0], k[1] != "still", k[2]))

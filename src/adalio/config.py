@@ -117,11 +117,12 @@ class ImuConfig:
     moving_init_max_residual_m: float = 0.03
     """Moving start: largest RMS position residual of that fit accepted (m)."""
     moving_init_min_restoring_ratio: float = 0.6
-    """Moving start: the fit is refused while the median of its window's LiDAR-only
-    registrations restores less than this share of the information it claims along its weakest
-    translation (re-searched 5 cm either way, the probe of ``adaptive.min_restoring_ratio``). A
-    registration stuck to its map's viewpoint in a corridor fits as well as the true walk, since
-    the IMU does not see a constant velocity (README, Initialization)."""
+    """Moving start: the fit is refused while its window's LiDAR-only registrations restore, in
+    the median, less than this share of the information they claim along their weakest
+    translation (re-searched ``adaptive.probe_step_m`` either way: the probe of ``adaptive+``,
+    whose ``adaptive.min_restoring_ratio`` has the same default). A registration stuck to its
+    map's viewpoint in a corridor fits as well as the true walk, since the IMU does not see a
+    constant velocity (README, Initialization)."""
     moving_init_map_leaf_m: float = 0.05
     """Moving start: map cell of the local map the scans are registered against, LiDAR only (m;
     the finer of this and map.map_leaf_m). That map starts from one viewpoint, whose ring lines

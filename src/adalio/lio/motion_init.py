@@ -18,8 +18,16 @@ of VINS-Mono:
    first scan's IMU frame), ``p_j = p_0 + v_0 t_j + ½ g t_j² + R_0 Δp_j`` is linear in
    ``(p_0, v_0, g)``; least squares over the window, then ``g`` is scaled to ``|g|`` and
    ``(p_0, v_0)`` solved again. The fit is accepted when its RMS position residual is below
-   ``imu.moving_init_max_residual_m`` and the unconstrained ``|g|`` is within 10 % of
-   ``imu.gravity_m_s2``.
+   ``imu.moving_init_max_residual_m``, the unconstrained ``|g|`` is within 10 % of
+   ``imu.gravity_m_s2``, and the window's registrations can vouch for the velocity: re-searched
+   ``adaptive.probe_step_m`` either way along its weakest translation, a registration restores a
+   share of the information it claims there (``odometry.restoring_ratios``, degeneracy.py §4),
+   and the median share must reach ``imu.moving_init_min_restoring_ratio``. A registration stuck
+   to its map's viewpoint in a corridor passes the first two (the IMU does not see a constant
+   velocity) with the velocity along the corridor metres per second off.
+3b. **First map**: the last scan, which becomes the filter's first map, is deskewed again with
+   the fitted motion (velocity, gravity, gyro bias) instead of the registration's
+   finite-difference velocity.
 4. **Hand-over covariance**: the filter starts from the fit's own uncertainty, not the static
    start's generic one. Position and attitude: the RMS residuals of the two fits (the hand-over
    pose anchors the new map, so it is known to the registration's scatter); velocity at the
@@ -30,9 +38,9 @@ of VINS-Mono:
    times too small (measured: the bias error is 6-11 of its sigmas on the test walk).
 
 Limits: the accelerometer bias is not separated from gravity (as in the static case); a window
-whose registration is degenerate along a direction (a featureless corridor) leaves that
-direction to the constant-velocity prior, so the gravity estimate along it carries the mean
-acceleration of the window; a window too short for the fit to pass waits for more scans.
+whose registration is degenerate along a direction (a featureless corridor) is refused by the
+restoring test, so the start waits for the geometry (the backfill gives the scans before it
+their poses); a window too short for the fit to pass waits for more scans.
 """
 
 from __future__ import annotations
@@ -351,9 +359,10 @@ class MovingInit:
         restoring = float(np.median(probed)) if probed.size else 0.0
         need = cfg.moving_init_min_restoring_ratio
         if not restoring >= need:
-            self.failure = (f"the LiDAR-only registrations of the {n} scans restore {restoring:.2f} "
-                            "(median) of the information they claim along their weakest "
-                            f"translation (limit imu.moving_init_min_restoring_ratio = {need:g}): "
+            self.failure = (f"the LiDAR-only registrations of the {n} scans restore "
+                            f"{restoring:.2f} (median) of the information they claim along "
+                            "their weakest translation (limit "
+                            f"imu.moving_init_min_restoring_ratio = {need:g}): "
                             "they cannot vouch for the velocity along it")
             return None
         v_end = pv[3:6] + g * tau_q[-1] + R0 @ dv[-1]
