@@ -9,7 +9,7 @@ from adalio.config import Config
 from adalio.errors import InputError
 from adalio.lio import Odometry, so3
 from adalio.lio.odometry import STAGES, _group_ids
-from adalio.lio.state import V
+from adalio.lio.state import G, V
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 ROOM_LO = np.array([-9.0, -6.0, -1.6])
@@ -239,6 +239,12 @@ def test_moving_start_initializes_from_registered_scans(align):
     assert np.all(sig_v < 0.3)
     v_err_world = first.velocity_world_m_s - R_est @ v_imu_gt
     assert np.all(np.abs(v_err_world) <= 3 * sig_v)
+    # and gravity's direction from the fit's covariance: its error on the sphere's tangent
+    # within 3 sigma
+    g_est = first.gravity_world_m_s2
+    d_g = so3.s2_boxminus(R_est @ g_imu_gt, g_est, so3.anchor_frame(g_est))
+    sig_g = np.sqrt(first.cov_diag[G])
+    assert np.all(np.abs(d_g) <= 3 * sig_g)
     if align:
         assert np.allclose(first.gravity_world_m_s2, [0.0, 0.0, -9.81], atol=1e-9)
     est_p = np.array([e.T_world_imu[:3, 3] for e in est])

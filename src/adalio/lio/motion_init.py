@@ -56,7 +56,7 @@ from adalio.lio import imu, so3
 from adalio.lio.ieskf import iterated_update
 from adalio.lio.ivox import IVox
 from adalio.lio.measurement import points_to_world
-from adalio.lio.state import DIM, P_, TH, State, V, initial_covariance
+from adalio.lio.state import DIM, P_, TH, G, State, V, initial_covariance
 from adalio.lio.voxel import voxel_downsample
 
 MIN_SCANS = 5
@@ -136,6 +136,8 @@ class MovingInitResult:
     """RMS of the gyro-bias fit's rotation residuals."""
     velocity_cov_m2_s2: np.ndarray
     """(3,3) covariance of ``v_world_m_s`` (least squares of the motion fit)."""
+    gravity_cov_m2_s4: np.ndarray
+    """(3,3) covariance of the unconstrained gravity of the motion fit (least squares)."""
 
 
 @dataclass
@@ -377,7 +379,7 @@ class MovingInit:
             v_world_m_s=v_end, gyro_bias_rad_s=b_g, gravity_world_m_s2=g, residual_m=residual,
             gravity_norm_fit_m_s2=g_norm, n_scans=n, window_s=float(tau_q[-1]),
             points_lidar_end=points_end, rotation_residual_rad=rot_rms,
-            velocity_cov_m2_s2=v_cov)
+            velocity_cov_m2_s2=v_cov, gravity_cov_m2_s4=C[6:9, 6:9].copy())
 
 
 def _restoring_along_weakest_translation(assoc, x: State, step_m: float) -> float:
@@ -413,4 +415,8 @@ def handover_covariance(fit: MovingInitResult, R_align: np.ndarray,
     P[P_, P_] = np.eye(3) * (fit.residual_m**2 / 3.0)
     P[TH, TH] = np.eye(3) * (fit.rotation_residual_rad**2 / 3.0)
     P[V, V] = R_align @ fit.velocity_cov_m2_s2 @ R_align.T
+    # gravity's direction from the fit's covariance, on the sphere's tangent: g ⊞ δ ≈ g − [g]× B δ
+    g = R_align @ fit.gravity_world_m_s2
+    J = -so3.hat(g) @ so3.s2_basis(g, so3.anchor_frame(g))
+    P[G, G] = J.T @ (R_align @ fit.gravity_cov_m2_s4 @ R_align.T) @ J / float(g @ g) ** 2
     return P
