@@ -135,15 +135,15 @@ def summary_table(cells: list[Cell]) -> str:
     for scene, start, noise in keys:
         cs = [c for c in cells if (c.scene, c.start, c.imu_noise) == (scene, start, noise)]
         ates = np.array([c.ate_m for c in cs])
-        finite = ates[ates <= 1.0]  # mean and worst of the runs that stayed on track
+        on_track = ates[ates <= MAX_ATE_M]  # mean and worst of these
         inits = sorted({c.init or "error" for c in cs})
         ok = all(c.passes() for c in cs)
         lines.append(
             f"| {scene} | {start} | x{noise:g} | {', '.join(sorted({c.lidar for c in cs}))} | "
             f"{len(cs)} | {100 * min(c.pose_ratio for c in cs):.1f} % | "
-            f"{cm(float(finite.mean())) if finite.size else '–'} | "
-            f"{cm(float(finite.max())) if finite.size else '–'} | "
-            f"{int(np.sum(~(ates <= 1.0)))} | "
+            f"{cm(float(on_track.mean())) if on_track.size else '–'} | "
+            f"{cm(float(on_track.max())) if on_track.size else '–'} | "
+            f"{ates.size - on_track.size} | "
             f"{'/'.join(inits)} | {'pass' if ok else 'FAIL'} | "
             f"{sigma_cells(np.array([c.within_3sigma for c in cs]))} |")
     return "\n".join(lines)

@@ -621,29 +621,38 @@ def test_group_ids_partition_rows_by_identical_point() -> None:
     assert _group_ids(np.zeros((0, 3)))[1] == 0
 
 
-def test_moving_start_first_map_is_deskewed_with_the_fitted_motion():
-    """The hand-over scan becomes the filter's first map: it is deskewed again with the fitted
-    velocity, gravity and gyro bias, not with the velocity between the registrar's last two
-    poses. Checked against the scan deskewed with the true trajectory, point by point."""
+def _moving_init_first_fit(min_restoring: float = 0.6):
+    """The moving-start registrar fed the room's walk from 1.6 s on (seed 4, 600 columns,
+    points beyond 100 m gated as ``preprocess.max_range_m`` would), asked for a fit from 2.6 s
+    on. Returns (first fit or None, registrar, points and times of the last scan fed)."""
     from adalio.lio.motion_init import MovingInit
 
     cfg = _config()
     cfg.imu.init_timeout_s = 1.0
     cfg.imu.moving_init_window_s = 1.0
+    cfg.imu.moving_init_min_restoring_ratio = min_restoring
     rng = np.random.default_rng(4)
     t_imu, gyro, acc = imu_samples(1.6, 4.0, 400.0, rng, noise=0.01)
     reg = MovingInit(cfg, R_LI, T_LI)
     k, fit = 0, None
     for s in np.arange(1.6, 4.0, 0.1):
         pts, t_ns = lidar_scan(s, 600, rng)
+        near = np.linalg.norm(pts, axis=1) < 100.0
+        pts, t_ns = pts[near], t_ns[near]
         hi = int(np.searchsorted(t_imu, t_ns.max(), side="right"))
         reg.add_imu(t_imu[k:hi], gyro[k:hi], acc[k:hi])
         k = hi
         reg.add_scan(pts, t_ns)
-        if s >= 2.6 - 1e-9:
-            fit = reg.solve()
-            if fit is not None:
-                break
+        if s >= 2.6 - 1e-9 and (fit := reg.solve()) is not None:
+            break
+    return fit, reg, pts, t_ns
+
+
+def test_moving_start_first_map_is_deskewed_with_the_fitted_motion():
+    """The hand-over scan becomes the filter's first map: it is deskewed again with the fitted
+    velocity, gravity and gyro bias, not with the velocity between the registrar's last two
+    poses. Checked against the scan deskewed with the true trajectory, point by point."""
+    fit, reg, pts, t_ns = _moving_init_first_fit()
     assert fit is not None and fit.t_ns == t_ns.max()
     # truth: every point moved from the LiDAR frame at its own time to the one at the scan end
     t = t_ns * 1e-9
@@ -670,44 +679,23 @@ def test_moving_start_is_refused_while_the_registration_cannot_vouch_for_the_vel
     centimetres per second. The restoring test of the window's registrations refuses it."""
     import sys
 
-    from adalio.lio.motion_init import MovingInit
-
     mod = sys.modules[__name__]
     monkeypatch.setattr(mod, "ROOM_LO", np.array([-300.0, -1.5, -1.6]))
     monkeypatch.setattr(mod, "ROOM_HI", np.array([300.0, 3.5, 3.4]))
 
-    def first_fit(min_restoring: float):
-        cfg = _config()
-        cfg.imu.init_timeout_s = 1.0
-        cfg.imu.moving_init_window_s = 1.0
-        cfg.imu.moving_init_min_restoring_ratio = min_restoring
-        rng = np.random.default_rng(4)
-        t_imu, gyro, acc = imu_samples(1.6, 4.0, 400.0, rng, noise=0.01)
-        reg = MovingInit(cfg, R_LI, T_LI)
-        k = 0
-        for s in np.arange(1.6, 4.0, 0.1):
-            pts, t_ns = lidar_scan(s, 600, rng)
-            near = np.linalg.norm(pts, axis=1) < 100.0  # the range gate
-            hi = int(np.searchsorted(t_imu, t_ns.max(), side="right"))
-            reg.add_imu(t_imu[k:hi], gyro[k:hi], acc[k:hi])
-            k = hi
-            reg.add_scan(pts[near], t_ns[near])
-            if s >= 2.6 - 1e-9 and (fit := reg.solve()) is not None:
-                return fit, reg
-        return None, reg
-
-    fit, reg = first_fit(0.0)  # without the test: a fit passes, with the wrong velocity
+    # without the restoring test a fit passes, with the wrong velocity
+    fit, reg, *_ = _moving_init_first_fit(0.0)
     assert fit is not None
     _, R, v, *_ = trajectory(fit.t_ns * 1e-9)
     v_err_imu = fit.R_world_imu.T @ fit.v_world_m_s - R[0].T @ v[0]
     sigma_v = np.sqrt(np.trace(fit.velocity_cov_m2_s2))
     assert np.linalg.norm(v_err_imu) > max(3 * sigma_v, 0.5)  # 0.77 m/s against 3 x 0.12
-    fit, reg = first_fit(0.6)  # the default: refused on every window
+    fit, reg, *_ = _moving_init_first_fit()  # the default: refused on every window
     assert fit is None
     assert "cannot vouch for the velocity" in reg.failure
     # in the box room the same walk restores most of the information (the fit passes there:
     # test_moving_start_initializes_from_registered_scans)
     monkeypatch.undo()
-    fit, reg = first_fit(0.6)
+    fit, reg, *_ = _moving_init_first_fit()
     assert fit is not None
     assert np.median([s.restoring for s in reg.scans[1:]]) > 0.8

@@ -171,9 +171,9 @@ class MovingInit:
         self.gyro = np.empty((0, 3))
         self.accel = np.empty((0, 3))
         self.last_points: np.ndarray | None = None
-        self._last_raw: tuple[np.ndarray, np.ndarray, int, np.ndarray] | None = None
-        """The last registered scan as handed in (points, times) with the time and rotation it
-        was deskewed from, to deskew it again with the fitted motion (:meth:`solve`)."""
+        self._last_scan: tuple[np.ndarray, np.ndarray] | None = None
+        """The last registered scan as handed in (points, times), to deskew it again with the
+        fitted motion (:meth:`solve`); it was deskewed from the registered scan before it."""
         self.failure = "no scan registered yet"
         self.last_t_ns = np.iinfo(np.int64).min
         """End of the latest scan handed in (int64 ns)."""
@@ -243,7 +243,7 @@ class MovingInit:
         self.ivox.add_points(points_to_world(down, state.R, state.p, self.R_LI, self.t_LI))
         self.scans.append(_Registered(t_e, state.R.copy(), state.p.copy(), restoring))
         self.last_points = pts_e
-        self._last_raw = (pts, t_pts, t_ref, R0.copy())
+        self._last_scan = (pts, t_pts)
         if len(self.scans) > 1000:
             del self.scans[:500]
 
@@ -261,16 +261,16 @@ class MovingInit:
         registration deskewed it with the velocity between its last two registered poses, whose
         noise (the fit's residual over one scan period, 10-30 cm/s) bends the scan by
         centimetres; the filter's first map is this scan."""
-        assert self._last_raw is not None
-        pts, t_pts, t_ref, R_ref = self._last_raw
-        if t_ref < t0_ns:
-            return self.last_points
+        assert self._last_scan is not None
+        pts, t_pts = self._last_scan
+        prev = self.scans[-2]  # the scan was deskewed from its end (within the fitted window)
+        t_ref = prev.t_ns
         tau_imu = (self.imu_t_ns - t0_ns) * 1e-9
         tau_ref = (t_ref - t0_ns) * 1e-9
         dv_ref = preintegrate(tau_imu, self.gyro, self.accel, b_g, np.array([0.0, tau_ref]))[1][1]
         v_ref = v0 + g * tau_ref + R0 @ dv_ref
         t_e = int(t_pts.max())
-        x = State(R=R_ref.copy(), v=v_ref, R_LI=self.R_LI.copy(), t_LI=self.t_LI.copy(),
+        x = State(R=prev.R.copy(), v=v_ref, R_LI=self.R_LI.copy(), t_LI=self.t_LI.copy(),
                   b_g=b_g.copy(), g=g.copy(), g_anchor=so3.anchor_frame(g))
         lo = max(int(np.searchsorted(self.imu_t_ns, t_ref, side="right")) - 1, 0)
         hi = int(np.searchsorted(self.imu_t_ns, t_e, side="right"))
