@@ -361,10 +361,23 @@ def test_localizability_invariants_on_random_jacobians(m, seed, ratio):
     assert 0.0 <= loc.score <= 1.0 and 0.0 <= loc.translation_ratio <= 1.0
     assert np.all(np.diff(loc.eigenvalues) >= 0) and np.all(loc.eigenvalues >= 0)
     np.testing.assert_allclose(np.linalg.norm(loc.weakest), 1.0, atol=1e-9)
+    for k in range(6):  # every eigenvector's largest entry is positive, as the weakest's
+        v = loc.eigenvectors[:, k]
+        assert v[np.argmax(np.abs(v))] >= 0
     P = observable_projector(loc, ratio)
     np.testing.assert_allclose(P @ P, P, atol=1e-6 * max(1.0, np.abs(P).max()))
     if m < 3:
         assert loc.translation_ratio < 1e-9
+    # without the observability metric: the same spectrum to the bit, and nothing that could
+    # pass for a metric
+    lean = localizability(H, POINT_COV, observability=False)
+    for name in ("info", "eigenvalues", "eigenvectors", "weakest", "translation_eigenvalues"):
+        np.testing.assert_array_equal(getattr(lean, name), getattr(loc, name))
+    assert (lean.score, lean.translation_ratio) == (loc.score, loc.translation_ratio)
+    assert lean.scaling is None and lean.observability is None
+    if np.any(H):
+        with pytest.raises(ValueError, match="observability=False"):
+            observable_projector(lean, max(ratio, 0.01))
 
 
 def test_weak_directions_move_points_by_the_step_and_follow_the_weakest_eigenvectors():

@@ -70,6 +70,10 @@ def test_map_covariance_is_the_matched_points_mean_of_transported_owner_covarian
     brute = np.mean([transport(covs[j], p_now - positions[j]) for j in owners if j >= 0], axis=0)
     np.testing.assert_allclose(prov.map_covariance(p_now, matched), brute, rtol=1e-12,
                                atol=1e-18)
+    # rows without a neighbour (NaN) are left out, wherever they sit
+    with_nan = np.insert(matched, [0, 7, len(matched)], np.nan, axis=0)
+    np.testing.assert_array_equal(prov.map_covariance(p_now, with_nan),
+                                  prov.map_covariance(p_now, matched))
     np.testing.assert_array_equal(prov.map_covariance(p_now, matched[-1:]), np.zeros((6, 6)))
 
 

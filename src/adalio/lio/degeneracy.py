@@ -137,6 +137,7 @@ from adalio.errors import InputError
 
 TRIGGERS = ("", "count", "near", "near_ratio", "eigen", "hold")
 _ROT_TRANS_ORDER = np.array([3, 4, 5, 0, 1, 2])
+_COLUMNS = np.arange(6)
 
 
 def _as_points(points: np.ndarray, name: str) -> np.ndarray:
@@ -240,15 +241,12 @@ class Localizability:
     """m, the number of rows of H."""
     translation_eigenvalues: np.ndarray = field(default_factory=lambda: np.zeros(3))
     """(3,) ascending eigenvalues of the translation block (1/m²)."""
-    scaling: np.ndarray = field(default_factory=lambda: np.eye(6))
-    """(6, 6) W = M^-1/2 in error-state order [dp, dtheta] (module docstring §3)."""
-    observability: np.ndarray = field(default_factory=lambda: np.zeros(6))
-    """(6,) ascending eigenvalues of W I_e W divided by the largest (0 = unobservable)."""
-
-
-def _sign_normalise(v: np.ndarray) -> np.ndarray:
-    k = int(np.argmax(np.abs(v)))
-    return -v if v[k] < 0 else v
+    scaling: np.ndarray | None = field(default_factory=lambda: np.eye(6))
+    """(6, 6) W = M^-1/2 in error-state order [dp, dtheta] (module docstring §3); None when not
+    computed (``localizability(..., observability=False)``)."""
+    observability: np.ndarray | None = field(default_factory=lambda: np.zeros(6))
+    """(6,) ascending eigenvalues of W I_e W divided by the largest (0 = unobservable); None
+    when not computed."""
 
 
 def _metric_scaling(info_e: np.ndarray, points: np.ndarray | None) -> np.ndarray:
@@ -268,13 +266,17 @@ def _metric_scaling(info_e: np.ndarray, points: np.ndarray | None) -> np.ndarray
 
 
 def localizability(H_pose: np.ndarray, point_cov: float,
-                   points_body: np.ndarray | None = None) -> Localizability:
+                   points_body: np.ndarray | None = None,
+                   observability: bool = True) -> Localizability:
     """Information, eigen-decomposition and degeneracy score of a scan (module docstring §2).
 
     ``H_pose``: (m, 6) rows ``[dr/d dp (3), dr/d dtheta (3)]`` (lio-design.md §6.3) of the
     accepted residuals; ``point_cov``: residual variance R (m²); ``points_body``: optional
     (m, 3) lever arms ``p_I`` of the rows (IMU frame, metres), used only for the observability
-    metric M of §3 (without them the scalar fallback applies).
+    metric M of §3 (without them the scalar fallback applies). ``observability=False`` leaves
+    out the metric and the scaled spectrum (``scaling`` and ``observability`` are then None),
+    which only AdaLIO+'s projector and probes read: the per-scan statistics of every mode need
+    the rest, and the metric was a third of the function's time.
     """
     H = np.asarray(H_pose, dtype=np.float64)
     if H.ndim != 2 or H.shape[1] != 6:
@@ -295,14 +297,16 @@ def localizability(H_pose: np.ndarray, point_cov: float,
     info = info_e[np.ix_(_ROT_TRANS_ORDER, _ROT_TRANS_ORDER)]
     lam, vec = np.linalg.eigh(info)
     lam = np.clip(lam, 0.0, None)
-    for k in range(6):
-        vec[:, k] = _sign_normalise(vec[:, k])
+    # each column's sign: its largest-|.| entry positive (the first such entry on ties)
+    vec *= np.where(vec[np.argmax(np.abs(vec), axis=0), _COLUMNS] < 0, -1.0, 1.0)
     lam_t = np.clip(np.linalg.eigvalsh(info_e[:3, :3]), 0.0, None)
     ratio = float(lam_t[0] / lam_t[2]) if lam_t[2] > 0 else 0.0
     ratio = min(max(ratio, 0.0), 1.0)
-    W = _metric_scaling(info_e, pts)
-    lam_s = np.clip(np.linalg.eigvalsh(W @ info_e @ W), 0.0, None)
-    obs = lam_s / lam_s[-1] if lam_s[-1] > 0 else np.zeros(6)
+    W = obs = None
+    if observability:
+        W = _metric_scaling(info_e, pts)
+        lam_s = np.clip(np.linalg.eigvalsh(W @ info_e @ W), 0.0, None)
+        obs = lam_s / lam_s[-1] if lam_s[-1] > 0 else np.zeros(6)
     return Localizability(info=info, eigenvalues=lam, eigenvectors=vec, weakest=vec[:, 0].copy(),
                           score=float(1.0 - np.sqrt(ratio)), translation_ratio=ratio,
                           n_residuals=m, translation_eigenvalues=lam_t, scaling=W,
@@ -331,15 +335,21 @@ def observable_projector(loc: Localizability, ratio: float) -> np.ndarray:
         return np.zeros((6, 6))
     lam, vec = _scaled_eigen(loc)
     keep = vec[:, lam >= ratio * lam[-1]]
-    W = loc.scaling
+    W = _scaling(loc)
     return W @ (keep @ keep.T) @ np.linalg.inv(W)
+
+
+def _scaling(loc: Localizability) -> np.ndarray:
+    if loc.scaling is None:
+        raise ValueError("this Localizability was computed with observability=False")
+    return loc.scaling
 
 
 def _scaled_eigen(loc: Localizability) -> tuple[np.ndarray, np.ndarray]:
     """Ascending eigen-decomposition of ``W I_e W`` (module docstring §3), error order."""
     inv = np.argsort(_ROT_TRANS_ORDER)
     info_e = loc.info[np.ix_(inv, inv)]
-    W = loc.scaling
+    W = _scaling(loc)
     return np.linalg.eigh(W @ info_e @ W)
 
 
@@ -348,7 +358,7 @@ def weak_directions(loc: Localizability, count: int, step_m: float) -> np.ndarra
     eigenvectors ``v_k`` of ``W I_e W`` (module docstring §3): each moves the scan points by
     ``step_m`` RMS."""
     _, vec = _scaled_eigen(loc)
-    return step_m * (loc.scaling @ vec[:, :count]).T
+    return step_m * (_scaling(loc) @ vec[:, :count]).T
 
 
 def consistent_projector(loc: Localizability, ratio: float, directions: np.ndarray,
@@ -360,7 +370,7 @@ def consistent_projector(loc: Localizability, ratio: float, directions: np.ndarr
     drop = [d for d, rho in zip(directions, restoring) if not rho >= min_restoring]
     if not drop:
         return P
-    W = loc.scaling
+    W = _scaling(loc)
     Winv = np.linalg.inv(W)
     U = np.linalg.qr(Winv @ np.array(drop).T)[0]
     Q = np.eye(6) - U @ U.T

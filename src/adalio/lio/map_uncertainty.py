@@ -45,6 +45,7 @@ import numpy as np
 
 from adalio.jit import kernel
 from adalio.lio import so3
+from adalio.lio.ivox import hash_key3
 
 MAX_MATCHED_SAMPLES = 512
 """The owners' mean is taken over at most this many matched points (a regular stride)."""
@@ -54,6 +55,7 @@ cell a scan fills holds several of its points, and a cell missed is claimed by a
 later, with nearly the same covariance."""
 _OFFSET = 1 << 20
 """Cell indices are shifted by this before packing 21 bits per axis (±2^20 cells)."""
+_MASK21 = (1 << 21) - 1
 
 
 def world_covariance(W_rel: np.ndarray, W_map: np.ndarray, correlated: bool) -> np.ndarray:
@@ -83,31 +85,112 @@ def transport(W: np.ndarray, d: np.ndarray) -> np.ndarray:
     return so3.mul(so3.mul(T, W), T.T)
 
 
+@kernel(inline="always")
+def _axis_cell(v: float) -> int:
+    c = int(np.floor(v)) + _OFFSET if np.isfinite(v) and abs(v) < 2.0**21 else 0
+    return min(max(c, 0), _MASK21)
+
+
+@kernel(inline="always")
+def _cell_key(x: float, y: float, z: float, cell_m: float) -> int:
+    """The cell of one point (x, y, z) shifted by _OFFSET, 21 bits each, packed in one
+    non-negative int64 (non-finite coordinates and cells beyond ±2^20 are clipped to the edge)."""
+    return ((_axis_cell(x / cell_m) << 42) | (_axis_cell(y / cell_m) << 21)
+            | _axis_cell(z / cell_m))
+
+
 @kernel()
 def _cell_keys(points: np.ndarray, cell_m: float) -> np.ndarray:
-    """One int64 per point: its cell (x, y, z) shifted by _OFFSET, 21 bits each (non-finite
-    rows and cells beyond ±2^20 are clipped to the edge)."""
+    """:func:`_cell_key` of every row."""
     n = points.shape[0]
     keys = np.empty(n, np.int64)
-    top = (1 << 21) - 1
     for i in range(n):
-        key = 0
-        for a in range(3):
-            v = points[i, a] / cell_m
-            c = int(np.floor(v)) + _OFFSET if np.isfinite(v) and abs(v) < 2.0**21 else 0
-            key = (key << 21) | min(max(c, 0), top)
-        keys[i] = key
+        keys[i] = _cell_key(points[i, 0], points[i, 1], points[i, 2], cell_m)
     return keys
 
 
+@kernel(inline="always")
+def _slot(keys: np.ndarray, key: int) -> int:
+    """The slot of ``key`` in the open-addressing table ``keys`` (power-of-two size, -1 = empty):
+    where it is, or the empty slot where it would go."""
+    mask = keys.shape[0] - 1
+    slot = hash_key3(key >> 42, (key >> 21) & _MASK21, key & _MASK21, mask)
+    while keys[slot] >= 0 and keys[slot] != key:
+        slot = (slot + 1) & mask
+    return slot
+
+
 @kernel()
-def _mean_transported(scans: np.ndarray, weights: np.ndarray, covariances: np.ndarray,
-                      positions: np.ndarray, p_world: np.ndarray) -> np.ndarray:
-    """sum_i weights[i] transport(covariances[scans[i]], p_world - positions[scans[i]])."""
+def _claim(keys: np.ndarray, owner: np.ndarray, new_keys: np.ndarray, j: int) -> int:
+    """Give scan ``j`` every cell of ``new_keys`` no scan owns yet; returns how many it got.
+    The table must have room for all of them."""
+    n = 0
+    for i in range(new_keys.shape[0]):
+        slot = _slot(keys, new_keys[i])
+        if keys[slot] < 0:
+            keys[slot] = new_keys[i]
+            owner[slot] = j
+            n += 1
+    return n
+
+
+@kernel()
+def _rehash(keys: np.ndarray, owner: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    out_keys = np.full(size, -1, np.int64)
+    out_owner = np.full(size, -1, np.int64)
+    for i in range(keys.shape[0]):
+        if keys[i] >= 0:
+            slot = _slot(out_keys, keys[i])
+            out_keys[slot] = keys[i]
+            out_owner[slot] = owner[i]
+    return out_keys, out_owner
+
+
+@kernel()
+def _owners(keys: np.ndarray, owner: np.ndarray, cell_keys: np.ndarray) -> np.ndarray:
+    out = np.full(cell_keys.shape[0], -1, np.int64)
+    for i in range(cell_keys.shape[0]):
+        slot = _slot(keys, cell_keys[i])
+        if keys[slot] >= 0:
+            out[i] = owner[slot]
+    return out
+
+
+@kernel()
+def _map_covariance(keys: np.ndarray, owner: np.ndarray, n_scans: int, cell_m: float,
+                    max_samples: int, matched: np.ndarray, covariances: np.ndarray,
+                    positions: np.ndarray, p_world: np.ndarray) -> np.ndarray:
+    """:meth:`MapProvenance.map_covariance` in one pass: the finite rows of ``matched``, every
+    ``stride``-th of them (at most ``max_samples``), their cells' owners counted, and the
+    owners' covariances transported to ``p_world`` and averaged with those counts as weights,
+    in ascending scan order."""
+    n = 0
+    for i in range(matched.shape[0]):
+        if (np.isfinite(matched[i, 0]) and np.isfinite(matched[i, 1])
+                and np.isfinite(matched[i, 2])):
+            n += 1
     out = np.zeros((6, 6))
-    for i in range(scans.shape[0]):
-        j = scans[i]
-        out += weights[i] * transport(covariances[j], p_world - positions[j])
+    if n == 0:
+        return out
+    stride = -(-n // max_samples)
+    counts = np.zeros(n_scans, np.int64)
+    total = 0
+    k = 0
+    for i in range(matched.shape[0]):
+        if not (np.isfinite(matched[i, 0]) and np.isfinite(matched[i, 1])
+                and np.isfinite(matched[i, 2])):
+            continue
+        if k % stride == 0:
+            slot = _slot(keys, _cell_key(matched[i, 0], matched[i, 1], matched[i, 2], cell_m))
+            if keys[slot] >= 0:
+                counts[owner[slot]] += 1
+                total += 1
+        k += 1
+    if total == 0:
+        return out
+    for j in range(n_scans):
+        if counts[j]:
+            out += (counts[j] / total) * transport(covariances[j], p_world - positions[j])
     return out
 
 
@@ -118,46 +201,37 @@ class MapProvenance:
         if not cell_m > 0:
             raise ValueError("MapProvenance: cell_m must be > 0")
         self.cell_m = float(cell_m)
-        self._keys = np.empty(0, np.int64)
-        self._owner = np.empty(0, np.int64)
+        # open-addressing table cell key -> owning scan, at most half full
+        self._keys = np.full(1024, -1, np.int64)
+        self._owner = np.full(1024, -1, np.int64)
+        self._n_cells = 0
         self._positions = np.empty((64, 3))
         self._covariances = np.empty((64, 6, 6))
         self._n_scans = 0
         """Scans kept: only those that own at least one cell."""
 
     def __len__(self) -> int:
-        return int(self._keys.shape[0])
+        return self._n_cells
 
     def _pack(self, points_world: np.ndarray) -> np.ndarray:
         return _cell_keys(np.ascontiguousarray(points_world, dtype=np.float64), self.cell_m)
 
     def owners(self, points_world: np.ndarray) -> np.ndarray:
         """Index of the scan that first filled each point's cell (-1: no scan recorded)."""
-        keys = self._pack(points_world)
-        out = np.full(keys.shape[0], -1, np.int64)
-        if len(self):
-            pos = np.minimum(np.searchsorted(self._keys, keys), len(self) - 1)
-            found = self._keys[pos] == keys
-            out[found] = self._owner[pos[found]]
-        return out
+        return _owners(self._keys, self._owner, self._pack(points_world))
 
     def map_covariance(self, p_world: np.ndarray, matched_world: np.ndarray) -> np.ndarray:
         """W_map (6x6) for a pose at ``p_world`` registered against the map points
-        ``matched_world`` (M, 3): the mean of their owners' covariances, each transported by
-        its lever arm (over a regular stride of at most ``MAX_MATCHED_SAMPLES`` of them). Zero
-        when nothing matched a recorded cell."""
+        ``matched_world`` (M, 3; non-finite rows are left out): the mean of their owners'
+        covariances, each transported by its lever arm (over a regular stride of at most
+        ``MAX_MATCHED_SAMPLES`` of them). Zero when nothing matched a recorded cell."""
         if not self._n_scans or matched_world.shape[0] == 0:
             return np.zeros((6, 6))
-        stride = -(-matched_world.shape[0] // MAX_MATCHED_SAMPLES)
-        own = self.owners(matched_world[::stride])
-        own = own[own >= 0]
-        if own.shape[0] == 0:
-            return np.zeros((6, 6))
-        counts = np.bincount(own)
-        scans = np.flatnonzero(counts)
-        counts = counts[scans]
-        return _mean_transported(scans, counts / counts.sum(), self._covariances,
-                                 self._positions, np.asarray(p_world, dtype=np.float64))
+        return _map_covariance(self._keys, self._owner, self._n_scans, self.cell_m,
+                               MAX_MATCHED_SAMPLES,
+                               np.ascontiguousarray(matched_world, dtype=np.float64),
+                               self._covariances, self._positions,
+                               np.asarray(p_world, dtype=np.float64))
 
     def add_scan(self, p_world: np.ndarray, W_world: np.ndarray,
                  inserted_world: np.ndarray) -> int:
@@ -166,12 +240,18 @@ class MapProvenance:
         nothing is kept: no map point will ever refer to it)."""
         stride = max(1, -(-inserted_world.shape[0] // MAX_INSERTED_SAMPLES))
         keys = self._pack(inserted_world[::stride])
-        if len(self) and keys.shape[0]:
-            pos = np.minimum(np.searchsorted(self._keys, keys), len(self) - 1)
-            keys = keys[self._keys[pos] != keys]
         if not keys.shape[0]:
             return -1
+        size = self._keys.shape[0]
+        while 2 * (self._n_cells + keys.shape[0]) > size:
+            size *= 2
+        if size != self._keys.shape[0]:
+            self._keys, self._owner = _rehash(self._keys, self._owner, size)
         j = self._n_scans
+        claimed = _claim(self._keys, self._owner, keys, j)
+        if not claimed:
+            return -1
+        self._n_cells += claimed
         if j == self._positions.shape[0]:
             self._positions = np.concatenate([self._positions, np.empty_like(self._positions)])
             self._covariances = np.concatenate([self._covariances,
@@ -179,10 +259,6 @@ class MapProvenance:
         self._positions[j] = p_world
         self._covariances[j] = W_world
         self._n_scans = j + 1
-        keys = np.unique(keys)
-        at = np.searchsorted(self._keys, keys)  # sorted insertion points of the sorted keys
-        self._keys = np.insert(self._keys, at, keys)
-        self._owner = np.insert(self._owner, at, j)
         return j
 
 

@@ -477,7 +477,7 @@ class Odometry:
             stats.n_searches = assoc.n_searches
             stats.n_matched = int(assoc.H.shape[0])
             loc = localizability(assoc.H[:, :6], cfg.filter.laser_point_cov,
-                                 assoc.points_body(self._state))
+                                 observability=False)
             stats.eigenvalues = loc.eigenvalues
             stats.weakest_direction = loc.weakest
             stats.degeneracy_score = loc.score
@@ -494,13 +494,11 @@ class Odometry:
         if inserted:
             self._ivox.add_points(p_world, cell_m)
             self._finest_cell_m = min(self._finest_cell_m, cell_m)
+        if cfg.filter.map_uncertainty and loc is not None:
+            self._W_map = self._provenance.map_covariance(s.p, assoc.nearest[assoc.selected])
+        W_world = self._world_covariance()
         if cfg.filter.map_uncertainty:
-            if loc is not None:
-                matched = assoc.nearest[assoc.selected]
-                self._W_map = self._provenance.map_covariance(s.p, matched[np.isfinite(
-                    matched).all(axis=1)])
-            self._provenance.add_scan(s.p, self._world_covariance(),
-                                      p_world if inserted else p_world[:0])
+            self._provenance.add_scan(s.p, W_world, p_world if inserted else p_world[:0])
         t0 = _timer(stage_ms, "map", t0)
 
         stats.n_down, stats.n_down_general = int(down.shape[0]), int(down_general.shape[0])
@@ -508,7 +506,7 @@ class Odometry:
                                                          decision.trigger)
         stats.voxel_size_m, stats.search_radius_m = leaf_m, params.search_radius_m
         stats.plane_margin_m = params.plane_margin_m
-        return self._emit(stats, stage_ms, t_start, p_world)
+        return self._emit(stats, stage_ms, t_start, p_world, W_world)
 
     # ------------------------------------------------------------------ stages
     def _preprocess(self, points_lidar, t_ns) -> tuple[np.ndarray, np.ndarray, int]:
@@ -936,14 +934,15 @@ class Odometry:
         return world_covariance(W, self._W_map, f.map_error_correlated) if f.map_uncertainty else W
 
     def _emit(self, stats: ScanStats, stage_ms: dict[str, float], t_start: float,
-              p_world: np.ndarray) -> Estimate:
+              p_world: np.ndarray, W_world: np.ndarray | None = None) -> Estimate:
+        """The scan's estimate; ``W_world``: :meth:`_world_covariance` if already computed."""
         self._accumulate(stage_ms)
         self.n_scans += 1
         stats.stage_ms = {k: stage_ms.get(k, 0.0) for k in STAGES}
         stats.wall_ms = (time.perf_counter() - t_start) * 1e3
         s = self._state
         stats.sigma_p_world_m, stats.sigma_rot_world_deg = sigmas_from_world_covariance(
-            self._world_covariance())
+            self._world_covariance() if W_world is None else W_world)
         return Estimate(t_ns=stats.t_ns, T_world_imu=s.T_world_imu(), velocity_world_m_s=s.v.copy(),
                         gyro_bias_rad_s=s.b_g.copy(), accel_bias_m_s2=s.b_a.copy(),
                         gravity_world_m_s2=s.g.copy(), cov_diag=np.diag(self._P).copy(),
