@@ -85,13 +85,13 @@ def transport(W: np.ndarray, d: np.ndarray) -> np.ndarray:
     return so3.mul(so3.mul(T, W), T.T)
 
 
-@kernel(inline="always")
+@kernel()
 def _axis_cell(v: float) -> int:
     c = int(np.floor(v)) + _OFFSET if np.isfinite(v) and abs(v) < 2.0**21 else 0
     return min(max(c, 0), _MASK21)
 
 
-@kernel(inline="always")
+@kernel()
 def _cell_key(x: float, y: float, z: float, cell_m: float) -> int:
     """The cell of one point (x, y, z) shifted by _OFFSET, 21 bits each, packed in one
     non-negative int64 (non-finite coordinates and cells beyond ±2^20 are clipped to the edge)."""
@@ -109,7 +109,7 @@ def _cell_keys(points: np.ndarray, cell_m: float) -> np.ndarray:
     return keys
 
 
-@kernel(inline="always")
+@kernel()
 def _slot(keys: np.ndarray, key: int) -> int:
     """The slot of ``key`` in the open-addressing table ``keys`` (power-of-two size, -1 = empty):
     where it is, or the empty slot where it would go."""
@@ -121,29 +121,18 @@ def _slot(keys: np.ndarray, key: int) -> int:
 
 
 @kernel()
-def _claim(keys: np.ndarray, owner: np.ndarray, new_keys: np.ndarray, j: int) -> int:
-    """Give scan ``j`` every cell of ``new_keys`` no scan owns yet; returns how many it got.
-    The table must have room for all of them."""
+def _insert(keys: np.ndarray, owner: np.ndarray, new_keys: np.ndarray,
+            new_owner: np.ndarray) -> int:
+    """Enter each cell of ``new_keys`` that the table does not hold yet, owned by the same row
+    of ``new_owner``; returns how many were entered. The table must have room for all."""
     n = 0
     for i in range(new_keys.shape[0]):
         slot = _slot(keys, new_keys[i])
         if keys[slot] < 0:
             keys[slot] = new_keys[i]
-            owner[slot] = j
+            owner[slot] = new_owner[i]
             n += 1
     return n
-
-
-@kernel()
-def _rehash(keys: np.ndarray, owner: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    out_keys = np.full(size, -1, np.int64)
-    out_owner = np.full(size, -1, np.int64)
-    for i in range(keys.shape[0]):
-        if keys[i] >= 0:
-            slot = _slot(out_keys, keys[i])
-            out_keys[slot] = keys[i]
-            out_owner[slot] = owner[i]
-    return out_keys, out_owner
 
 
 @kernel()
@@ -245,10 +234,13 @@ class MapProvenance:
         size = self._keys.shape[0]
         while 2 * (self._n_cells + keys.shape[0]) > size:
             size *= 2
-        if size != self._keys.shape[0]:
-            self._keys, self._owner = _rehash(self._keys, self._owner, size)
+        if size != self._keys.shape[0]:  # a larger table, the cells entered again
+            held = self._keys >= 0
+            old_keys, old_owner = self._keys[held], self._owner[held]
+            self._keys, self._owner = np.full(size, -1, np.int64), np.full(size, -1, np.int64)
+            _insert(self._keys, self._owner, old_keys, old_owner)
         j = self._n_scans
-        claimed = _claim(self._keys, self._owner, keys, j)
+        claimed = _insert(self._keys, self._owner, keys, np.full(keys.shape[0], j, np.int64))
         if not claimed:
             return -1
         self._n_cells += claimed
