@@ -85,3 +85,72 @@ def test_a_kernel_is_recompiled_when_a_kernel_it_calls_in_another_file_changes(
     assert text.count("out[i, c] += a * B[j, c]") == 1
     so3.write_text(text.replace("out[i, c] += a * B[j, c]", "out[i, c] += 2.0 * a * B[j, c]"))
     np.testing.assert_allclose(run(), [2.0, 4.0, 6.0])
+
+
+_SAVER = """
+import sys, time
+from numba.core import caching
+
+index_delay_s, data_delay_s, start_at, value = (float(a) for a in sys.argv[2:6])
+save_index, save_data = caching.IndexDataCacheFile._save_index, caching.IndexDataCacheFile._save_data
+
+
+def slow_index(self, overloads):  # numba read the index just before: widen the race window
+    time.sleep(index_delay_s)
+    save_index(self, overloads)
+
+
+def slow_data(self, name, data):
+    time.sleep(data_delay_s)
+    save_data(self, name, data)
+
+
+caching.IndexDataCacheFile._save_index = slow_index
+caching.IndexDataCacheFile._save_data = slow_data
+sys.path.insert(0, sys.argv[1])
+import twice
+
+while time.time() < start_at:
+    time.sleep(0.001)
+twice.f(int(value) if value.is_integer() else value)  # compiles, and saves into the cache
+"""
+
+_LOADER = """
+import sys
+sys.path.insert(0, sys.argv[1])
+import twice
+print(repr(twice.f(3)), repr(twice.f(1.25)), sum(twice.f.stats.cache_hits.values()))
+"""
+
+
+def test_two_processes_saving_signatures_of_one_kernel_leave_a_consistent_cache(
+        tmp_path: Path) -> None:
+    """Process A saves f(int64) and B f(float64) into one cold cache at the same time, with the
+    race numba's cache alone has widened by delays: A picks the data file name, writes the index,
+    and writes its data 1 s later; B reads the index before A wrote it, so (unlocked) it picks
+    the same name, and writes its index after A's and its data before A's: the index then says
+    f(float64) is in a file that holds f(int64). adalio.jit's lock serializes the two saves."""
+    import time
+
+    mod = tmp_path / "mod"
+    mod.mkdir()
+    (mod / "twice.py").write_text(
+        "from adalio.jit import kernel\n\n\n@kernel()\ndef f(x):\n    return 2 * x + 1\n")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    t0 = time.time() + 8.0  # both processes have imported numba and adalio by then
+
+    def saver(index_delay: float, data_delay: float, start: float, value: float):
+        return subprocess.Popen([sys.executable, "-c", _SAVER, str(mod), str(index_delay),
+                                 str(data_delay), str(start), repr(value)], env=env,
+                                stderr=subprocess.PIPE, text=True)
+
+    a = saver(1.0, 1.0, t0, 3.0)
+    b = saver(1.0, 0.0, t0 + 0.3, 1.25)
+    for p in (a, b):
+        assert p.wait(timeout=120) == 0, p.stderr.read()
+    out = subprocess.run([sys.executable, "-c", _LOADER, str(mod)], capture_output=True,
+                         text=True, env=env, timeout=120, check=False)
+    assert out.returncode == 0, out.stderr
+    f3, f125, hits = out.stdout.split()
+    assert (f3, f125) == ("7", "3.5")
+    assert int(hits) == 2  # both loaded from the cache, none compiled again

@@ -7,6 +7,13 @@ first-class function, and that wrapper was about a sixth of the compilation a fr
 pays on its first run (issue #15, ``benchmarks/bench_resources.py``). The CPython wrapper stays:
 without it a call from Python crashes the interpreter instead of raising.
 
+Each kernel's save into the cache holds an exclusive lock on a file in its cache folder
+(:func:`_locked_save`). numba saves an entry by reading the kernel's index, choosing a data file
+name, and writing both back; two processes saving two signatures of one kernel at once (the
+workers of ``adalio batch`` on a cold cache, or :mod:`adalio.lio.warmup`'s helper and the run)
+could otherwise each pick the same data file name and leave the index pointing at the other's
+code. The lock makes that read-modify-write one step (``tests/test_jit.py``).
+
 The cache is keyed on all of adalio's kernel sources, not on the kernel's own file only. numba
 stamps each cached kernel with a hash of the file that defines it, so a kernel that calls (or
 inlines) a kernel of another file was loaded unchanged after that other file changed: a changed
@@ -18,8 +25,10 @@ them all on the next run.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
+import os
 from pathlib import Path
 
 from numba import njit
@@ -47,6 +56,38 @@ def kernel_sources_stamp() -> str:
     return sources_stamp(_PACKAGE)
 
 
+LOCK_NAME = ".adalio-cache.lock"
+
+
+@contextlib.contextmanager
+def _cache_lock(folder: str):
+    """Exclusive inter-process lock on ``folder``/:data:`LOCK_NAME` (POSIX ``flock``; where
+    there is no ``fcntl``, no lock)."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover  (Windows)
+        yield
+        return
+    fd = os.open(os.path.join(folder, LOCK_NAME), os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def _locked_save(cache_file):
+    """``cache_file.save`` (numba's index-and-data cache file of one kernel) under
+    :func:`_cache_lock` of its folder."""
+    save = cache_file.save
+
+    def locked(key, data):
+        with _cache_lock(cache_file._cache_path):
+            save(key, data)
+
+    return locked
+
+
 def kernel(*, parallel: bool = False, inline: str = "never"):
     """Decorator: ``@kernel()``, ``@kernel(parallel=True)``, ``@kernel(inline="always")``."""
     jit = njit(cache=True, no_cfunc_wrapper=True, parallel=parallel, inline=inline)
@@ -57,6 +98,8 @@ def kernel(*, parallel: bool = False, inline: str = "never"):
         cache_file = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
         if cache_file is not None and hasattr(cache_file, "_source_stamp"):
             cache_file._source_stamp = kernel_sources_stamp()
+            if hasattr(cache_file, "_cache_path") and hasattr(cache_file, "save"):
+                cache_file.save = _locked_save(cache_file)
         return dispatcher
 
     return decorate
