@@ -210,7 +210,8 @@ def process_bag(job: BagJob) -> BagRow:
         use_bag_threads()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            res = run_bag(job.bag_path, job.config, job.run_dir, progress=False)
+            res = run_bag(job.bag_path, job.config, job.run_dir, progress=False,
+                          parallel_compile=False)
         row.poses, row.scans = res.n_scans, res.n_scans_in
         row.degenerate_pct = 100.0 * res.n_degenerate / res.n_scans if res.n_scans else math.nan
         row.ms_per_scan = res.ms_per_scan_median

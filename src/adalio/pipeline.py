@@ -209,7 +209,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
             progress: bool = True, max_scans: int | None = None,
             map_format: str | None = None, on_scan: Callable[[int], None] | None = None,
             on_estimate: Callable[[Estimate], None] | None = None,
-            start_s: float = 0.0, sigma_warn_m: float = DEFAULT_SIGMA_WARN_M) -> RunResult:
+            start_s: float = 0.0, sigma_warn_m: float = DEFAULT_SIGMA_WARN_M,
+            parallel_compile: bool = True) -> RunResult:
     """Run the estimator over a bag and write the results into ``out_dir``.
 
     ``start_s`` skips the bag's first seconds (the run then starts wherever the sensor is, at
@@ -217,6 +218,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
     them); ``on_estimate(est)`` after each estimate is written (e.g. a live view). An exception
     either raises stops the run like an error would (KeyboardInterrupt = Ctrl-C). Evaluation
     against a ground truth is separate: :func:`adalio.eval.report.make_report` on ``out_dir``.
+    ``parallel_compile``: on a cold numba cache, compile the update's kernels in a helper process
+    meanwhile (:mod:`adalio.lio.warmup`; off for runs that already share the cores).
     """
     cfg = copy.deepcopy(config)
     if map_format is not None:
@@ -229,13 +232,16 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
     if not sigma_warn_m > 0:
         raise ConfigError(f"--sigma-warn-m must be > 0 metres (got {sigma_warn_m})")
     try:
-        from adalio.lio import Odometry
+        from adalio.lio import Odometry, warmup
     except ImportError:
         raise AdalioError("the estimator (adalio.lio.Odometry) is not available in this "
                           "install; update adalio") from None
 
     out = Path(out_dir)
     bag = Bag(bag_path).open()
+    # a cold numba cache (first run after an install): the update's kernels compile meanwhile in
+    # a second process (adalio.lio.warmup); stopped when the run ends, whatever it has done
+    helper = warmup.start() if parallel_compile else warmup.Warmup(None)
     try:
         lidar_topic, imu_topic = bag.select_topics(cfg.sensor)
         T_imu_lidar, ext_source = resolve_extrinsic(bag, lidar_topic, imu_topic, cfg)
@@ -331,6 +337,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
             paths["config"].write_text(_config_text(cfg, odom))
         wall_s = time.perf_counter() - t_start
     finally:
+        helper.stop()
         bag.close()
     order = np.argsort(np.asarray(est_t, dtype=np.int64), kind="stable")
     est_t, degen, held, risky = ([seq_[i] for i in order] for seq_ in (est_t, degen, held, risky))

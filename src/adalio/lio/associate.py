@@ -164,7 +164,8 @@ def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
               min_neighbors: int, radius_m: float, margin_m: float, method: str = "ls",
               min_extent_m: float = 0.0, support_test: bool = False,
               keep_neighbours: bool = False,
-              warm_from: Correspondences | None = None) -> Correspondences:
+              warm_from: Correspondences | None = None,
+              compile_only: bool = False) -> Correspondences:
     """Planes from the k nearest map points of each world point (§6.2, §7, §9.4).
 
     Same arguments and result as ``ivox.knn(points_world, k, max_range_m)``, then
@@ -177,6 +178,9 @@ def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
     result for the same rows (e.g. the same scan points at an earlier pose) on the *unchanged*
     map, starts each row's search from its previous neighbours' farthest distance: the same
     result, bit for bit, with fewer points and voxels visited (:func:`_warm_bound`).
+
+    ``compile_only`` compiles the search kernel these arguments would run (for their types, on
+    any map, even an empty one) and searches nothing (:mod:`adalio.lio.warmup`).
     """
     if method not in PLANE_METHODS:
         raise ConfigError(f"filter.plane_fit must be 'ls' or 'pca', got {method!r}")
@@ -192,7 +196,7 @@ def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
     if keep_neighbours:
         out.queries = q
         out.neighbours = np.full((m, k, 3), np.nan)
-    if m == 0 or ivox.num_voxels == 0:
+    if (m == 0 or ivox.num_voxels == 0) and not compile_only:
         return out
     warm = (warm_from is not None and warm_from.neighbours is not None
             and warm_from.neighbours.shape == (m, k, 3))
@@ -203,11 +207,15 @@ def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
     out_nb = out.neighbours if keep_neighbours else np.empty((0, k, 3))
     parallel = m >= PARALLEL_MIN_QUERIES and numba.get_num_threads() > 1
     kernel = _associate_parallel if parallel else _associate_serial
-    kernel(q, k, float(max_range_m) ** 2, ivox.resolution_m, ivox._offsets,
-           ivox.max_points_per_voxel,
-           (ivox._table, ivox._vkeys, ivox._vtotal, ivox._vblocks, ivox._pool),
-           max(int(min_neighbors), 3), float(radius_m) ** 2, float(margin_m),
-           float(min_extent_m), method == "ls", bool(support_test), out.normals, out.d,
-           out.valid, out.counts, out.mu, out.lam_mid, out.nearest, warm, prev_q, prev_nb,
-           prev_c, out_nb)
+    args = (q, k, float(max_range_m) ** 2, ivox.resolution_m, ivox._offsets,
+            ivox.max_points_per_voxel,
+            (ivox._table, ivox._vkeys, ivox._vtotal, ivox._vblocks, ivox._pool),
+            max(int(min_neighbors), 3), float(radius_m) ** 2, float(margin_m),
+            float(min_extent_m), method == "ls", bool(support_test), out.normals, out.d,
+            out.valid, out.counts, out.mu, out.lam_mid, out.nearest, warm, prev_q, prev_nb,
+            prev_c, out_nb)
+    if compile_only:
+        kernel.compile(tuple(numba.typeof(a) for a in args))
+    else:
+        kernel(*args)
     return out

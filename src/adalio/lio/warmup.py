@@ -1,0 +1,167 @@
+"""Compile the scan update's kernels in a second process while a cold run compiles the rest.
+
+A fresh install has an empty numba cache, and its first ``adalio run`` spends most of its wall
+time compiling (issue #15, ``benchmarks/bench_resources.py``). numba compiles one function at a
+time per process (a global compiler lock), but its on-disk cache is shared: a kernel that another
+process has compiled and saved is loaded, not compiled, on its first call here. So while the run
+compiles the kernels of its first stages in the order it reaches them (decoding, IMU
+propagation, undistortion, downsampling, the first map), :func:`start` lets a helper process
+compile the kernels of the update and the map stages, which the run reaches only at its second
+scan (:func:`compile_update_stage`, in the order the run reaches them: the kNN search and plane
+fits first). The helper is a plain subprocess whose output goes nowhere; the run never waits
+for it and stops it when it ends (:class:`Warmup`), so whatever it has not finished the run
+compiles itself, as without it.
+
+It starts only where it can help: with at least two CPUs, numba's JIT on and the update's
+kernels not in the cache yet for this adalio source (:func:`cache_is_cold`); and not at all with
+``ADALIO_PARALLEL_COMPILE=0`` in the environment. Two processes saving kernels into one cache is
+safe because the kernel decorator (``jit.kernel``) locks each save (the index and its data
+files stay consistent).
+
+The helper calls the same functions the run calls (``_Association.measure`` under
+:func:`~adalio.lio.ieskf.iterated_update`, ``IVox.add_points``, ``MapProvenance``, ...) on a
+synthetic box room, so the signatures it compiles are the run's; ``tests/lio/test_warmup.py``
+checks that a run after it compiles none of the helper's kernels again.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+ENV_SWITCH = "ADALIO_PARALLEL_COMPILE"
+"""Environment variable: ``0`` never starts the helper process."""
+
+
+def _box_room(n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` points on the walls, floor and ceiling of a 12 x 8 x 3 m room, sensor frame at its
+    centre (1.5 m above the floor), with a few centimetres of clutter on the walls' planes."""
+    half = np.array([6.0, 4.0, 1.5])
+    face = rng.integers(0, 6, n)
+    axis, sign = face // 2, np.where(face % 2 == 0, -1.0, 1.0)
+    pts = rng.uniform(-1.0, 1.0, (n, 3)) * half
+    pts[np.arange(n), axis] = sign * half[axis]
+    return pts + rng.normal(0.0, 0.005, pts.shape)
+
+
+def compile_update_stage() -> None:
+    """Compile the kernels of the update and map stages of :meth:`adalio.lio.Odometry.add_scan`
+    (or load them from numba's cache) for the argument types a run passes, with the default
+    configuration, on a box room, in the order the run reaches them after its first stages: the
+    scan downsampling (the run's first scan needs it), the parallel search (the largest,
+    compiled for its argument types without searching, so without building a map first), the
+    filter update (on the room's exact planes), the map provenance, and the gyro-unit check's
+    preintegration."""
+    from adalio.config import Config
+    from adalio.lio.associate import associate
+    from adalio.lio.degeneracy import localizability
+    from adalio.lio.ieskf import iterated_update
+    from adalio.lio.ivox import IVox
+    from adalio.lio.map_uncertainty import MapProvenance
+    from adalio.lio.motion_init import preintegrate
+    from adalio.lio.odometry import _Association, _group_ids
+    from adalio.lio.state import State, initial_covariance, pose_covariance_world
+    from adalio.lio.voxel import voxel_downsample
+
+    cfg = Config()
+    f = cfg.filter
+    rng = np.random.default_rng(0)
+    general = cfg.adaptive.general
+    cell_m = cfg.map.map_leaf_m
+    ivox = IVox.from_config(cfg.map)
+    pts = voxel_downsample(_box_room(20000, rng), general.voxel_size_m)
+    associate(ivox, pts, f.knn_k, f.knn_max_range_m, f.min_neighbors, general.search_radius_m,
+              general.plane_margin_m, f.plane_fit, f.plane_min_extent_fraction * cell_m,
+              f.plane_within_support, keep_neighbours=True, compile_only=True)
+    x = State(R_LI=np.eye(3), t_LI=np.zeros(3))
+    P = initial_covariance(f.estimate_extrinsic)
+    # the update, with the search's results set as the room's exact planes
+    assoc = _Association(pts, ivox, cfg, general.search_radius_m, general.plane_margin_m, cell_m)
+    axis = np.argmax(np.abs(pts) / [6.0, 4.0, 1.5], axis=1)
+    assoc.normals = np.zeros((pts.shape[0], 3))
+    assoc.normals[np.arange(pts.shape[0]), axis] = 1.0
+    assoc.d = -np.round(pts[np.arange(pts.shape[0]), axis], 1)
+    assoc.mu, assoc.lam_mid = pts.copy(), np.full(pts.shape[0], 0.01)
+    assoc.counts = np.full(pts.shape[0], f.knn_k, np.int64)
+    assoc.nearest = pts.copy()
+    assoc.group_id, assoc.n_groups = _group_ids(assoc.nearest)
+    assoc.selected = np.ones(pts.shape[0], np.bool_)
+    result = iterated_update(x, P, lambda state, research: assoc.measure(state, False), f, None)
+    localizability(assoc.H[:, :6], f.laser_point_cov, observability=False)
+    provenance = MapProvenance(f.map_provenance_cell_m)
+    provenance.add_scan(x.p, pose_covariance_world(x.R, P), pts)
+    provenance.map_covariance(result.state.p, pts[::2].copy())
+    provenance.add_scan(result.state.p, pose_covariance_world(result.state.R, result.P), pts)
+    tau = np.linspace(0.0, 0.1, 41)
+    preintegrate(tau, rng.normal(0.0, 0.1, (41, 3)), rng.normal(0.0, 0.1, (41, 3)),
+                 np.zeros(3), np.array([0.0, 0.05]))
+
+
+def _update_kernel():
+    """The dispatcher whose cache entry tells a warm cache from a cold one: the parallel search,
+    the largest compilation of the update stage."""
+    from adalio.lio.associate import _associate_parallel
+
+    return _associate_parallel
+
+
+def cache_is_cold() -> bool:
+    """True while numba's cache holds no compiled parallel search for this adalio source (a
+    fresh install, or adalio's kernel sources changed since the cache was written)."""
+    try:
+        cache_file = _update_kernel()._cache._cache_file
+        return not cache_file._load_index()
+    except Exception:  # noqa: BLE001  (numba internals moved: no helper, nothing lost)
+        return False
+
+
+def wanted() -> bool:
+    """Whether :func:`start` would start the helper in this process."""
+    import numba
+
+    return (os.environ.get(ENV_SWITCH, "1") != "0" and (os.cpu_count() or 1) >= 2
+            and not numba.config.DISABLE_JIT and cache_is_cold())
+
+
+class Warmup:
+    """The helper process, if one was started; :meth:`stop` ends it (idempotent)."""
+
+    def __init__(self, proc: subprocess.Popen | None) -> None:
+        self.proc = proc
+
+    @property
+    def started(self) -> bool:
+        return self.proc is not None
+
+    def stop(self) -> None:
+        proc, self.proc = self.proc, None
+        if proc is None or proc.poll() is not None:
+            return
+        proc.terminate()  # numba writes each cache file to a temporary name, then renames it
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(timeout=5.0)
+            return
+        proc.kill()
+        proc.wait()
+
+
+def start() -> Warmup:
+    """Start the helper process if :func:`wanted`; never raises (without it the run compiles
+    everything itself, as it always could)."""
+    try:
+        if not wanted():
+            return Warmup(None)
+        import numba
+
+        env = {**os.environ, "NUMBA_NUM_THREADS": str(numba.get_num_threads())}
+        proc = subprocess.Popen(
+            [sys.executable, "-c", "from adalio.lio.warmup import compile_update_stage as f; f()"],
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            env=env, start_new_session=True)
+        return Warmup(proc)
+    except Exception:  # noqa: BLE001
+        return Warmup(None)

@@ -1,0 +1,138 @@
+"""adalio.lio.warmup: the helper compiles what a run needs, with the run's argument types, and a
+run never leaves it behind."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from adalio.config import load_config
+from adalio.lio import warmup
+from adalio.pipeline import run_bag
+from adalio.sim import cached_sequence
+
+_RECORD = """
+import json, sys
+from numba.core import event
+
+compiled = []
+
+
+class Record(event.Listener):
+    def on_start(self, ev):
+        d = ev.data["dispatcher"]
+        if d.py_func.__module__.startswith("adalio."):
+            compiled.append([d.py_func.__module__ + "." + d.py_func.__qualname__,
+                             str(ev.data["args"])])
+
+    def on_end(self, ev):
+        pass
+
+
+event.register("numba:compile", Record())
+"""
+
+_HELPER = _RECORD + """
+from adalio.lio import warmup
+cold = warmup.cache_is_cold()
+warmup.compile_update_stage()
+print(json.dumps({"cold_before": cold, "cold_after": warmup.cache_is_cold(),
+                  "compiled": compiled}))
+"""
+
+_RUN = _RECORD + """
+import tempfile
+from adalio.config import load_config
+from adalio.lio import associate, measurement, map_uncertainty, motion_init
+from adalio.pipeline import run_bag
+res = run_bag(sys.argv[1], load_config(config_file=sys.argv[2]), tempfile.mkdtemp(),
+              progress=False, parallel_compile=False)
+used = {d.__module__ + "." + d.__qualname__: sum(d.stats.cache_hits.values())
+        for d in (associate._associate_parallel, measurement.point_to_plane,
+                  measurement.residual_weights, map_uncertainty._map_covariance,
+                  motion_init.preintegrate)}
+print(json.dumps({"compiled": compiled, "loaded": used, "poses": res.n_scans}))
+"""
+
+
+def _hall():
+    return cached_sequence("hall", seed=1, duration_s=6.0, columns=500)
+
+
+def _json(script: str, env: dict, *args: str) -> dict:
+    out = subprocess.run([sys.executable, "-c", script, *args], capture_output=True, text=True,
+                         env=env, timeout=600, check=False)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.slow
+def test_a_run_after_the_helper_compiles_none_of_the_helper_s_kernels_again(
+        tmp_path: Path) -> None:
+    """On an empty numba cache the helper compiles the update's kernels; a run then loads every
+    one of them from the cache (compiling them again would mean the helper compiled them for
+    other argument types than the run passes, and helped nothing)."""
+    sim = _hall()
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    helper = _json(_HELPER, env)
+    assert helper["cold_before"] and not helper["cold_after"]
+    by_helper = {name for name, _ in helper["compiled"]}
+    for name in ("adalio.lio.associate._associate_parallel",
+                 "adalio.lio.measurement.point_to_plane",
+                 "adalio.lio.measurement.residual_weights",
+                 "adalio.lio.map_uncertainty._map_covariance",
+                 "adalio.lio.motion_init.preintegrate", "adalio.lio.so3.log"):
+        assert name in by_helper
+    run = _json(_RUN, env, str(sim.bag_path), str(sim.config_path))
+    assert run["poses"] > 10
+    again = sorted({name for name, _ in run["compiled"]} & by_helper)
+    assert again == [], [c for c in run["compiled"] if c[0] in again]
+    assert all(hits >= 1 for hits in run["loaded"].values()), run["loaded"]
+    assert len(run["compiled"]) > 10  # the run compiled its own stages (a cold cache indeed)
+
+
+def test_the_helper_is_not_wanted_when_switched_off_or_when_the_cache_is_warm(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(warmup, "cache_is_cold", lambda: True)
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setenv(warmup.ENV_SWITCH, "0")
+    assert not warmup.wanted() and not warmup.start().started
+    monkeypatch.setenv(warmup.ENV_SWITCH, "1")
+    assert warmup.wanted()
+    monkeypatch.setattr(os, "cpu_count", lambda: 1)
+    assert not warmup.wanted()
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(warmup, "cache_is_cold", lambda: False)
+    assert not warmup.wanted()
+
+
+@pytest.mark.parametrize("max_scans", [1, 12])
+def test_run_bag_stops_the_helper_when_it_ends(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                               max_scans: int) -> None:
+    """Whether the run ends with poses (12 scans) or with an error (1 scan: no pose yet), the
+    helper process is gone when run_bag returns or raises."""
+    sim = _hall()
+    started: list[subprocess.Popen] = []
+
+    def start() -> warmup.Warmup:
+        proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+        started.append(proc)
+        return warmup.Warmup(proc)
+
+    monkeypatch.setattr(warmup, "start", start)
+    cfg = load_config(config_file=sim.config_path)
+    try:
+        run_bag(sim.bag_path, cfg, tmp_path / "out", progress=False, max_scans=max_scans)
+    except Exception as e:  # noqa: BLE001
+        assert max_scans == 1, e
+    assert len(started) == 1
+    assert started[0].poll() is not None
+    started.clear()
+    run_bag(sim.bag_path, cfg, tmp_path / "out2", progress=False, max_scans=12,
+            parallel_compile=False)
+    assert started == []
