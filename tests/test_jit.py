@@ -154,3 +154,17 @@ def test_two_processes_saving_signatures_of_one_kernel_leave_a_consistent_cache(
     f3, f125, hits = out.stdout.split()
     assert (f3, f125) == ("7", "3.5")
     assert int(hits) == 2  # both loaded from the cache, none compiled again
+
+
+def test_the_cache_lock_gives_way_where_no_lock_file_can_be_made(tmp_path: Path) -> None:
+    """A cache folder where the lock file cannot be created (here: the folder does not exist)
+    saves unlocked, as numba alone would, instead of failing the compilation."""
+    from adalio.jit import _cache_lock
+
+    entered = []
+    with _cache_lock(str(tmp_path / "missing")):
+        entered.append(True)
+    with _cache_lock(str(tmp_path)):
+        entered.append(True)
+    assert entered == [True, True]
+    assert (tmp_path / ".adalio-cache.lock").exists()

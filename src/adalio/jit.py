@@ -62,18 +62,25 @@ LOCK_NAME = ".adalio-cache.lock"
 @contextlib.contextmanager
 def _cache_lock(folder: str):
     """Exclusive inter-process lock on ``folder``/:data:`LOCK_NAME` (POSIX ``flock``; where
-    there is no ``fcntl``, no lock)."""
+    there is no ``fcntl``, or the lock file cannot be made or locked, no lock)."""
     try:
         import fcntl
     except ImportError:  # pragma: no cover  (Windows)
         yield
         return
-    fd = os.open(os.path.join(folder, LOCK_NAME), os.O_RDWR | os.O_CREAT, 0o666)
+    fd = None
     try:
+        fd = os.open(os.path.join(folder, LOCK_NAME), os.O_RDWR | os.O_CREAT, 0o666)
         fcntl.flock(fd, fcntl.LOCK_EX)
+    except OSError:  # a folder numba can write but not lock in: save as numba would
+        if fd is not None:
+            os.close(fd)
+        fd = None
+    try:
         yield
     finally:
-        os.close(fd)  # releases the lock
+        if fd is not None:
+            os.close(fd)  # releases the lock
 
 
 def _locked_save(cache_file):
