@@ -142,3 +142,27 @@ def test_pipeline_does_not_import_eval():
     names = [n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
     names += [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
     assert not [m for m in names if m and m.startswith("adalio.eval")], names
+
+
+@pytest.mark.parametrize("cold", [True, False])
+def test_a_run_on_a_cold_kernel_cache_says_it_compiles(tmp_path, corridor, monkeypatch, cold):
+    """A first run after an install sits at its first scan while the kernels compile: it says
+    so before, and its summary says the timings include the compilation; a warm run says
+    neither."""
+    from adalio.lio import warmup
+
+    monkeypatch.setattr(warmup, "cache_is_cold", lambda: cold)
+    monkeypatch.setattr(warmup, "start", lambda: warmup.Warmup(None))
+    res = CliRunner().invoke(app, ["run", str(corridor.bag_path), "--config",
+                                   str(corridor.config_path), "--out", str(tmp_path / "o"),
+                                   "--max-scans", "12", "--no-progress"])
+    assert res.exit_code == 0, res.output
+    lines = res.output.splitlines()
+    before = [i for i, ln in enumerate(lines) if ln.startswith("note: first run after an install")]
+    after = [i for i, ln in enumerate(lines) if ln.startswith("note: this run compiled")]
+    done = [i for i, ln in enumerate(lines) if ln.startswith("done: ")]
+    assert len(done) == 1, lines
+    if cold:
+        assert len(before) == 1 and len(after) == 1 and before[0] < done[0] < after[0], lines
+    else:
+        assert before == [] and after == [], lines

@@ -69,6 +69,9 @@ class RunResult:
     n_sigma_warn: int = 0
     init_report: Any = None
     """:class:`adalio.types.InitReport` of the estimator (None if it never initialized)."""
+    compiled: bool = False
+    """The run began on a cold numba cache (the first after an install or an update of adalio):
+    its wall time and stage times include the one-time compilation of the kernels."""
 
 
 def default_out_dir(bag_path: str | Path, root: str | Path = "runs") -> Path:
@@ -241,7 +244,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
     bag = Bag(bag_path).open()
     # a cold numba cache (first run after an install): the update's kernels compile meanwhile in
     # a second process (adalio.lio.warmup); stopped when the run ends, whatever it has done
-    helper = warmup.start() if parallel_compile else warmup.Warmup(None)
+    compiled = warmup.cache_is_cold()
+    helper = warmup.start() if parallel_compile and compiled else warmup.Warmup(None)
     try:
         lidar_topic, imu_topic = bag.select_topics(cfg.sensor)
         T_imu_lidar, ext_source = resolve_extrinsic(bag, lidar_topic, imu_topic, cfg)
@@ -353,7 +357,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         time_spec=seq.decoder.time_spec.describe() if seq.decoder.time_spec else "",
         sequencer=seq.stats, n_scans_in=n_in, init_report=odom.init_report,
         sigma_warn_m=sigma_warn_m, sigma_warn_ranges_s=_flag_ranges(est_t, risky),
-        n_sigma_warn=int(sum(risky)))
+        n_sigma_warn=int(sum(risky)), compiled=compiled)
     if not est_t and not interrupted:
         raise InputError(_no_pose_reason(odom, n_in, lidar_topic, imu_topic, out))
     return result

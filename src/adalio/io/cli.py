@@ -220,6 +220,7 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
     out_dir = out if out is not None else default_out_dir(bag)
     check_out_dir(out_dir)
     con = console(stderr=True)
+    compile_notice(con)
     viewer = None
     try:
         with _warnings_to(con):
@@ -243,6 +244,22 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
         _report(con, res.out_dir, gt)
     if res is None or res.interrupted:
         raise typer.Exit(130)  # the entry point prints the 'interrupted' line
+
+
+COMPILE_NOTICE = ("[cyan]note:[/] first run after an install or an update of adalio: its "
+                  "kernels compile now (about 20 s, once; later runs load them from numba's "
+                  "cache)")
+
+
+def compile_notice(con: Console) -> None:
+    """Say so before a run that will compile adalio's kernels (a cold numba cache), which would
+    otherwise sit at its first scan for that long without a word."""
+    try:
+        from adalio.lio import warmup
+    except ImportError:  # run_bag says what is missing
+        return
+    if warmup.cache_is_cold():
+        con.print(COMPILE_NOTICE, highlight=False, soft_wrap=True)
 
 
 def _report(con: Console, out_dir: Path, gt: Path) -> None:
@@ -333,6 +350,11 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
             con.print("stages (ms/scan): " + ", ".join(
                 f"{stage} {ms / n:.1f}" for stage, ms in res.stage_ms.items()),
                 highlight=False, soft_wrap=True)
+    if getattr(res, "compiled", False):
+        con.print("[cyan]note:[/] this run compiled adalio's kernels (first run after an install "
+                  "or an update): its wall time, scans/s and stage times include that one-time "
+                  "compilation; the median ms/scan hardly does", highlight=False,
+                  soft_wrap=True)
 
 
 # ------------------------------------------------------------------------------------ config
