@@ -166,3 +166,22 @@ def test_a_run_on_a_cold_kernel_cache_says_it_compiles(tmp_path, corridor, monke
         assert len(before) == 1 and len(after) == 1 and before[0] < done[0] < after[0], lines
     else:
         assert before == [] and after == [], lines
+
+
+def test_a_bad_bag_on_a_cold_kernel_cache_is_still_one_error_line(tmp_path, monkeypatch,
+                                                                   capsys):
+    """The compile notice comes once the bag is open and its topics found, never before an
+    input error."""
+    from adalio.cli import main
+    from adalio.lio import warmup
+
+    monkeypatch.setattr(warmup, "cache_is_cold", lambda: True)
+    monkeypatch.setattr(warmup, "start", lambda: warmup.Warmup(None))
+    bad = tmp_path / "not_a_bag.bag"
+    bad.write_bytes(b"no bag here")
+    monkeypatch.setattr(sys, "argv", ["adalio", "run", str(bad), "--out", str(tmp_path / "o")])
+    with pytest.raises(SystemExit) as stop:
+        main()
+    assert stop.value.code == 2
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:"), lines

@@ -213,7 +213,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
             map_format: str | None = None, on_scan: Callable[[int], None] | None = None,
             on_estimate: Callable[[Estimate], None] | None = None,
             start_s: float = 0.0, sigma_warn_m: float = DEFAULT_SIGMA_WARN_M,
-            parallel_compile: bool = True) -> RunResult:
+            parallel_compile: bool = True,
+            on_compile: Callable[[], None] | None = None) -> RunResult:
     """Run the estimator over a bag and write the results into ``out_dir``.
 
     ``start_s`` skips the bag's first seconds (the run then starts wherever the sensor is, at
@@ -223,6 +224,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
     against a ground truth is separate: :func:`adalio.eval.report.make_report` on ``out_dir``.
     ``parallel_compile``: on a cold numba cache, compile the update's kernels in a helper process
     meanwhile (:mod:`adalio.lio.warmup`; off for runs that already share the cores).
+    ``on_compile()`` is called once the bag is open and its topics found, if the kernels will
+    compile during this run (a cold numba cache; ``RunResult.compiled``).
     """
     cfg = copy.deepcopy(config)
     if map_format is not None:
@@ -257,6 +260,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                      "map": out / f"map.{cfg.output.map_format}", "config": out / "config.yaml"}
         paths["config"].write_text(cfg.to_yaml())
         odom = Odometry(cfg)
+        if compiled and on_compile is not None:
+            on_compile()
         seq = Sequencer(bag, lidar_topic, imu_topic, cfg.sensor,
                         start_ns=bag.start_ns + round(start_s * 1e9) if start_s else None)
         tum = TumWriter(paths["trajectory"])

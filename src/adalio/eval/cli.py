@@ -146,11 +146,10 @@ def compare_command(
 ) -> None:
     """Run several modes on the same bag and print one comparison table."""
     from adalio.eval.compare import compare_modes, parse_modes
-    from adalio.io.cli import check_out_dir, compile_notice
+    from adalio.io.cli import check_out_dir
 
     check_out_dir(out)
     console = term_console()
-    compile_notice(console)
     result = compare_modes(bag, parse_modes(modes), out, gt=gt, preset=preset,
                            config_file=config, overrides=_overrides(set_), max_scans=max_scans,
                            console=console)
@@ -165,12 +164,11 @@ def demo_command(
 ) -> None:
     """Simulate a spiral staircase descent and compare fixed vs adaptive (no data needed)."""
     from adalio.eval.demo import DEFAULT_OUT, run_demo
-    from adalio.io.cli import check_out_dir, compile_notice
+    from adalio.io.cli import check_out_dir
 
     out = DEFAULT_OUT if out is None else out
     check_out_dir(out)
     console = term_console()
-    compile_notice(console)
     t0 = time.perf_counter()
     res = run_demo(out, short=short, console=console)
     _print_compare(console, res.compare)

@@ -78,6 +78,7 @@ def compare_modes(bag_path: str | Path, modes: list[str], out_dir: str | Path, *
                   progress: bool = True, max_diff_s: float = DEFAULT_MAX_DIFF_S,
                   console: Any = None) -> CompareResult:
     """Run ``modes`` on ``bag_path`` and collect the comparison (see module docstring)."""
+    from adalio.io.cli import compile_notice
     from adalio.pipeline import run_bag
 
     out_dir = Path(out_dir)
@@ -96,8 +97,8 @@ def compare_modes(bag_path: str | Path, modes: list[str], out_dir: str | Path, *
         if console is not None:
             console.print(f"[bold]running mode {mode}[/] -> {run_dir}")
         try:
-            res = run_bag(bag_path, cfg, run_dir, progress=progress,
-                          max_scans=max_scans)
+            res = run_bag(bag_path, cfg, run_dir, progress=progress, max_scans=max_scans,
+                          on_compile=None if console is None else lambda: compile_notice(console))
         except (BagError, ConfigError):
             raise
         except (AdalioError, FloatingPointError, np.linalg.LinAlgError, ValueError) as exc:

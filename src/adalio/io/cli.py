@@ -220,7 +220,6 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
     out_dir = out if out is not None else default_out_dir(bag)
     check_out_dir(out_dir)
     con = console(stderr=True)
-    compile_notice(con)
     viewer = None
     try:
         with _warnings_to(con):
@@ -230,7 +229,7 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
                 viewer = RerunView(spawn=view, rrd_path=rrd)
             res = run_bag(bag, cfg, out_dir, progress=not no_progress and con.is_terminal,
                           max_scans=max_scans, on_estimate=viewer, start_s=start_s,
-                          sigma_warn_m=sigma_warn_m)
+                          sigma_warn_m=sigma_warn_m, on_compile=lambda: compile_notice(con))
         _summary(con, res, profile)
     except KeyboardInterrupt:
         res = None
@@ -252,14 +251,9 @@ COMPILE_NOTICE = ("[cyan]note:[/] first run after an install or an update of ada
 
 
 def compile_notice(con: Console) -> None:
-    """Say so before a run that will compile adalio's kernels (a cold numba cache), which would
-    otherwise sit at its first scan for that long without a word."""
-    try:
-        from adalio.lio import warmup
-    except ImportError:  # run_bag says what is missing
-        return
-    if warmup.cache_is_cold():
-        con.print(COMPILE_NOTICE, highlight=False, soft_wrap=True)
+    """``run_bag``'s ``on_compile``: say that the run compiles adalio's kernels now (a cold numba
+    cache); it would otherwise sit at its first scan for that long without a word."""
+    con.print(COMPILE_NOTICE, highlight=False, soft_wrap=True)
 
 
 def _report(con: Console, out_dir: Path, gt: Path) -> None:
