@@ -125,6 +125,7 @@ def test_run_bag_stops_the_helper_when_it_ends(tmp_path: Path, monkeypatch: pyte
         return warmup.Warmup(proc)
 
     monkeypatch.setattr(warmup, "start", start)
+    monkeypatch.setattr(warmup, "cache_is_cold", lambda: True)  # as on a fresh install
     cfg = load_config(config_file=sim.config_path)
     try:
         run_bag(sim.bag_path, cfg, tmp_path / "out", progress=False, max_scans=max_scans)
@@ -135,4 +136,6 @@ def test_run_bag_stops_the_helper_when_it_ends(tmp_path: Path, monkeypatch: pyte
     started.clear()
     run_bag(sim.bag_path, cfg, tmp_path / "out2", progress=False, max_scans=12,
             parallel_compile=False)
-    assert started == []
+    monkeypatch.setattr(warmup, "cache_is_cold", lambda: False)
+    run_bag(sim.bag_path, cfg, tmp_path / "out3", progress=False, max_scans=12)
+    assert started == []  # switched off, or a warm cache: no helper
