@@ -139,3 +139,37 @@ def test_run_bag_stops_the_helper_when_it_ends(tmp_path: Path, monkeypatch: pyte
     monkeypatch.setattr(warmup, "cache_is_cold", lambda: False)
     run_bag(sim.bag_path, cfg, tmp_path / "out3", progress=False, max_scans=12)
     assert started == []  # switched off, or a warm cache: no helper
+
+
+def test_the_helper_imports_this_adalio_with_this_thread_count(tmp_path: Path) -> None:
+    """A process that imports adalio from a source tree put on ``sys.path`` by hand (not
+    installed, not on ``PYTHONPATH``) gives its helper that same tree, and its numba thread
+    count; without that, the helper would compile another adalio's kernels."""
+    import shutil
+
+    import adalio
+
+    tree = tmp_path / "tree"
+    shutil.copytree(Path(adalio.__file__).parent, tree / "adalio",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    script = (
+        "import sys, subprocess\n"
+        f"sys.path.insert(0, {str(tree)!r})\n"
+        "import adalio\n"
+        "from adalio.lio import warmup\n"
+        "child = ('import adalio, numba; print(adalio.__file__); '\n"
+        "         'print(numba.config.NUMBA_NUM_THREADS)')\n"
+        "out = subprocess.run([sys.executable, '-c', child], env=warmup.helper_env(),\n"
+        "                     capture_output=True, text=True, check=True)\n"
+        "print(adalio.__file__)\n"
+        "print(out.stdout)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         env={**env, "NUMBA_NUM_THREADS": "1"}, cwd=tmp_path, timeout=300,
+                         check=False)
+    assert out.returncode == 0, out.stderr
+    parent_file, child_file, threads = out.stdout.split()
+    assert Path(parent_file).is_relative_to(tree)
+    assert Path(child_file).resolve() == Path(parent_file).resolve()
+    assert threads == "1"

@@ -31,6 +31,7 @@ import contextlib
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -155,15 +156,27 @@ class Warmup:
         proc.wait()
 
 
+def helper_env() -> dict[str, str]:
+    """The helper's environment: this one, with this process's numba thread count (the search
+    kernel a run compiles depends on it) and this adalio first on ``PYTHONPATH`` (so that a run
+    from a source tree, or with another adalio installed, has its own kernels compiled)."""
+    import numba
+
+    import adalio
+
+    root = str(Path(adalio.__file__).resolve().parents[1])
+    path = os.environ.get("PYTHONPATH", "")
+    return {**os.environ, "NUMBA_NUM_THREADS": str(numba.get_num_threads()),
+            "PYTHONPATH": root + (os.pathsep + path if path else "")}
+
+
 def start() -> Warmup:
     """Start the helper process if :func:`wanted`; never raises (without it the run compiles
     everything itself, as it always could)."""
     try:
         if not wanted():
             return Warmup(None)
-        import numba
-
-        env = {**os.environ, "NUMBA_NUM_THREADS": str(numba.get_num_threads())}
+        env = helper_env()
         proc = subprocess.Popen(
             [sys.executable, "-c", "from adalio.lio.warmup import compile_update_stage as f; f()"],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
