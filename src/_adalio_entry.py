@@ -1,6 +1,7 @@
 """Console entry point of ``adalio``, outside the package so that it loads before anything else:
 Ctrl-C while the command line is still being imported (numpy, typer, ...) exits 130 with one
-line instead of a traceback. Everything else is :func:`adalio.cli.main`.
+line instead of a traceback, also where the interrupt surfaces as another error from an
+extension being imported. Everything else is :func:`adalio.cli.main`.
 
 Ctrl-C is also remembered, not only raised: some libraries wrap their optional imports in
 ``except BaseException`` (or a bare ``except``), which swallows the KeyboardInterrupt raised
@@ -33,6 +34,12 @@ def main() -> None:
         from adalio.cli import main as cli_main
     except KeyboardInterrupt:
         handler.received = True
+    except Exception:
+        # a Ctrl-C inside an extension's import can surface as another error: numpy, hit while
+        # importing its C core, raises ImportError (PyCapsule_Import could not import module
+        # "datetime"); after a Ctrl-C that is the interrupt, not a broken install
+        if not handler.received:
+            raise
     if handler.received:
         sys.stderr.write("interrupted\n")
         raise SystemExit(130) from None

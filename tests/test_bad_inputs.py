@@ -650,6 +650,43 @@ def test_ctrl_c_swallowed_by_an_import_still_stops_with_130(base: Base, tmp_path
         assert not tum.is_file() or tum.read_text().strip() == "", text
 
 
+_CTRL_C_AS_IMPORT_ERROR = """
+import os, signal, sys
+sys.path.insert(0, sys.argv[1])  # a package 'adalio' whose import is hit by Ctrl-C
+import _adalio_entry
+sys.argv = ["adalio", "version"]
+_adalio_entry.main()
+"""
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="needs POSIX signals")
+def test_ctrl_c_that_an_import_turns_into_another_error_is_still_130(tmp_path: Path) -> None:
+    """Seen in CI: Ctrl-C while numpy imports its C core surfaces as an ImportError
+    ('PyCapsule_Import could not import module "datetime"') and printed a traceback (exit 1).
+    Here a stand-in package receives SIGINT during its import and re-raises it as ImportError,
+    as the extension did."""
+    fake = tmp_path / "fake" / "adalio"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text(
+        "import os, signal\n"
+        "try:\n"
+        "    os.kill(os.getpid(), signal.SIGINT)\n"
+        "    sum(range(10))\n"
+        "except KeyboardInterrupt as exc:\n"
+        "    raise ImportError('PyCapsule_Import could not import module \"datetime\"') "
+        "from exc\n")
+    proc = subprocess.run([sys.executable, "-c", _CTRL_C_AS_IMPORT_ERROR, str(fake.parent)],
+                          check=False, cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    text = proc.stdout + proc.stderr
+    assert proc.returncode == 130, text
+    assert "Traceback" not in text and text.strip() == "interrupted", text
+    # an import error without a Ctrl-C is still the error it is
+    (fake / "__init__.py").write_text("raise ImportError('broken install')\n")
+    proc = subprocess.run([sys.executable, "-c", _CTRL_C_AS_IMPORT_ERROR, str(fake.parent)],
+                          check=False, cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1 and "broken install" in proc.stderr, proc.stderr
+
+
 @pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs Linux /proc")
 def test_ctrl_c_after_first_poses_keeps_outputs(base: Base, tmp_path: Path) -> None:
     tum = tmp_path / "out" / "trajectory.tum"
