@@ -711,3 +711,29 @@ def test_ctrl_c_during_simulate(tmp_path: Path, delay_s: float) -> None:
     code, text = _interrupt(argv, tmp_path, delay_s)
     assert code == 130, text
     assert "Traceback" not in text and "interrupted" in text, text
+
+
+def test_an_error_after_a_remembered_ctrl_c_is_the_interrupt(monkeypatch, capsys) -> None:
+    """Inside a command too (its lazy imports), an error that follows a Ctrl-C is reported as
+    the interrupt (exit 130), and without a Ctrl-C as the error it is."""
+    import signal
+
+    import _adalio_entry
+    from adalio import cli
+
+    def broken(**_):
+        raise ImportError('PyCapsule_Import could not import module "datetime"')
+
+    monkeypatch.setattr(cli, "app", broken)
+    handler = _adalio_entry.StickyInterrupt()
+    old = signal.signal(signal.SIGINT, handler)
+    try:
+        with pytest.raises(ImportError):
+            cli.main()
+        handler.received = True
+        with pytest.raises(SystemExit) as stop:
+            cli.main()
+    finally:
+        signal.signal(signal.SIGINT, old)
+    assert stop.value.code == 130
+    assert "interrupted" in capsys.readouterr().err

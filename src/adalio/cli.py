@@ -78,6 +78,12 @@ def main() -> None:
                 err.print(f"[bold red]error:[/] {escape(exc.format_message() + see)}",
                           highlight=False, soft_wrap=True)
             sys.exit(exc.exit_code)
+        except Exception:
+            # after a Ctrl-C, an error from a library interrupted mid-import (numpy's C core
+            # raises ImportError) is the interrupt (_adalio_entry.StickyInterrupt remembers it)
+            if getattr(signal.getsignal(signal.SIGINT), "received", False):
+                raise KeyboardInterrupt from None
+            raise
         code = code if isinstance(code, int) else 0
         if getattr(signal.getsignal(signal.SIGINT), "received", False):
             code = 130  # a Ctrl-C that an import swallowed (_adalio_entry.StickyInterrupt)
