@@ -39,11 +39,19 @@ def _declared(*extras: str) -> set[str]:
             for r in reqs}
 
 
+def _own_modules() -> set[str]:
+    """The project's own top-level modules: the package and its ``py-modules`` (the console
+    entry point ``_adalio_entry``)."""
+    tool = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    return {"adalio", *tool.get("py-modules", [])}
+
+
 def _undeclared(root: Path, declared: set[str]) -> list[str]:
     dists = packages_distributions()
+    own = _own_modules()
     missing = []
     for module, where in _imported_top_level(root).items():
-        if module in sys.stdlib_module_names or module in ("adalio", "__future__"):
+        if module in sys.stdlib_module_names or module in own or module == "__future__":
             continue
         names = {d.lower().replace("_", "-") for d in dists.get(module, [module])}
         if not names & declared:
