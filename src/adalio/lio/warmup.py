@@ -41,7 +41,7 @@ ENV_SWITCH = "ADALIO_PARALLEL_COMPILE"
 
 def _box_room(n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` points on the walls, floor and ceiling of a 12 x 8 x 3 m room, sensor frame at its
-    centre (1.5 m above the floor), with a few centimetres of clutter on the walls' planes."""
+    centre (1.5 m above the floor), with 5 mm of Gaussian noise off the faces."""
     half = np.array([6.0, 4.0, 1.5])
     face = rng.integers(0, 6, n)
     axis, sign = face // 2, np.where(face % 2 == 0, -1.0, 1.0)
