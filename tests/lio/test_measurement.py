@@ -91,3 +91,65 @@ def test_residual_weights_match_brute_force(plane_variance, share):
         expect.append(var ** -0.5)
     assert w.shape == (accepted.sum(),)
     np.testing.assert_allclose(w, expect, rtol=1e-12)
+
+
+def _pose_rows(x: State, pts_lidar: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Pose columns of point_to_plane's rows for the given normals (all rows accepted)."""
+    d = -np.einsum("ij,ij->i", measurement.points_to_world(pts_lidar, x.R, x.p, x.R_LI, x.t_LI),
+                   normals)
+    H, _, acc = measurement.point_to_plane(pts_lidar, x.R, x.p, x.R_LI, x.t_LI, normals, d,
+                                           np.ones(len(pts_lidar), bool), False)
+    assert acc.all()
+    return H[:, :6]
+
+
+def test_normal_noise_information_matches_monte_carlo_of_refitted_planes():
+    """The spread that noisy neighbours give a row's Jacobian ``h`` (built from the refitted
+    normal), ``Cov(h) = E[h hᵀ] − E[h] E[h]ᵀ``, is σ² times what the kernel returns: Monte
+    Carlo over 20000 refits of one elongated patch, rows weighted."""
+    rng_mc = np.random.default_rng(7)
+    x = State(p=np.array([1.0, -2.0, 0.5]), R=so3.exp(np.array([0.3, -0.2, 1.1])),
+              R_LI=so3.exp(np.array([0.1, 0.2, -0.3])), t_LI=np.array([0.05, -0.02, 0.1]))
+    n_true = np.array([0.2, -0.3, 0.9])
+    n_true /= np.linalg.norm(n_true)
+    e1 = np.cross(n_true, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n_true, e1)
+    k, trials, sigma = 8, 20000, 0.005  # first order: sigma well below the patch spread
+    uv = rng_mc.uniform(-1, 1, size=(k, 2)) * [0.3, 0.08]  # elongated: tilt differs by axis
+    centre = np.array([3.0, 1.0, -1.0])
+    patch = centre + uv[:, :1] * e1 + uv[:, 1:] * e2
+    nbrs = patch[None] + rng_mc.normal(size=(trials, k, 3)) * sigma
+    mu = nbrs.mean(axis=1, keepdims=True)
+    _, _, vt = np.linalg.svd(nbrs - mu)
+    n_fit = vt[:, 2, :]
+    n_fit *= np.sign(n_fit @ n_true)[:, None]
+    # one query point in the LiDAR frame, at the patch (world) for the state x
+    q_world = centre + 0.05 * e1
+    q_lidar = x.R_LI.T @ (x.R.T @ (q_world - x.p) - x.t_LI)
+    pts = np.repeat(q_lidar[None], trials, axis=0)
+    w = np.full(trials, 0.7)
+    h = _pose_rows(x, pts, n_fit) * w[:, None]
+    mc = np.cov(h.T, bias=True)
+    got = measurement.normal_noise_information(
+        pts, np.ones(trials, bool), x.R, x.R_LI, x.t_LI, n_fit, nbrs,
+        np.full(trials, k, np.int64), w) * sigma**2 / trials
+    assert np.linalg.norm(got - mc) < 0.05 * np.linalg.norm(mc), (got, mc)
+    # along the patch's long axis the tilt is (0.3 / 0.08)² = 14x less uncertain than across
+    e1_cov = e1 @ got[:3, :3] @ e1
+    e2_cov = e2 @ got[:3, :3] @ e2
+    assert 8.0 < e2_cov / e1_cov < 25.0
+
+
+def test_normal_noise_information_of_a_row_without_a_plane_is_the_whole_row():
+    """Collinear neighbours define no plane: every bit of the row's information is fake."""
+    x = State(p=np.zeros(3), R=so3.exp(np.array([0.0, 0.0, 0.4])))
+    nbrs = np.zeros((1, 5, 3))
+    nbrs[0, :, 0] = np.linspace(2.0, 2.4, 5)  # a line along x
+    normal = np.array([[0.0, 0.0, 1.0]])
+    pts = np.array([[2.2, 0.0, 0.0]])
+    w = np.array([0.5])
+    h = _pose_rows(x, pts, normal) * w[:, None]
+    got = measurement.normal_noise_information(pts, np.ones(1, bool), x.R, x.R_LI, x.t_LI,
+                                               normal, nbrs, np.array([5]), w)
+    np.testing.assert_allclose(got, h.T @ h, atol=1e-12)

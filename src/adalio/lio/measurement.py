@@ -138,3 +138,123 @@ def residual_weights(points_lidar, accepted, R, p, R_LI, t_LI, normals, mu, lam_
         w[j] = 1.0 / np.sqrt(var)
         j += 1
     return w
+
+
+@kernel()
+def normal_noise_information(points_lidar, accepted, R, R_LI, t_LI, normals, neighbours, counts,
+                             w):
+    """The part of the accepted rows' ``HᵀH`` (pose columns [δp, δθ]) that the noise of the
+    fitted plane normals fakes, divided by the point noise σ² (errors in variables).
+
+    A row's Jacobian is ``h = B n`` with ``B = [I; [p_I]× Rᵀ]`` and the *fitted* normal ``n``.
+    Fitted to k neighbours with point noise σ², the normal tilts towards each in-plane principal
+    direction ``e_j`` of the neighbours (spread variance ``λ_j``) with variance ``σ²/(k λ_j)``:
+    ``Cov(n) = σ² N``, ``N = (P S P)⁺ / k`` (``S`` the neighbours' covariance, ``P = I − n nᵀ``).
+    So ``E[h hᵀ] = h̄ h̄ᵀ + σ² B N Bᵀ``: the rows claim ``Σ w² B N Bᵀ`` (over σ²) of
+    information that the surface does not hold, e.g. height from walls whose fitted normals
+    lean by noise. Returns ``Σ w² B N Bᵀ`` (times σ² it is comparable with ``HᵀH``); ``w`` are the rows' weights (:func:`residual_weights`, 1
+    without), rows in point order. A row whose neighbours span no plane (``P S P`` singular)
+    claims nothing real: its whole ``w² h hᵀ`` is returned.
+    """
+    out = np.zeros((6, 6))
+    n_pts = points_lidar.shape[0]
+    j = 0
+    B = np.zeros((6, 3))
+    N = np.zeros((3, 3))
+    S = np.zeros((3, 3))
+    A = np.zeros((3, 3))
+    for i in range(n_pts):
+        if not accepted[i]:
+            continue
+        c = counts[i]
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        # neighbours' covariance
+        mx = my = mz = 0.0
+        for q in range(c):
+            mx += neighbours[i, q, 0]
+            my += neighbours[i, q, 1]
+            mz += neighbours[i, q, 2]
+        mx /= c
+        my /= c
+        mz /= c
+        S[:] = 0.0
+        for q in range(c):
+            dx = neighbours[i, q, 0] - mx
+            dy = neighbours[i, q, 1] - my
+            dz = neighbours[i, q, 2] - mz
+            S[0, 0] += dx * dx
+            S[0, 1] += dx * dy
+            S[0, 2] += dx * dz
+            S[1, 1] += dy * dy
+            S[1, 2] += dy * dz
+            S[2, 2] += dz * dz
+        S[1, 0], S[2, 0], S[2, 1] = S[0, 1], S[0, 2], S[1, 2]
+        S /= c
+        # A = P S P + n nᵀ; (P S P)⁺ = A⁻¹ − n nᵀ
+        nv = (nx, ny, nz)
+        for a in range(3):
+            for b in range(3):
+                A[a, b] = S[a, b]
+        # P S P with P = I − n nᵀ: S − n(nᵀS) − (S n)nᵀ + n (nᵀ S n) nᵀ
+        Sn0 = S[0, 0] * nx + S[0, 1] * ny + S[0, 2] * nz
+        Sn1 = S[1, 0] * nx + S[1, 1] * ny + S[1, 2] * nz
+        Sn2 = S[2, 0] * nx + S[2, 1] * ny + S[2, 2] * nz
+        Sn = (Sn0, Sn1, Sn2)
+        nSn = nx * Sn0 + ny * Sn1 + nz * Sn2
+        for a in range(3):
+            for b in range(3):
+                A[a, b] += -nv[a] * Sn[b] - Sn[a] * nv[b] + nv[a] * nSn * nv[b] + nv[a] * nv[b]
+        det = (A[0, 0] * (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1])
+               - A[0, 1] * (A[1, 0] * A[2, 2] - A[1, 2] * A[2, 0])
+               + A[0, 2] * (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]))
+        # the row's B = [I; [p_I]× Rᵀ]
+        lx, ly, lz = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
+        ix = R_LI[0, 0] * lx + R_LI[0, 1] * ly + R_LI[0, 2] * lz + t_LI[0]
+        iy = R_LI[1, 0] * lx + R_LI[1, 1] * ly + R_LI[1, 2] * lz + t_LI[1]
+        iz = R_LI[2, 0] * lx + R_LI[2, 1] * ly + R_LI[2, 2] * lz + t_LI[2]
+        for a in range(3):
+            B[a, 0] = 0.0
+            B[a, 1] = 0.0
+            B[a, 2] = 0.0
+            B[a, a] = 1.0
+            # row a of [p_I]× Rᵀ: ([p_I]×)[a, :] @ Rᵀ
+            if a == 0:
+                h0, h1, h2 = 0.0, -iz, iy
+            elif a == 1:
+                h0, h1, h2 = iz, 0.0, -ix
+            else:
+                h0, h1, h2 = -iy, ix, 0.0
+            for b in range(3):
+                B[3 + a, b] = h0 * R[b, 0] + h1 * R[b, 1] + h2 * R[b, 2]
+        ww = w[j] * w[j]
+        j += 1
+        if not (det > 1e-300 and np.isfinite(det)):
+            # no plane: the whole row's information is fake
+            for a in range(6):
+                ha = B[a, 0] * nx + B[a, 1] * ny + B[a, 2] * nz
+                for b in range(6):
+                    hb = B[b, 0] * nx + B[b, 1] * ny + B[b, 2] * nz
+                    out[a, b] += ww * ha * hb
+            continue
+        inv_det = 1.0 / det
+        N[0, 0] = (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]) * inv_det
+        N[0, 1] = (A[0, 2] * A[2, 1] - A[0, 1] * A[2, 2]) * inv_det
+        N[0, 2] = (A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]) * inv_det
+        N[1, 0] = (A[1, 2] * A[2, 0] - A[1, 0] * A[2, 2]) * inv_det
+        N[1, 1] = (A[0, 0] * A[2, 2] - A[0, 2] * A[2, 0]) * inv_det
+        N[1, 2] = (A[0, 2] * A[1, 0] - A[0, 0] * A[1, 2]) * inv_det
+        N[2, 0] = (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]) * inv_det
+        N[2, 1] = (A[0, 1] * A[2, 0] - A[0, 0] * A[2, 1]) * inv_det
+        N[2, 2] = (A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]) * inv_det
+        for a in range(3):
+            for b in range(3):
+                N[a, b] = (N[a, b] - nv[a] * nv[b]) / c
+        # out += ww B N Bᵀ
+        for a in range(6):
+            for b in range(3):
+                t = 0.0
+                for q in range(3):
+                    t += B[a, q] * N[q, b]
+                for e in range(6):
+                    out[a, e] += ww * t * B[e, b]
+    return out
