@@ -224,6 +224,12 @@ class FilterConfig:
     poses that inserted the matched map points, moved by their lever arm; lio/map_uncertainty.py)
     instead of the filter's covariance alone, which is relative to a map it treats as exact. Only
     the reported sigmas change, never the trajectory."""
+    sigmas_discount_normal_noise: bool = True
+    """Report sigmas from a covariance that does not count the information the noise of the
+    fitted plane normals fakes (``measurement.normal_noise_information``): e.g. the height that
+    walls whose fitted normals lean by noise claim in a shaft. The filter's own covariance and
+    the trajectory are unchanged; only the reported sigmas (and the map's, which inherits them)
+    grow where the scene holds no information."""
     map_provenance_cell_m: float = 0.5
     """Cell (m) at which map_uncertainty remembers which scan first filled the map."""
     map_error_correlated: bool = True

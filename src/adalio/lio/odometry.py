@@ -63,10 +63,15 @@ from adalio.lio.degeneracy import (
     observable_projector,
     weak_directions,
 )
-from adalio.lio.ieskf import iterated_update
+from adalio.lio.ieskf import _reprojection, iterated_update
 from adalio.lio.ivox import IVox, hash_key3
 from adalio.lio.map_uncertainty import MapProvenance, world_covariance
-from adalio.lio.measurement import point_to_plane, points_to_world, residual_weights
+from adalio.lio.measurement import (
+    normal_noise_information,
+    point_to_plane,
+    points_to_world,
+    residual_weights,
+)
 from adalio.lio.motion_init import MovingInit, handover_covariance
 from adalio.lio.state import (
     BG,
@@ -156,6 +161,24 @@ def _group_ids(points: np.ndarray) -> tuple[np.ndarray, int]:
     return gid, n_groups
 
 
+def real_information(claimed: np.ndarray, fake: np.ndarray) -> np.ndarray:
+    """The part of an information matrix ``claimed`` (symmetric PSD) that is not ``fake``
+    (PSD, the expected spurious part), kept between 0 and ``claimed``: in the metric of
+    ``claimed`` (``A = U Λ Uᵀ``, whitening ``W = Λ^-½ Uᵀ`` on its range),
+    ``A^½ max(I − W fake Wᵀ, 0) A^½``. Unlike clipping ``claimed − fake`` itself, this never
+    grants information along a direction that ``claimed`` does not hold."""
+    lam, U = np.linalg.eigh(0.5 * (claimed + claimed.T))
+    keep = lam > lam.max(initial=0.0) * 1e-12
+    if not np.any(keep):
+        return np.zeros_like(claimed)
+    U, root = U[:, keep], np.sqrt(lam[keep])
+    W = U / root  # columns: whitened directions
+    mu, V = np.linalg.eigh(np.eye(root.size) - W.T @ fake @ W)
+    mid = (V * np.clip(mu, 0.0, None)) @ V.T
+    half = U * root
+    return half @ mid @ half.T
+
+
 class _Association:
     """Point-to-plane correspondences of one downsampled scan against the map (§6.2-6.3).
 
@@ -230,6 +253,11 @@ class _Association:
         self.H = H
         return H.copy(), r
 
+    @property
+    def neighbours(self) -> np.ndarray:
+        """(n, k, 3) the k nearest map points of every scan point at the last search."""
+        return self._last.neighbours
+
     def points_body(self, x: State) -> np.ndarray:
         """IMU-frame coordinates of the accepted points (rows of ``H``)."""
         return self.points_lidar[self.selected] @ x.R_LI.T + x.t_LI
@@ -295,6 +323,10 @@ class Odometry:
         self._weak_geometry = False
         self._state = State(R_LI=self._R_LI.copy(), t_LI=self._t_LI.copy())
         self._P = initial_covariance(config.filter.estimate_extrinsic)
+        self._P_report: np.ndarray | None = None
+        """Covariance behind the reported sigmas (filter.sigmas_discount_normal_noise): the
+        filter's, propagated alike, but updated only with the information the scene holds
+        (:meth:`_update_report_covariance`); None until the filter's first update."""
         self._t_state_ns = 0
         self._prev_sample: tuple[int, np.ndarray, np.ndarray] | None = None
         self._accel_scale = 1.0
@@ -472,6 +504,7 @@ class Odometry:
         loc: Localizability | None = None
         if down.shape[0] >= MIN_POINTS_FOR_UPDATE:
             result = iterated_update(x_pred, P_pred, assoc.measure, cfg.filter, projector)
+            self._update_report_covariance(x_pred, result.state, assoc, projector)
             self._state, self._P = result.state, result.P
             stats.iterations = result.iterations
             stats.n_searches = assoc.n_searches
@@ -659,6 +692,8 @@ class Odometry:
         flip = np.ones(DIM)
         flip[V] = flip[BG] = -1.0
         rev._P = self._P * np.outer(flip, flip)
+        if self._P_report is not None:
+            rev._P_report = self._P_report * np.outer(flip, flip)
         rev._t_state_ns = mirror_ns - self._t_state_ns
         rev._buf = _ImuBuffer(np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)))
         rev._pending, rev._last_imu_t_ns = [], None
@@ -876,6 +911,11 @@ class Odometry:
         acc = np.vstack([acc_prev[None], b.accel[:n_use]]) * self._accel_scale
         tau_end = max((t_e_ns - t_ref) * 1e-9, 0.0)
         self._find_gap(imu_tau, tau_end, t_ref)
+        if self._P_report is not None:  # the same propagation, from the same state
+            self._P_report = imu.propagate(self._state, self._P_report, imu_tau, gyro, acc, 0.0,
+                                           tau_end, self._q_diag,
+                                           self.cfg.imu.noise_discretization, self._gap_s,
+                                           self._q_gap)[1]
         self._state, self._P, rec = imu.propagate(self._state, self._P, imu_tau, gyro, acc, 0.0,
                                                   tau_end, self._q_diag,
                                                   self.cfg.imu.noise_discretization, self._gap_s,
@@ -926,10 +966,40 @@ class Odometry:
         for k, v in stage_ms.items():
             self.stage_ms_total[k] = self.stage_ms_total.get(k, 0.0) + v
 
+    def _update_report_covariance(self, x_pred: State, x_post: State, assoc: _Association,
+                                  projector: np.ndarray | None) -> None:
+        """With ``filter.sigmas_discount_normal_noise``: the covariance behind the reported
+        sigmas takes the scan's information less what the normals' noise fakes
+        (:func:`normal_noise_information`), clipped to its non-negative part, in the
+        information form of the filter's final step (``P⁺ = (P⁻¹ + EᵀJE)⁻¹`` with E the pose
+        block, at the same SO(3) reprojection). The filter itself is unchanged."""
+        f = self.cfg.filter
+        if not f.sigmas_discount_normal_noise:
+            return
+        P = self._P if self._P_report is None else self._P_report
+        Jr = _reprojection(x_post.boxminus(x_pred))
+        P = Jr @ P @ Jr.T
+        H = assoc.H[:, :6]
+        if H.shape[0]:
+            w = np.sqrt(np.sum(assoc.H[:, :3] ** 2, axis=1))
+            fake = normal_noise_information(assoc.points_lidar, assoc.selected, x_post.R,
+                                            x_post.R_LI, x_post.t_LI, assoc.normals,
+                                            assoc.neighbours, assoc.counts, w)
+            claimed = H.T @ H
+            if projector is not None:
+                claimed = projector.T @ claimed @ projector
+                fake = projector.T @ fake @ projector
+            J = real_information(claimed, f.laser_point_cov * fake) / f.laser_point_cov
+            PE = P[:, :6]
+            P = P - PE @ J @ np.linalg.solve(np.eye(6) + P[:6, :6] @ J, PE.T)
+        self._P_report = 0.5 * (P + P.T)
+
     def _world_covariance(self) -> np.ndarray:
-        """6x6 world covariance of the pose: the filter's, combined with the map's if
-        ``filter.map_uncertainty`` (``map_uncertainty.world_covariance``)."""
-        W = pose_covariance_world(self._state.R, self._P)
+        """6x6 world covariance of the pose: the filter's (or, with
+        ``filter.sigmas_discount_normal_noise``, the one behind the reported sigmas), combined
+        with the map's if ``filter.map_uncertainty`` (``map_uncertainty.world_covariance``)."""
+        P = self._P if self._P_report is None else self._P_report
+        W = pose_covariance_world(self._state.R, P)
         f = self.cfg.filter
         return world_covariance(W, self._W_map, f.map_error_correlated) if f.map_uncertainty else W
 
