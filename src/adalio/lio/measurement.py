@@ -10,6 +10,7 @@ import numpy as np
 
 from adalio.jit import kernel
 from adalio.lio import so3
+from adalio.lio.plane import _scatter
 
 GATE_FACTOR = 81.0
 """Accept a residual iff ``|p_L| > 81 r²`` (FAST-LIO2's ``s > 0.9`` test, §6.3)."""
@@ -168,27 +169,7 @@ def normal_noise_information(points_lidar, accepted, R, R_LI, t_LI, normals, nei
             continue
         c = counts[i]
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
-        # neighbours' covariance
-        mx = my = mz = 0.0
-        for q in range(c):
-            mx += neighbours[i, q, 0]
-            my += neighbours[i, q, 1]
-            mz += neighbours[i, q, 2]
-        mx /= c
-        my /= c
-        mz /= c
-        S[:] = 0.0
-        for q in range(c):
-            dx = neighbours[i, q, 0] - mx
-            dy = neighbours[i, q, 1] - my
-            dz = neighbours[i, q, 2] - mz
-            S[0, 0] += dx * dx
-            S[0, 1] += dx * dy
-            S[0, 2] += dx * dz
-            S[1, 1] += dy * dy
-            S[1, 2] += dy * dz
-            S[2, 2] += dz * dz
-        S[1, 0], S[2, 0], S[2, 1] = S[0, 1], S[0, 2], S[1, 2]
+        _scatter(neighbours[i], c, S)  # the neighbours' scatter about their centroid
         S /= c
         # A = P S P + n nᵀ; (P S P)⁺ = A⁻¹ − n nᵀ
         nv = (nx, ny, nz)
