@@ -64,6 +64,7 @@ def compile_update_stage() -> None:
     from adalio.lio.ieskf import iterated_update
     from adalio.lio.ivox import IVox
     from adalio.lio.map_uncertainty import MapProvenance
+    from adalio.lio.measurement import normal_noise_information
     from adalio.lio.motion_init import preintegrate
     from adalio.lio.odometry import _Association, _group_ids
     from adalio.lio.state import State, initial_covariance, pose_covariance_world
@@ -94,6 +95,10 @@ def compile_update_stage() -> None:
     assoc.selected = np.ones(pts.shape[0], np.bool_)
     result = iterated_update(x, P, lambda state, research: assoc.measure(state, False), f, None)
     localizability(assoc.H[:, :6], f.laser_point_cov, observability=False)
+    k = f.knn_k  # the reported sigmas' discount (filter.sigmas_discount_normal_noise)
+    normal_noise_information(pts, assoc.selected, x.R, x.R_LI, x.t_LI, assoc.normals,
+                             pts[:, None, :] + rng.normal(0.0, 0.1, (pts.shape[0], k, 3)),
+                             assoc.counts, np.ones(assoc.H.shape[0]))
     provenance = MapProvenance(f.map_provenance_cell_m)
     provenance.add_scan(x.p, pose_covariance_world(x.R, P), pts)
     provenance.map_covariance(result.state.p, pts[::2].copy())
