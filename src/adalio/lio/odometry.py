@@ -970,8 +970,8 @@ class Odometry:
                                   projector: np.ndarray | None) -> None:
         """With ``filter.sigmas_discount_normal_noise``: the covariance behind the reported
         sigmas takes the scan's information less what the normals' noise fakes
-        (:func:`normal_noise_information`), clipped to its non-negative part, in the
-        information form of the filter's final step (``P⁺ = (P⁻¹ + EᵀJE)⁻¹`` with E the pose
+        (:func:`normal_noise_information`), kept between nothing and the claim
+        (:func:`real_information`), in the information form of the filter's final step (``P⁺ = (P⁻¹ + EᵀJE)⁻¹`` with E the pose
         block, at the same SO(3) reprojection). The filter itself is unchanged."""
         f = self.cfg.filter
         if not f.sigmas_discount_normal_noise:
