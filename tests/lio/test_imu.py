@@ -8,7 +8,7 @@ from adalio.lio.state import DIM, State
 rng = np.random.default_rng(1)
 
 
-def _random_state() -> State:
+def _random_state(rng: np.random.Generator = rng) -> State:
     g = so3.exp(rng.normal(size=3) * 0.3) @ np.array([0.0, 0.0, -9.81])
     return State(p=rng.normal(size=3), R=so3.exp(rng.normal(size=3)),
                  R_LI=so3.exp(rng.normal(size=3) * 0.1), t_LI=rng.normal(size=3) * 0.1,
@@ -216,6 +216,32 @@ def test_block_covariance_propagation_matches_dense():
         fast = imu.propagate_covariance_fast(P, x.R, x.b_g, x.b_a, x.g, x.g_anchor, gyro, acc,
                                              dt, q)
         assert np.allclose(fast, dense, atol=1e-12)
+
+
+@pytest.mark.parametrize("gap_s", [np.inf, 0.002])
+def test_covariances_side_by_side_propagate_as_each_alone(gap_s: float) -> None:
+    """Two covariances propagated together, (DIM, 2·DIM), give bit for bit what each gives
+    alone, with and without a bridged IMU gap; the state and pose records are the same too."""
+    rng = np.random.default_rng(21)  # its own draws: the module's stream feeds later tests
+    x = _random_state(rng)
+    A, B = rng.normal(size=(2, DIM, DIM))
+    P1, P2 = A @ A.T, B @ B.T + np.eye(DIM)
+    tau = np.array([-0.001, 0.0015, 0.004, 0.0065, 0.009])
+    gyro = rng.normal(size=(5, 3))
+    acc = rng.normal(size=(5, 3)) * 2
+    q = imu.process_noise(ImuConfig())
+    q_gap = np.full(12, 0.3)
+    y1, out1, rec1 = imu.propagate(x, P1, tau, gyro, acc, 0.0, 0.012, q, "dt2", gap_s, q_gap)
+    _, out2, _ = imu.propagate(x, P2, tau, gyro, acc, 0.0, 0.012, q, "dt2", gap_s, q_gap)
+    y, both, rec = imu.propagate(x, np.hstack([P1, P2]), tau, gyro, acc, 0.0, 0.012, q, "dt2",
+                                 gap_s, q_gap)
+    assert both.shape == (DIM, 2 * DIM)
+    np.testing.assert_array_equal(both[:, :DIM], out1)
+    np.testing.assert_array_equal(both[:, DIM:], out2)
+    assert not np.array_equal(out1, out2)
+    np.testing.assert_array_equal(y.p, y1.p)
+    np.testing.assert_array_equal(y.R, y1.R)
+    np.testing.assert_array_equal(rec.p, rec1.p)
 
 
 def test_propagate_scan_equals_stepwise_midpoint_integration():

@@ -271,6 +271,8 @@ def propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s
                               measured_accel=True):
     """``F P Fᵀ + G diag(q) Gᵀ`` (§3.2) from the blocks of F and G, without forming them.
 
+    ``P`` may hold several covariances side by side, (DIM, c·DIM): each block is propagated,
+    bit for bit as it would be alone (every column of ``F M`` depends on that column only).
     Requires isotropic accel noise (``q_diag[3:6]`` equal), so that ``R σ_a² Rᵀ = σ_a² I``.
     ``measured_accel`` False: the velocity is carried by a constant-velocity model, not by a
     measured specific force, so it does not depend on attitude, accel bias or gravity.
@@ -287,16 +289,30 @@ def propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s
         A_vth[:] = 0.0
         B_vba[:] = 0.0
         C_vg[:] = 0.0
+    d = P.shape[0]
     FP = _left_mul_F(P, E_th, J_bg, A_vth, B_vba, C_vg, dt)
-    out = _left_mul_F(FP.T.copy(), E_th, J_bg, A_vth, B_vba, C_vg, dt).T.copy()
+    FPt = _block_transpose(FP, d)
+    out = _block_transpose(_left_mul_F(FPt, E_th, J_bg, A_vth, B_vba, C_vg, dt), d)
     JJt = so3.mul(Jr, Jr.T)
     dt2 = dt * dt
-    for i in range(3):
-        for k in range(3):
-            out[3 + i, 3 + k] += q_diag[i] * JJt[i, k] * dt2
-        out[12 + i, 12 + i] += q_diag[3 + i] * dt2
-        out[15 + i, 15 + i] += q_diag[6 + i] * dt2
-        out[18 + i, 18 + i] += q_diag[9 + i] * dt2
+    for b in range(0, P.shape[1], d):
+        for i in range(3):
+            for k in range(3):
+                out[3 + i, b + 3 + k] += q_diag[i] * JJt[i, k] * dt2
+            out[12 + i, b + 12 + i] += q_diag[3 + i] * dt2
+            out[15 + i, b + 15 + i] += q_diag[6 + i] * dt2
+            out[18 + i, b + 18 + i] += q_diag[9 + i] * dt2
+    return out
+
+
+@kernel()
+def _block_transpose(M, d):
+    """Each (d, d) block of the (d, c·d) ``M`` transposed in place of itself, as a new array."""
+    out = np.empty_like(M)
+    for b in range(0, M.shape[1], d):
+        for i in range(d):
+            for j in range(d):
+                out[i, b + j] = M[j, b + i]
     return out
 
 
@@ -411,7 +427,10 @@ def propagate(state: State, P: np.ndarray, imu_tau_s: np.ndarray, gyro_rad_s: np
               noise_discretization: str = "dt2", gap_s: float = np.inf,
               q_gap: np.ndarray | None = None) -> tuple[State, np.ndarray, PoseRecords]:
     """Propagate ``state`` and ``P`` from ``tau_start_s`` to ``tau_end_s`` (§5.2), bridging
-    IMU gaps longer than ``gap_s`` with the motion model of :func:`propagate_scan`."""
+    IMU gaps longer than ``gap_s`` with the motion model of :func:`propagate_scan`.
+
+    ``P`` may hold several covariances side by side, (DIM, c·DIM), all propagated along the same
+    state (:func:`propagate_covariance_fast`); the result has the same layout."""
     out = propagate_scan(state.p, state.R, state.v, state.b_g, state.b_a, state.g,
                          state.g_anchor, P, imu_tau_s, gyro_rad_s, accel_m_s2,
                          float(tau_start_s), float(tau_end_s), q_diag,

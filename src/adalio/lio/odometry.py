@@ -911,15 +911,13 @@ class Odometry:
         acc = np.vstack([acc_prev[None], b.accel[:n_use]]) * self._accel_scale
         tau_end = max((t_e_ns - t_ref) * 1e-9, 0.0)
         self._find_gap(imu_tau, tau_end, t_ref)
-        if self._P_report is not None:  # the same propagation, from the same state
-            self._P_report = imu.propagate(self._state, self._P_report, imu_tau, gyro, acc, 0.0,
-                                           tau_end, self._q_diag,
-                                           self.cfg.imu.noise_discretization, self._gap_s,
-                                           self._q_gap)[1]
-        self._state, self._P, rec = imu.propagate(self._state, self._P, imu_tau, gyro, acc, 0.0,
-                                                  tau_end, self._q_diag,
-                                                  self.cfg.imu.noise_discretization, self._gap_s,
-                                                  self._q_gap)
+        P = self._P if self._P_report is None else np.hstack([self._P, self._P_report])
+        self._state, P, rec = imu.propagate(self._state, P, imu_tau, gyro, acc, 0.0, tau_end,
+                                            self._q_diag, self.cfg.imu.noise_discretization,
+                                            self._gap_s, self._q_gap)
+        self._P = P[:, :DIM].copy()
+        if self._P_report is not None:  # the same propagation, along the same state
+            self._P_report = P[:, DIM:].copy()
         if n_use:
             self._prev_sample = (int(b.t_ns[n_use - 1]), b.gyro[n_use - 1].copy(),
                                  b.accel[n_use - 1].copy())
