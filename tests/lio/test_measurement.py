@@ -141,6 +141,50 @@ def test_normal_noise_information_matches_monte_carlo_of_refitted_planes():
     assert 8.0 < e2_cov / e1_cov < 25.0
 
 
+def test_normal_noise_information_equals_its_definition_row_by_row():
+    """Against ``Σ w² B N Bᵀ`` built row by row with numpy (``B = [I; [p_I]× Rᵀ]``,
+    ``N = pinv(P S P) / k``): random state and extrinsic, rows with 3-8 neighbours on tilted
+    noisy patches, rows left out by ``accepted``, and one collinear row (its whole ``h hᵀ``)."""
+    rng_b = np.random.default_rng(11)
+    x = State(p=rng_b.normal(size=3), R=so3.exp(rng_b.normal(size=3)),
+              R_LI=so3.exp(rng_b.normal(size=3) * 0.3), t_LI=rng_b.normal(size=3) * 0.2)
+    m, kmax = 60, 8
+    pts = rng_b.normal(size=(m, 3)) * 4.0
+    counts = rng_b.integers(3, kmax + 1, m)
+    nbrs = np.full((m, kmax, 3), np.nan)
+    normals = np.zeros((m, 3))
+    for i in range(m):
+        n = rng_b.normal(size=3)
+        n /= np.linalg.norm(n)
+        e1 = np.cross(n, rng_b.normal(size=3))
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)
+        uv = rng_b.uniform(-1, 1, (counts[i], 2)) * rng_b.uniform(0.02, 0.4, 2)
+        nbrs[i, :counts[i]] = (uv[:, :1] * e1 + uv[:, 1:] * e2
+                               + rng_b.normal(size=(counts[i], 1)) * 0.003 * n)
+        normals[i] = n
+    nbrs[0, :counts[0]] = np.linspace(0.0, 0.4, counts[0])[:, None] * [1.0, 0.0, 0.0]
+    normals[0] = [0.0, 0.0, 1.0]  # collinear: P S P has rank 1
+    accepted = rng_b.uniform(size=m) < 0.8
+    accepted[0] = True
+    w = rng_b.uniform(0.2, 1.0, accepted.sum())
+    expected = np.zeros((6, 6))
+    for j, i in enumerate(np.flatnonzero(accepted)):
+        p_imu = x.R_LI @ pts[i] + x.t_LI
+        B = np.vstack([np.eye(3), so3.hat(p_imu) @ x.R.T])
+        q = nbrs[i, :counts[i]]
+        S = np.cov(q.T, bias=True)
+        P = np.eye(3) - np.outer(normals[i], normals[i])
+        N = np.linalg.pinv(P @ S @ P, rcond=1e-9, hermitian=True) / counts[i]
+        if i == 0:
+            N = np.outer(normals[i], normals[i])
+        expected += w[j] ** 2 * B @ N @ B.T
+    got = measurement.normal_noise_information(pts, accepted, x.R, x.R_LI, x.t_LI, normals,
+                                               nbrs, counts, w)
+    np.testing.assert_allclose(got, expected, rtol=1e-8, atol=1e-8 * np.abs(expected).max())
+    np.testing.assert_array_equal(got, got.T)
+
+
 def test_normal_noise_information_of_a_row_without_a_plane_is_the_whole_row():
     """Collinear neighbours define no plane: every bit of the row's information is fake."""
     x = State(p=np.zeros(3), R=so3.exp(np.array([0.0, 0.0, 0.4])))

@@ -157,26 +157,28 @@ def normal_noise_information(points_lidar, accepted, R, R_LI, t_LI, normals, nei
     without), rows in point order. A row whose neighbours span no plane (``P S P`` singular)
     claims nothing real: its whole ``w² h hᵀ`` is returned.
     """
-    out = np.zeros((6, 6))
-    n_pts = points_lidar.shape[0]
-    j = 0
-    B = np.zeros((6, 3))
+    # With q = R p_I (the lever arm in world axes), [p_I]× Rᵀ = Rᵀ [q]×, so B N Bᵀ is
+    # [[N, −N [q]× R], [Rᵀ [q]× N, −Rᵀ [q]× N [q]× R]]: the world-frame sums
+    # X = Σ w² N, Y = Σ w² N [q]×, Z = Σ w² [q]× N [q]× are rotated once at the end.
+    X = np.zeros((3, 3))
+    Y = np.zeros((3, 3))
+    Z = np.zeros((3, 3))
     N = np.zeros((3, 3))
     S = np.zeros((3, 3))
     A = np.zeros((3, 3))
+    NQ = np.zeros((3, 3))
+    n_pts = points_lidar.shape[0]
+    j = 0
     for i in range(n_pts):
         if not accepted[i]:
             continue
         c = counts[i]
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        nv = (nx, ny, nz)
         _scatter(neighbours[i], c, S)  # the neighbours' scatter about their centroid
         S /= c
-        # A = P S P + n nᵀ; (P S P)⁺ = A⁻¹ − n nᵀ
-        nv = (nx, ny, nz)
-        for a in range(3):
-            for b in range(3):
-                A[a, b] = S[a, b]
-        # P S P with P = I − n nᵀ: S − n(nᵀS) − (S n)nᵀ + n (nᵀ S n) nᵀ
+        # A = P S P + n nᵀ with P = I − n nᵀ: S − n(nᵀS) − (S n)nᵀ + n (nᵀ S n) nᵀ + n nᵀ;
+        # (P S P)⁺ = A⁻¹ − n nᵀ
         Sn0 = S[0, 0] * nx + S[0, 1] * ny + S[0, 2] * nz
         Sn1 = S[1, 0] * nx + S[1, 1] * ny + S[1, 2] * nz
         Sn2 = S[2, 0] * nx + S[2, 1] * ny + S[2, 2] * nz
@@ -184,58 +186,68 @@ def normal_noise_information(points_lidar, accepted, R, R_LI, t_LI, normals, nei
         nSn = nx * Sn0 + ny * Sn1 + nz * Sn2
         for a in range(3):
             for b in range(3):
-                A[a, b] += -nv[a] * Sn[b] - Sn[a] * nv[b] + nv[a] * nSn * nv[b] + nv[a] * nv[b]
+                A[a, b] = (S[a, b] - nv[a] * Sn[b] - Sn[a] * nv[b] + nv[a] * nSn * nv[b]
+                           + nv[a] * nv[b])
         det = (A[0, 0] * (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1])
                - A[0, 1] * (A[1, 0] * A[2, 2] - A[1, 2] * A[2, 0])
                + A[0, 2] * (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]))
-        # the row's B = [I; [p_I]× Rᵀ]
+        if det > 1e-300 and np.isfinite(det):
+            inv_det = 1.0 / det
+            N[0, 0] = (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]) * inv_det
+            N[0, 1] = (A[0, 2] * A[2, 1] - A[0, 1] * A[2, 2]) * inv_det
+            N[0, 2] = (A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]) * inv_det
+            N[1, 0] = (A[1, 2] * A[2, 0] - A[1, 0] * A[2, 2]) * inv_det
+            N[1, 1] = (A[0, 0] * A[2, 2] - A[0, 2] * A[2, 0]) * inv_det
+            N[1, 2] = (A[0, 2] * A[1, 0] - A[0, 0] * A[1, 2]) * inv_det
+            N[2, 0] = (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]) * inv_det
+            N[2, 1] = (A[0, 1] * A[2, 0] - A[0, 0] * A[2, 1]) * inv_det
+            N[2, 2] = (A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]) * inv_det
+            for a in range(3):
+                for b in range(3):
+                    N[a, b] = (N[a, b] - nv[a] * nv[b]) / c
+        else:  # no plane: the whole row's information is fake (B n nᵀ Bᵀ = h hᵀ)
+            for a in range(3):
+                for b in range(3):
+                    N[a, b] = nv[a] * nv[b]
+        # q = R (R_LI l + t_LI)
         lx, ly, lz = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
         ix = R_LI[0, 0] * lx + R_LI[0, 1] * ly + R_LI[0, 2] * lz + t_LI[0]
         iy = R_LI[1, 0] * lx + R_LI[1, 1] * ly + R_LI[1, 2] * lz + t_LI[1]
         iz = R_LI[2, 0] * lx + R_LI[2, 1] * ly + R_LI[2, 2] * lz + t_LI[2]
-        for a in range(3):
-            B[a, 0] = 0.0
-            B[a, 1] = 0.0
-            B[a, 2] = 0.0
-            B[a, a] = 1.0
-            # row a of [p_I]× Rᵀ: ([p_I]×)[a, :] @ Rᵀ
-            if a == 0:
-                h0, h1, h2 = 0.0, -iz, iy
-            elif a == 1:
-                h0, h1, h2 = iz, 0.0, -ix
-            else:
-                h0, h1, h2 = -iy, ix, 0.0
-            for b in range(3):
-                B[3 + a, b] = h0 * R[b, 0] + h1 * R[b, 1] + h2 * R[b, 2]
+        qx = R[0, 0] * ix + R[0, 1] * iy + R[0, 2] * iz
+        qy = R[1, 0] * ix + R[1, 1] * iy + R[1, 2] * iz
+        qz = R[2, 0] * ix + R[2, 1] * iy + R[2, 2] * iz
         ww = w[j] * w[j]
         j += 1
-        if not (det > 1e-300 and np.isfinite(det)):
-            # no plane: the whole row's information is fake
-            for a in range(6):
-                ha = B[a, 0] * nx + B[a, 1] * ny + B[a, 2] * nz
-                for b in range(6):
-                    hb = B[b, 0] * nx + B[b, 1] * ny + B[b, 2] * nz
-                    out[a, b] += ww * ha * hb
-            continue
-        inv_det = 1.0 / det
-        N[0, 0] = (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]) * inv_det
-        N[0, 1] = (A[0, 2] * A[2, 1] - A[0, 1] * A[2, 2]) * inv_det
-        N[0, 2] = (A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]) * inv_det
-        N[1, 0] = (A[1, 2] * A[2, 0] - A[1, 0] * A[2, 2]) * inv_det
-        N[1, 1] = (A[0, 0] * A[2, 2] - A[0, 2] * A[2, 0]) * inv_det
-        N[1, 2] = (A[0, 2] * A[1, 0] - A[0, 0] * A[1, 2]) * inv_det
-        N[2, 0] = (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]) * inv_det
-        N[2, 1] = (A[0, 1] * A[2, 0] - A[0, 0] * A[2, 1]) * inv_det
-        N[2, 2] = (A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]) * inv_det
+        # NQ = N [q]×, column by column ([q]× columns: (0, qz, −qy), (−qz, 0, qx), (qy, −qx, 0))
+        for a in range(3):
+            NQ[a, 0] = N[a, 1] * qz - N[a, 2] * qy
+            NQ[a, 1] = N[a, 2] * qx - N[a, 0] * qz
+            NQ[a, 2] = N[a, 0] * qy - N[a, 1] * qx
         for a in range(3):
             for b in range(3):
-                N[a, b] = (N[a, b] - nv[a] * nv[b]) / c
-        # out += ww B N Bᵀ
-        for a in range(6):
-            for b in range(3):
-                t = 0.0
-                for q in range(3):
-                    t += B[a, q] * N[q, b]
-                for e in range(6):
-                    out[a, e] += ww * t * B[e, b]
+                X[a, b] += ww * N[a, b]
+                Y[a, b] += ww * NQ[a, b]
+        # Z += [q]× NQ, rows of [q]×: (0, −qz, qy), (qz, 0, −qx), (−qy, qx, 0)
+        for b in range(3):
+            Z[0, b] += ww * (qy * NQ[2, b] - qz * NQ[1, b])
+            Z[1, b] += ww * (qz * NQ[0, b] - qx * NQ[2, b])
+            Z[2, b] += ww * (qx * NQ[1, b] - qy * NQ[0, b])
+    out = np.zeros((6, 6))
+    for a in range(3):
+        for b in range(3):
+            out[a, b] = 0.5 * (X[a, b] + X[b, a])
+            t = 0.0  # −(Y R)[a, b]
+            for e in range(3):
+                t -= Y[a, e] * R[e, b]
+            out[a, 3 + b] = t
+            out[3 + b, a] = t
+    for a in range(3):
+        for b in range(a, 3):
+            t = 0.0  # −(Rᵀ Z R)[a, b]
+            for e in range(3):
+                for f in range(3):
+                    t -= R[e, a] * Z[e, f] * R[f, b]
+            out[3 + a, 3 + b] = t
+            out[3 + b, 3 + a] = t
     return out
