@@ -964,6 +964,12 @@ class Odometry:
         for k, v in stage_ms.items():
             self.stage_ms_total[k] = self.stage_ms_total.get(k, 0.0) + v
 
+    @property
+    def _sigmas_P(self) -> np.ndarray:
+        """The covariance the reported sigmas come from: the report covariance once it exists
+        (``filter.sigmas_discount_normal_noise``), else the filter's."""
+        return self._P if self._P_report is None else self._P_report
+
     def _update_report_covariance(self, x_pred: State, x_post: State, assoc: _Association,
                                   projector: np.ndarray | None) -> None:
         """With ``filter.sigmas_discount_normal_noise``: the covariance behind the reported
@@ -974,7 +980,7 @@ class Odometry:
         f = self.cfg.filter
         if not f.sigmas_discount_normal_noise:
             return
-        P = self._P if self._P_report is None else self._P_report
+        P = self._sigmas_P
         Jr = _reprojection(x_post.boxminus(x_pred))
         P = Jr @ P @ Jr.T
         H = assoc.H[:, :6]
@@ -996,8 +1002,7 @@ class Odometry:
         """6x6 world covariance of the pose: the filter's (or, with
         ``filter.sigmas_discount_normal_noise``, the one behind the reported sigmas), combined
         with the map's if ``filter.map_uncertainty`` (``map_uncertainty.world_covariance``)."""
-        P = self._P if self._P_report is None else self._P_report
-        W = pose_covariance_world(self._state.R, P)
+        W = pose_covariance_world(self._state.R, self._sigmas_P)
         f = self.cfg.filter
         return world_covariance(W, self._W_map, f.map_error_correlated) if f.map_uncertainty else W
 
