@@ -197,3 +197,48 @@ def test_normal_noise_information_of_a_row_without_a_plane_is_the_whole_row():
     got = measurement.normal_noise_information(pts, np.ones(1, bool), x.R, x.R_LI, x.t_LI,
                                                normal, nbrs, np.array([5]), w)
     np.testing.assert_allclose(got, h.T @ h, atol=1e-12)
+
+
+def test_normal_noise_bias_matches_monte_carlo_of_refitted_planes():
+    """A query beyond its neighbours' patch: the refitted normal's tilt enters both the row's
+    Jacobian and its residual, ``E[w² h r] = b`` (σ² B N ℓ summed over rows; ℓ the query's lever
+    arm from the neighbours' centroid). Monte Carlo over 40000 refits (PCA through the centroid),
+    with the noise σ² given and with each row's own estimate of it (``empirical``)."""
+    rng_mc = np.random.default_rng(21)
+    x = State(p=np.array([0.5, 1.0, -0.3]), R=so3.exp(np.array([-0.2, 0.1, 0.7])),
+              R_LI=so3.exp(np.array([0.1, -0.1, 0.2])), t_LI=np.array([0.02, 0.03, -0.05]))
+    n_true = np.array([0.9, 0.1, -0.2])
+    n_true /= np.linalg.norm(n_true)
+    e1 = np.cross(n_true, [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n_true, e1)
+    k, trials, sigma = 6, 40000, 0.004
+    uv = rng_mc.uniform(-1, 1, size=(k, 2)) * [0.3, 0.05]  # a thin strip along e1
+    centre = np.array([4.0, -1.0, 0.5])
+    patch = centre + uv[:, :1] * e1 + uv[:, 1:] * e2
+    nbrs = patch[None] + rng_mc.normal(size=(trials, k, 3)) * sigma
+    mu = nbrs.mean(axis=1)
+    _, _, vt = np.linalg.svd(nbrs - mu[:, None, :])
+    n_fit = vt[:, 2, :]
+    n_fit *= np.sign(n_fit @ n_true)[:, None]
+    q_world = centre + 0.1 * e1 + 0.35 * e2 + rng_mc.normal(size=(trials, 3)) * sigma
+    q_lidar = ((q_world - x.p) @ x.R - x.t_LI) @ x.R_LI
+    w = np.full(trials, 0.8)
+    h = _pose_rows(x, q_lidar, n_fit)
+    r = np.einsum("ij,ij->i", q_world - mu, n_fit)
+    mc = np.sum((w**2 * r)[:, None] * h, axis=0)
+    mc_se = np.sqrt(trials) * np.std((w**2 * r)[:, None] * h, axis=0)
+    args = (q_lidar, np.ones(trials, bool), x.R, x.p, x.R_LI, x.t_LI, n_fit, mu, nbrs,
+            np.full(trials, k, np.int64), w)
+    F, b = measurement.normal_noise_terms(*args, sigma**2, False)
+    _, b_emp = measurement.normal_noise_terms(*args, 1.0, True)
+    big = np.abs(mc) > 10 * mc_se  # the components the lever arm drives
+    assert big.sum() >= 3
+    np.testing.assert_allclose(b[big], mc[big], rtol=0.08)
+    np.testing.assert_allclose(b_emp[big], mc[big], rtol=0.1)
+    assert np.all(np.abs(b - mc) < 5 * mc_se + 0.08 * np.abs(mc))
+    # F is normal_noise_information scaled by the given noise
+    F1 = measurement.normal_noise_information(q_lidar, np.ones(trials, bool), x.R, x.R_LI,
+                                              x.t_LI, n_fit, nbrs, np.full(trials, k, np.int64),
+                                              w)
+    np.testing.assert_allclose(F, sigma**2 * F1, rtol=1e-12)

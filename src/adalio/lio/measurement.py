@@ -157,10 +157,40 @@ def normal_noise_information(points_lidar, accepted, R, R_LI, t_LI, normals, nei
     without), rows in point order. A row whose neighbours span no plane (``P S P`` singular)
     claims nothing real: its whole ``w² h hᵀ`` is returned.
     """
+    F, _ = normal_noise_terms(points_lidar, accepted, R, np.zeros(3), R_LI, t_LI, normals,
+                              np.empty((0, 3)), neighbours, counts, w, 1.0, False)
+    return F
+
+
+@kernel()
+def normal_noise_terms(points_lidar, accepted, R, p, R_LI, t_LI, normals, mu, neighbours, counts,
+                       w, sigma2, empirical):
+    """``(F, b)``: what the noise of the fitted normals fakes in the accepted rows' ``HᵀH``
+    (``F``, 6×6, pose columns [δp, δθ]) and the bias it puts into their ``Hᵀr`` (``b``, 6).
+
+    ``F = Σ w² σ_i² B N Bᵀ`` as :func:`normal_noise_information` (which is ``F`` with
+    ``σ_i² = 1``). The residual ``r = n̂ᵀ(p_W − μ)`` of the same fitted normal carries the same
+    tilt: ``r = r̄ + δnᵀ ℓ`` with ``ℓ = p_W − μ`` the point's lever arm from the neighbours'
+    centroid ``mu``, so ``E[h r] = h̄ r̄ + B E[δn δnᵀ] ℓ`` and ``b = Σ w² σ_i² B N ℓ`` (errors in
+    variables; the corrected score of Fuller's estimator). It is the pull of a plane fitted to a
+    thin strip of map points on a query beyond it: towards the strip (e.g. walls holding a moving
+    scan at the height of the ring lines the map was made of). Without ``mu`` rows
+    (``mu.shape[0] == 0``) ``b`` is zero.
+
+    ``σ_i²``, the point noise along the normal: ``sigma2``, or with ``empirical`` the
+    neighbours' own scatter about their plane, ``k nᵀ S n / (k − 3)`` (unbiased for k > 3
+    points and a plane's 3 parameters; ``sigma2`` for k = 3). A row whose neighbours span no
+    plane adds its whole ``w² h hᵀ`` to ``F`` (times ``sigma2`` unless ``empirical``) and nothing
+    to ``b``.
+    """
     # With q = R p_I (the lever arm in world axes), [p_I]× Rᵀ = Rᵀ [q]×, so B N Bᵀ is
     # [[N, −N [q]× R], [Rᵀ [q]× N, −Rᵀ [q]× N [q]× R]]: the world-frame sums
-    # X = Σ w² N, Y = Σ w² N [q]×, Z = Σ w² [q]× N [q]× are rotated once at the end.
+    # X = Σ w² N, Y = Σ w² N [q]×, Z = Σ w² [q]× N [q]× are rotated once at the end; so is
+    # the bias, B v = [v; Rᵀ (q × v)] with v = N ℓ.
     X = np.zeros((3, 3))
+    bp = np.zeros(3)
+    bq = np.zeros(3)
+    with_bias = mu.shape[0] > 0
     Y = np.zeros((3, 3))
     Z = np.zeros((3, 3))
     N = np.zeros((3, 3))
@@ -202,13 +232,17 @@ def normal_noise_information(points_lidar, accepted, R, R_LI, t_LI, normals, nei
             N[2, 0] = (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]) * inv_det
             N[2, 1] = (A[0, 1] * A[2, 0] - A[0, 0] * A[2, 1]) * inv_det
             N[2, 2] = (A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]) * inv_det
+            s2 = nSn * c / (c - 3.0) if empirical and c > 3 else sigma2
             for a in range(3):
                 for b in range(3):
-                    N[a, b] = (N[a, b] - nv[a] * nv[b]) / c
+                    N[a, b] = (N[a, b] - nv[a] * nv[b]) / c * s2
+            plane = True
         else:  # no plane: the whole row's information is fake (B n nᵀ Bᵀ = h hᵀ)
+            s2 = 1.0 if empirical else sigma2
             for a in range(3):
                 for b in range(3):
-                    N[a, b] = nv[a] * nv[b]
+                    N[a, b] = nv[a] * nv[b] * s2
+            plane = False
         # q = R (R_LI l + t_LI)
         lx, ly, lz = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
         ix = R_LI[0, 0] * lx + R_LI[0, 1] * ly + R_LI[0, 2] * lz + t_LI[0]
@@ -219,6 +253,19 @@ def normal_noise_information(points_lidar, accepted, R, R_LI, t_LI, normals, nei
         qz = R[2, 0] * ix + R[2, 1] * iy + R[2, 2] * iz
         ww = w[j] * w[j]
         j += 1
+        if with_bias and plane:  # v = N ℓ, ℓ = q + p − μ
+            lx = qx + p[0] - mu[i, 0]
+            ly = qy + p[1] - mu[i, 1]
+            lz = qz + p[2] - mu[i, 2]
+            v0 = N[0, 0] * lx + N[0, 1] * ly + N[0, 2] * lz
+            v1 = N[1, 0] * lx + N[1, 1] * ly + N[1, 2] * lz
+            v2 = N[2, 0] * lx + N[2, 1] * ly + N[2, 2] * lz
+            bp[0] += ww * v0
+            bp[1] += ww * v1
+            bp[2] += ww * v2
+            bq[0] += ww * (qy * v2 - qz * v1)
+            bq[1] += ww * (qz * v0 - qx * v2)
+            bq[2] += ww * (qx * v1 - qy * v0)
         # NQ = N [q]×, column by column ([q]× columns: (0, qz, −qy), (−qz, 0, qx), (qy, −qx, 0))
         for a in range(3):
             NQ[a, 0] = N[a, 1] * qz - N[a, 2] * qy
@@ -250,4 +297,8 @@ def normal_noise_information(points_lidar, accepted, R, R_LI, t_LI, normals, nei
                     t -= R[e, a] * Z[e, f] * R[f, b]
             out[3 + a, 3 + b] = t
             out[3 + b, 3 + a] = t
-    return out
+    bias = np.zeros(6)
+    for a in range(3):
+        bias[a] = bp[a]
+        bias[3 + a] = R[0, a] * bq[0] + R[1, a] * bq[1] + R[2, a] * bq[2]  # Rᵀ bq
+    return out, bias
