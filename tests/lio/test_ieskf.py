@@ -165,3 +165,121 @@ def test_world_sigmas_match_monte_carlo():
     np.testing.assert_allclose(sig_th_deg, np.degrees(rot_w.std(axis=0)), rtol=0.03)
     # the body-frame diagonal is not the world one for this rotation
     assert not np.allclose(sig_th_deg, np.degrees(np.sqrt(np.diag(P[TH, TH]))), rtol=0.05)
+
+
+def test_errors_in_variables_keeps_the_lidar_step_and_only_the_real_information():
+    """``errors_in_variables``: nothing fake, no bias → the normal equations unchanged; a fake
+    part → the pose information is ``odometry.real_information`` of the claim (an independent
+    construction), the LiDAR-only step of the corrected gradient is kept, the other columns are
+    untouched; a direction that is all fake contributes nothing."""
+    from adalio.lio.ieskf import errors_in_variables
+    from adalio.lio.odometry import real_information
+
+    rng_e = np.random.default_rng(5)
+    H = rng_e.normal(size=(200, 12))
+    r = rng_e.normal(size=200)
+    HTH, HTh = H.T @ H, -(H.T @ r)
+    same_H, same_h = errors_in_variables(HTH, HTh, np.zeros((6, 6)), np.zeros(6))
+    np.testing.assert_allclose(same_H, HTH, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(same_h, HTh, rtol=1e-10, atol=1e-10)
+
+    G = rng_e.normal(size=(6, 6))
+    F = 0.3 * G @ np.diag([0.1, 0.5, 1.0, 2.0, 5.0, 10.0]) @ G.T  # PSD, below A in places
+    b = rng_e.normal(size=6) * 3.0
+    A = HTH[:6, :6]
+    got_H, got_h = errors_in_variables(HTH, HTh, F, b)
+    np.testing.assert_allclose(got_H[:6, :6], real_information(A, F), rtol=1e-9,
+                               atol=1e-9 * np.abs(A).max())
+    np.testing.assert_array_equal(got_H[6:, :], HTH[6:, :])
+    np.testing.assert_array_equal(got_h[6:], HTh[6:])
+    lam = np.linalg.eigvalsh(np.eye(6) - np.linalg.solve(np.linalg.cholesky(A),
+                                                         np.linalg.solve(np.linalg.cholesky(A),
+                                                                         F).T))
+    assert lam.min() > 0.0  # every direction keeps some information: the step is defined
+    np.testing.assert_allclose(np.linalg.solve(got_H[:6, :6], got_h[:6]),
+                               np.linalg.solve(A, HTh[:6] + b), rtol=1e-8)
+    # a fake part as large as the claim along one direction removes that direction
+    u = np.linalg.eigh(A)[1][:, 0]
+    F1 = (u @ A @ u) * np.outer(u, u)
+    one_H, one_h = errors_in_variables(HTH, HTh, F1, np.zeros(6))
+    assert abs(u @ one_H[:6, :6] @ u) < 1e-9 * np.abs(A).max()
+    assert abs(u @ np.linalg.pinv(one_H[:6, :6]) @ one_h[:6]) < 1e-6 * np.linalg.norm(HTh[:6])
+    none_H, none_h = errors_in_variables(HTH, HTh, 2.0 * A, b)
+    np.testing.assert_allclose(none_H[:6, :6], 0.0, atol=1e-9 * np.abs(A).max())
+    np.testing.assert_allclose(none_h[:6], 0.0, atol=1e-9 * np.linalg.norm(HTh[:6] + b))
+
+def _strip_room(rng_s, sigma, half_width_m):
+    """Map: the walls x = ±2, y = ±2 only as one thin horizontal strip each (a ring line at
+    z = 0.3, points about 0.1 m apart), and a floor at z = -1.2; noisy."""
+    walls = []
+    for axis, sign in ((0, -1), (0, 1), (1, -1), (1, 1)):
+        p = np.zeros((40, 3))
+        p[:, 1 - axis] = rng_s.uniform(-1.95, 1.95, 40)
+        p[:, axis] = sign * 2.0
+        p[:, 2] = 0.3 + rng_s.uniform(-half_width_m, half_width_m, 40)
+        walls.append(p)
+    floor = np.c_[rng_s.uniform(-1.9, 1.9, (400, 2)), np.full(400, -1.2)]
+    m = np.vstack(walls + [floor])
+    return m + rng_s.normal(size=m.shape) * sigma
+
+
+def _strip_update(seed: int, eiv: bool, sigma: float = 0.005,
+                  half_width_m: float = 0.04) -> np.ndarray:
+    """One iterated update of a scan whose wall points lie 0.25-0.6 m above the strips (and on
+    the floor), from the true pose; returns the position error (m). Planes: PCA of the k
+    nearest map points, valid within a 5 cm margin (§6.2)."""
+    rng_s = np.random.default_rng(seed)
+    k = 5
+    cfg = FilterConfig(laser_point_cov=sigma**2)
+    world = _strip_room(rng_s, sigma, half_width_m)
+    scan = []
+    for axis, sign in ((0, -1), (0, 1), (1, -1), (1, 1)):
+        p = np.zeros((60, 3))
+        p[:, 1 - axis] = rng_s.uniform(-1.5, 1.5, 60)
+        p[:, axis] = sign * 2.0
+        p[:, 2] = rng_s.uniform(0.55, 0.9, 60)
+        scan.append(p)
+    scan.append(np.c_[rng_s.uniform(-1.5, 1.5, (40, 2)), np.full(40, -1.2)])
+    X = np.vstack(scan) + rng_s.normal(size=(280, 3)) * sigma
+    x_true = State(p=np.array([0.1, -0.2, 0.05]), R=so3.exp(np.array([0.0, 0.0, 0.3])))
+    pts = _scan(x_true, X)
+    state = {}
+
+    def measure(x: State, research: bool):
+        q = measurement.points_to_world(pts, x.R, x.p, x.R_LI, x.t_LI)
+        idx = np.argsort(((q[:, None, :] - world[None]) ** 2).sum(-1), axis=1)[:, :k]
+        nb = world[idx]
+        mu = nb.mean(axis=1)
+        n = np.linalg.svd(nb - mu[:, None, :])[2][:, 2, :]
+        d = -np.einsum("ij,ij->i", n, mu)
+        sel = np.abs(np.einsum("ikj,ij->ik", nb - mu[:, None, :], n)).max(axis=1) < 0.05
+        H, r, acc = measurement.point_to_plane(pts, x.R, x.p, x.R_LI, x.t_LI, n, d, sel, False)
+        state.update(n=n, mu=mu, nb=nb, acc=acc, m=H.shape[0])
+        return H, r
+
+    def noise_terms(x: State):
+        return measurement.normal_noise_terms(
+            pts, state["acc"], x.R, x.p, x.R_LI, x.t_LI, state["n"], state["mu"], state["nb"],
+            np.full(len(pts), k, np.int64), np.ones(state["m"]), cfg.laser_point_cov, True)
+
+    P0 = np.eye(DIM) * 1e-6
+    P0[:6, :6] = np.eye(6) * 0.01**2  # a 1 cm / 0.6° prior on the pose
+    out = iterated_update(x_true, P0, measure, cfg, None, noise_terms if eiv else None)
+    return out.state.p - x_true.p
+
+
+def test_errors_in_variables_removes_most_of_the_pull_of_thin_strips_on_points_beyond_them():
+    """Walls mapped only as thin strips (a spinning LiDAR's ring lines) hold no height, yet
+    their fitted normals' tilt pulls wall points above them down towards the strips: from the
+    true pose the plain update moves the height down by 1.6 cm on average (3 mm point noise,
+    strips ±6 cm high, points 0.25-0.6 m above them, 16 draws); corrected, the mean move is
+    below half of that. (Measured: +0.3 cm, the correction is first order and over-corrects a
+    little; with ±4 cm strips and 1 cm noise -8.9 cm becomes +4.1 cm.) The price is variance:
+    across the walls the corrected updates scatter more (RMS 1.3 against 0.9 cm), but less than
+    twice as much."""
+    plain = np.array([_strip_update(s, False, 0.003, 0.06) for s in range(16)])
+    eiv = np.array([_strip_update(s, True, 0.003, 0.06) for s in range(16)])
+    assert plain[:, 2].mean() < -0.01
+    assert abs(eiv[:, 2].mean()) < 0.5 * abs(plain[:, 2].mean())
+    rms_xy = [np.sqrt(np.mean(u[:, :2] ** 2)) for u in (plain, eiv)]
+    assert rms_xy[0] < 0.015 and rms_xy[1] < 2.0 * rms_xy[0]

@@ -18,6 +18,10 @@ from adalio.lio.state import DIM, State
 
 Measure = Callable[[State, bool], tuple[np.ndarray, np.ndarray]]
 """``measure(x, research) -> (H (m,12), r (m,))``; ``research`` asks for a new kNN + plane fit."""
+NoiseTerms = Callable[[State], tuple[np.ndarray, np.ndarray]]
+"""``noise_terms(x) -> (F (6,6), b (6,))``: what the fitted normals' noise fakes in the pose
+block of the last evaluation's ``HᵀH`` and the bias it puts into ``Hᵀr``, both in ``HᵀH``'s units
+(``measurement.normal_noise_terms``)."""
 
 _SO3_BLOCKS = (slice(3, 6), slice(6, 9))
 
@@ -41,8 +45,39 @@ def _reprojection(dx: np.ndarray) -> np.ndarray:
     return J
 
 
+def errors_in_variables(HTH: np.ndarray, HTh: np.ndarray, F: np.ndarray,
+                        b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The normal equations ``(HᵀH, −Hᵀr)`` with the pose block corrected for the noise of the
+    fitted normals (``filter.errors_in_variables``).
+
+    The gradient loses its expected bias, ``Hᵀr − b``, and the information keeps only what is
+    not fake: ``A' = A^½ M A^½`` with ``M = clip(I − A^-½ F A^-½, 0, I)`` (``A`` the pose block,
+    ``A^-½`` on its range; as ``odometry.real_information``), and the gradient is scaled by the
+    same ``Q = A^½ M A^-½`` in every direction, so the LiDAR-only step of the corrected
+    gradient, ``A⁻¹ (Hᵀr − b)``, is kept where any information is left and only its weight
+    against the prior drops. Directions where ``F`` is all of ``A`` contribute nothing.
+    """
+    A = 0.5 * (HTH[:6, :6] + HTH[:6, :6].T)
+    lam, U = np.linalg.eigh(A)
+    keep = lam > lam.max(initial=0.0) * 1e-12
+    HTH = HTH.copy()
+    HTh = HTh.copy()
+    if not np.any(keep):
+        return HTH, HTh
+    U, root = U[:, keep], np.sqrt(lam[keep])
+    W = U / root  # A^-½ on the range: whitened directions
+    mu, V = np.linalg.eigh(np.eye(root.size) - W.T @ (0.5 * (F + F.T)) @ W)
+    mid = (V * np.clip(mu, 0.0, 1.0)) @ V.T
+    Q = (U * root) @ mid @ W.T
+    A_real = Q @ A
+    HTH[:6, :6] = 0.5 * (A_real + A_real.T)
+    HTh[:6] = Q @ (HTh[:6] + b)  # HTh = −Hᵀr
+    return HTH, HTh
+
+
 def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: FilterConfig,
-                    pose_projector: np.ndarray | None = None) -> UpdateResult:
+                    pose_projector: np.ndarray | None = None,
+                    noise_terms: NoiseTerms | None = None) -> UpdateResult:
     """IKFoM ``update_iterated_dyn_share_modified`` (§6.4).
 
     Loop ``j = −1 … N_max−1``: evaluate ``H, r`` at ``x_j`` (re-search while ``research``),
@@ -59,6 +94,9 @@ def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: 
     any gain: ``P⁺ = (I − M K H) P_j (I − M K H)ᵀ + M K R Kᵀ Mᵀ``. The short form
     ``(I − K H) P_j`` would shrink the covariance along the held directions and their
     correlations as if the state had moved there.
+
+    ``noise_terms`` (``filter.errors_in_variables``) corrects the normal equations of every
+    iteration for the noise of the fitted normals (:func:`errors_in_variables`).
     """
     n_max = cfg.max_iterations
     inv_r = 1.0 / cfg.laser_point_cov
@@ -90,6 +128,12 @@ def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: 
         else:
             HTH = H.T @ H
             HTh = -(H.T @ r)
+            if noise_terms is not None:
+                F, b = noise_terms(x)
+                if pose_projector is not None:
+                    F = pose_projector.T @ F @ pose_projector
+                    b = pose_projector.T @ b
+                HTH, HTh = errors_in_variables(HTH, HTh, F, b)
             S = np.linalg.inv(P_j)
             S[:12, :12] += HTH * inv_r
             S_inv = np.linalg.inv(S)

@@ -68,6 +68,7 @@ from adalio.lio.ivox import IVox, hash_key3
 from adalio.lio.map_uncertainty import MapProvenance, world_covariance
 from adalio.lio.measurement import (
     normal_noise_information,
+    normal_noise_terms,
     point_to_plane,
     points_to_world,
     residual_weights,
@@ -252,6 +253,17 @@ class _Association:
             r *= w
         self.H = H
         return H.copy(), r
+
+    def noise_terms(self, x: State) -> tuple[np.ndarray, np.ndarray]:
+        """``measurement.normal_noise_terms`` of the last evaluation's rows at ``x``, in ``HᵀH``'s
+        units (each row's point noise from its neighbours' scatter), for
+        ``filter.errors_in_variables``."""
+        if self.H.shape[0] == 0:
+            return np.zeros((6, 6)), np.zeros(6)
+        w = np.sqrt(np.sum(self.H[:, :3] ** 2, axis=1))
+        return normal_noise_terms(self.points_lidar, self.selected, x.R, x.p, x.R_LI, x.t_LI,
+                                  self.normals, self.mu, self._last.neighbours, self.counts, w,
+                                  self.cfg.laser_point_cov, True)
 
     @property
     def neighbours(self) -> np.ndarray:
@@ -503,7 +515,9 @@ class Odometry:
         # 7. iterated ESKF update (§6.4)
         loc: Localizability | None = None
         if down.shape[0] >= MIN_POINTS_FOR_UPDATE:
-            result = iterated_update(x_pred, P_pred, assoc.measure, cfg.filter, projector)
+            result = iterated_update(
+                x_pred, P_pred, assoc.measure, cfg.filter, projector,
+                assoc.noise_terms if cfg.filter.errors_in_variables else None)
             self._update_report_covariance(x_pred, result.state, assoc, projector)
             self._state, self._P = result.state, result.P
             stats.iterations = result.iterations
