@@ -297,11 +297,22 @@ def test_out_of_order_scan_is_skipped():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("mode", ["fixed", "adaptive+"])
-def test_end_to_end_box_room_ate_below_2cm(mode):
+@pytest.mark.parametrize(("mode", "eiv"), [("fixed", False), ("adaptive+", False),
+                                           ("adaptive", True)])
+def test_end_to_end_box_room_ate_below_2cm(mode, eiv, monkeypatch):
+    """The box room walk; the last case with filter.errors_in_variables, whose correction must
+    run at every update (counted) and keep the open room's accuracy."""
+    from adalio.lio import odometry
+
     cfg = _config()
     cfg.adaptive.mode = mode
+    cfg.filter.errors_in_variables = eiv
+    calls = []
+    original = odometry._Association.noise_terms
+    monkeypatch.setattr(odometry._Association, "noise_terms",
+                        lambda self, x: calls.append(1) or original(self, x))
     _, est = _run(cfg, 4.5, 1000)
+    assert (len(calls) >= 2 * len(est)) if eiv else not calls
     assert len(est) >= 38
     t = np.array([e.t_ns for e in est]) * 1e-9
     gt_p, gt_R, *_ = trajectory(t)
