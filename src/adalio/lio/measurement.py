@@ -253,13 +253,13 @@ def normal_noise_terms(points_lidar, accepted, R, p, R_LI, t_LI, normals, mu, ne
         qz = R[2, 0] * ix + R[2, 1] * iy + R[2, 2] * iz
         ww = w[j] * w[j]
         j += 1
-        if with_bias and plane:  # v = N ℓ, ℓ = q + p − μ
-            lx = qx + p[0] - mu[i, 0]
-            ly = qy + p[1] - mu[i, 1]
-            lz = qz + p[2] - mu[i, 2]
-            v0 = N[0, 0] * lx + N[0, 1] * ly + N[0, 2] * lz
-            v1 = N[1, 0] * lx + N[1, 1] * ly + N[1, 2] * lz
-            v2 = N[2, 0] * lx + N[2, 1] * ly + N[2, 2] * lz
+        if with_bias and plane:  # v = N ℓ, ℓ = q + p − μ (the lever arm from the centroid)
+            arm_x = qx + p[0] - mu[i, 0]
+            arm_y = qy + p[1] - mu[i, 1]
+            arm_z = qz + p[2] - mu[i, 2]
+            v0 = N[0, 0] * arm_x + N[0, 1] * arm_y + N[0, 2] * arm_z
+            v1 = N[1, 0] * arm_x + N[1, 1] * arm_y + N[1, 2] * arm_z
+            v2 = N[2, 0] * arm_x + N[2, 1] * arm_y + N[2, 2] * arm_z
             bp[0] += ww * v0
             bp[1] += ww * v1
             bp[2] += ww * v2
