@@ -169,11 +169,10 @@ def test_world_sigmas_match_monte_carlo():
 
 def test_errors_in_variables_keeps_the_lidar_step_and_only_the_real_information():
     """``errors_in_variables``: nothing fake, no bias → the normal equations unchanged; a fake
-    part → the pose information is ``odometry.real_information`` of the claim (an independent
-    construction), the LiDAR-only step of the corrected gradient is kept, the other columns are
-    untouched; a direction that is all fake contributes nothing."""
-    from adalio.lio.ieskf import errors_in_variables
-    from adalio.lio.odometry import real_information
+    part → the pose information is ``real_information`` of the claim (``A^½ M A^½``, against
+    the update's ``Q A``), the LiDAR-only step of the corrected gradient is kept, the other
+    columns are untouched; a direction that is all fake contributes nothing."""
+    from adalio.lio.ieskf import errors_in_variables, real_information
 
     rng_e = np.random.default_rng(5)
     H = rng_e.normal(size=(200, 12))

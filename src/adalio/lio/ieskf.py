@@ -45,6 +45,34 @@ def _reprojection(dx: np.ndarray) -> np.ndarray:
     return J
 
 
+def _claim_metric(claimed: np.ndarray, fake: np.ndarray, upper: float | None = None):
+    """``(A^½, M, A^-½)`` on the range of ``A = claimed`` (``A = U Λ Uᵀ``, ``A^½ = U Λ^½``,
+    ``A^-½ = U Λ^-½``) with ``M = clip(I − A^-½ᵀ fake A^-½, 0, upper)``, the share of each
+    whitened direction that is not ``fake``; None when ``claimed`` holds nothing."""
+    lam, U = np.linalg.eigh(0.5 * (claimed + claimed.T))
+    keep = lam > lam.max(initial=0.0) * 1e-12
+    if not np.any(keep):
+        return None
+    U, root = U[:, keep], np.sqrt(lam[keep])
+    W = U / root  # columns: whitened directions
+    mu, V = np.linalg.eigh(np.eye(root.size) - W.T @ fake @ W)
+    mid = (V * np.clip(mu, 0.0, upper)) @ V.T
+    return U * root, mid, W
+
+
+def real_information(claimed: np.ndarray, fake: np.ndarray) -> np.ndarray:
+    """The part of an information matrix ``claimed`` (symmetric PSD) that is not ``fake``
+    (PSD, the expected spurious part), kept between 0 and ``claimed``: in the metric of
+    ``claimed`` (``A = U Λ Uᵀ``, whitening ``W = Λ^-½ Uᵀ`` on its range),
+    ``A^½ max(I − W fake Wᵀ, 0) A^½``. Unlike clipping ``claimed − fake`` itself, this never
+    grants information along a direction that ``claimed`` does not hold."""
+    parts = _claim_metric(claimed, fake)
+    if parts is None:
+        return np.zeros_like(claimed)
+    half, mid, _ = parts
+    return half @ mid @ half.T
+
+
 def errors_in_variables(HTH: np.ndarray, HTh: np.ndarray, F: np.ndarray,
                         b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The normal equations ``(HᵀH, −Hᵀr)`` with the pose block corrected for the noise of the
@@ -52,24 +80,19 @@ def errors_in_variables(HTH: np.ndarray, HTh: np.ndarray, F: np.ndarray,
 
     The gradient loses its expected bias, ``Hᵀr − b``, and the information keeps only what is
     not fake: ``A' = A^½ M A^½`` with ``M = clip(I − A^-½ F A^-½, 0, I)`` (``A`` the pose block,
-    ``A^-½`` on its range; as ``odometry.real_information``), and the gradient is scaled by the
+    ``A^-½`` on its range; as :func:`real_information`), and the gradient is scaled by the
     same ``Q = A^½ M A^-½`` in every direction, so the LiDAR-only step of the corrected
     gradient, ``A⁻¹ (Hᵀr − b)``, is kept where any information is left and only its weight
     against the prior drops. Directions where ``F`` is all of ``A`` contribute nothing.
     """
-    A = 0.5 * (HTH[:6, :6] + HTH[:6, :6].T)
-    lam, U = np.linalg.eigh(A)
-    keep = lam > lam.max(initial=0.0) * 1e-12
     HTH = HTH.copy()
     HTh = HTh.copy()
-    if not np.any(keep):
+    parts = _claim_metric(HTH[:6, :6], 0.5 * (F + F.T), 1.0)
+    if parts is None:
         return HTH, HTh
-    U, root = U[:, keep], np.sqrt(lam[keep])
-    W = U / root  # A^-½ on the range: whitened directions
-    mu, V = np.linalg.eigh(np.eye(root.size) - W.T @ (0.5 * (F + F.T)) @ W)
-    mid = (V * np.clip(mu, 0.0, 1.0)) @ V.T
-    Q = (U * root) @ mid @ W.T
-    A_real = Q @ A
+    half, mid, W = parts
+    Q = half @ mid @ W.T
+    A_real = Q @ (0.5 * (HTH[:6, :6] + HTH[:6, :6].T))
     HTH[:6, :6] = 0.5 * (A_real + A_real.T)
     HTh[:6] = Q @ (HTh[:6] + b)  # HTh = −Hᵀr
     return HTH, HTh

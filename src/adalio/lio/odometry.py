@@ -63,7 +63,7 @@ from adalio.lio.degeneracy import (
     observable_projector,
     weak_directions,
 )
-from adalio.lio.ieskf import _reprojection, iterated_update
+from adalio.lio.ieskf import _reprojection, iterated_update, real_information
 from adalio.lio.ivox import IVox, hash_key3
 from adalio.lio.map_uncertainty import MapProvenance, world_covariance
 from adalio.lio.measurement import (
@@ -162,24 +162,6 @@ def _group_ids(points: np.ndarray) -> tuple[np.ndarray, int]:
     return gid, n_groups
 
 
-def real_information(claimed: np.ndarray, fake: np.ndarray) -> np.ndarray:
-    """The part of an information matrix ``claimed`` (symmetric PSD) that is not ``fake``
-    (PSD, the expected spurious part), kept between 0 and ``claimed``: in the metric of
-    ``claimed`` (``A = U Λ Uᵀ``, whitening ``W = Λ^-½ Uᵀ`` on its range),
-    ``A^½ max(I − W fake Wᵀ, 0) A^½``. Unlike clipping ``claimed − fake`` itself, this never
-    grants information along a direction that ``claimed`` does not hold."""
-    lam, U = np.linalg.eigh(0.5 * (claimed + claimed.T))
-    keep = lam > lam.max(initial=0.0) * 1e-12
-    if not np.any(keep):
-        return np.zeros_like(claimed)
-    U, root = U[:, keep], np.sqrt(lam[keep])
-    W = U / root  # columns: whitened directions
-    mu, V = np.linalg.eigh(np.eye(root.size) - W.T @ fake @ W)
-    mid = (V * np.clip(mu, 0.0, None)) @ V.T
-    half = U * root
-    return half @ mid @ half.T
-
-
 class _Association:
     """Point-to-plane correspondences of one downsampled scan against the map (§6.2-6.3).
 
@@ -254,16 +236,21 @@ class _Association:
         self.H = H
         return H.copy(), r
 
+    @property
+    def row_weights(self) -> np.ndarray:
+        """(m,) the weight of each row of the last evaluation: ``|H[:, :3]|``, since the position
+        columns are the unit normal times the row's weight (:func:`residual_weights`)."""
+        return np.sqrt(np.sum(self.H[:, :3] ** 2, axis=1))
+
     def noise_terms(self, x: State) -> tuple[np.ndarray, np.ndarray]:
         """``measurement.normal_noise_terms`` of the last evaluation's rows at ``x``, in ``HᵀH``'s
         units (each row's point noise from its neighbours' scatter), for
         ``filter.errors_in_variables``."""
         if self.H.shape[0] == 0:
             return np.zeros((6, 6)), np.zeros(6)
-        w = np.sqrt(np.sum(self.H[:, :3] ** 2, axis=1))
         return normal_noise_terms(self.points_lidar, self.selected, x.R, x.p, x.R_LI, x.t_LI,
-                                  self.normals, self.mu, self._last.neighbours, self.counts, w,
-                                  self.cfg.laser_point_cov, True)
+                                  self.normals, self.mu, self._last.neighbours, self.counts,
+                                  self.row_weights, self.cfg.laser_point_cov, True)
 
     @property
     def neighbours(self) -> np.ndarray:
@@ -999,10 +986,9 @@ class Odometry:
         P = Jr @ P @ Jr.T
         H = assoc.H[:, :6]
         if H.shape[0]:
-            w = np.sqrt(np.sum(assoc.H[:, :3] ** 2, axis=1))
             fake = normal_noise_information(assoc.points_lidar, assoc.selected, x_post.R,
                                             x_post.R_LI, x_post.t_LI, assoc.normals,
-                                            assoc.neighbours, assoc.counts, w)
+                                            assoc.neighbours, assoc.counts, assoc.row_weights)
             claimed = H.T @ H
             if projector is not None:
                 claimed = projector.T @ claimed @ projector
