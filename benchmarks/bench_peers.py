@@ -39,6 +39,16 @@ machine). It also reports adalio's whole ``run`` per scan (``run_bag(...).wall_s
 bag decoding, undistortion, sequencer, estimator and writers) on the same bag. ``--repeat k`` runs
 every timed pass k times, interleaved across systems, and reports the median of the k medians.
 
+``--floor`` adds one more adalio pass that splits each scan's time into the time spent inside
+adalio's compiled (numba) kernels and the rest (the Python around them): every kernel a module of
+``adalio.lio`` calls from Python is wrapped by a timer for that pass (calls from kernel to kernel
+are compiled in and not seen). The kernels' sum is what the same kernels would cost with no Python
+at all, i.e. a floor for this method at today's kernels; it is printed against 0.67x rko-lio's
+median, with the map search alone. On every 10th timed scan the search's queries are also
+searched again by adalio's kernel and by scipy's compiled k-d tree (``cKDTree.query``, k nearest,
+all cores, tree built untimed on the same map points), a reference for what the kNN alone costs
+in compiled code that is not ours.
+
     python benchmarks/bench_peers.py --scenes hall spiral --columns 512 2000 --duration 20
 """
 
@@ -46,6 +56,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import ctypes
 import gc
 import importlib
@@ -141,6 +152,7 @@ class Result:
     rows: list[Row]
     run_ms_per_scan: float = float("nan")
     run_status: str = ""
+    floor: Floor | None = None
 
 
 # ---------------------------------------------------------------- data
@@ -520,11 +532,141 @@ def bench_sequence(seq: Sequence, names: list[str], args: argparse.Namespace,
     window = timing_window(ada.passes[0] if ada and ada.passes else None, len(seq.scans))
     for row in rows.values():
         fill_timing(row, window)
+    floor = None
+    if args.floor and ada is not None and ada.passes:
+        floor = floor_pass(seq, args, window)
+        log(f"{seq.scene} c{seq.columns} adalio floor pass: kernels {floor.kernels_ms:.2f} of "
+            f"{floor.wall_ms:.2f} ms/scan")
     return Result(scene=seq.scene, columns=seq.columns, n_scans=len(seq.scans),
                   pts_per_scan=float(np.median([len(s) for s in seq.scans])), window=window,
                   decode_s=seq.decode_s, rows=list(rows.values()),
                   run_ms_per_scan=float(np.median(run_ms)) if run_ms else float("nan"),
-                  run_status=run_status)
+                  run_status=run_status, floor=floor)
+
+
+@dataclass
+class Floor:
+    """adalio's per-scan time inside its compiled kernels (``--floor``), medians over the
+    timed scans, ms."""
+
+    wall_ms: float
+    kernels_ms: float
+    search_ms: float
+    top: list[tuple[str, float]]
+    """The largest kernels: (name, median ms per scan)."""
+    resample_adalio_ms: float = float("nan")
+    resample_kdtree_ms: float = float("nan")
+    n_resampled: int = 0
+
+
+SEARCH_KERNELS = ("_associate_parallel", "_associate_serial")
+KERNEL_MODULES = ("associate", "degeneracy", "ieskf", "imu", "ivox", "map_uncertainty",
+                  "measurement", "motion_init", "odometry", "plane", "so3", "state", "voxel")
+
+
+@contextlib.contextmanager
+def kernel_timers(spent: dict[str, float]) -> Iterator[None]:
+    """Wrap every numba kernel that the ``adalio.lio`` modules call from Python by a timer that
+    adds its wall seconds to ``spent[name]`` (outermost calls only); restored on exit."""
+    from numba.core.registry import CPUDispatcher
+
+    depth = [0]
+
+    def wrap(name: str, f: Callable) -> Callable:
+        def timed(*a: Any, **kw: Any) -> Any:
+            if depth[0]:
+                return f(*a, **kw)
+            depth[0] += 1
+            t0 = time.perf_counter()
+            try:
+                return f(*a, **kw)
+            finally:
+                spent[name] = spent.get(name, 0.0) + time.perf_counter() - t0
+                depth[0] -= 1
+        return timed
+
+    patched = []
+    for m in KERNEL_MODULES:
+        mod = importlib.import_module(f"adalio.lio.{m}")
+        for name, obj in list(vars(mod).items()):
+            if isinstance(obj, CPUDispatcher):
+                patched.append((mod, name, obj))
+                setattr(mod, name, wrap(name, obj))
+    try:
+        yield
+    finally:
+        for mod, name, obj in patched:
+            setattr(mod, name, obj)
+
+
+def floor_pass(seq: Sequence, args: argparse.Namespace, window: tuple[int, int]) -> Floor:
+    """One adalio pass with :func:`kernel_timers`; every 10th scan of ``window`` also re-runs
+    its first search, on a copy of the map as that search saw it, with adalio's kernel and with
+    scipy's k-d tree on the same map points."""
+    from scipy.spatial import cKDTree
+
+    import adalio.lio.odometry as odo_mod
+
+    system = Adalio(seq, args)
+    system.reset()
+    cfg = seq.config.filter
+    real_associate = odo_mod.associate
+    captured: list[tuple] = []
+
+    def capture(ivox: Any, points_world: np.ndarray, *a: Any, **kw: Any) -> Any:
+        if want[0] and not captured:
+            captured.append((copy.deepcopy(ivox), np.array(points_world), a, kw))
+        return real_associate(ivox, points_world, *a, **kw)
+
+    want = [False]
+    spent: dict[str, float] = {}
+    per_scan: list[dict[str, float]] = []
+    wall: list[float] = []
+    ada_ms: list[float] = []
+    tree_ms: list[float] = []
+    odo_mod.associate = capture
+    try:
+        with kernel_timers(spent):
+            k = 0
+            for item in seq.items:
+                if isinstance(item, ImuBatch):
+                    system.imu(item)
+                    continue
+                spent.clear()
+                captured.clear()
+                timed = window[0] <= k < window[1]
+                want[0] = timed and (k - window[0]) % 10 == 0
+                t0 = time.perf_counter()
+                system.step(item.points_lidar, item.t_ns)
+                dt = time.perf_counter() - t0
+                if timed:
+                    wall.append(dt)
+                    per_scan.append(dict(spent))
+                k += 1
+                if not captured:
+                    continue
+                ivox, q, a, kw = captured[0]  # the map before this scan's insertion
+                t0 = time.perf_counter()
+                real_associate(ivox, q, *a, **kw)
+                ada_ms.append(time.perf_counter() - t0)
+                tree = cKDTree(ivox.points())
+                t0 = time.perf_counter()
+                tree.query(q, k=cfg.knn_k, distance_upper_bound=cfg.knn_max_range_m, workers=-1)
+                tree_ms.append(time.perf_counter() - t0)
+    finally:
+        odo_mod.associate = real_associate
+    names = sorted({n for d in per_scan for n in d})
+    med = {n: 1e3 * float(np.median([d.get(n, 0.0) for d in per_scan])) for n in names}
+    return Floor(
+        wall_ms=1e3 * float(np.median(wall)) if wall else float("nan"),
+        kernels_ms=1e3 * float(np.median([sum(d.values()) for d in per_scan]))
+        if per_scan else float("nan"),
+        search_ms=1e3 * float(np.median([sum(d.get(n, 0.0) for n in SEARCH_KERNELS)
+                                         for d in per_scan])) if per_scan else float("nan"),
+        top=sorted(med.items(), key=lambda kv: -kv[1])[:6],
+        resample_adalio_ms=1e3 * float(np.median(ada_ms)) if ada_ms else float("nan"),
+        resample_kdtree_ms=1e3 * float(np.median(tree_ms)) if tree_ms else float("nan"),
+        n_resampled=len(ada_ms))
 
 
 # ---------------------------------------------------------------- tables
@@ -569,7 +711,23 @@ def sequence_table(res: Result) -> str:
         lines.append(f"adalio whole run (run_bag wall / scans in): {fmt(res.run_ms_per_scan)} "
                      f"ms/scan {res.run_status}(bag decoding + sequencer alone, as here: "
                      f"{dec:.1f} ms/scan)")
+    if res.floor is not None:
+        lines.append(floor_line(res))
     return "\n".join(lines)
+
+
+def floor_line(res: Result) -> str:
+    """``--floor``: adalio's kernels against 0.67x rko-lio's median."""
+    f = res.floor
+    rko = {r.system: r for r in res.rows}.get("rko-lio")
+    target = 0.67 * rko.median_ms if rko is not None and rko.timed else float("nan")
+    top = ", ".join(f"{n} {v:.2f}" for n, v in f.top)
+    return (f"adalio floor pass (medians per scan): {fmt(f.wall_ms, '.2f')} ms, of which "
+            f"{fmt(f.kernels_ms, '.2f')} ms in compiled kernels (map search "
+            f"{fmt(f.search_ms, '.2f')} ms) against 0.67 x rko-lio = {fmt(target, '.2f')} ms; "
+            f"largest kernels: {top}. Search re-run on {f.n_resampled} scans' maps: adalio "
+            f"(kNN + plane fits) {fmt(f.resample_adalio_ms, '.2f')} ms, scipy cKDTree kNN "
+            f"alone {fmt(f.resample_kdtree_ms, '.2f')} ms")
 
 
 def summary_table(results: list[Result], names: list[str]) -> str:
@@ -622,6 +780,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="max range of the peers (m); kiss-icp's voxel is 1 %% of it")
     ap.add_argument("--diverge-m", type=float, default=1.0,
                     help="a system diverged if its max SE(3)-aligned error exceeds this (m)")
+    ap.add_argument("--floor", action="store_true",
+                    help="one more adalio pass: time inside its compiled kernels, the search "
+                         "against scipy's k-d tree")
     ap.add_argument("--no-run", action="store_true",
                     help="skip adalio's whole run (run_bag) per sequence")
     args = ap.parse_args(argv)
