@@ -599,74 +599,91 @@ def kernel_timers(spent: dict[str, float]) -> Iterator[None]:
             setattr(mod, name, obj)
 
 
-def floor_pass(seq: Sequence, args: argparse.Namespace, window: tuple[int, int]) -> Floor:
-    """One adalio pass with :func:`kernel_timers`; every 10th scan of ``window`` also re-runs
-    its first search, on a copy of the map as that search saw it, with adalio's kernel and with
-    scipy's k-d tree on the same map points."""
-    from scipy.spatial import cKDTree
+class FloorAdalio(Adalio):
+    """adalio for the ``--floor`` pass, driven by :func:`run_pass` under :func:`kernel_timers`:
+    each scan's kernel seconds are kept for the scans of ``window``, and on every 10th of them
+    the scan's first search is captured (on a copy of the map as it saw it) and run again, after
+    the timed call, by adalio's kernel and by scipy's k-d tree on the same map points."""
 
+    def __init__(self, seq: Sequence, args: argparse.Namespace, window: tuple[int, int],
+                 spent: dict[str, float]) -> None:
+        super().__init__(seq, args)
+        self.window = window
+        self.spent = spent
+        self.k = -1
+        self.captured: list[tuple] = []
+        self.per_scan: list[dict[str, float]] = []
+        self.ada_ms: list[float] = []
+        self.tree_ms: list[float] = []
+
+    def timed(self) -> bool:
+        return self.window[0] <= self.k < self.window[1]
+
+    def capture(self, real_associate: Callable) -> Callable:
+        """A stand-in for ``odometry.associate`` that keeps the first search of a sampled scan."""
+        def associate(ivox: Any, points_world: np.ndarray, *a: Any, **kw: Any) -> Any:
+            if self.timed() and (self.k - self.window[0]) % 10 == 0 and not self.captured:
+                self.captured.append((copy.deepcopy(ivox), np.array(points_world), a, kw))
+            return real_associate(ivox, points_world, *a, **kw)
+        return associate
+
+    def before_scan(self, scan: Scan) -> None:
+        self.k += 1
+        self.spent.clear()
+        self.captured.clear()
+
+    def pose(self, scan: Scan, out: Any) -> tuple[int, np.ndarray] | None:
+        if self.timed():
+            self.per_scan.append(dict(self.spent))
+        if self.captured:
+            self.search_again(*self.captured[0])
+        return super().pose(scan, out)
+
+    def search_again(self, ivox: Any, queries: np.ndarray, a: tuple, kw: dict) -> None:
+        from scipy.spatial import cKDTree
+
+        from adalio.lio.associate import associate
+
+        t0 = time.perf_counter()
+        associate(ivox, queries, *a, **kw)
+        self.ada_ms.append(time.perf_counter() - t0)
+        tree = cKDTree(ivox.points())
+        cfg = self.seq.config.filter
+        t0 = time.perf_counter()
+        tree.query(queries, k=cfg.knn_k, distance_upper_bound=cfg.knn_max_range_m, workers=-1)
+        self.tree_ms.append(time.perf_counter() - t0)
+
+
+def floor_pass(seq: Sequence, args: argparse.Namespace, window: tuple[int, int]) -> Floor:
+    """One :class:`FloorAdalio` pass, summarised."""
     import adalio.lio.odometry as odo_mod
 
-    system = Adalio(seq, args)
-    system.reset()
-    cfg = seq.config.filter
-    real_associate = odo_mod.associate
-    captured: list[tuple] = []
-
-    def capture(ivox: Any, points_world: np.ndarray, *a: Any, **kw: Any) -> Any:
-        if want[0] and not captured:
-            captured.append((copy.deepcopy(ivox), np.array(points_world), a, kw))
-        return real_associate(ivox, points_world, *a, **kw)
-
-    want = [False]
     spent: dict[str, float] = {}
-    per_scan: list[dict[str, float]] = []
-    wall: list[float] = []
-    ada_ms: list[float] = []
-    tree_ms: list[float] = []
-    odo_mod.associate = capture
+    system = FloorAdalio(seq, args, window, spent)
+    real_associate = odo_mod.associate
+    odo_mod.associate = system.capture(real_associate)
     try:
         with kernel_timers(spent):
-            k = 0
-            for item in seq.items:
-                if isinstance(item, ImuBatch):
-                    system.imu(item)
-                    continue
-                spent.clear()
-                captured.clear()
-                timed = window[0] <= k < window[1]
-                want[0] = timed and (k - window[0]) % 10 == 0
-                t0 = time.perf_counter()
-                system.step(item.points_lidar, item.t_ns)
-                dt = time.perf_counter() - t0
-                if timed:
-                    wall.append(dt)
-                    per_scan.append(dict(spent))
-                k += 1
-                if not captured:
-                    continue
-                ivox, q, a, kw = captured[0]  # the map before this scan's insertion
-                t0 = time.perf_counter()
-                real_associate(ivox, q, *a, **kw)
-                ada_ms.append(time.perf_counter() - t0)
-                tree = cKDTree(ivox.points())
-                t0 = time.perf_counter()
-                tree.query(q, k=cfg.knn_k, distance_upper_bound=cfg.knn_max_range_m, workers=-1)
-                tree_ms.append(time.perf_counter() - t0)
+            p = run_pass(system, seq)
     finally:
         odo_mod.associate = real_associate
+    wall = p.ms[window[0]:window[1]]
+    wall = wall[np.isfinite(wall)]
+    per_scan = system.per_scan
+
+    def median_ms(values: list[float]) -> float:
+        return 1e3 * float(np.median(values)) if values else float("nan")
+
     names = sorted({n for d in per_scan for n in d})
-    med = {n: 1e3 * float(np.median([d.get(n, 0.0) for d in per_scan])) for n in names}
+    med = {n: median_ms([d.get(n, 0.0) for d in per_scan]) for n in names}
     return Floor(
-        wall_ms=1e3 * float(np.median(wall)) if wall else float("nan"),
-        kernels_ms=1e3 * float(np.median([sum(d.values()) for d in per_scan]))
-        if per_scan else float("nan"),
-        search_ms=1e3 * float(np.median([sum(d.get(n, 0.0) for n in SEARCH_KERNELS)
-                                         for d in per_scan])) if per_scan else float("nan"),
+        wall_ms=float(np.median(wall)) if wall.size else float("nan"),
+        kernels_ms=median_ms([sum(d.values()) for d in per_scan]),
+        search_ms=median_ms([sum(d.get(n, 0.0) for n in SEARCH_KERNELS) for d in per_scan]),
         top=sorted(med.items(), key=lambda kv: -kv[1])[:6],
-        resample_adalio_ms=1e3 * float(np.median(ada_ms)) if ada_ms else float("nan"),
-        resample_kdtree_ms=1e3 * float(np.median(tree_ms)) if tree_ms else float("nan"),
-        n_resampled=len(ada_ms))
+        resample_adalio_ms=median_ms(system.ada_ms),
+        resample_kdtree_ms=median_ms(system.tree_ms),
+        n_resampled=len(system.ada_ms))
 
 
 # ---------------------------------------------------------------- tables
