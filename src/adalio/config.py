@@ -232,8 +232,8 @@ class FilterConfig:
     normal_noise_terms``), and the information keeps only what that tilt does not fake, with
     the point noise taken from each row's neighbours (their scatter about their plane). Off by
     default: on bench_modes it takes the spiral from 15.3 to 9.7 cm and the corridor from 3.1 to
-    2.2 cm, but the stairwell diverges more often (3 of 4 seeds), and it costs 1.3-1.8x the time
-    per scan; with ``plane_within_support`` too, the most accurate setting measured (spiral 8.2,
+    2.2 cm, but the stairwell diverges more often (3 of 4 seeds), and it costs 1.2-1.4x the time
+    per scan (an idle machine; 1.3-2.1x on a loaded one); with ``plane_within_support`` too, the most accurate setting measured (spiral 8.2,
     corridor 2.2, stairwell 41.5 cm), except with a real hand in the stairwell and across some
     IMU gaps (README, Errors in variables). Pose block only (``estimate_extrinsic`` off)."""
     sigmas_discount_normal_noise: bool = True
