@@ -139,13 +139,15 @@ class ImuConfig:
     """A longer IMU gap stops the run with an error (outputs so far kept)."""
     gravity_align_world: bool = False
     """Rotate the world frame so that its z axis points up (default: world = IMU at init)."""
-    rest_prior: bool = False
+    rest_prior: bool = True
     """After a static initialization, condition the filter covariance on the still window's
     gyro and specific-force means (lio/state.py, condition_on_rest): the gyro bias and the sum
     of accelerometer bias and gravity tilt start as well known as the window measured them,
-    instead of Faster-LIO's independent priors (b_g 0.01 rad/s, b_a 0.03 m/s^2, gravity 0.2 deg).
-    Off (Faster-LIO's P0) by default: on, the robot-like corridor diverges less but the
-    stairwell loses (README, "Rest prior")."""
+    instead of Faster-LIO's independent priors (b_g 0.01 rad/s, b_a 0.03 m/s^2, gravity 0.2 deg),
+    so that the first steps along a corridor cannot be explained away as a bias plus a tilt.
+    On by default since session 26, together with the filter's errors in variables and support
+    test: with the real HILTI hands in the corridor, 5 of 12 runs diverged without them and none
+    with them (README, "Session 26: new defaults"). False: Faster-LIO's P0."""
     backfill_s: float = 60.0
     """Scans read before the initialization (a moving start's refused fits, or motion before a
     still window) get their pose from a time-reversed pass of the filter, started from the first
@@ -199,13 +201,12 @@ class FilterConfig:
     plane_min_extent_fraction: float = 0.25
     """A plane needs neighbours spanning sqrt(middle covariance eigenvalue) >= this fraction of
     the map cell; rejects fits on stray clusters (0 disables)."""
-    plane_within_support: bool = False
+    plane_within_support: bool = True
     """Use a plane only where the query lies within its neighbours' span along the plane (not
     beyond every neighbour): no residuals against extrapolated planes. Applies to the filter,
-    not to the moving start's registration. Off (Faster-LIO's rule) by default: it helps the
-    corridor, spiral and stairwell while the IMU is there, but across 3 s IMU gaps in a corridor
-    it ended 50-75 cm off in 3 of 19 gaps where Faster-LIO's rule stayed within 32 cm (README,
-    "Planes within their support")."""
+    not to the moving start's registration. On by default since session 26, with
+    ``errors_in_variables`` and ``imu.rest_prior`` (README, "Session 26: new defaults"); False:
+    Faster-LIO's rule (every valid plane of the k nearest map points)."""
     share_weighting: bool = True
     """Residuals whose nearest map point is the same count as one measurement (each row's
     variance is multiplied by the group size)."""
@@ -225,17 +226,15 @@ class FilterConfig:
     poses that inserted the matched map points, moved by their lever arm; lio/map_uncertainty.py)
     instead of the filter's covariance alone, which is relative to a map it treats as exact. Only
     the reported sigmas change, never the trajectory."""
-    errors_in_variables: bool = False
+    errors_in_variables: bool = True
     """The update corrects for the noise of the fitted plane normals (errors in variables,
     ``ieskf.errors_in_variables``): each iteration's gradient loses the pull that a normal's
     tilt puts into the residual of a point beyond its neighbours (``measurement.
     normal_noise_terms``), and the information keeps only what that tilt does not fake, with
-    the point noise taken from each row's neighbours (their scatter about their plane). Off by
-    default: on bench_modes it takes the spiral from 15.3 to 9.7 cm and the corridor from 3.1 to
-    2.2 cm, but the stairwell diverges more often (3 of 4 seeds), and it costs 1.2-1.4x the time
-    per scan (an idle machine; 1.3-2.1x on a loaded one); with ``plane_within_support`` too, the most accurate setting measured (spiral 8.2,
-    corridor 2.2, stairwell 41.5 cm), except with a real hand in the stairwell and across some
-    IMU gaps (README, Errors in variables). Pose block only (``estimate_extrinsic`` off)."""
+    the point noise taken from each row's neighbours (their scatter about their plane). On by
+    default since session 26, with ``plane_within_support`` and ``imu.rest_prior`` (README,
+    "Session 26: new defaults"); it costs about 1.2-1.4x the time per scan. False: the plain
+    point-to-plane normal equations (Faster-LIO's). Pose block only (``estimate_extrinsic`` off)."""
     sigmas_discount_normal_noise: bool = True
     """Report sigmas from a covariance that does not count the information the noise of the
     fitted plane normals fakes (``measurement.normal_noise_information``): e.g. the height that

@@ -39,13 +39,16 @@ def test_spiral_sigmas_grow_where_the_walls_fake_height_and_the_trajectory_stays
     trajectory is bit-identical, every reported sigma is at least the filter's own, and the
     errors against ground truth fall within 3σ in height more often and the mean NEES is lower,
     both for the filter's covariance alone (where it comes closer to 3) and with the map's
-    added."""
+    added. The filter runs without its own errors in variables (on by default), which takes
+    the same discount into the update: the report's discount is for a filter that follows
+    those rows (``filter.errors_in_variables: false``)."""
     sim = cached_sequence("spiral", seed=0, duration_s=25.0, columns=512)
     for with_map in (False, True):
         runs = {}
         for on in (False, True):
             cfg = load_config(None, sim.config_path)
             cfg.filter.sigmas_discount_normal_noise = on
+            cfg.filter.errors_in_variables = False
             cfg.filter.map_uncertainty = with_map
             out = tmp_path / f"map_{with_map}_discount_{on}"
             run_bag(sim.bag_path, cfg, out, progress=False)

@@ -64,7 +64,7 @@ def compile_update_stage() -> None:
     from adalio.lio.ieskf import iterated_update
     from adalio.lio.ivox import IVox
     from adalio.lio.map_uncertainty import MapProvenance
-    from adalio.lio.measurement import normal_noise_information
+    from adalio.lio.measurement import normal_noise_information, normal_noise_terms
     from adalio.lio.motion_init import preintegrate
     from adalio.lio.odometry import _Association, _group_ids
     from adalio.lio.state import State, initial_covariance, pose_covariance_world
@@ -96,9 +96,12 @@ def compile_update_stage() -> None:
     result = iterated_update(x, P, lambda state, research: assoc.measure(state, False), f, None)
     localizability(assoc.H[:, :6], f.laser_point_cov, observability=False)
     k = f.knn_k  # the reported sigmas' discount (filter.sigmas_discount_normal_noise)
+    neighbours = pts[:, None, :] + rng.normal(0.0, 0.1, (pts.shape[0], k, 3))
     normal_noise_information(pts, assoc.selected, x.R, x.R_LI, x.t_LI, assoc.normals,
-                             pts[:, None, :] + rng.normal(0.0, 0.1, (pts.shape[0], k, 3)),
-                             assoc.counts, np.ones(assoc.H.shape[0]))
+                             neighbours, assoc.counts, np.ones(assoc.H.shape[0]))
+    # the update's errors in variables (filter.errors_in_variables), as _Association.noise_terms
+    normal_noise_terms(pts, assoc.selected, x.R, x.p, x.R_LI, x.t_LI, assoc.normals, assoc.mu,
+                       neighbours, assoc.counts, assoc.row_weights, f.laser_point_cov, True)
     provenance = MapProvenance(f.map_provenance_cell_m)
     provenance.add_scan(x.p, pose_covariance_world(x.R, P), pts)
     provenance.map_covariance(result.state.p, pts[::2].copy())
