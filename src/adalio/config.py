@@ -233,8 +233,9 @@ class FilterConfig:
     normal_noise_terms``), and the information keeps only what that tilt does not fake, with
     the point noise taken from each row's neighbours (their scatter about their plane). On by
     default since session 26, with ``plane_within_support`` and ``imu.rest_prior`` (README,
-    "Session 26: new defaults"); it costs about 1.2-1.4x the time per scan. False: the plain
-    point-to-plane normal equations (Faster-LIO's). Pose block only (``estimate_extrinsic`` off)."""
+    "Session 26: new defaults"); with the support test it costs 1.2-1.3x the time per scan
+    (an idle machine, session 25). False: the plain point-to-plane normal equations
+    (Faster-LIO's). Pose block only (``estimate_extrinsic`` off)."""
     sigmas_discount_normal_noise: bool = True
     """Report sigmas from a covariance that does not count the information the noise of the
     fitted plane normals fakes (``measurement.normal_noise_information``): e.g. the height that
