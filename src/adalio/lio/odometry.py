@@ -79,6 +79,7 @@ from adalio.lio.state import (
     DIM,
     State,
     V,
+    anchored_covariance,
     condition_on_rest,
     initial_covariance,
     pose_covariance_world,
@@ -578,6 +579,10 @@ class Odometry:
         # This pose anchors the map, so it defines the world: no error relative to it.
         self._W_map = np.zeros((6, 6))
         self._provenance.add_scan(s.p, np.zeros((6, 6)), p_world)
+        if self.cfg.filter.sigmas_discount_normal_noise:
+            # the reported sigmas start here: no position or yaw error at the anchor (the
+            # filter's own P, and so the trajectory, keeps Faster-LIO's initial covariance)
+            self._P_report = anchored_covariance(s.R, self._P)
         _timer(stage_ms, "map", t0)
         g = self.cfg.adaptive.general
         stats.n_down = stats.n_down_general = int(pts_e.shape[0])

@@ -129,6 +129,21 @@ def pose_covariance_world(R_world_imu: np.ndarray, P: np.ndarray) -> np.ndarray:
     return G @ P[np.ix_(idx, idx)] @ G.T
 
 
+def anchored_covariance(R_world_imu: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """``P`` at the pose that anchors the map and so defines the world frame: that pose's
+    position and its rotation about the world vertical (yaw) have no error by definition, so
+    those components, and their correlations with the rest of the state, are removed
+    (``M P Mᵀ`` with ``M`` zero on the position and ``I − Rᵀ e_z e_zᵀ R`` on the body-frame
+    attitude error, whose world-frame rotation is ``R δθ``). Roll, pitch, velocity and biases
+    keep their uncertainty: gravity, not the map, defines the first two."""
+    M = np.eye(P.shape[0])
+    M[P_, P_] = 0.0
+    u = np.asarray(R_world_imu, dtype=np.float64).T[:, 2]  # Rᵀ e_z: world z in the body frame
+    M[TH, TH] = np.eye(3) - np.outer(u, u)
+    out = M @ P @ M.T
+    return 0.5 * (out + out.T)
+
+
 def sigmas_from_world_covariance(W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(position sigmas in m, rotation sigmas about world x, y, z in degrees) of a 6x6 W."""
     sig = np.sqrt(np.clip(np.diag(W), 0.0, None))
