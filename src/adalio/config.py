@@ -242,6 +242,23 @@ class FilterConfig:
     walls whose fitted normals lean by noise claim in a shaft. The filter's own covariance and
     the trajectory are unchanged; only the reported sigmas (and the map's, which inherits them)
     grow where the scene holds no information."""
+    local_surface_check: bool = False
+    """Drop a row whose map plane disagrees with the scan's own surface at the point
+    (``lio/local_surface.py``): the plane fitted to the samples around the point on its ring and
+    the two adjacent rings, where that patch is planar and within the range at which it is
+    finer than the voxel leaf. Needs the scans' ring field (``Scan.ring``); without it, or in
+    the backfill's reverse pass, no row is checked."""
+    local_surface_max_angle_deg: float = 30.0
+    """local_surface_check: a row is dropped when its map plane's normal is more than this off
+    the local plane's."""
+    local_surface_max_patch_m: float = 0.1
+    """local_surface_check: a point is checked only within the range at which its patch (two
+    ring spacings tall) is at most this tall (the degenerate voxel leaf: 2.9 m for the XT-32's
+    1° rings). Farther out the rows a corridor would lose are its door frames and ends, which
+    carry the along-axis information (``lio/local_surface.py``)."""
+    local_surface_window_ring_spacings: float = 1.5
+    """local_surface_check: the patch's half-width in azimuth, in ring spacings (the sweep's
+    median elevation step), so it keeps its angular size at any column count."""
     map_provenance_cell_m: float = 0.5
     """Cell (m) at which map_uncertainty remembers which scan first filled the map."""
     map_error_correlated: bool = True

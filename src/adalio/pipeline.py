@@ -69,6 +69,8 @@ class RunResult:
     n_sigma_warn: int = 0
     init_report: Any = None
     """:class:`adalio.types.InitReport` of the estimator (None if it never initialized)."""
+    local_surface_rows: tuple[int, int] = (0, 0)
+    """filter.local_surface_check: (rows dropped, rows matched or dropped) over the run."""
     compiled: bool = False
     """The run began on a cold numba cache (the first after an install or an update of adalio):
     its wall time and stage times include the one-time compilation of the kernels."""
@@ -307,7 +309,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                         odom.add_imu(item.t_ns, item.gyro_rad_s, item.accel_m_s2)
                         continue
                     t0 = time.perf_counter()
-                    est = odom.add_scan(item.points_lidar, item.t_ns)
+                    est = odom.add_scan(item.points_lidar, item.t_ns, item.ring)
                     ms = (time.perf_counter() - t0) * 1e3
                     n_in += 1
                     for e in odom.take_backfill():
@@ -362,7 +364,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         time_spec=seq.decoder.time_spec.describe() if seq.decoder.time_spec else "",
         sequencer=seq.stats, n_scans_in=n_in, init_report=odom.init_report,
         sigma_warn_m=sigma_warn_m, sigma_warn_ranges_s=_flag_ranges(est_t, risky),
-        n_sigma_warn=int(sum(risky)), compiled=compiled)
+        n_sigma_warn=int(sum(risky)), compiled=compiled,
+        local_surface_rows=tuple(getattr(odom, "local_surface_rows", (0, 0))))
     if not est_t and not interrupted:
         raise InputError(_no_pose_reason(odom, n_in, lidar_topic, imu_topic, out))
     return result

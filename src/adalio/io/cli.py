@@ -316,6 +316,11 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
         con.print(f"[yellow]at risk:[/] position sigma above {res.sigma_warn_m:g} m (scans.csv "
                   f"sigma_x/y/z_m) in {res.n_sigma_warn}/{res.n_scans} scans at "
                   f"{_ranges_text(res.sigma_warn_ranges_s)}", highlight=False, soft_wrap=True)
+    dropped, rows = getattr(res, "local_surface_rows", (0, 0))
+    if rows:
+        con.print(f"local-surface check: {dropped}/{rows} rows dropped "
+                  f"({100.0 * dropped / rows:.2f} %), their map plane off the scan's own surface",
+                  highlight=False, soft_wrap=True)
     if getattr(res, "n_held", 0):
         con.print(f"scans with a direction left to the IMU (adaptive+, see held_dirs in "
                   f"scans.csv): {res.n_held}/{res.n_scans} at "

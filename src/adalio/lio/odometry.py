@@ -65,6 +65,7 @@ from adalio.lio.degeneracy import (
 )
 from adalio.lio.ieskf import _reprojection, iterated_update, real_information
 from adalio.lio.ivox import IVox, hash_key3
+from adalio.lio.local_surface import LocalSurface, disagrees
 from adalio.lio.map_uncertainty import MapProvenance, world_covariance
 from adalio.lio.measurement import (
     normal_noise_information,
@@ -85,7 +86,7 @@ from adalio.lio.state import (
     pose_covariance_world,
     sigmas_from_world_covariance,
 )
-from adalio.lio.voxel import voxel_downsample
+from adalio.lio.voxel import voxel_downsample, voxel_downsample_with_index
 from adalio.types import Estimate, InitReport, ScanStats
 
 STAGES = ("preprocess", "undistort", "downsample", "degeneracy", "update", "map")
@@ -133,6 +134,30 @@ def _range_gate(points, t_ns, blind_m, max_range_m, point_filter_num):
 
 
 @kernel()
+def _range_gate_rows(points, blind_m, max_range_m, point_filter_num):
+    """``_range_gate`` that keeps every point: the rows of the finite points with range in
+    ``[blind_m, max_range_m]`` (N,), which of them the decimation keeps, and the finite count.
+    ``points[rows][decimated]`` is ``_range_gate``'s output."""
+    n = points.shape[0]
+    rows = np.empty(n, np.int64)
+    decimated = np.empty(n, np.bool_)
+    n_finite = 0
+    m = 0
+    lo2, hi2 = blind_m * blind_m, max_range_m * max_range_m
+    for i in range(n):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+            continue
+        n_finite += 1
+        r2 = x * x + y * y + z * z
+        if lo2 <= r2 <= hi2:
+            rows[m] = i
+            decimated[m] = i % point_filter_num == 0
+            m += 1
+    return rows[:m], decimated[:m], n_finite
+
+
+@kernel()
 def _group_ids(points: np.ndarray) -> tuple[np.ndarray, int]:
     """Group index of each row (rows holding bit-for-bit the same point share one, numbered in
     order of first appearance) and the number of groups: an open-addressing table over the
@@ -171,8 +196,13 @@ class _Association:
     """
 
     def __init__(self, points_lidar: np.ndarray, ivox: IVox, cfg: Config, radius_m: float,
-                 margin_m: float, cell_m: float) -> None:
+                 margin_m: float, cell_m: float,
+                 local: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         self.points_lidar = points_lidar
+        self.local = local
+        """(normals (n,3) LiDAR frame, judged (n,)) of the scan's own surface at each point
+        (filter.local_surface_check), or None."""
+        self.n_disagree = 0
         self.ivox = ivox
         self.cfg = cfg.filter
         self.min_extent_m = cfg.filter.plane_min_extent_fraction * cell_m
@@ -221,6 +251,11 @@ class _Association:
             self.normals, self.d, self.counts = c.normals, c.d, c.counts
             self.mu, self.lam_mid, self.nearest = c.mu, c.lam_mid, c.nearest
             self.selected = c.valid
+            if self.local is not None:
+                bad = disagrees(c.normals, self.local[0], self.local[1], x.R @ x.R_LI,
+                                f.local_surface_max_angle_deg)
+                self.n_disagree = int(np.count_nonzero(bad & c.valid))
+                self.selected = c.valid & ~bad
             self.group_id, self.n_groups = _group_ids(c.nearest)
             self._valid_after_search = self.selected.copy()
             self._searched_at = (x.R.copy(), x.p.copy(), x.R_LI.copy(), x.t_LI.copy())
@@ -360,6 +395,9 @@ class Odometry:
         self._backfilled: list[Estimate] = []
         self._backfill_map = np.zeros((0, 3))
         """The backfill's map (world), part of ``map_points`` but not of the filter's map."""
+        self._warned_no_ring = False
+        self.local_surface_rows = [0, 0]
+        """filter.local_surface_check: [rows dropped, rows matched or dropped] over the run."""
 
     # ------------------------------------------------------------------ public API
     @property
@@ -414,22 +452,26 @@ class Odometry:
         out, self._backfilled = self._backfilled, []
         return out
 
-    def add_scan(self, points_lidar: np.ndarray, t_ns: np.ndarray) -> Estimate | None:
+    def add_scan(self, points_lidar: np.ndarray, t_ns: np.ndarray,
+                 ring: np.ndarray | None = None) -> Estimate | None:
         """Process one sweep (§10) and return the IMU pose at the scan end.
 
         Returns None while initializing, for a scan with no point left after preprocessing, and
         for a scan ending at or before the previous one (counted in ``n_skipped_scans``).
+        ``ring`` (N,) holds each point's ring id (``Scan.ring``), used only by
+        ``filter.local_surface_check``.
         Raises InputError for malformed arrays or per-point times spanning > 1 s. Once the
         filter has tracked ``imu.backfill_after_s``, the scans read before the initialization
         get their poses (``take_backfill``).
         """
-        est = self._add_scan(points_lidar, t_ns)
+        est = self._add_scan(points_lidar, t_ns, ring)
         if (est is not None and self._held_scans and self._t_state_ns - self.init_report.t_ns
                 >= round(self.cfg.imu.backfill_after_s * 1e9)):
             self._backfill()
         return est
 
-    def _add_scan(self, points_lidar: np.ndarray, t_ns: np.ndarray) -> Estimate | None:
+    def _add_scan(self, points_lidar: np.ndarray, t_ns: np.ndarray,
+                  ring: np.ndarray | None) -> Estimate | None:
         t_start = time.perf_counter()
         stage_ms: dict[str, float] = {}
         cfg = self.cfg
@@ -437,7 +479,7 @@ class Odometry:
 
         # 1. preprocess (§6.1): finite, blind, max range, decimation
         t0 = t_start
-        pts, t_pts, stats.n_raw = self._preprocess(points_lidar, t_ns)
+        pts, t_pts, stats.n_raw, full = self._preprocess(points_lidar, t_ns, ring)
         self._merge_imu()
         t0 = _timer(stage_ms, "preprocess", t0)
         if pts.shape[0] == 0:
@@ -470,7 +512,15 @@ class Odometry:
             return self._first_map(pts_e, t_e, stats, stage_ms, t_start, t0)
 
         # 3-4. propagate with pose records, undistort to the scan end (§5)
-        pts_e = self._propagate_and_undistort(pts, t_pts, t_e)
+        surface = None
+        if full is None:
+            pts_e = self._propagate_and_undistort(pts, t_pts, t_e)
+        else:  # every point in range, for the local surfaces; the decimated ones as usual
+            pts_all, t_all, ring_all, rows = full
+            pts_all_e = self._propagate_and_undistort(pts_all, t_all, t_e)
+            pts_e = pts_all_e[rows]
+            surface = LocalSurface(pts_all, pts_all_e, ring_all, rows,
+                                   cfg.filter.local_surface_window_ring_spacings)
         t0 = _timer(stage_ms, "undistort", t0)
         if self._last_gap is not None:
             stats.imu_gap_s = self._last_gap[1]
@@ -481,22 +531,26 @@ class Odometry:
 
         # 6. downsample with the general leaf, degeneracy check, switch parameters (§6.1, §9)
         general = cfg.adaptive.general
-        down_general = voxel_downsample(pts_e, general.voxel_size_m)
+        down_general, voxel_of_point = voxel_downsample_with_index(pts_e, general.voxel_size_m)
         t0 = _timer(stage_ms, "downsample", t0)
         decision = self._detector.check(down_general, weak_geometry=self._weak_geometry)
         params = decision.params
         t0 = _timer(stage_ms, "degeneracy", t0)
         leaf_m = params.voxel_size_m
-        down = down_general if leaf_m == general.voxel_size_m else voxel_downsample(pts_e, leaf_m)
+        down = down_general
+        if leaf_m != general.voxel_size_m:
+            down, voxel_of_point = voxel_downsample_with_index(pts_e, leaf_m)
         t0 = _timer(stage_ms, "downsample", t0)
         x_pred, P_pred = self._state, self._P
         cell_m = self._map_cell(params.voxel_size_m)
+        local = None if surface is None else surface.normals(down, voxel_of_point,
+                                                       self.cfg.filter.local_surface_max_patch_m)
         assoc = _Association(down, self._ivox, cfg, params.search_radius_m, params.plane_margin_m,
-                             min(cell_m, self._finest_cell_m))
+                             min(cell_m, self._finest_cell_m), local)
         projector = None
         if cfg.adaptive.mode == "adaptive+" and decision.degenerate:
             down, assoc, leaf_m, projector, stats.min_restoring = self._refine(
-                pts_e, down, assoc, leaf_m, params)
+                pts_e, down, assoc, leaf_m, params, surface)
             stats.held_directions = 6 - int(np.linalg.matrix_rank(projector, tol=1e-6))
         t0 = _timer(stage_ms, "degeneracy", t0)
 
@@ -511,6 +565,9 @@ class Odometry:
             stats.iterations = result.iterations
             stats.n_searches = assoc.n_searches
             stats.n_matched = int(assoc.H.shape[0])
+            if assoc.local is not None:
+                self.local_surface_rows[0] += assoc.n_disagree
+                self.local_surface_rows[1] += assoc.n_disagree + stats.n_matched
             loc = localizability(assoc.H[:, :6], cfg.filter.laser_point_cov,
                                  observability=False)
             stats.eigenvalues = loc.eigenvalues
@@ -544,7 +601,10 @@ class Odometry:
         return self._emit(stats, stage_ms, t_start, p_world, W_world)
 
     # ------------------------------------------------------------------ stages
-    def _preprocess(self, points_lidar, t_ns) -> tuple[np.ndarray, np.ndarray, int]:
+    def _preprocess(self, points_lidar, t_ns, ring=None):
+        """§6.1 steps 1-2. Returns (points, t_ns, finite count, full): ``full`` is None, or with
+        ``filter.local_surface_check`` and a ring per point, (every point in range, their
+        t_ns, their rings, the rows of them that are the decimated ``points``)."""
         pts = np.asarray(points_lidar)
         t = np.asarray(t_ns)
         if pts.ndim != 2 or pts.shape[1] != 3:
@@ -553,10 +613,30 @@ class Odometry:
             raise InputError(f"add_scan: t_ns must be (N,) int64 absolute nanoseconds matching "
                              f"the {pts.shape[0]} points, got dtype {t.dtype} shape {t.shape}")
         pre = self.cfg.preprocess
-        pts_out, t_out, n_raw = _range_gate(np.ascontiguousarray(pts, dtype=np.float64),
-                                            np.ascontiguousarray(t, dtype=np.int64),
-                                            pre.blind_m, pre.max_range_m, pre.point_filter_num)
-        return pts_out, t_out, int(n_raw)
+        pts = np.ascontiguousarray(pts, dtype=np.float64)
+        t = np.ascontiguousarray(t, dtype=np.int64)
+        if self.cfg.filter.local_surface_check and self.initialized:
+            if ring is None:
+                if not self._warned_no_ring:
+                    self._warned_no_ring = True
+                    warnings.warn("filter.local_surface_check is on but the scans carry no ring "
+                                  "field: no row is checked", stacklevel=4)
+            else:
+                ring = np.asarray(ring)
+                if ring.shape != (pts.shape[0],) or not np.issubdtype(ring.dtype, np.integer):
+                    raise InputError(f"add_scan: ring must be (N,) integer ring ids matching the "
+                                     f"{pts.shape[0]} points, got dtype {ring.dtype} shape "
+                                     f"{ring.shape}")
+                rows, dec, n_raw = _range_gate_rows(pts, pre.blind_m, pre.max_range_m,
+                                                    pre.point_filter_num)
+                pts_all, t_all = pts[rows], t[rows]
+                ring_all = np.clip(ring[rows], 0, 65535).astype(np.uint16)
+                keep = np.flatnonzero(dec)
+                return (pts_all[keep], t_all[keep], int(n_raw),
+                        (pts_all, t_all, ring_all, keep))
+        pts_out, t_out, n_raw = _range_gate(pts, t, pre.blind_m, pre.max_range_m,
+                                            pre.point_filter_num)
+        return pts_out, t_out, int(n_raw), None
 
     def _merge_imu(self) -> None:
         if not self._pending:
@@ -932,7 +1012,7 @@ class Odometry:
         s = self._state
         return imu.undistort(pts, (t_pts - t_ref) * 1e-9, rec, s.R, s.p, s.R_LI, s.t_LI)
 
-    def _refine(self, pts_e, down, assoc, leaf_m, params):
+    def _refine(self, pts_e, down, assoc, leaf_m, params, surface):
         """AdaLIO+ (degeneracy.py §3-4): halve the leaf while the translation information is weak
         and within the point budget, then restrict the update to observable pose directions.
         Returns (down, assoc, leaf_m, projector, smallest restoring ratio or NaN)."""
@@ -946,12 +1026,14 @@ class Odometry:
 
         loc = probe(assoc)
         while loc.translation_ratio < ada.min_eigen_ratio and leaf_m / 2 >= ada.min_voxel_size_m:
-            finer = voxel_downsample(pts_e, leaf_m / 2)
+            finer, voxel_of_point = voxel_downsample_with_index(pts_e, leaf_m / 2)
             if finer.shape[0] > ada.point_budget:
                 break
             leaf_m, down = leaf_m / 2, finer
+            local = None if surface is None else surface.normals(down, voxel_of_point,
+                                                       self.cfg.filter.local_surface_max_patch_m)
             assoc = _Association(down, self._ivox, self.cfg, params.search_radius_m,
-                                 params.plane_margin_m, assoc_cell)
+                                 params.plane_margin_m, assoc_cell, local)
             loc = probe(assoc)
         if ada.probe_directions > 0 and assoc.H.shape[0]:
             dirs = weak_directions(loc, ada.probe_directions, ada.probe_step_m)
