@@ -488,6 +488,9 @@ RANGES: dict[str, Range] = {
     "filter.plane_min_extent_fraction": NON_NEGATIVE,
     "filter.research_min_shift_m": NON_NEGATIVE,
     "filter.map_provenance_cell_m": POSITIVE,
+    "filter.local_surface_max_angle_deg": Range(0.0, 90.0, lo_open=True),
+    "filter.local_surface_max_patch_m": POSITIVE,
+    "filter.local_surface_window_ring_spacings": POSITIVE,
     **{f"adaptive.{s}.{f}": POSITIVE for s in ("general", "degenerate")
        for f in ("voxel_size_m", "search_radius_m", "plane_margin_m")},
     "adaptive.tau_n": NON_NEGATIVE,
