@@ -105,39 +105,10 @@ UNITS_CHECK_S = 10.0
 
 
 @kernel()
-def _range_gate(points, t_ns, blind_m, max_range_m, point_filter_num):
-    """§6.1 steps 1-2: keep every ``point_filter_num``-th point (message index) whose range is in
-    ``[blind_m, max_range_m]``; non-finite points dropped. Returns (points, t_ns, n_finite)."""
-    n = points.shape[0]
-    keep = np.zeros(n, np.bool_)
-    n_finite = 0
-    n_keep = 0
-    lo2, hi2 = blind_m * blind_m, max_range_m * max_range_m
-    for i in range(n):
-        x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
-            continue
-        n_finite += 1
-        r2 = x * x + y * y + z * z
-        if i % point_filter_num == 0 and lo2 <= r2 <= hi2:
-            keep[i] = True
-            n_keep += 1
-    out = np.empty((n_keep, 3))
-    t_out = np.empty(n_keep, np.int64)
-    j = 0
-    for i in range(n):
-        if keep[i]:
-            out[j, 0], out[j, 1], out[j, 2] = points[i, 0], points[i, 1], points[i, 2]
-            t_out[j] = t_ns[i]
-            j += 1
-    return out, t_out, n_finite
-
-
-@kernel()
 def _range_gate_rows(points, blind_m, max_range_m, point_filter_num):
-    """``_range_gate`` that keeps every point: the rows of the finite points with range in
-    ``[blind_m, max_range_m]`` (N,), which of them the decimation keeps, and the finite count.
-    ``points[rows][decimated]`` is ``_range_gate``'s output."""
+    """§6.1 steps 1-2: the rows of the finite points whose range is in ``[blind_m,
+    max_range_m]`` (in order), which of them the decimation keeps (every
+    ``point_filter_num``-th message index), and the number of finite points."""
     n = points.shape[0]
     rows = np.empty(n, np.int64)
     decimated = np.empty(n, np.bool_)
@@ -615,6 +586,10 @@ class Odometry:
         pre = self.cfg.preprocess
         pts = np.ascontiguousarray(pts, dtype=np.float64)
         t = np.ascontiguousarray(t, dtype=np.int64)
+        rows, dec, n_raw = _range_gate_rows(pts, pre.blind_m, pre.max_range_m,
+                                            pre.point_filter_num)
+        keep = rows[dec]
+        full = None
         if self.cfg.filter.local_surface_check and self.initialized:
             if ring is None:
                 if not self._warned_no_ring:
@@ -627,16 +602,9 @@ class Odometry:
                     raise InputError(f"add_scan: ring must be (N,) integer ring ids matching the "
                                      f"{pts.shape[0]} points, got dtype {ring.dtype} shape "
                                      f"{ring.shape}")
-                rows, dec, n_raw = _range_gate_rows(pts, pre.blind_m, pre.max_range_m,
-                                                    pre.point_filter_num)
-                pts_all, t_all = pts[rows], t[rows]
-                ring_all = np.clip(ring[rows], 0, 65535).astype(np.uint16)
-                keep = np.flatnonzero(dec)
-                return (pts_all[keep], t_all[keep], int(n_raw),
-                        (pts_all, t_all, ring_all, keep))
-        pts_out, t_out, n_raw = _range_gate(pts, t, pre.blind_m, pre.max_range_m,
-                                            pre.point_filter_num)
-        return pts_out, t_out, int(n_raw), None
+                full = (pts[rows], t[rows], np.clip(ring[rows], 0, 65535).astype(np.uint16),
+                        np.flatnonzero(dec))
+        return pts[keep], t[keep], int(n_raw), full
 
     def _merge_imu(self) -> None:
         if not self._pending:
