@@ -245,8 +245,8 @@ class FilterConfig:
     local_surface_check: bool = False
     """Drop a row whose map plane disagrees with the scan's own surface at the point
     (``lio/local_surface.py``): the plane fitted to the samples around the point on its ring and
-    the two adjacent rings, where that patch is planar and within the range at which it is
-    finer than the voxel leaf. Needs the scans' ring field (``Scan.ring``); without it, or in
+    the two adjacent rings, where that patch is one plane and at most
+    ``local_surface_max_patch_m`` tall. Needs the scans' ring field (``Scan.ring``); without it, or in
     the backfill's reverse pass, no row is checked."""
     local_surface_max_angle_deg: float = 30.0
     """local_surface_check: a row is dropped when its map plane's normal is more than this off

@@ -514,10 +514,9 @@ class Odometry:
         t0 = _timer(stage_ms, "downsample", t0)
         x_pred, P_pred = self._state, self._P
         cell_m = self._map_cell(params.voxel_size_m)
-        local = None if surface is None else surface.normals(down, voxel_of_point,
-                                                       self.cfg.filter.local_surface_max_patch_m)
         assoc = _Association(down, self._ivox, cfg, params.search_radius_m, params.plane_margin_m,
-                             min(cell_m, self._finest_cell_m), local)
+                             min(cell_m, self._finest_cell_m),
+                             self._local_planes(surface, down, voxel_of_point))
         projector = None
         if cfg.adaptive.mode == "adaptive+" and decision.degenerate:
             down, assoc, leaf_m, projector, stats.min_restoring = self._refine(
@@ -998,10 +997,9 @@ class Odometry:
             if finer.shape[0] > ada.point_budget:
                 break
             leaf_m, down = leaf_m / 2, finer
-            local = None if surface is None else surface.normals(down, voxel_of_point,
-                                                       self.cfg.filter.local_surface_max_patch_m)
             assoc = _Association(down, self._ivox, self.cfg, params.search_radius_m,
-                                 params.plane_margin_m, assoc_cell, local)
+                                 params.plane_margin_m, assoc_cell,
+                                 self._local_planes(surface, down, voxel_of_point))
             loc = probe(assoc)
         if ada.probe_directions > 0 and assoc.H.shape[0]:
             dirs = weak_directions(loc, ada.probe_directions, ada.probe_step_m)
@@ -1011,6 +1009,14 @@ class Odometry:
             return down, assoc, leaf_m, projector, float(rho.min())
         projector = observable_projector(loc, ada.observable_eigen_ratio)
         return down, assoc, leaf_m, projector, float("nan")
+
+    def _local_planes(self, surface: LocalSurface | None, down: np.ndarray,
+                      voxel_of_point: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """The scan's own plane at each downsampled point (filter.local_surface_check), or
+        None without a surface."""
+        if surface is None:
+            return None
+        return surface.normals(down, voxel_of_point, self.cfg.filter.local_surface_max_patch_m)
 
     def _map_cell(self, voxel_size_m: float) -> float:
         leaf = self.cfg.map.map_leaf_m
