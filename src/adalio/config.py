@@ -324,6 +324,12 @@ class AdaptiveConfig:
     min_restoring_ratio: float = 0.6
     """adaptive+: a probed direction whose re-associated residuals restore less than this
     fraction of the information H^T H claims is left at the IMU prediction."""
+    hold_horizontal: bool = False
+    """adaptive+: also leave at the IMU prediction a probed direction that is mostly a horizontal
+    translation (its |dp_xy|² above half the probe's mean square point motion), as before session
+    30. Off: the IMU predicts the horizontal position worst (a tilt error projects gravity into
+    it), and such a direction is often weak but real, as a corridor's axis
+    (``lio/degeneracy.py`` §5)."""
 
 
 @dataclass

@@ -410,3 +410,39 @@ def test_consistent_projector_drops_only_directions_that_do_not_restore():
     assert np.linalg.matrix_rank(P, tol=1e-6) == 4
     np.testing.assert_allclose(consistent_projector(loc, 0.0, dirs, np.ones(3), 0.6), np.eye(6),
                                atol=1e-9)
+
+
+def test_consistent_projector_keeps_mostly_horizontal_translations():
+    """§5: with ``keep_horizontal_m`` a probed direction that does not restore is still held
+    when it is mostly a vertical translation or a rotation, and not when it is mostly a
+    horizontal translation (its |dp_xy| above the limit)."""
+    rng = np.random.default_rng(12)
+    pts, nrm = box_room_points(rng)
+    loc = localizability(pose_jacobian(pts, nrm), POINT_COV, points_body=pts)
+    step = 0.05
+    limit = step / np.sqrt(2.0)
+    dirs = np.array([
+        [0.04, 0.03, 0.0, 0.0, 0.0, 0.0],    # horizontal translation, |dp_xy| = 0.05
+        [0.01, 0.0, 0.049, 0.0, 0.0, 0.0],   # mostly vertical
+        [0.0, 0.0, 0.0, 0.0, 0.0, 0.02],     # a rotation about the vertical
+    ])
+    never = np.zeros(3)
+    held_all = consistent_projector(loc, 0.0, dirs, never, 0.6)
+    kept = consistent_projector(loc, 0.0, dirs, never, 0.6, limit)
+    for P in (held_all, kept):
+        np.testing.assert_allclose(P @ P, P, atol=1e-9)
+    for d in dirs:
+        np.testing.assert_allclose(held_all @ d, 0.0, atol=1e-9)
+    # the horizontal one is not held: the projector is the one of the other two alone
+    np.testing.assert_allclose(kept, consistent_projector(loc, 0.0, dirs[1:], never[1:], 0.6),
+                               atol=1e-12)
+    np.testing.assert_allclose(kept @ dirs[1], 0.0, atol=1e-9)
+    np.testing.assert_allclose(kept @ dirs[2], 0.0, atol=1e-9)
+    assert np.linalg.norm(kept @ dirs[0]) > 0.5 * np.linalg.norm(dirs[0])
+    assert np.linalg.matrix_rank(kept, tol=1e-6) == 4
+    # just over the limit is kept, just under is held
+    edge = np.array([[limit * 1.01, 0, 0.01, 0, 0, 0], [limit * 0.99, 0, 0.01, 0, 0, 0]])
+    P = consistent_projector(loc, 0.0, edge, never[:2], 0.6, limit)
+    np.testing.assert_allclose(P, consistent_projector(loc, 0.0, edge[1:], never[:1], 0.6),
+                               atol=1e-12)
+    assert np.linalg.matrix_rank(P, tol=1e-6) == 5

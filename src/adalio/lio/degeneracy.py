@@ -124,6 +124,20 @@ A quadratic cost with real information gives rho = 1 (the central difference als
 constant bias of g); residuals that follow the point give rho ~ 0. Directions with
 ``rho < min_restoring_ratio`` join the weak set of §3 (:func:`consistent_projector`), so the
 IMU prediction holds along them.
+
+5. Which directions the IMU can hold (adaptive+)
+------------------------------------------------
+Holding a direction trusts the IMU's prediction along it, and the IMU does not predict every
+direction equally well. A tilt error projects gravity into the horizontal acceleration at first
+order (into the vertical at second order), and a yaw error turns the horizontal velocity, so the
+horizontal position is what the prediction gets worst; the height and the attitude it gets well.
+And a horizontal direction that the probes find weak is often weak but real: a corridor's axis,
+seen by door frames and pilasters, restores 20-50 % of its claim. So by default
+(``adaptive.hold_horizontal`` false) a probed direction that is mostly a horizontal translation,
+``|dp_xy|² > s²/2`` (more than half of its mean square point motion), is not held; the
+eigenvalue test of §3 still removes a direction that holds no information at all. Measured
+(README, *Session 30*): the corridor goes from 4.8 (9.8) to 2.2 (4.3) cm, and the spiral and the
+stairwell, whose probed weak directions are height and rotation, do not change.
 """
 
 from __future__ import annotations
@@ -362,12 +376,16 @@ def weak_directions(loc: Localizability, count: int, step_m: float) -> np.ndarra
 
 
 def consistent_projector(loc: Localizability, ratio: float, directions: np.ndarray,
-                         restoring: np.ndarray, min_restoring: float) -> np.ndarray:
+                         restoring: np.ndarray, min_restoring: float,
+                         keep_horizontal_m: float | None = None) -> np.ndarray:
     """:func:`observable_projector` that also drops the probed ``directions`` (rows, error order
-    [dp, dtheta], as from :func:`weak_directions`) whose ``restoring`` ratio is below
-    ``min_restoring`` (module docstring §4). The result is an idempotent (6, 6) projector."""
+    [dp (world), dtheta], as from :func:`weak_directions`) whose ``restoring`` ratio is below
+    ``min_restoring`` (module docstring §4), except, with ``keep_horizontal_m``, a direction
+    whose horizontal translation ``|dp_xy|`` exceeds it (§5). The result is an idempotent (6, 6)
+    projector."""
     P = observable_projector(loc, ratio)
-    drop = [d for d, rho in zip(directions, restoring) if not rho >= min_restoring]
+    drop = [d for d, rho in zip(directions, restoring) if not rho >= min_restoring
+            and (keep_horizontal_m is None or np.hypot(d[0], d[1]) <= keep_horizontal_m)]
     if not drop:
         return P
     W = _scaling(loc)
