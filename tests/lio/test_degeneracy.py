@@ -17,6 +17,7 @@ from adalio.lio.degeneracy import (
     count_near,
     is_weak,
     localizability,
+    mostly_horizontal,
     observable_projector,
     weak_directions,
 )
@@ -412,23 +413,27 @@ def test_consistent_projector_drops_only_directions_that_do_not_restore():
                                atol=1e-9)
 
 
-def test_consistent_projector_keeps_mostly_horizontal_translations():
-    """§5: with ``keep_horizontal_m`` a probed direction that does not restore is still held
+def test_projectors_keep_mostly_horizontal_translations():
+    """§5: with ``keep_horizontal`` a probed direction that does not restore is still held
     when it is mostly a vertical translation or a rotation, and not when it is mostly a
-    horizontal translation (its |dp_xy| above the limit)."""
+    horizontal translation; the eigenvalue test keeps a weak horizontal translation too."""
     rng = np.random.default_rng(12)
     pts, nrm = box_room_points(rng)
     loc = localizability(pose_jacobian(pts, nrm), POINT_COV, points_body=pts)
-    step = 0.05
-    limit = step / np.sqrt(2.0)
+    W = loc.scaling
     dirs = np.array([
-        [0.04, 0.03, 0.0, 0.0, 0.0, 0.0],    # horizontal translation, |dp_xy| = 0.05
+        [0.04, 0.03, 0.0, 0.0, 0.0, 0.0],    # horizontal translation
         [0.01, 0.0, 0.049, 0.0, 0.0, 0.0],   # mostly vertical
         [0.0, 0.0, 0.0, 0.0, 0.0, 0.02],     # a rotation about the vertical
     ])
+    # brute force: the mean square motion of the scan points, without the cross term
+    for d, horizontal in zip(dirs, (True, False, False)):
+        ms = d[:3] @ d[:3] + np.mean(np.sum(np.cross(d[3:], pts) ** 2, axis=1))
+        assert (d[0] ** 2 + d[1] ** 2 > 0.5 * ms) == horizontal
+        assert mostly_horizontal(W, d) == horizontal
     never = np.zeros(3)
     held_all = consistent_projector(loc, 0.0, dirs, never, 0.6)
-    kept = consistent_projector(loc, 0.0, dirs, never, 0.6, limit)
+    kept = consistent_projector(loc, 0.0, dirs, never, 0.6, keep_horizontal=True)
     for P in (held_all, kept):
         np.testing.assert_allclose(P @ P, P, atol=1e-9)
     for d in dirs:
@@ -436,13 +441,31 @@ def test_consistent_projector_keeps_mostly_horizontal_translations():
     # the horizontal one is not held: the projector is the one of the other two alone
     np.testing.assert_allclose(kept, consistent_projector(loc, 0.0, dirs[1:], never[1:], 0.6),
                                atol=1e-12)
-    np.testing.assert_allclose(kept @ dirs[1], 0.0, atol=1e-9)
-    np.testing.assert_allclose(kept @ dirs[2], 0.0, atol=1e-9)
     assert np.linalg.norm(kept @ dirs[0]) > 0.5 * np.linalg.norm(dirs[0])
     assert np.linalg.matrix_rank(kept, tol=1e-6) == 4
-    # just over the limit is kept, just under is held
-    edge = np.array([[limit * 1.01, 0, 0.01, 0, 0, 0], [limit * 0.99, 0, 0.01, 0, 0, 0]])
-    P = consistent_projector(loc, 0.0, edge, never[:2], 0.6, limit)
-    np.testing.assert_allclose(P, consistent_projector(loc, 0.0, edge[1:], never[:1], 0.6),
-                               atol=1e-12)
-    assert np.linalg.matrix_rank(P, tol=1e-6) == 5
+
+
+def test_observable_projector_keeps_a_weak_horizontal_axis():
+    """A corridor (two side walls, floor, ceiling, no end wall): its axis is the weakest
+    direction and a horizontal translation. The eigenvalue test removes it, unless
+    ``keep_horizontal``; the rest of the projector is unchanged."""
+    rng = np.random.default_rng(5)
+    n = 3000
+    y = rng.uniform(-8.0, 8.0, n)
+    side = rng.integers(0, 4, n)
+    pts = np.stack([np.where(side == 0, -1.0, np.where(side == 1, 1.0, rng.uniform(-1, 1, n))),
+                    y, np.where(side == 2, -1.2, np.where(side == 3, 1.3, rng.uniform(-1.2, 1.3,
+                                                                                     n)))], 1)
+    nrm = np.zeros((n, 3))
+    nrm[side < 2, 0] = 1.0
+    nrm[side >= 2, 2] = 1.0
+    H = pose_jacobian(pts, nrm)
+    H[:, 1] += 0.003 * rng.standard_normal(n)  # a trace of along-axis information
+    loc = localizability(H, POINT_COV, points_body=pts)
+    along = np.array([0.0, 0.05, 0.0, 0.0, 0.0, 0.0])
+    P = observable_projector(loc, 0.01)
+    Pk = observable_projector(loc, 0.01, keep_horizontal=True)
+    np.testing.assert_allclose(P @ along, 0.0, atol=1e-4)
+    np.testing.assert_allclose(Pk @ along, along, atol=1e-4)
+    np.testing.assert_allclose(Pk @ Pk, Pk, atol=1e-9)
+    assert np.linalg.matrix_rank(Pk, tol=1e-6) == np.linalg.matrix_rank(P, tol=1e-6) + 1

@@ -332,14 +332,16 @@ def is_weak(loc: Localizability, cfg: AdaptiveConfig) -> bool:
     return bool(loc.translation_ratio < cfg.min_eigen_ratio)
 
 
-def observable_projector(loc: Localizability, ratio: float) -> np.ndarray:
+def observable_projector(loc: Localizability, ratio: float,
+                         keep_horizontal: bool = False) -> np.ndarray:
     """(6, 6) projector in error-state order [dp, dtheta] onto the observable directions.
 
     Module docstring §3: with ``W = loc.scaling`` and ``I~ = W I_e W``, keep the eigenvectors
     ``U_k`` of ``I~`` with eigenvalue >= ``ratio`` * lambda_max(I~) and return
     ``P = W U_k U_k^T W^-1``. P is idempotent; ``H P`` and ``P delta`` remove exactly the weak
-    directions. ``ratio <= 0`` gives the identity; a scan without residuals gives the zero matrix
-    (nothing is observable).
+    directions. With ``keep_horizontal`` a weak direction that is mostly a horizontal
+    translation (:func:`mostly_horizontal`, §5) is kept too. ``ratio <= 0`` gives the identity;
+    a scan without residuals gives the zero matrix (nothing is observable).
     """
     if not np.isfinite(ratio) or not 0.0 <= ratio <= 1.0:
         raise InputError(f"projector ratio must be in [0, 1] (got {ratio})")
@@ -348,9 +350,19 @@ def observable_projector(loc: Localizability, ratio: float) -> np.ndarray:
     if loc.n_residuals == 0 or not np.any(loc.info):
         return np.zeros((6, 6))
     lam, vec = _scaled_eigen(loc)
-    keep = vec[:, lam >= ratio * lam[-1]]
     W = _scaling(loc)
+    strong = lam >= ratio * lam[-1]
+    if keep_horizontal:
+        strong |= np.array([mostly_horizontal(W, W @ v) for v in vec.T])
+    keep = vec[:, strong]
     return W @ (keep @ keep.T) @ np.linalg.inv(W)
+
+
+def mostly_horizontal(W: np.ndarray, d: np.ndarray) -> bool:
+    """A pose displacement ``d`` (error order [dp (world), dtheta]) is mostly a horizontal
+    translation when ``|dp_xy|²`` is more than half of its mean square point motion,
+    ``|W^-1 d|²`` (``W`` the scaling of module docstring §3, §5)."""
+    return bool(d[0] ** 2 + d[1] ** 2 > 0.5 * float(np.sum(np.linalg.solve(W, d) ** 2)))
 
 
 def _scaling(loc: Localizability) -> np.ndarray:
@@ -377,18 +389,18 @@ def weak_directions(loc: Localizability, count: int, step_m: float) -> np.ndarra
 
 def consistent_projector(loc: Localizability, ratio: float, directions: np.ndarray,
                          restoring: np.ndarray, min_restoring: float,
-                         keep_horizontal_m: float | None = None) -> np.ndarray:
+                         keep_horizontal: bool = False) -> np.ndarray:
     """:func:`observable_projector` that also drops the probed ``directions`` (rows, error order
     [dp (world), dtheta], as from :func:`weak_directions`) whose ``restoring`` ratio is below
-    ``min_restoring`` (module docstring §4), except, with ``keep_horizontal_m``, a direction
-    whose horizontal translation ``|dp_xy|`` exceeds it (§5). The result is an idempotent (6, 6)
-    projector."""
-    P = observable_projector(loc, ratio)
+    ``min_restoring`` (module docstring §4). With ``keep_horizontal``, neither drops a direction
+    that is mostly a horizontal translation (:func:`mostly_horizontal`, §5). The result is an
+    idempotent (6, 6) projector."""
+    P = observable_projector(loc, ratio, keep_horizontal)
+    W = _scaling(loc)
     drop = [d for d, rho in zip(directions, restoring) if not rho >= min_restoring
-            and (keep_horizontal_m is None or np.hypot(d[0], d[1]) <= keep_horizontal_m)]
+            and not (keep_horizontal and mostly_horizontal(W, d))]
     if not drop:
         return P
-    W = _scaling(loc)
     Winv = np.linalg.inv(W)
     U = np.linalg.qr(Winv @ np.array(drop).T)[0]
     Q = np.eye(6) - U @ U.T

@@ -1004,11 +1004,10 @@ class Odometry:
         if ada.probe_directions > 0 and assoc.H.shape[0]:
             dirs = weak_directions(loc, ada.probe_directions, ada.probe_step_m)
             rho = restoring_ratios(assoc, x, dirs)
-            keep_horizontal_m = None if ada.hold_horizontal else ada.probe_step_m / np.sqrt(2.0)
             projector = consistent_projector(loc, ada.observable_eigen_ratio, dirs, rho,
-                                             ada.min_restoring_ratio, keep_horizontal_m)
+                                             ada.min_restoring_ratio, not ada.hold_horizontal)
             return down, assoc, leaf_m, projector, float(rho.min())
-        projector = observable_projector(loc, ada.observable_eigen_ratio)
+        projector = observable_projector(loc, ada.observable_eigen_ratio, not ada.hold_horizontal)
         return down, assoc, leaf_m, projector, float("nan")
 
     def _local_planes(self, surface: LocalSurface | None, down: np.ndarray,
