@@ -325,11 +325,11 @@ class AdaptiveConfig:
     """adaptive+: a probed direction whose re-associated residuals restore less than this
     fraction of the information H^T H claims is left at the IMU prediction."""
     hold_horizontal: bool = False
-    """adaptive+: also leave at the IMU prediction a probed direction that is mostly a horizontal
-    translation (its |dp_xy|² above half the probe's mean square point motion), as before session
-    30. Off: the IMU predicts the horizontal position worst (a tilt error projects gravity into
-    it), and such a direction is often weak but real, as a corridor's axis
-    (``lio/degeneracy.py`` §5)."""
+    """adaptive+: also leave at the IMU prediction a weak direction (probed, or below
+    observable_eigen_ratio) that is mostly a horizontal translation (|dp_xy|² above half of its
+    mean square point motion), as before session 30. Off: the IMU predicts the horizontal
+    position worst (a tilt error projects gravity into it), and such a direction is often weak
+    but real, as a corridor's axis (``lio/degeneracy.py`` §5)."""
 
 
 @dataclass

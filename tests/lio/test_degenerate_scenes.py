@@ -65,23 +65,34 @@ def test_residuals_sharing_a_map_point_count_once() -> None:
 
 
 @pytest.mark.slow
-def test_corridor_adaptive_plus_holds_the_axis_and_reports_it(tmp_path: Path) -> None:
-    """adaptive+ in the corridor: where it leaves a direction to the IMU, that direction is the
-    corridor axis (the walking direction of the ground truth), and the run reports those scans."""
+def test_corridor_adaptive_plus_holds_the_axis_only_if_told(tmp_path: Path) -> None:
+    """adaptive+ in the corridor. With ``adaptive.hold_horizontal`` (the rule before session 30)
+    the direction it leaves to the IMU is the corridor axis (the walking direction of the ground
+    truth), and the run reports those scans. By default it does not hold a mostly horizontal
+    translation, so it holds on fewer scans (measured: 7 against 16 of 200), as accurately."""
     sim = cached_sequence("corridor", seed=0, duration_s=20, columns=2000)
-    cfg = load_config(config_file=sim.config_path, overrides={"adaptive.mode": "adaptive+"})
-    res = run_bag(sim.bag_path, cfg, tmp_path / "run", progress=False)
-    err = ate(res.trajectory_path, sim.gt_path, align="se3")
-    assert err["rmse_m"] < MAX_ATE_M
-    rows = np.genfromtxt(res.scans_csv_path, delimiter=",", names=True)
-    held = rows["held_dirs"] > 0
-    assert res.n_held == int(held.sum()) and res.n_held >= 5
-    assert res.held_ranges_s and res.held_ranges_s[0][0] <= res.held_ranges_s[-1][1]
-    est = np.loadtxt(res.trajectory_path, comments="#")
-    axis = est[-1, 1:4] - est[0, 1:4]
-    axis /= np.linalg.norm(axis)
-    weak_t = np.column_stack([rows["weak_tx"], rows["weak_ty"], rows["weak_tz"]])[held]
-    weak_t /= np.maximum(np.linalg.norm(weak_t, axis=1, keepdims=True), 1e-12)
-    along = np.abs(weak_t @ axis)
-    print(f"held scans {res.n_held}; |cos(weakest, axis)| median {np.median(along):.2f}")
-    assert np.median(along) > 0.8
+    held_scans = {}
+    for hold_horizontal in (True, False):
+        cfg = load_config(config_file=sim.config_path,
+                          overrides={"adaptive.mode": "adaptive+",
+                                     "adaptive.hold_horizontal": hold_horizontal})
+        res = run_bag(sim.bag_path, cfg, tmp_path / f"run_{hold_horizontal}", progress=False)
+        err = ate(res.trajectory_path, sim.gt_path, align="se3")
+        assert err["rmse_m"] < MAX_ATE_M
+        rows = np.genfromtxt(res.scans_csv_path, delimiter=",", names=True)
+        held = rows["held_dirs"] > 0
+        assert res.n_held == int(held.sum())
+        held_scans[hold_horizontal] = res.n_held
+        if not hold_horizontal:
+            continue
+        assert res.n_held >= 5
+        assert res.held_ranges_s and res.held_ranges_s[0][0] <= res.held_ranges_s[-1][1]
+        est = np.loadtxt(res.trajectory_path, comments="#")
+        axis = est[-1, 1:4] - est[0, 1:4]
+        axis /= np.linalg.norm(axis)
+        weak_t = np.column_stack([rows["weak_tx"], rows["weak_ty"], rows["weak_tz"]])[held]
+        weak_t /= np.maximum(np.linalg.norm(weak_t, axis=1, keepdims=True), 1e-12)
+        along = np.abs(weak_t @ axis)
+        print(f"held scans {res.n_held}; |cos(weakest, axis)| median {np.median(along):.2f}")
+        assert np.median(along) > 0.8
+    assert held_scans[False] < held_scans[True], held_scans

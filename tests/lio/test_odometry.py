@@ -482,7 +482,8 @@ def test_adaptive_plus_probes_find_real_information_in_a_box_room():
     for st in probed:
         assert 0.6 < st.min_restoring < 1.5, st.min_restoring
         assert st.held_directions == 0
-    cfg.adaptive.min_restoring_ratio = 2.0
+    cfg.adaptive.min_restoring_ratio = 2.0  # no direction restores enough
+    cfg.adaptive.hold_horizontal = True
     _, est = _run(cfg, 1.5, 600)
     held = [e.stats.held_directions for e in est if e.stats.iterations > 0]
     assert held and all(h == cfg.adaptive.probe_directions for h in held)
