@@ -133,8 +133,8 @@ order (into the vertical at second order), and a yaw error turns the horizontal 
 horizontal position is what the prediction gets worst; the height and the attitude it gets well.
 And a horizontal direction that the probes find weak is often weak but real: a corridor's axis,
 seen by door frames and pilasters, restored 5-40 % of its claim where it was held (OS1-64,
-still-start corridor, seed 1), and with a sparser LiDAR its
-eigenvalue falls below ``observable_eigen_ratio`` of the strongest. So by default
+still-start corridor, seed 1), and with a sparser LiDAR its eigenvalue falls below
+``observable_eigen_ratio`` of the strongest. So by default
 (``adaptive.hold_horizontal`` false) neither test holds a direction that is mostly a horizontal
 translation (:func:`mostly_horizontal`: ``|dp_xy|²`` more than half of its mean square point
 motion). Measured (README, *Session 30*): the corridor goes from 4.8 (9.8) to 3.6 (5.6) cm, the
