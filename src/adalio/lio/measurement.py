@@ -15,6 +15,38 @@ from adalio.lio.plane import _scatter
 GATE_FACTOR = 81.0
 """Accept a residual iff ``|p_L| > 81 r²`` (FAST-LIO2's ``s > 0.9`` test, §6.3)."""
 
+MAD_TO_SIGMA = 1.4826
+"""A Gaussian's standard deviation per median absolute deviation."""
+
+
+def robust_row_factors(r: np.ndarray, H_pose: np.ndarray, P_pose: np.ndarray | None,
+                       kernel_name: str, scale: float) -> np.ndarray:
+    """Square roots of the IRLS weights of residuals ``r`` (m,) with pose rows ``H_pose`` (m,6),
+    both already scaled by the rows' own weights (the factors multiply rows of ``H`` and ``r``).
+
+    Each row's kernel width is ``scale`` times the spread the residual has if the row is right:
+    ``κ_i² = scale² (σ̂² + h_i P h_iᵀ)``, with ``σ̂ = 1.4826 median|r|`` the scan's own residual
+    noise (a robust estimate: the sensor's noise is never configured) and ``h_i P h_iᵀ`` what the
+    prediction's pose covariance ``P_pose`` (error order [δp, δθ]) adds; so a row that corrects
+    an error the filter knows it may have is not taken for an outlier. ``P_pose=None``: no such
+    term. Weights: ``geman_mcclure`` ``(κ²/(κ²+r²))²`` (redescending: a row far off its plane
+    stops pulling), ``huber`` ``min(1, κ/|r|)`` (a constant pull beyond κ), ``none`` 1.
+    """
+    m = r.shape[0]
+    if kernel_name == "none" or m == 0:
+        return np.ones(m)
+    sigma = MAD_TO_SIGMA * float(np.median(np.abs(r)))
+    k2 = np.full(m, sigma * sigma)
+    if P_pose is not None:
+        k2 += np.einsum("ij,jk,ik->i", H_pose, P_pose, H_pose)
+    k2 = scale * scale * np.maximum(k2, 1e-18)
+    r2 = r * r
+    if kernel_name == "geman_mcclure":
+        return k2 / (k2 + r2)
+    if kernel_name == "huber":
+        return np.sqrt(np.minimum(1.0, np.sqrt(k2 / np.maximum(r2, 1e-36))))
+    raise ValueError(f"unknown robust kernel {kernel_name!r}")
+
 
 @kernel(inline="always")
 def _world_point(points_lidar, i, M, t):

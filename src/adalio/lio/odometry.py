@@ -73,6 +73,7 @@ from adalio.lio.measurement import (
     point_to_plane,
     points_to_world,
     residual_weights,
+    robust_row_factors,
 )
 from adalio.lio.motion_init import MovingInit, handover_covariance
 from adalio.lio.state import (
@@ -168,8 +169,13 @@ class _Association:
 
     def __init__(self, points_lidar: np.ndarray, ivox: IVox, cfg: Config, radius_m: float,
                  margin_m: float, cell_m: float,
-                 local: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+                 local: tuple[np.ndarray, np.ndarray] | None = None,
+                 prior_pose_cov: np.ndarray | None = None) -> None:
         self.points_lidar = points_lidar
+        self.prior_pose_cov = prior_pose_cov
+        """(6,6) the predicted pose covariance [δp, δθ] behind the reported sigmas (which does not
+        count the information noisy plane normals fake): with it (the filter's update), the rows
+        take ``filter.robust_kernel``'s weights (:func:`robust_row_factors`); None: not."""
         self.local = local
         """(normals (n,3) LiDAR frame, judged (n,)) of the scan's own surface at each point
         (filter.local_surface_check), or None."""
@@ -240,6 +246,11 @@ class _Association:
                                  f.share_weighting)
             H *= w[:, None]
             r *= w
+        if f.robust_kernel != "none" and self.prior_pose_cov is not None and H.shape[0]:
+            c = robust_row_factors(r, H[:, :6], self.prior_pose_cov, f.robust_kernel,
+                                   f.robust_scale)
+            H *= c[:, None]
+            r *= c
         self.H = H
         return H.copy(), r
 
@@ -516,7 +527,8 @@ class Odometry:
         cell_m = self._map_cell(params.voxel_size_m)
         assoc = _Association(down, self._ivox, cfg, params.search_radius_m, params.plane_margin_m,
                              min(cell_m, self._finest_cell_m),
-                             self._local_planes(surface, down, voxel_of_point))
+                             self._local_planes(surface, down, voxel_of_point),
+                             self._sigmas_P[:6, :6])
         projector = None
         if cfg.adaptive.mode == "adaptive+" and decision.degenerate:
             down, assoc, leaf_m, projector, stats.min_restoring = self._refine(
@@ -999,7 +1011,8 @@ class Odometry:
             leaf_m, down = leaf_m / 2, finer
             assoc = _Association(down, self._ivox, self.cfg, params.search_radius_m,
                                  params.plane_margin_m, assoc_cell,
-                                 self._local_planes(surface, down, voxel_of_point))
+                                 self._local_planes(surface, down, voxel_of_point),
+                                 self._sigmas_P[:6, :6])
             loc = probe(assoc)
         if ada.probe_directions > 0 and assoc.H.shape[0]:
             dirs = weak_directions(loc, ada.probe_directions, ada.probe_step_m)

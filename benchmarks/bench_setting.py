@@ -1,12 +1,14 @@
-"""Time per scan of ``filter.local_surface_check`` against the same run without it.
+"""Time per scan of an optional setting (``--set``) against the same run without it.
 
-For each sequence, the simulator's bag (``adalio.sim.cached_sequence``) is run with the check
+For each sequence, the simulator's bag (``adalio.sim.cached_sequence``) is run with the setting
 off and on, alternately, ``--repeats`` times each in this one process, and the median wall ms
 per scan of each run (``RunResult.ms_per_scan_median``) is printed with the ratio of their
 medians. Absolute times on a shared machine are noisy; the ratio is the figure.
 
-    python benchmarks/bench_local_surface.py
-    python benchmarks/bench_local_surface.py --runs spiral:0:2000 hall:0:512 --repeats 3
+    python benchmarks/bench_setting.py --set filter.local_surface_check=true
+    python benchmarks/bench_setting.py --set filter.robust_kernel=geman_mcclure
+    python benchmarks/bench_setting.py --set filter.robust_kernel=geman_mcclure \
+        --runs spiral:0:2000 hall:0:512 --repeats 3
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ import argparse
 import statistics
 import tempfile
 from pathlib import Path
+
+import yaml
 
 from adalio.config import load_config
 from adalio.pipeline import run_bag
@@ -28,8 +32,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", nargs="+", default=list(DEFAULT_RUNS),
                     metavar="SCENE:SEED:COLUMNS", help="XT-32 sequences to time")
     ap.add_argument("--repeats", type=int, default=2, help="runs per setting and sequence")
+    ap.add_argument("--set", action="append", required=True, metavar="KEY=VALUE",
+                    help="the setting timed against the default (repeatable)")
     args = ap.parse_args(argv)
-    print("| sequence | check off, ms/scan | check on, ms/scan | rows dropped | ratio |")
+    setting = {k: yaml.safe_load(v) for k, v in (
+        a.split("=", 1) for a in args.set)}
+    print(f"setting: {setting}")
+    print("| sequence | off, ms/scan | on, ms/scan | rows dropped by the check | ratio |")
     print("|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         for spec in args.runs:
@@ -40,8 +49,7 @@ def main(argv: list[str] | None = None) -> int:
             dropped = (0, 0)
             for _ in range(args.repeats):
                 for on in (False, True):
-                    cfg = load_config(None, sim.config_path,
-                                      overrides={"filter.local_surface_check": on})
+                    cfg = load_config(None, sim.config_path, overrides=setting if on else {})
                     res = run_bag(sim.bag_path, cfg, Path(tmp) / f"{scene}_{seed}_{on}",
                                   progress=False)
                     ms[on].append(res.ms_per_scan_median)
