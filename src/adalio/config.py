@@ -215,17 +215,20 @@ class FilterConfig:
     plane_uncertainty_weighting: bool = True
     """Scale each residual's variance by 1 + 1/k + rho^2 / (k lambda_mid), the offset and tilt
     uncertainty of a k-neighbour plane fit at the query's in-plane distance rho."""
-    robust_kernel: str = "none"
-    """'none' | 'geman_mcclure' | 'huber': iteratively reweighted rows in the filter's update
+    robust_kernel: str = "huber"
+    """'huber' | 'geman_mcclure' | 'none': iteratively reweighted rows in the filter's update
     (``measurement.robust_row_factors``), so that rows whose map plane is not the surface they
-    lie on stop pulling. A row's kernel width is ``robust_scale`` times the spread its residual
-    has if the row is right: the scan's own residual noise (1.4826 x the median |residual|) and
-    what the predicted pose covariance behind the reported sigmas adds along the row (a row that
-    corrects an error the estimate admits is not an outlier). Off by default (README,
-    "Session 31"): on the simulated spiral shaft it takes the error from 12.1 to 4.8 cm, but it
-    does not win everywhere."""
-    robust_scale: float = 3.0
-    """robust_kernel: the kernel width in units of a row's spread (3: a Gaussian's 3 sigma)."""
+    lie on pull less. A row's kernel width is ``robust_scale`` times the spread its residual has
+    if the row is right: the scan's own residual noise (1.4826 x the median |residual|) and what
+    the predicted pose covariance behind the reported sigmas adds along the row (a row that
+    corrects an error the estimate admits is not an outlier). Huber by default since session
+    31 (README, "Session 31"): spiral shaft 12.1 -> 5.9 cm, and better or equal means and
+    worsts on every scene, sensor and IMU of the matrix. 'geman_mcclure' silences far rows
+    (spiral 4.8 cm) but lets a corridor slip along its axis with a noisy IMU; 'none' is
+    Faster-LIO's plain least squares."""
+    robust_scale: float = 0.0
+    """robust_kernel: the kernel width in units of a row's spread; 0: the kernel's usual width
+    (Huber 1.345, Geman-McClure 3; ``measurement.KERNEL_WIDTH``)."""
     refit_every_iteration: bool = False
     """Re-search and refit planes at every iteration (FAST-LIO2) instead of on convergence only."""
     research_min_shift_m: float = 0.005
@@ -503,7 +506,7 @@ RANGES: dict[str, Range] = {
     "filter.knn_k": Range(3),
     "filter.min_neighbors": Range(3),
     "filter.laser_point_cov": POSITIVE,
-    "filter.robust_scale": POSITIVE,
+    "filter.robust_scale": NON_NEGATIVE,
     "filter.convergence_eps": POSITIVE,
     "filter.knn_max_range_m": POSITIVE,
     "filter.plane_min_extent_fraction": NON_NEGATIVE,

@@ -7,7 +7,7 @@ import pytest
 from adalio.config import Config
 from adalio.lio.ieskf import iterated_update
 from adalio.lio.ivox import IVox
-from adalio.lio.measurement import MAD_TO_SIGMA, robust_row_factors
+from adalio.lio.measurement import KERNEL_WIDTH, MAD_TO_SIGMA, robust_row_factors
 from adalio.lio.odometry import _Association
 from adalio.lio.state import DIM, State
 
@@ -29,6 +29,9 @@ def test_factors_follow_the_kernels_formulas() -> None:
                     1.0, np.sqrt(k2) / abs(r[i]))
                 assert c[i] ** 2 == pytest.approx(w, rel=1e-12)
     np.testing.assert_array_equal(robust_row_factors(r, H, P, "none", 3.0), np.ones(m))
+    for name, width in KERNEL_WIDTH.items():  # scale 0: the kernel's usual width
+        np.testing.assert_array_equal(robust_row_factors(r, H, P, name, 0.0),
+                                      robust_row_factors(r, H, P, name, width))
     # without the prediction's covariance, the width is the scan's own noise alone
     c = robust_row_factors(r, H, None, "geman_mcclure", 3.0)
     k2 = 9 * sigma**2
@@ -57,13 +60,13 @@ def _room(cfg: Config, rng: np.random.Generator, n_per_face: int):
 
 
 def _update(cfg: Config, ivox: IVox, scan: np.ndarray, x_prior: State, sigma_p_m: float,
-            kernel_cov_scale: float | None) -> State:
+            kernel_cov_scale: float | None, kernel: str = "geman_mcclure") -> State:
     """The filter's iterated update of ``scan`` from ``x_prior`` with pose sigmas ``sigma_p_m``
     (m) and 0.5°; the kernel sees that covariance times ``kernel_cov_scale`` (None: no kernel)."""
     P = np.eye(DIM) * 1e-4
     P[:3, :3] = np.eye(3) * sigma_p_m**2
     P[3:6, 3:6] = np.eye(3) * np.radians(0.5) ** 2
-    cfg.filter.robust_kernel = "none" if kernel_cov_scale is None else "geman_mcclure"
+    cfg.filter.robust_kernel = "none" if kernel_cov_scale is None else kernel
     cov = None if kernel_cov_scale is None else P[:6, :6] * kernel_cov_scale
     assoc = _Association(scan, ivox, cfg, 5.0, 0.1, cfg.map.map_leaf_m, None, cov)
     cfg.filter.max_iterations = 6
@@ -80,11 +83,15 @@ def test_rows_off_their_plane_stop_pulling() -> None:
     scan[floor[: len(floor) // 5], 2] += 0.08
     x0 = State(R_LI=np.eye(3), t_LI=np.zeros(3))
     plain = _update(cfg, ivox, scan, x0, 0.01, None)
-    robust = _update(cfg, ivox, scan, x0, 0.01, 1.0)
-    print(f"height error: plain {plain.p[2] * 100:.2f} cm, kernel {robust.p[2] * 100:.2f} cm")
+    gm = _update(cfg, ivox, scan, x0, 0.01, 1.0)
+    huber = _update(cfg, ivox, scan, x0, 0.01, 1.0, "huber")
+    print(f"height error: plain {plain.p[2] * 100:.2f} cm, Geman-McClure {gm.p[2] * 100:.2f} cm,"
+          f" Huber {huber.p[2] * 100:.2f} cm")
     assert plain.p[2] < -0.01  # the pose drops by about 8 cm x 1/5 to lift the points
-    assert abs(robust.p[2]) < 0.002
-    assert np.linalg.norm(robust.p) < 0.003
+    assert abs(gm.p[2]) < 0.002
+    assert np.linalg.norm(gm.p) < 0.003
+    # Huber bounds each row's pull (kappa), it does not silence it
+    assert abs(huber.p[2]) < 0.5 * abs(plain.p[2])
 
 
 def test_a_known_uncertainty_keeps_the_rows_that_correct_it() -> None:
@@ -117,9 +124,10 @@ def test_a_known_uncertainty_keeps_the_rows_that_correct_it() -> None:
 
 
 def test_the_odometry_reweights_its_rows_and_tracks(tmp_path) -> None:
-    """Wiring: with ``filter.robust_kernel`` the odometry's rows carry the kernel's weights (the
-    information the scans report, ``eig0..5`` of ``HᵀH/R``, drops by the weights' mean, about a
-    fifth for a Gaussian within 3 sigma), and the trajectory still follows the ground truth."""
+    """Wiring: with ``filter.robust_kernel`` (Huber by default) the odometry's rows carry the
+    kernel's weights: the information the scans report (``eig0..5`` of ``HᵀH/R``) drops, by less
+    for Huber than for Geman-McClure, which silences the rows Huber only bounds; the trajectory
+    follows the ground truth with each."""
     from adalio.config import load_config
     from adalio.eval.files import read_scans_csv
     from adalio.eval.metrics import ate
@@ -127,20 +135,25 @@ def test_the_odometry_reweights_its_rows_and_tracks(tmp_path) -> None:
     from adalio.sim import cached_sequence
 
     sim = cached_sequence("corridor", seed=0, duration_s=4.0, columns=512)
+    assert load_config(None, sim.config_path).filter.robust_kernel == "huber"
     info, err = {}, {}
-    for kernel in ("none", "geman_mcclure"):
+    for kernel in ("none", "huber", "geman_mcclure"):
         cfg = load_config(None, sim.config_path, overrides={"filter.robust_kernel": kernel})
         out = tmp_path / kernel
         run_bag(sim.bag_path, cfg, out, progress=False)
         scans = read_scans_csv(out / "scans.csv")
-        info[kernel] = sum(scans[f"eig{k}"] for k in range(6))
+        info[kernel] = np.asarray(sum(scans[f"eig{k}"] for k in range(6)))
         err[kernel] = ate(out / "trajectory.tum", sim.gt_path, align="se3")["rmse_m"]
-    a, b = np.asarray(info["geman_mcclure"]), np.asarray(info["none"])
-    assert a.shape == b.shape
-    both = (a > 0) & (b > 0)
-    assert np.count_nonzero(both) > 30
-    ratio = np.median(a[both] / b[both])
-    print(f"information kept {ratio:.2f}, ATE {err['none'] * 100:.2f} -> "
-          f"{err['geman_mcclure'] * 100:.2f} cm")
-    assert 0.5 < ratio < 0.95
-    assert err["geman_mcclure"] < 0.05
+    kept = {}
+    for kernel in ("huber", "geman_mcclure"):
+        a, b = info[kernel], info["none"]
+        assert a.shape == b.shape
+        both = (a > 0) & (b > 0)
+        assert np.count_nonzero(both) > 30
+        kept[kernel] = float(np.median(a[both] / b[both]))
+    print(f"information kept: Huber {kept['huber']:.2f}, Geman-McClure "
+          f"{kept['geman_mcclure']:.2f}; ATE " + ", ".join(
+              f"{k} {v * 100:.2f} cm" for k, v in err.items()))
+    assert kept["geman_mcclure"] < kept["huber"] < 0.97
+    assert kept["geman_mcclure"] > 0.5
+    assert max(err.values()) < 0.05
