@@ -29,7 +29,7 @@ import yaml
 from adalio.errors import ConfigError
 
 MODES = ("fixed", "adaptive", "adaptive+")
-ROBUST_KERNELS = ("none", "geman_mcclure", "huber")
+ROBUST_KERNELS = ("auto", "huber", "geman_mcclure", "none")
 """``filter.robust_kernel`` (``lio.measurement.robust_row_factors``)."""
 
 
@@ -215,17 +215,18 @@ class FilterConfig:
     plane_uncertainty_weighting: bool = True
     """Scale each residual's variance by 1 + 1/k + rho^2 / (k lambda_mid), the offset and tilt
     uncertainty of a k-neighbour plane fit at the query's in-plane distance rho."""
-    robust_kernel: str = "huber"
-    """'huber' | 'geman_mcclure' | 'none': iteratively reweighted rows in the filter's update
-    (``measurement.robust_row_factors``), so that rows whose map plane is not the surface they
-    lie on pull less. A row's kernel width is ``robust_scale`` times the spread its residual has
-    if the row is right: the scan's own residual noise (1.4826 x the median |residual|) and what
-    the predicted pose covariance behind the reported sigmas adds along the row (a row that
-    corrects an error the estimate admits is not an outlier). Huber by default since session
-    31 (README, "Session 31"): spiral shaft 12.1 -> 5.9 cm, and better or equal means and
-    worsts on every scene, sensor and IMU of the matrix. 'geman_mcclure' silences far rows
-    (spiral 4.8 cm) but lets a corridor slip along its axis with a noisy IMU; 'none' is
-    Faster-LIO's plain least squares."""
+    robust_kernel: str = "auto"
+    """'auto' | 'huber' | 'geman_mcclure' | 'none': iteratively reweighted rows in the filter's
+    update (``measurement.robust_row_factors``), so that rows whose map plane is not the surface
+    they lie on pull less. A row's kernel width is ``robust_scale`` times the spread its residual
+    has if the row is right: the scan's own residual noise (1.4826 x the median |residual|) and
+    what the predicted discounted pose covariance (the one behind the reported sigmas) adds
+    along the row: a row that corrects an error the estimate admits is not an outlier. 'auto'
+    (since session 31): 'huber' in modes fixed and adaptive (spiral shaft 12.1 -> 5.9 cm, and
+    equal or better means and worsts on every scene, sensor and IMU of the matrix), 'none' in
+    adaptive+ (with a kernel its stairwell diverged). 'geman_mcclure' silences far rows (spiral
+    4.8 cm) but let a corridor slip along its axis with a noisy IMU; 'none' is Faster-LIO's
+    plain least squares (README, "Session 31")."""
     robust_scale: float = 0.0
     """robust_kernel: the kernel width in units of a row's spread; 0: the kernel's usual width
     (Huber 1.345, Geman-McClure 3; ``measurement.KERNEL_WIDTH``)."""

@@ -8,7 +8,7 @@ from adalio.config import Config
 from adalio.lio.ieskf import iterated_update
 from adalio.lio.ivox import IVox
 from adalio.lio.measurement import KERNEL_WIDTH, MAD_TO_SIGMA, robust_row_factors
-from adalio.lio.odometry import _Association
+from adalio.lio.odometry import _Association, robust_kernel_name
 from adalio.lio.state import DIM, State
 
 
@@ -124,8 +124,9 @@ def test_a_known_uncertainty_keeps_the_rows_that_correct_it() -> None:
 
 
 def test_the_odometry_reweights_its_rows_and_tracks(tmp_path) -> None:
-    """Wiring: with ``filter.robust_kernel`` (Huber by default) the odometry's rows carry the
-    kernel's weights: the information the scans report (``eig0..5`` of ``HᵀH/R``) drops, by less
+    """Wiring: with ``filter.robust_kernel`` (Huber by default in mode adaptive) the odometry's
+    rows carry the kernel's weights: the information the scans report (``eig0..5`` of
+    ``HᵀH/R``) drops, by less
     for Huber than for Geman-McClure, which silences the rows Huber only bounds; the trajectory
     follows the ground truth with each."""
     from adalio.config import load_config
@@ -135,7 +136,7 @@ def test_the_odometry_reweights_its_rows_and_tracks(tmp_path) -> None:
     from adalio.sim import cached_sequence
 
     sim = cached_sequence("corridor", seed=0, duration_s=4.0, columns=512)
-    assert load_config(None, sim.config_path).filter.robust_kernel == "huber"
+    assert robust_kernel_name(load_config(None, sim.config_path)) == "huber"
     info, err = {}, {}
     for kernel in ("none", "huber", "geman_mcclure"):
         cfg = load_config(None, sim.config_path, overrides={"filter.robust_kernel": kernel})
@@ -157,3 +158,13 @@ def test_the_odometry_reweights_its_rows_and_tracks(tmp_path) -> None:
     assert kept["geman_mcclure"] < kept["huber"] < 0.97
     assert kept["geman_mcclure"] > 0.5
     assert max(err.values()) < 0.05
+
+
+def test_auto_is_huber_except_in_adaptive_plus() -> None:
+    cfg = Config()
+    assert cfg.filter.robust_kernel == "auto"
+    for mode, name in (("fixed", "huber"), ("adaptive", "huber"), ("adaptive+", "none")):
+        cfg.adaptive.mode = mode
+        assert robust_kernel_name(cfg) == name
+    cfg.filter.robust_kernel = "geman_mcclure"
+    assert robust_kernel_name(cfg) == "geman_mcclure"  # an explicit choice holds in every mode

@@ -160,6 +160,15 @@ def _group_ids(points: np.ndarray) -> tuple[np.ndarray, int]:
     return gid, n_groups
 
 
+def robust_kernel_name(cfg: Config) -> str:
+    """``filter.robust_kernel`` resolved: ``auto`` is ``huber``, except in mode ``adaptive+``,
+    whose held directions and probes diverged with it in the stairwell (README, Session 31)."""
+    name = cfg.filter.robust_kernel
+    if name != "auto":
+        return name
+    return "none" if cfg.adaptive.mode == "adaptive+" else "huber"
+
+
 class _Association:
     """Point-to-plane correspondences of one downsampled scan against the map (§6.2-6.3).
 
@@ -173,6 +182,7 @@ class _Association:
                  prior_pose_cov: np.ndarray | None = None) -> None:
         self.points_lidar = points_lidar
         self.prior_pose_cov = prior_pose_cov
+        self.kernel = robust_kernel_name(cfg)
         """(6,6) the predicted pose covariance [δp, δθ] behind the reported sigmas (which does not
         count the information noisy plane normals fake): with it (the filter's update), the rows
         take ``filter.robust_kernel``'s weights (:func:`robust_row_factors`); None: not."""
@@ -246,9 +256,8 @@ class _Association:
                                  f.share_weighting)
             H *= w[:, None]
             r *= w
-        if f.robust_kernel != "none" and self.prior_pose_cov is not None and H.shape[0]:
-            c = robust_row_factors(r, H[:, :6], self.prior_pose_cov, f.robust_kernel,
-                                   f.robust_scale)
+        if self.kernel != "none" and self.prior_pose_cov is not None and H.shape[0]:
+            c = robust_row_factors(r, H[:, :6], self.prior_pose_cov, self.kernel, f.robust_scale)
             H *= c[:, None]
             r *= c
         self.H = H
@@ -341,9 +350,11 @@ class Odometry:
         self._state = State(R_LI=self._R_LI.copy(), t_LI=self._t_LI.copy())
         self._P = initial_covariance(config.filter.estimate_extrinsic)
         self._P_report: np.ndarray | None = None
-        """Covariance behind the reported sigmas (filter.sigmas_discount_normal_noise): the
-        filter's, propagated alike, but updated only with the information the scene holds
-        (:meth:`_update_report_covariance`); None until the filter's first update."""
+        """The discounted covariance: the filter's, propagated alike, but updated only with the
+        information the scene holds (:meth:`_update_report_covariance`); behind the reported
+        sigmas with filter.sigmas_discount_normal_noise, and behind the robust kernel's spread
+        whatever that flag says (so the flag never changes the trajectory); None until the
+        anchor, or when neither needs it."""
         self._t_state_ns = 0
         self._prev_sample: tuple[int, np.ndarray, np.ndarray] | None = None
         self._accel_scale = 1.0
@@ -528,7 +539,7 @@ class Odometry:
         assoc = _Association(down, self._ivox, cfg, params.search_radius_m, params.plane_margin_m,
                              min(cell_m, self._finest_cell_m),
                              self._local_planes(surface, down, voxel_of_point),
-                             self._sigmas_P[:6, :6])
+                             self._kernel_pose_cov)
         projector = None
         if cfg.adaptive.mode == "adaptive+" and decision.degenerate:
             down, assoc, leaf_m, projector, stats.min_restoring = self._refine(
@@ -638,7 +649,7 @@ class Odometry:
         # This pose anchors the map, so it defines the world: no error relative to it.
         self._W_map = np.zeros((6, 6))
         self._provenance.add_scan(s.p, np.zeros((6, 6)), p_world)
-        if self.cfg.filter.sigmas_discount_normal_noise:
+        if self._keeps_discounted_P:
             # the reported sigmas start here: no position or yaw error at the anchor (the
             # filter's own P, and so the trajectory, keeps Faster-LIO's initial covariance)
             self._P_report = anchored_covariance(s.R, self._P)
@@ -1012,7 +1023,7 @@ class Odometry:
             assoc = _Association(down, self._ivox, self.cfg, params.search_radius_m,
                                  params.plane_margin_m, assoc_cell,
                                  self._local_planes(surface, down, voxel_of_point),
-                                 self._sigmas_P[:6, :6])
+                                 self._kernel_pose_cov)
             loc = probe(assoc)
         if ada.probe_directions > 0 and assoc.H.shape[0]:
             dirs = weak_directions(loc, ada.probe_directions, ada.probe_step_m)
@@ -1040,10 +1051,28 @@ class Odometry:
             self.stage_ms_total[k] = self.stage_ms_total.get(k, 0.0) + v
 
     @property
-    def _sigmas_P(self) -> np.ndarray:
-        """The covariance the reported sigmas come from: the report covariance once it exists
-        (``filter.sigmas_discount_normal_noise``), else the filter's."""
+    def _keeps_discounted_P(self) -> bool:
+        """The discounted covariance is kept for the reported sigmas or the robust kernel."""
+        return (self.cfg.filter.sigmas_discount_normal_noise
+                or robust_kernel_name(self.cfg) != "none")
+
+    @property
+    def _discounted_P(self) -> np.ndarray:
         return self._P if self._P_report is None else self._P_report
+
+    @property
+    def _sigmas_P(self) -> np.ndarray:
+        """The covariance the reported sigmas come from: the discounted covariance once it
+        exists, with ``filter.sigmas_discount_normal_noise``; else the filter's."""
+        return self._discounted_P if self.cfg.filter.sigmas_discount_normal_noise else self._P
+
+    @property
+    def _kernel_pose_cov(self) -> np.ndarray | None:
+        """(6,6) the robust kernel's predicted pose covariance: the discounted one's pose block
+        (the filter's before the anchor); None without a kernel."""
+        if robust_kernel_name(self.cfg) == "none":
+            return None
+        return self._discounted_P[:6, :6]
 
     def _update_report_covariance(self, x_pred: State, x_post: State, assoc: _Association,
                                   projector: np.ndarray | None) -> None:
@@ -1053,9 +1082,9 @@ class Odometry:
         (:func:`real_information`), in the information form of the filter's final step (``P⁺ = (P⁻¹ + EᵀJE)⁻¹`` with E the pose
         block, at the same SO(3) reprojection). The filter itself is unchanged."""
         f = self.cfg.filter
-        if not f.sigmas_discount_normal_noise:
+        if not self._keeps_discounted_P:
             return
-        P = self._sigmas_P
+        P = self._discounted_P
         Jr = _reprojection(x_post.boxminus(x_pred))
         P = Jr @ P @ Jr.T
         H = assoc.H[:, :6]
