@@ -38,6 +38,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from bench_modes import parse_overrides
 
 from adalio.config import load_config
 from adalio.errors import InputError
@@ -165,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="config override for every run (e.g. imu.noise_source=measured)")
     ap.add_argument("--out", type=Path, default=Path("runs/bench_sensors"))
     args = ap.parse_args(argv)
-    overrides = dict(item.split("=", 1) for item in args.set)
+    overrides = parse_overrides(args.set)
     duration = args.duration or None
     cells = []
     t0 = time.perf_counter()

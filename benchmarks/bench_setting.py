@@ -18,9 +18,10 @@ import statistics
 import tempfile
 from pathlib import Path
 
-import yaml
+from bench_modes import parse_overrides
 
 from adalio.config import load_config
+from adalio.errors import ConfigError
 from adalio.pipeline import run_bag
 from adalio.sim import cached_sequence
 
@@ -35,8 +36,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", required=True, metavar="KEY=VALUE",
                     help="the setting timed against the default (repeatable)")
     args = ap.parse_args(argv)
-    setting = {k: yaml.safe_load(v) for k, v in (
-        a.split("=", 1) for a in args.set)}
+    setting = parse_overrides(args.set)
+    try:
+        load_config(overrides=setting)
+    except ConfigError as exc:
+        raise SystemExit(f"error: {exc}") from None
     print(f"setting: {setting}")
     print("| sequence | off, ms/scan | on, ms/scan | rows dropped by the check | ratio |")
     print("|---|---|---|---|---|")

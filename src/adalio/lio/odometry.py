@@ -182,10 +182,10 @@ class _Association:
                  prior_pose_cov: np.ndarray | None = None) -> None:
         self.points_lidar = points_lidar
         self.prior_pose_cov = prior_pose_cov
+        """(6,6) the predicted discounted pose covariance [δp, δθ] (which does not count the
+        information noisy plane normals fake): with it (the filter's update), the rows take
+        ``filter.robust_kernel``'s weights (:func:`robust_row_factors`); None: not."""
         self.kernel = robust_kernel_name(cfg)
-        """(6,6) the predicted pose covariance [δp, δθ] behind the reported sigmas (which does not
-        count the information noisy plane normals fake): with it (the filter's update), the rows
-        take ``filter.robust_kernel``'s weights (:func:`robust_row_factors`); None: not."""
         self.local = local
         """(normals (n,3) LiDAR frame, judged (n,)) of the scan's own surface at each point
         (filter.local_surface_check), or None."""
@@ -650,8 +650,8 @@ class Odometry:
         self._W_map = np.zeros((6, 6))
         self._provenance.add_scan(s.p, np.zeros((6, 6)), p_world)
         if self._keeps_discounted_P:
-            # the reported sigmas start here: no position or yaw error at the anchor (the
-            # filter's own P, and so the trajectory, keeps Faster-LIO's initial covariance)
+            # the discounted covariance (reported sigmas, robust kernel) starts here: no position
+            # or yaw error at the anchor (the filter's own P keeps Faster-LIO's initial one)
             self._P_report = anchored_covariance(s.R, self._P)
         _timer(stage_ms, "map", t0)
         g = self.cfg.adaptive.general
@@ -1076,8 +1076,9 @@ class Odometry:
 
     def _update_report_covariance(self, x_pred: State, x_post: State, assoc: _Association,
                                   projector: np.ndarray | None) -> None:
-        """With ``filter.sigmas_discount_normal_noise``: the covariance behind the reported
-        sigmas takes the scan's information less what the normals' noise fakes
+        """While it is kept (:attr:`_keeps_discounted_P`), the discounted covariance (behind the
+        reported sigmas and the robust kernel) takes the scan's information less what the
+        normals' noise fakes
         (:func:`normal_noise_information`), kept between nothing and the claim
         (:func:`real_information`), in the information form of the filter's final step (``P⁺ = (P⁻¹ + EᵀJE)⁻¹`` with E the pose
         block, at the same SO(3) reprojection). The filter itself is unchanged."""
