@@ -1,0 +1,31 @@
+"""The benchmarks' command lines reject a bad ``--set`` before any run: one ``error:`` line
+naming the key and what is wrong, exit 1, no traceback."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+@pytest.mark.parametrize("script", ["bench_modes.py", "bench_sensors.py", "bench_setting.py"])
+@pytest.mark.parametrize(("item", "names"), [
+    ("filter.no_such_key=1", "filter.no_such_key"),
+    ("filter.robust_scale=-1", "filter.robust_scale"),
+    ("filter.robust_kernel", "KEY=VALUE"),
+])
+def test_bad_set_is_one_error_line(script: str, item: str, names: str, tmp_path: Path) -> None:
+    cmd = [sys.executable, str(BENCHMARKS / script), "--set", item]
+    if script != "bench_setting.py":  # bench_setting writes nothing but its table
+        cmd += ["--out", str(tmp_path / "out")]
+    proc = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=120,
+                          cwd=tmp_path)
+    assert proc.returncode == 1, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:") and names in lines[0], proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not any(tmp_path.iterdir())  # no run started
