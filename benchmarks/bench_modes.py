@@ -94,12 +94,13 @@ def run_dir(out_root: Path, scene: str, seed: int, mode: str) -> Path:
 
 
 def sequences(client, scenes: list[str], seeds: int, duration_s: float | None,
-              motion_from: Path | None = None) -> dict:
+              motion_from: Path | None = None, imu_bias_scale: float = 1.0) -> dict:
     """(scene, seed) -> SimResult, or the one-line reason the simulator failed; generated (or
     taken from the cache) as tasks on the cluster."""
     keys = [(scene, seed) for scene in scenes for seed in range(seeds)]
     futures = [client.submit(cached_sequence, scene, seed=seed, duration_s=duration_s,
-                             motion_from=motion_from, pure=False) for scene, seed in keys]
+                             motion_from=motion_from, imu_bias_scale=imu_bias_scale,
+                             pure=False) for scene, seed in keys]
     out: dict = {}
     for key, fut in zip(keys, futures, strict=True):
         try:
@@ -248,7 +249,8 @@ def run_all(args: argparse.Namespace, overrides: dict[str, str], out_root: Path,
     failed_sims: list[RunRow] = []
     jobs: list[BagJob] = []
     with dask_client(args.workers, args.scheduler) as client:
-        sims = sequences(client, args.scenes, args.seeds, args.duration, args.motion_from)
+        sims = sequences(client, args.scenes, args.seeds, args.duration, args.motion_from,
+                         args.imu_bias_scale)
         for scene in args.scenes:
             for seed in range(args.seeds):
                 sim = sims[(scene, seed)]
@@ -295,6 +297,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--diverge-m", type=float, default=1.0,
                     help="a run diverged if its max first-pose-aligned error exceeds this")
     ap.add_argument("--out", type=Path, default=Path(".cache/bench_modes"))
+    ap.add_argument("--imu-bias-scale", type=float, default=1.0,
+                    help="multiplier of the simulated IMU's initial biases and bias walks "
+                    "(0: an IMU without bias, to separate what the bias costs)")
     ap.add_argument("--motion-from", type=Path, default=None, metavar="TUM",
                     help="walk with the handheld motion of this real trajectory (e.g. "
                     "tests/data/real/hilti2022_gt/exp_04_..._imu.txt) instead of the "
@@ -311,6 +316,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="existing Dask scheduler (tcp://HOST:PORT) on a shared filesystem")
     args = ap.parse_args(argv)
     overrides = parse_overrides(args.set)
+    if not args.imu_bias_scale >= 0:
+        raise SystemExit(f"error: --imu-bias-scale must be >= 0 (got {args.imu_bias_scale})")
     out_root = args.out.expanduser().resolve()
 
     t0 = time.perf_counter()

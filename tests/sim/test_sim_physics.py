@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from adalio.sim import SCENES, simulate
 from adalio.sim.generate import T_IMU_LIDAR_HILTI, build_trajectory, mesh_distance_m
-from adalio.sim.imu import GRAVITY_M_S2
+from adalio.sim.imu import GRAVITY_M_S2, ImuNoise, synthesize_imu
 from adalio.sim.lidar import RayCaster
 from adalio.sim.scenes import build_scene
 
@@ -206,6 +206,33 @@ def test_imu_noise_matches_the_bmi085_densities(tmp_path):
     assert np.linalg.norm(meta["accel_bias0_m_s2"]) > 1e-3
     g = np.linalg.norm(acc.mean(axis=0))
     assert abs(g - GRAVITY_M_S2) < 0.1
+
+
+def test_imu_bias_scale_scales_the_biases_alone():
+    """``bias_scale`` multiplies the initial biases and bias walks and nothing else: with the
+    same draws, the white noise is the same sample by sample, the biases are 0 at scale 0 and
+    twice scale 1's at scale 2, and a bias-free IMU reads the true rate and specific force
+    up to white noise of the BMI085 densities."""
+    traj = build_trajectory(build_scene("hall", 0), np.asarray(T_IMU_LIDAR_HILTI), 0)
+    t_ns = np.arange(4000, dtype=np.int64) * 2_500_000
+    out = {k: synthesize_imu(traj, t_ns, 0, np.random.default_rng(7), bias_scale=k)
+           for k in (0.0, 1.0, 2.0)}
+    for name in ("gyro", "accel"):
+        bias = {k: getattr(o, f"{name}_bias_{'rad_s' if name == 'gyro' else 'm_s2'}")
+                for k, o in out.items()}
+        meas = {k: getattr(o, f"{name}_{'rad_s' if name == 'gyro' else 'm_s2'}")
+                for k, o in out.items()}
+        true = getattr(out[0.0], f"{name}_true_{'rad_s' if name == 'gyro' else 'm_s2'}")
+        assert np.all(bias[0.0] == 0.0) and np.abs(bias[1.0]).max() > 0
+        np.testing.assert_allclose(bias[2.0], 2.0 * bias[1.0], rtol=1e-12, atol=0)
+        white = {k: meas[k] - true - bias[k] for k in out}
+        np.testing.assert_allclose(white[0.0], white[1.0], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(white[2.0], white[1.0], rtol=0, atol=1e-12)
+    density = ImuNoise().accel_noise_m_s2_sqrt_hz
+    np.testing.assert_allclose(np.std(out[0.0].accel_m_s2 - out[0.0].accel_true_m_s2, axis=0),
+                               density * np.sqrt(400.0), rtol=0.08)
+    assert np.abs(np.mean(out[0.0].accel_m_s2 - out[0.0].accel_true_m_s2, axis=0)).max() < (
+        4 * density * np.sqrt(400.0) / np.sqrt(len(t_ns)))
 
 
 def test_mesh_distance_matches_brute_force():

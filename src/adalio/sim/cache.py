@@ -101,7 +101,7 @@ def _code_version() -> str:
 def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = None,
                     lidar: str = "xt32", fmt: str = "ros1",
                     columns: int | None = None, imu_noise_scale: float = 1.0,
-                    motion_from: str | Path | None = None) -> SimResult:
+                    imu_bias_scale: float = 1.0, motion_from: str | Path | None = None) -> SimResult:
     """Generate once (atomically: temp folder + rename + completion marker) and reuse
     (the key includes a hash of ``motion_from``'s content). After generating, the cache is
     trimmed to ``$ADALIO_SIM_CACHE_GB`` (default 20 GB) by :func:`evict_cache`, least recently
@@ -110,6 +110,8 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     cols = lidar_model(lidar, columns).columns
     dur = "full" if duration_s is None else f"{float(duration_s):g}"
     imu = "" if imu_noise_scale == 1.0 else f"-imu{imu_noise_scale:g}"
+    if imu_bias_scale != 1.0:
+        imu += f"-bias{imu_bias_scale:g}"
     hh = ""
     if motion_from is not None:
         try:
@@ -134,7 +136,8 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     tmp = final.parent / f".{key}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     try:
         simulate(scene, tmp, seed=seed, duration_s=duration_s, lidar=lidar, fmt=fmt,
-                 columns=columns, imu_noise_scale=imu_noise_scale, motion_from=motion_from)
+                 columns=columns, imu_noise_scale=imu_noise_scale,
+                 imu_bias_scale=imu_bias_scale, motion_from=motion_from)
         (tmp / "COMPLETE").write_text("ok\n")
         if final.exists() and not (final / "COMPLETE").is_file():
             shutil.rmtree(final, ignore_errors=True)

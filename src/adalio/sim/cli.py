@@ -28,6 +28,9 @@ def register(app: typer.Typer) -> None:
         imu_noise_scale: Annotated[float, typer.Option(
             "--imu-noise-scale", help="Further multiplier of the IMU white noise only (x the "
             "HILTI BMI085 densities).")] = 1.0,
+        imu_bias_scale: Annotated[float, typer.Option(
+            "--imu-bias-scale", help="Further multiplier of the IMU's initial biases and bias "
+            "random walks only (0 = an IMU without bias).")] = 1.0,
         motion_from: Annotated[Path | None, typer.Option(
             "--motion-from", help="TUM trajectory (>= 10 Hz) of a real handheld walk: its hand "
             "and gait motion replace the synthetic one (e.g. the HILTI 2022 exp04-06 dense "
@@ -45,7 +48,8 @@ def register(app: typer.Typer) -> None:
         t0 = time.perf_counter()
         res = run_simulation(scene, out, seed=seed, duration_s=duration, lidar=lidar, fmt=fmt,
                              columns=columns, noise_scale=noise_scale, progress=True,
-                             imu_noise_scale=imu_noise_scale, motion_from=motion_from)
+                             imu_noise_scale=imu_noise_scale, imu_bias_scale=imu_bias_scale,
+                             motion_from=motion_from)
         meta = json.loads(res.meta_path.read_text())
         console().print(
             f"[green]wrote[/] {res.bag_path} ({meta['n_scans']} sweeps, {meta['n_imu']} IMU, "

@@ -120,7 +120,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
              noise_scale: float = 1.0, progress: bool = False,
              T_imu_lidar: list[list[float]] | np.ndarray | None = None,
              occluder: bool = True, scene_params: dict | None = None,
-             imu_noise_scale: float = 1.0,
+             imu_noise_scale: float = 1.0, imu_bias_scale: float = 1.0,
              motion_from: str | Path | None = None) -> SimResult:
     """Generate one sequence of ``scene`` into ``out_dir`` (created; the bag must not exist).
 
@@ -130,11 +130,15 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     ``scene_params`` overrides the scene builder's sizes (see :mod:`adalio.sim.scenes`).
     ``imu_noise_scale`` further multiplies the IMU's white-noise densities only (x10: a 10x
     noisier IMU than the HILTI BMI085, whose bias walks and initial biases stay as they are).
+    ``imu_bias_scale`` further multiplies the IMU's initial biases and bias random walks only
+    (0: an IMU without bias, to separate what its bias costs from what the LiDAR costs).
     ``motion_from``: a TUM trajectory (>= 10 Hz) whose handheld motion replaces the synthetic
     one (:class:`adalio.sim.trajectory.HandheldMotion`; the seed picks where in it to start).
     """
     if not imu_noise_scale >= 0:
         raise InputError(f"--imu-noise-scale must be >= 0 (got {imu_noise_scale})")
+    if not imu_bias_scale >= 0:
+        raise InputError(f"--imu-bias-scale must be >= 0 (got {imu_bias_scale})")
     _check_args(scene, duration_s, lidar, fmt, noise_scale)
     T_il = validate_transform(T_IMU_LIDAR_HILTI if T_imu_lidar is None else T_imu_lidar,
                               "T_imu_lidar")
@@ -162,7 +166,8 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     t_imu = t0 + np.arange(dur_ns // imu_dt_ns + 1, dtype=np.int64) * imu_dt_ns
     imu_noise = ImuNoise()
     imu = synthesize_imu(traj, t_imu, t0, np.random.default_rng([seed, 200]), imu_noise,
-                         noise_scale, IMU_RATE_HZ, white_scale=imu_noise_scale)
+                         noise_scale, IMU_RATE_HZ, white_scale=imu_noise_scale,
+                         bias_scale=imu_bias_scale)
     period = model.period_ns
     n_scans = dur_ns // period
     sim = SweepSimulator(caster, traj, model, T_il, t0, Occluder() if occluder else None)
@@ -223,6 +228,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
         "duration_s": dur, "lidar": model.name,
         "format": fmt, "columns": model.columns, "channels": model.channels,
         "noise_scale": float(noise_scale), "imu_noise_scale": float(imu_noise_scale),
+        "imu_bias_scale": float(imu_bias_scale),
         "occluder": bool(occluder),
         "motion_from": None if handheld is None else handheld.source,
         "topics": {"lidar": model.lidar_topic, "imu": model.imu_topic},

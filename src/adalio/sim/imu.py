@@ -55,14 +55,16 @@ def true_imu(traj: Trajectory, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 def synthesize_imu(traj: Trajectory, t_ns: np.ndarray, t0_ns: int, rng: np.random.Generator,
                    noise: ImuNoise | None = None, noise_scale: float = 1.0,
-                   rate_hz: float = 400.0, white_scale: float = 1.0) -> ImuData:
+                   rate_hz: float = 400.0, white_scale: float = 1.0,
+                   bias_scale: float = 1.0) -> ImuData:
     """IMU samples at ``t_ns`` (absolute) for a trajectory whose time origin is ``t0_ns``;
-    ``white_scale`` further multiplies the white-noise densities only."""
+    ``white_scale`` further multiplies the white-noise densities only, ``bias_scale`` the
+    initial biases and the bias random walks only (0: biases stay zero)."""
     noise = noise or ImuNoise()
     n = len(t_ns)
     gyro_true, accel_true = true_imu(traj, (t_ns - t0_ns) * 1e-9)
     dt = 1.0 / rate_hz
-    k = noise_scale
+    k = noise_scale * bias_scale
     bg0 = k * noise.gyro_bias0_rad_s * rng.standard_normal(3)
     ba0 = k * noise.accel_bias0_m_s2 * rng.standard_normal(3)
     wg = rng.standard_normal((n, 3))
@@ -73,7 +75,7 @@ def synthesize_imu(traj: Trajectory, t_ns: np.ndarray, t0_ns: int, rng: np.rando
     steps_a[0] = 0.0
     bg = bg0 + k * noise.gyro_bias_walk_rad_s2_sqrt_hz * np.sqrt(dt) * np.cumsum(steps_g, 0)
     ba = ba0 + k * noise.accel_bias_walk_m_s3_sqrt_hz * np.sqrt(dt) * np.cumsum(steps_a, 0)
-    kw = k * white_scale
+    kw = noise_scale * white_scale
     gyro = gyro_true + bg + kw * noise.gyro_noise_rad_s_sqrt_hz / np.sqrt(dt) * wg
     accel = accel_true + ba + kw * noise.accel_noise_m_s2_sqrt_hz / np.sqrt(dt) * wa
     return ImuData(t_ns=t_ns, gyro_rad_s=gyro, accel_m_s2=accel, gyro_bias_rad_s=bg,
