@@ -412,6 +412,9 @@ CASES: list[Case] = [
     Case("simulate_scene_unknown", lambda b, f: ["simulate", "--scene", "moon", "--out",
                                                  str(f / "s")], "error", ("unknown scene 'moon'",)),
     Case("simulate_out_file", simulate_out_file, "error", ("is a file",)),
+    Case("simulate_imu_bias_scale_negative",
+         lambda b, f: ["simulate", "--scene", "hall", "--out", str(f / "s"),
+                       "--imu-bias-scale", "-1"], "error", ("--imu-bias-scale must be >= 0",)),
     # config
     Case("config_missing", lambda b, f: run_args(b, b.bag, f, config=f / "none.yaml"), "error",
          ("none.yaml does not exist",)),
