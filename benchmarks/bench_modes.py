@@ -17,6 +17,7 @@ runs, whose detector still reports them) with the share of scans each threshold 
 so that tau_n / tau_near are judged on all scenes, not tuned on one.
 
     python benchmarks/bench_modes.py --scenes hall corridor --seeds 2 --duration 30
+    python benchmarks/bench_modes.py --scenes stairs_garage --seeds 8 --imu-bias-scale 0
     python benchmarks/bench_modes.py --motion-from \
         tests/data/real/hilti2022_gt/exp_04_construction_upper_level_easy_2_2022-03-03-11-48-59_imu.txt
 """
