@@ -8,9 +8,11 @@ stderr and a non-zero exit; Ctrl-C exits with 130 after the writers have flushed
 
 from __future__ import annotations
 
+import errno
 import importlib
 import signal
 import sys
+from pathlib import Path
 
 import typer
 
@@ -51,8 +53,39 @@ for _name in _COMMAND_MODULES:
     _module.register(app)
 
 
+_OS_HINTS = {
+    errno.ENOSPC: "the disk is full",
+    errno.EFBIG: "a file size limit was reached",
+    errno.EDQUOT: "the disk quota is used up",
+    errno.EACCES: "no permission: choose another folder",
+    errno.EPERM: "no permission: choose another folder",
+    errno.EROFS: "the file system is read-only: choose another folder",
+    errno.ENOENT: "it does not exist: check the path",
+}
+
+
+def os_error_line(exc: OSError) -> str:
+    """One line for an operating-system error (full disk, permissions, missing path) met while
+    reading or writing: the file if known, the system's reason and what to do."""
+    from adalio.errors import DISK_FULL_ERRNOS
+
+    where = f"{exc.filename}: " if exc.filename else ""
+    reason = exc.strerror or str(exc)
+    hint = _OS_HINTS.get(exc.errno, "check the path, its permissions and the free disk space")
+    if exc.errno in DISK_FULL_ERRNOS:
+        hint += ": free space or write elsewhere (--out)"
+        from adalio.sim.cache import cache_root
+
+        cache = cache_root()
+        if exc.filename is None or cache in Path(str(exc.filename)).expanduser().parents:
+            hint += (f"; simulated sequences are cached in {cache} (its size cap: "
+                     "$ADALIO_SIM_CACHE_GB)")
+    return f"{where}{reason} ({hint})"
+
+
 def main() -> None:
-    """Console-script entry point: an AdalioError or a command-line usage error is one 'error:'
+    """Console-script entry point: an AdalioError, a command-line usage error or an
+    operating-system error (a full disk, no permission: :func:`os_error_line`) is one 'error:'
     line and exit 2; Ctrl-C at any moment is one 'interrupted' line and exit 130 (never a
     traceback)."""
     from rich.markup import escape
@@ -78,6 +111,12 @@ def main() -> None:
                 err.print(f"[bold red]error:[/] {escape(exc.format_message() + see)}",
                           highlight=False, soft_wrap=True)
             sys.exit(exc.exit_code)
+        except OSError as exc:
+            if getattr(signal.getsignal(signal.SIGINT), "received", False):
+                raise KeyboardInterrupt from None
+            err.print(f"[bold red]error:[/] {escape(os_error_line(exc))}", highlight=False,
+                      soft_wrap=True)
+            sys.exit(2)
         except Exception:
             # after a Ctrl-C, an error from a library interrupted mid-import (numpy's C core
             # raises ImportError) is the interrupt (_adalio_entry.StickyInterrupt remembers it)

@@ -16,7 +16,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from adalio.errors import AdalioError, BagError, ConfigError, InputError
+from adalio.errors import AdalioError, BagError, ConfigError, InputError, writing_to
 from adalio.term import console
 
 config_app = typer.Typer(help="Inspect the configuration.", no_args_is_help=True,
@@ -227,9 +227,10 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
                 from adalio.view import RerunView
 
                 viewer = RerunView(spawn=view, rrd_path=rrd)
-            res = run_bag(bag, cfg, out_dir, progress=not no_progress and con.is_terminal,
-                          max_scans=max_scans, on_estimate=viewer, start_s=start_s,
-                          sigma_warn_m=sigma_warn_m, on_compile=lambda: compile_notice(con))
+            with writing_to(out_dir):
+                res = run_bag(bag, cfg, out_dir, progress=not no_progress and con.is_terminal,
+                              max_scans=max_scans, on_estimate=viewer, start_s=start_s,
+                              sigma_warn_m=sigma_warn_m, on_compile=lambda: compile_notice(con))
         _summary(con, res, profile)
     except KeyboardInterrupt:
         res = None

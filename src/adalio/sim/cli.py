@@ -40,16 +40,18 @@ def register(app: typer.Typer) -> None:
         import json
         import time
 
+        from adalio.errors import writing_to
         from adalio.io.cli import check_out_dir
         from adalio.sim import simulate as run_simulation
         from adalio.term import console
 
         check_out_dir(out)
         t0 = time.perf_counter()
-        res = run_simulation(scene, out, seed=seed, duration_s=duration, lidar=lidar, fmt=fmt,
-                             columns=columns, noise_scale=noise_scale, progress=True,
-                             imu_noise_scale=imu_noise_scale, imu_bias_scale=imu_bias_scale,
-                             motion_from=motion_from)
+        with writing_to(out):
+            res = run_simulation(scene, out, seed=seed, duration_s=duration, lidar=lidar,
+                                 fmt=fmt, columns=columns, noise_scale=noise_scale,
+                                 progress=True, imu_noise_scale=imu_noise_scale,
+                                 imu_bias_scale=imu_bias_scale, motion_from=motion_from)
         meta = json.loads(res.meta_path.read_text())
         console().print(
             f"[green]wrote[/] {res.bag_path} ({meta['n_scans']} sweeps, {meta['n_imu']} IMU, "
