@@ -111,18 +111,16 @@ def main() -> None:
                 err.print(f"[bold red]error:[/] {escape(exc.format_message() + see)}",
                           highlight=False, soft_wrap=True)
             sys.exit(exc.exit_code)
-        except OSError as exc:
-            if getattr(signal.getsignal(signal.SIGINT), "received", False):
-                raise KeyboardInterrupt from None
-            err.print(f"[bold red]error:[/] {escape(os_error_line(exc))}", highlight=False,
-                      soft_wrap=True)
-            sys.exit(2)
-        except Exception:
+        except Exception as exc:
             # after a Ctrl-C, an error from a library interrupted mid-import (numpy's C core
             # raises ImportError) is the interrupt (_adalio_entry.StickyInterrupt remembers it)
             if getattr(signal.getsignal(signal.SIGINT), "received", False):
                 raise KeyboardInterrupt from None
-            raise
+            if not isinstance(exc, OSError):
+                raise
+            err.print(f"[bold red]error:[/] {escape(os_error_line(exc))}", highlight=False,
+                      soft_wrap=True)
+            sys.exit(2)
         code = code if isinstance(code, int) else 0
         if getattr(signal.getsignal(signal.SIGINT), "received", False):
             code = 130  # a Ctrl-C that an import swallowed (_adalio_entry.StickyInterrupt)

@@ -217,12 +217,10 @@ def test_imu_bias_scale_scales_the_biases_alone():
     t_ns = np.arange(4000, dtype=np.int64) * 2_500_000
     out = {k: synthesize_imu(traj, t_ns, 0, np.random.default_rng(7), bias_scale=k)
            for k in (0.0, 1.0, 2.0)}
-    for name in ("gyro", "accel"):
-        bias = {k: getattr(o, f"{name}_bias_{'rad_s' if name == 'gyro' else 'm_s2'}")
-                for k, o in out.items()}
-        meas = {k: getattr(o, f"{name}_{'rad_s' if name == 'gyro' else 'm_s2'}")
-                for k, o in out.items()}
-        true = getattr(out[0.0], f"{name}_true_{'rad_s' if name == 'gyro' else 'm_s2'}")
+    for name, unit in (("gyro", "rad_s"), ("accel", "m_s2")):
+        bias = {k: getattr(o, f"{name}_bias_{unit}") for k, o in out.items()}
+        meas = {k: getattr(o, f"{name}_{unit}") for k, o in out.items()}
+        true = getattr(out[0.0], f"{name}_true_{unit}")
         assert np.all(bias[0.0] == 0.0) and np.abs(bias[1.0]).max() > 0
         np.testing.assert_allclose(bias[2.0], 2.0 * bias[1.0], rtol=1e-12, atol=0)
         white = {k: meas[k] - true - bias[k] for k in out}
