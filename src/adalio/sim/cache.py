@@ -27,9 +27,10 @@ CACHE_BUDGET_GB = 20.0
 STALE_TMP_S = 24 * 3600.0
 """An unfinished generation folder this old belonged to a process that died: removed."""
 PROTECT_S = 24 * 3600.0
-"""Sequences used within this long are never evicted, whatever the cap: a benchmark that needs
+"""Sequences used within this long are not evicted to meet the cap: a benchmark that needs
 more than the cap keeps every sequence it generated while it runs (the folder then exceeds
-the cap until they age)."""
+the cap until they age). The disk's free space overrides it (:func:`evict_cache`'s
+``need_bytes``), and so does another simulator version (its sequences can never be reused)."""
 
 
 def cache_budget_bytes() -> int:
@@ -50,40 +51,57 @@ def _folder_bytes(d: Path) -> int:
 
 
 def evict_cache(root: Path, budget_bytes: int, keep: Path | None = None,
-                protect_s: float = PROTECT_S) -> list[Path]:
+                protect_s: float = PROTECT_S, need_bytes: int = 0,
+                version: str | None = None) -> list[Path]:
     """Least-recently-used eviction: delete finished sequences, the least recently used first
     (last use = the ``COMPLETE`` marker's mtime, touched on every reuse), until the folder holds
-    at most ``budget_bytes``; never ``keep`` nor a sequence used within ``protect_s``.
+    at most ``budget_bytes``; not a sequence used within ``protect_s``, unless it was made by
+    another simulator ``version`` than the given one (its key does not end in ``-v<version>``).
+    Then, while the disk has less than ``need_bytes`` free, the least recently used of the
+    rest go too, protected or not: a full disk fails every run, an evicted sequence is only
+    generated again. Nothing goes for that when even an empty cache would leave too little. Sequences of other versions go first in both passes; ``keep`` never goes.
     Unfinished folders older than a day (a generation that died) go too. Returns the folders
     removed."""
     removed: list[Path] = []
     if not root.is_dir():
         return removed
     now = time.time()
-    entries: list[tuple[float, int, Path]] = []
+    entries: list[tuple[bool, float, int, Path]] = []
     for d in root.iterdir():
         if not d.is_dir():
             continue
         marker = d / "COMPLETE"
         try:
             if marker.is_file():
-                entries.append((marker.stat().st_mtime, _folder_bytes(d), d))
+                current = version is None or d.name.endswith(f"-v{version}")
+                entries.append((current, marker.stat().st_mtime, _folder_bytes(d), d))
             elif now - d.stat().st_mtime > STALE_TMP_S:
                 shutil.rmtree(d, ignore_errors=True)
                 removed.append(d)
         except OSError:  # another process removed it meanwhile
             continue
-    total = sum(size for _, size, _ in entries)
-    for last_use, size, d in sorted(entries, key=lambda e: e[0]):
-        if total <= budget_bytes:
+    if keep is not None:
+        entries = [e for e in entries if e[3].resolve() != keep.resolve()]
+    entries.sort(key=lambda e: (e[0], e[1]))  # other versions first, then least recently used
+    total = sum(size for _, _, size, _ in entries) + (_folder_bytes(keep) if keep else 0)
+    left = []
+    for current, last_use, size, d in entries:
+        if total > budget_bytes and not (current and now - last_use < protect_s):
+            shutil.rmtree(d, ignore_errors=True)
+            removed.append(d)
+            total -= size
+        else:
+            left.append(d)
+    if need_bytes <= 0:
+        return removed
+    free = shutil.disk_usage(root).free
+    if free + sum(_folder_bytes(d) for d in left) < need_bytes:
+        return removed  # even an empty cache would not make the room: keep what is there
+    for d in left:
+        if shutil.disk_usage(root).free >= need_bytes:
             break
-        if keep is not None and d.resolve() == keep.resolve():
-            continue
-        if now - last_use < protect_s:
-            break  # sorted by last use: every later one is at least as recent
         shutil.rmtree(d, ignore_errors=True)
         removed.append(d)
-        total -= size
     return removed
 
 
@@ -105,7 +123,10 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     """Generate once (atomically: temp folder + rename + completion marker) and reuse
     (the key includes a hash of ``motion_from``'s content). After generating, the cache is
     trimmed to ``$ADALIO_SIM_CACHE_GB`` (default 20 GB) by :func:`evict_cache`, least recently
-    used first; a sequence larger than the cap on its own is still kept while it is the newest."""
+    used first; a sequence larger than the cap on its own is still kept while it is the newest.
+    Before generating, older sequences are evicted while the disk lacks the room the new one
+    needs (``generate.sequence_bytes``), even those the cap would keep; if that is not enough,
+    ``simulate`` raises an ``OSError`` (ENOSPC) before writing anything."""
     _check_args(scene, duration_s, lidar, fmt, 1.0)
     cols = lidar_model(lidar, columns).columns
     dur = "full" if duration_s is None else f"{float(duration_s):g}"
@@ -134,10 +155,14 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     budget = cache_budget_bytes()
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = final.parent / f".{key}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+
+    def make_room(need_bytes: int) -> None:
+        evict_cache(final.parent, budget, need_bytes=need_bytes, version=_code_version())
+
     try:
         simulate(scene, tmp, seed=seed, duration_s=duration_s, lidar=lidar, fmt=fmt,
                  columns=columns, imu_noise_scale=imu_noise_scale,
-                 imu_bias_scale=imu_bias_scale, motion_from=motion_from)
+                 imu_bias_scale=imu_bias_scale, motion_from=motion_from, make_room=make_room)
         (tmp / "COMPLETE").write_text("ok\n")
         if final.exists() and not (final / "COMPLETE").is_file():
             shutil.rmtree(final, ignore_errors=True)
@@ -149,5 +174,5 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
-    evict_cache(final.parent, budget, keep=final)
+    evict_cache(final.parent, budget, keep=final, version=_code_version())
     return result(final)

@@ -1,0 +1,138 @@
+"""Disk space: ``simulate`` checks for the whole sequence's room before writing, against an
+upper bound that the written bags stay under, and the sequence cache evicts to make that room
+(even sequences its cap would keep) before giving up with one ``error:`` line."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import shutil
+import sys
+import time
+from collections import namedtuple
+from pathlib import Path
+
+import pytest
+
+from adalio import cli
+from adalio.sim import generate
+from adalio.sim.cache import cached_sequence, evict_cache
+from adalio.sim.generate import SPARE_BYTES, sequence_bytes, simulate
+
+Usage = namedtuple("Usage", "total used free")
+
+
+def _bytes(path: Path) -> int:
+    if path.is_file():
+        return path.stat().st_size
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "ros2", "mcap"])
+def test_written_bags_stay_within_the_estimated_size(tmp_path: Path, fmt: str) -> None:
+    """The estimate is an upper bound of what is written, in every format, without its spare
+    room: the free-space check never lets a generation run out of disk on the bag alone."""
+    res = simulate("corridor", tmp_path / fmt, duration_s=1.5, columns=64, fmt=fmt)
+    meta = json.loads(res.meta_path.read_text())
+    bound = sequence_bytes(meta["n_scans"], meta["columns"], meta["channels"], meta["n_imu"])
+    written = _bytes(res.bag_path)
+    assert written <= bound - SPARE_BYTES, (written, bound - SPARE_BYTES)
+    if fmt != "mcap":  # and a close one where nothing is compressed: indoors most beams return
+        assert written >= 0.8 * (bound - SPARE_BYTES)
+
+
+def test_simulate_refuses_before_writing_when_the_disk_lacks_room(tmp_path, monkeypatch):
+    seen = []
+    monkeypatch.setattr(generate.shutil, "disk_usage", lambda p: Usage(10**12, 0, 10**6))
+    out = tmp_path / "seq"
+    with pytest.raises(OSError) as info:
+        simulate("hall", out, duration_s=2.0, columns=128, make_room=seen.append)
+    assert info.value.errno == errno.ENOSPC and info.value.filename == str(out)
+    assert "not enough free space" in info.value.strerror
+    assert len(seen) == 1 and seen[0] > SPARE_BYTES  # make_room was asked for the same size
+    assert not any(out.iterdir())  # nothing written, no partial bag
+
+
+def test_cli_simulate_without_room_is_one_error_line(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(generate.shutil, "disk_usage", lambda p: Usage(10**12, 0, 10**6))
+    out = tmp_path / "seq"
+    monkeypatch.setattr(sys, "argv", ["adalio", "simulate", "--scene", "hall", "--duration",
+                                      "2", "--columns", "128", "--out", str(out)])
+    with pytest.raises(SystemExit) as info:
+        cli.main()
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "Traceback" not in err
+    errors = [ln for ln in err.splitlines() if ln.startswith("error:")]
+    assert len(errors) == 1, err
+    assert str(out) in errors[0] and "not enough free space" in errors[0]
+    assert "free space or write elsewhere (--out)" in errors[0]
+
+
+def _entry(root: Path, name: str, n_bytes: int, last_use_s: float) -> Path:
+    d = root / name
+    d.mkdir(parents=True)
+    (d / "data.bin").write_bytes(b"x" * n_bytes)
+    (d / "COMPLETE").write_text("ok\n")
+    os.utime(d / "COMPLETE", (last_use_s, last_use_s))
+    return d
+
+
+def _small_disk(monkeypatch, root: Path, capacity: int) -> None:
+    """The cache's disk as a disk of ``capacity`` bytes holding only the cache folder."""
+    def usage(path):
+        used = _bytes(root)
+        return Usage(capacity, used, capacity - used)
+
+    import adalio.sim.cache as cache_mod
+
+    monkeypatch.setattr(cache_mod.shutil, "disk_usage", usage)
+
+
+def test_eviction_makes_room_on_the_disk_before_the_cap(tmp_path, monkeypatch):
+    now = time.time()
+    root = tmp_path / "sim"
+    a = _entry(root, "a-v1", 40_000, now - 30)
+    b = _entry(root, "b-v1", 40_000, now - 20)
+    c = _entry(root, "c-v1", 40_000, now - 10)
+    _small_disk(monkeypatch, root, 150_000)  # about 30 kB free
+    # every entry is within the cap and used within the protection window: the cap keeps all
+    assert evict_cache(root, 10**9, need_bytes=0, version="1") == []
+    # room for 60 kB: the least recently used go until it is there, protected or not
+    removed = evict_cache(root, 10**9, need_bytes=60_000, version="1")
+    assert removed == [a] and not a.exists() and b.exists() and c.exists()
+    assert shutil.disk_usage(root).free >= 60_000
+    # more than an empty cache would give: nothing goes for it (the caller's check reports)
+    assert evict_cache(root, 10**9, need_bytes=10**9, version="1") == []
+    assert b.exists() and c.exists()
+
+
+def test_another_simulator_version_goes_first_and_unprotected(tmp_path):
+    now = time.time()
+    root = tmp_path / "sim"
+    old = _entry(root, "hall-s0-vdeadbeef", 30_000, now - 5)  # used seconds ago
+    cur_a = _entry(root, "hall-s0-v12345678", 30_000, now - 50)
+    cur_b = _entry(root, "hall-s1-v12345678", 30_000, now - 40)
+    sizes = _bytes(cur_a) + _bytes(cur_b)
+    removed = evict_cache(root, sizes + 100, version="12345678")
+    assert removed == [old] and cur_a.exists() and cur_b.exists()
+    # without a version every folder counts as current: a recent one is protected
+    again = _entry(root, "hall-s0-vdeadbeef", 30_000, now - 5)
+    assert evict_cache(root, sizes + 100) == [] and again.exists()
+
+
+def test_cached_sequence_evicts_for_room_then_reports_what_is_missing(tmp_path, monkeypatch):
+    monkeypatch.setenv("ADALIO_CACHE_DIR", str(tmp_path))
+    first = cached_sequence("corridor", duration_s=1.0, columns=36)
+    root = first.bag_path.parent.parent
+    need = sequence_bytes(10, 36, 32, 401)  # 1 s: 10 sweeps, 401 IMU samples
+    # a disk with room for the new sequence only once the first one is gone
+    _small_disk(monkeypatch, root, _bytes(root) + need - 1)  # shutil: generate's too
+    second = cached_sequence("corridor", seed=1, duration_s=1.0, columns=36)
+    assert second.bag_path.is_file() and not first.bag_path.exists()
+    # a disk that cannot hold it even empty: an ENOSPC in the cache, nothing evicted for it
+    _small_disk(monkeypatch, root, need // 2)
+    with pytest.raises(OSError) as info:
+        cached_sequence("corridor", seed=2, duration_s=1.0, columns=36)
+    assert info.value.errno == errno.ENOSPC and str(root) in info.value.filename
+    assert [p.name for p in root.iterdir()] == [second.bag_path.parent.name]  # no temp folder
