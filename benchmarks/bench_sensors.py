@@ -47,7 +47,8 @@ from adalio.eval.metrics import ate, sigma_consistency
 from adalio.pipeline import run_bag
 from adalio.sim import cached_sequence
 
-LIDARS = {"xt32-512": ("xt32", 512), "xt32-2000": ("xt32", 2000), "os1-64": ("ouster64", None)}
+LIDARS = {"xt32-512": ("xt32", 512), "xt32-2000": ("xt32", 2000), "os1-64": ("ouster64", None),
+          "vlp16": ("vlp16", None)}
 TARGET_POSES = {"still": 0.95, "moving": 0.90}
 TARGET_HALL_ATE_M = {"still": 0.01, "moving": 0.02}
 MAX_ATE_M = 1.0

@@ -41,7 +41,8 @@ def _read_all(res):
     return meta, cfg, counts, scans, imus
 
 
-@pytest.mark.parametrize("fmt,lidar", [("ros1", "xt32"), ("ros2", "xt32"), ("mcap", "ouster64")])
+@pytest.mark.parametrize("fmt,lidar", [("ros1", "xt32"), ("ros2", "xt32"), ("mcap", "ouster64"),
+                                       ("ros1", "vlp16")])
 def test_bag_reads_back_with_the_right_counts(tmp_path, fmt, lidar):
     res = simulate("corridor", tmp_path, duration_s=1.6, lidar=lidar, fmt=fmt, columns=90,
                    seed=2)
@@ -51,10 +52,10 @@ def test_bag_reads_back_with_the_right_counts(tmp_path, fmt, lidar):
     assert meta["n_scans"] == 16 and meta["n_imu"] == int(1.6 * 400) + 1
     assert len(scans) == meta["n_scans"]
     assert sum(len(b) for b in imus) == meta["n_imu"]
-    channels = 32 if lidar == "xt32" else 64
+    channels = {"xt32": 32, "ouster64": 64, "vlp16": 16}[lidar]
     valid = [np.count_nonzero(np.linalg.norm(s.points_lidar, axis=1) > 0) for s in scans]
     assert 0.7 * 90 * channels < np.mean(valid) <= 90 * channels
-    if lidar == "xt32":
+    if lidar != "ouster64":  # unorganized clouds of valid returns
         assert sum(len(s) for s in scans) == meta["n_points"]
     for k, s in enumerate(scans):
         stamp = meta["start_time_ns"] + k * 100_000_000
@@ -78,6 +79,22 @@ def test_bag_reads_back_with_the_right_counts(tmp_path, fmt, lidar):
              "offsets": [0, 20, 26], "itemsize": 48})).reshape(64, 90)
         assert np.all(np.diff(rec["t"].astype(np.int64), axis=1) > 0)
         assert rec["t"].max() < 100_000_000 and np.all(rec["ring"] == np.arange(64)[:, None])
+    if lidar == "vlp16":
+        from rosbags.highlevel import AnyReader
+
+        with AnyReader([res.bag_path]) as reader:
+            conn = next(c for c in reader.connections if c.topic == "/velodyne_points")
+            msg = reader.deserialize(next(reader.messages([conn]))[2], conn.msgtype)
+        assert (msg.height, msg.point_step) == (1, 22)
+        fields = {f.name: (f.offset, f.datatype) for f in msg.fields}
+        assert fields["ring"] == (16, 4) and fields["time"] == (18, 7)  # u16, f32 (packed)
+        rec = np.frombuffer(msg.data.tobytes(), dtype=np.dtype(
+            {"names": ["x", "y", "z", "ring", "time"], "formats": ["<f4"] * 3 + ["<u2", "<f4"],
+             "offsets": [0, 4, 8, 16, 18], "itemsize": 22}))
+        assert 0.0 <= rec["time"].min() and rec["time"].max() < 0.1  # s after the header stamp
+        elevation = np.degrees(np.arctan2(rec["z"], np.hypot(rec["x"], rec["y"])))
+        for ring in (0, 15):  # the driver's numbering: ring 0 is the lowest beam (-15 deg)
+            assert abs(np.median(elevation[rec["ring"] == ring]) - (-15 + 2 * ring)) < 0.5
     acc = np.concatenate([b.accel_m_s2 for b in imus])
     assert abs(np.linalg.norm(acc[:400].mean(axis=0)) - 9.81) < 0.1
 
@@ -101,6 +118,10 @@ def test_config_is_accepted_and_meta_is_complete(tmp_path):
     res = simulate("hall", tmp_path, duration_s=1.0, columns=36, lidar="ouster64")
     cfg = load_config(config_file=res.config_path)
     assert cfg.sensor.point_time_field == "t" and cfg.sensor.point_time_reference == "relative"
+    # the simulated IMU is the HILTI BMI085 whatever the LiDAR: described as hilti2022 does,
+    # not with the ouster preset's generic values
+    hilti = load_config("hilti2022").imu
+    assert cfg.imu == hilti and load_config("ouster").imu != hilti
     meta = json.loads(res.meta_path.read_text())
     for key in ("scene", "seed", "duration_s", "topics", "T_imu_lidar", "start_time_ns",
                 "lidar"):

@@ -7,7 +7,10 @@ of valid returns only, column-major; fields x, y, z (f32 @0,4,8), intensity (f32
 x, y, z (f32), intensity (f32 @16), t (u32 ns relative to the header stamp @20), reflectivity
 (u16 @24), ring (u16 @26), ambient (u16 @28), range (u32 mm @32), point_step 48. Header stamp =
 sweep start; the bag record time of a sweep is its end. sensor_msgs/Imu: orientation unknown
-(covariance[0] = -1). mcap bags are written with zstd-compressed chunks (about 4x smaller for
+(covariance[0] = -1). Velodyne VLP-16 (``/velodyne_points``, the ROS driver's ``PointXYZIRT``):
+unorganized cloud of valid returns, packed fields x, y, z, intensity (f32 @0,4,8,12), ring (u16
+@16, 0 = the lowest beam as the driver numbers them), time (f32 seconds relative to the header
+stamp @18), point_step 22. mcap bags are written with zstd-compressed chunks (about 4x smaller for
 simulated clouds; rosbags, ros2 bag and Foxglove read them transparently).
 """
 
@@ -29,7 +32,11 @@ XT32_LAYOUT = [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("intensity", 16,
 OUSTER_LAYOUT = [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("intensity", 16, "f4"),
                  ("t", 20, "u4"), ("reflectivity", 24, "u2"), ("ring", 26, "u2"),
                  ("ambient", 28, "u2"), ("range", 32, "u4")]
+VELODYNE_LAYOUT = [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("intensity", 12, "f4"),
+                   ("ring", 16, "u2"), ("time", 18, "f4")]
 POINT_STEP = 48
+"""Bytes a point of the XT-32 and Ouster layouts; the largest of all layouts."""
+VELODYNE_POINT_STEP = 22
 
 
 def bag_path_for(out_dir: Path, stem: str, fmt: str) -> Path:
@@ -123,14 +130,21 @@ class SimBagWriter:
             v = sweep.valid
             cols = {"x": sweep.xyz_lidar_m[v, 0], "y": sweep.xyz_lidar_m[v, 1],
                     "z": sweep.xyz_lidar_m[v, 2], "intensity": sweep.intensity[v],
-                    "timestamp": sweep.t_ns[v] * 1e-9, "ring": sweep.ring[v]}
+                    "ring": sweep.ring[v]}
             layout, height, width, dense = XT32_LAYOUT, 1, int(v.sum()), True
-        data, fields = encode_pointcloud2(cols, layout, POINT_STEP)
+            if self.model.name == "vlp16":
+                cols["ring"] = (self.model.channels - 1 - sweep.ring[v]).astype(np.uint16)
+                cols["time"] = ((sweep.t_ns[v] - stamp_ns) * 1e-9).astype(np.float32)
+                layout = VELODYNE_LAYOUT
+            else:
+                cols["timestamp"] = sweep.t_ns[v] * 1e-9
+        step = VELODYNE_POINT_STEP if layout is VELODYNE_LAYOUT else POINT_STEP
+        data, fields = encode_pointcloud2(cols, layout, step)
         msg = self._Cloud(
             header=self._header("lidar", stamp_ns, self.model.lidar_frame), height=height,
             width=width,
             fields=[self._Field(name=n, offset=o, datatype=d, count=c) for n, o, d, c in fields],
-            is_bigendian=False, point_step=POINT_STEP, row_step=POINT_STEP * width,
+            is_bigendian=False, point_step=step, row_step=step * width,
             data=np.frombuffer(data, dtype=np.uint8), is_dense=dense)
         self._writer.write(self._conn_lidar, record_ns,
                            self._serialize(msg, "sensor_msgs/msg/PointCloud2"))

@@ -22,7 +22,7 @@ import trimesh
 import yaml
 from scipy.spatial.transform import Rotation
 
-from adalio.config import validate_transform
+from adalio.config import preset_dict, validate_transform
 from adalio.errors import InputError
 from adalio.sim.bagout import FORMATS, POINT_STEP, SimBagWriter, bag_path_for
 from adalio.sim.imu import GRAVITY_M_S2, ImuNoise, synthesize_imu
@@ -134,12 +134,21 @@ def mesh_distance_m(caster: RayCaster, points: np.ndarray, n_dirs: int = 256) ->
 
 
 def _config_dict(model_name: str, model, T_imu_lidar: np.ndarray) -> dict:
+    """The sequence's ``config.yaml``: the LiDAR's preset with the rig's topics, extrinsic and
+    point time. Every model is simulated with the same IMU, the HILTI BMI085, so every config
+    describes it as ``hilti2022`` does (its ``imu`` section): the generic presets' IMU values are
+    Faster-LIO's, not this IMU's (README, Presets), and the LiDAR is then the only thing that
+    changes between the models' sequences."""
     sensor = {"lidar_topic": model.lidar_topic, "imu_topic": model.imu_topic,
               "T_imu_lidar": np.asarray(T_imu_lidar).tolist(), "extrinsic_source": "config",
               "imu_rate_hz": IMU_RATE_HZ, "lidar_rate_hz": model.rate_hz}
+    imu = preset_dict("hilti2022")["imu"]
     if model_name == "ouster64":
         sensor.update(point_time_field="t", point_time_unit="ns", point_time_reference="relative")
-        return {"preset": "ouster", "sensor": sensor}
+        return {"preset": "ouster", "sensor": sensor, "imu": imu}
+    if model_name == "vlp16":
+        sensor.update(point_time_field="time", point_time_unit="s", point_time_reference="relative")
+        return {"preset": "velodyne", "sensor": sensor, "imu": imu}
     sensor.update(point_time_field="timestamp", point_time_unit="s",
                   point_time_reference="absolute")
     return {"preset": "hilti2022", "sensor": sensor}

@@ -58,7 +58,14 @@ OUSTER64 = LidarModel(name="ouster64", elevations_deg=tuple(np.linspace(22.5, -2
                       lidar_frame="os_lidar", imu_frame="os_imu")
 """Ouster OS0/OS1-64-like: 64 beams +-22.5 deg, 1024 columns, 10 Hz."""
 
-LIDAR_MODELS = {"xt32": XT32, "ouster64": OUSTER64}
+VLP16 = LidarModel(name="vlp16", elevations_deg=tuple(np.linspace(15.0, -15.0, 16)),
+                   columns=1800, azimuth0_deg=0.0, max_range_m=100.0, range_noise_m=0.02,
+                   lidar_topic="/velodyne_points", imu_topic="/imu/data",
+                   lidar_frame="velodyne", imu_frame="imu_link")
+"""Velodyne VLP-16 (Puck): 16 beams +-15 deg every 2 deg, 1800 columns (0.2 deg) at 10 Hz, range
+accuracy +-3 cm (2σ). A handheld rig adds its own IMU (here the same BMI085 model)."""
+
+LIDAR_MODELS = {"xt32": XT32, "ouster64": OUSTER64, "vlp16": VLP16}
 
 
 def lidar_model(name: str, columns: int | None = None) -> LidarModel:
