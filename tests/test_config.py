@@ -47,3 +47,31 @@ def test_non_rotation_extrinsic_rejected():
 def test_wrong_type_names_key():
     with pytest.raises(ConfigError, match="filter.max_iterations"):
         load_config(overrides={"filter.max_iterations": "many"})
+
+
+def test_generic_imu_noise_is_named_in_the_init_line(tmp_path):
+    """The generic presets keep Faster-LIO's IMU densities, which cost the shafts their track
+    (README, Presets): a run on them says so in its initialization line; a config with an IMU's
+    own densities (hilti2022, or a simulated sequence's) or measured white noise does not."""
+    from dataclasses import replace
+
+    from adalio.config import imu_noise_is_generic
+    from adalio.pipeline import run_bag
+    from adalio.sim import simulate
+
+    for name in ("velodyne", "ouster", "hesai_xt32"):
+        assert imu_noise_is_generic(load_config(name).imu), name
+    assert not imu_noise_is_generic(load_config("hilti2022").imu)
+    generic = load_config("velodyne").imu
+    assert not imu_noise_is_generic(replace(generic, noise_source="measured"))
+    assert not imu_noise_is_generic(replace(generic, accel_bias_cov=1.85e-5))
+
+    seq = simulate("hall", tmp_path / "seq", duration_s=3.0, columns=180, lidar="vlp16")
+    own = load_config(config_file=seq.config_path)
+    assert not imu_noise_is_generic(own.imu)  # the sequence describes its IMU
+    lines = {}
+    for label, cfg in (("own", own), ("generic", replace(own, imu=generic))):
+        res = run_bag(seq.bag_path, cfg, tmp_path / label, progress=False)
+        assert res.n_scans > 0
+        lines[label] = res.init_report.describe()
+    assert "generic values" in lines["generic"] and "generic values" not in lines["own"]

@@ -659,6 +659,21 @@ def _coerce(current: Any, value: Any, path: str) -> Any:
     raise ConfigError(f"config key '{path}' expects a {type(current).__name__} (got {value!r})")
 
 
+GENERIC_IMU_FIELDS = ("noise_discretization", "gyro_cov", "accel_cov", "gyro_bias_cov",
+                      "accel_bias_cov")
+"""The IMU densities whose defaults are Faster-LIO's generic values, kept by the generic presets."""
+
+
+def imu_noise_is_generic(imu_cfg: ImuConfig) -> bool:
+    """True when the filter's IMU noise is Faster-LIO's generic values (``ImuConfig``'s
+    defaults, which the generic presets keep) rather than an IMU's own: every density and the
+    discretization at its default, the white noise not measured. In shafts and stairwells they
+    cost 2-3x the ATE or the track (README, Presets)."""
+    default = ImuConfig()
+    return imu_cfg.noise_source == "config" and all(
+        getattr(imu_cfg, k) == getattr(default, k) for k in GENERIC_IMU_FIELDS)
+
+
 def available_presets() -> list[str]:
     root = resources.files("adalio") / "presets"
     return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".yaml"))

@@ -145,6 +145,9 @@ class InitReport:
     """Static: accelerometer white-noise density measured in the still window."""
     noise_used: str = "config"
     """Which densities the filter uses: 'config' or 'measured'."""
+    generic_noise: bool = False
+    """The config's densities are Faster-LIO's generic values (``config.imu_noise_is_generic``):
+    the summary line says to set the IMU's own."""
     detail: str = ""
     """The stillness test's figures (static) or the fit's (moving)."""
     wait_s: float = float("nan")
@@ -178,7 +181,11 @@ class InitReport:
         text = f"{self.method} start, gyro bias ({bias}) rad/s"
         if np.isfinite(self.accel_norm_m_s2):
             text += f", mean |accel| {self.accel_norm_m_s2:.3f}"
-        text += f"; the filter uses the {self.noise_used} noise densities; {self.detail}"
+        text += f"; the filter uses the {self.noise_used} noise densities"
+        if self.generic_noise:
+            text += (" (Faster-LIO's generic values, not this IMU's: set its own imu.gyro_cov, "
+                     "accel_cov and bias walks, README Presets)")
+        text += f"; {self.detail}"
         if self.scans_without_pose:
             text += (f"; first filter pose {self.wait_s:.1f} s after the first scan "
                      f"({self.scans_without_pose} scans read before it, {self.backfilled} of "

@@ -50,7 +50,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from adalio.config import Config
+from adalio.config import Config, imu_noise_is_generic
 from adalio.errors import InputError
 from adalio.jit import kernel
 from adalio.lio import imu, so3
@@ -854,7 +854,8 @@ class Odometry:
             accel_norm_m_s2=float(np.linalg.norm(acc_mean)),
             gyro_noise_rad_s_sqrt_hz=test.gyro_noise_rad_s_sqrt_hz,
             accel_noise_m_s2_sqrt_hz=test.accel_noise_m_s2_sqrt_hz,
-            noise_used=cfg.noise_source, detail=test.describe(), **wait)
+            noise_used=cfg.noise_source, generic_noise=imu_noise_is_generic(cfg),
+            detail=test.describe(), **wait)
 
     def _moving_initialize(self, fit) -> np.ndarray:
         """Hand the moving-start fit (``motion_init.MovingInitResult``) over to the filter."""
@@ -882,6 +883,7 @@ class Odometry:
             method="moving", t_ns=fit.t_ns, gyro_bias_rad_s=fit.gyro_bias_rad_s.copy(),
             gravity_imu_m_s2=fit.R_world_imu.T @ fit.gravity_world_m_s2,
             window_s=fit.window_s, noise_used="config",
+            generic_noise=imu_noise_is_generic(self.cfg.imu),
             detail=(f"{fit.n_scans} scans over {fit.window_s:.1f} s, position residual "
                     f"{fit.residual_m * 100:.1f} cm RMS, unconstrained |g| "
                     f"{fit.gravity_norm_fit_m_s2:.2f} m/s^2"), **wait)
