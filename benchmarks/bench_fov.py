@@ -37,21 +37,13 @@ def register_wide_model() -> None:
     LIDAR_MODELS[WIDE] = replace(XT32, name=WIDE, elevations_deg=elevations)
 
 
-def _sorted_tum(path: Path) -> Path:
-    """The trajectory in time order (the backfill's poses are written after the filter's first)."""
-    m = np.loadtxt(path)
-    out = path.with_name("trajectory_sorted.tum")
-    np.savetxt(out, m[np.argsort(m[:, 0], kind="stable")], fmt="%.9f")
-    return out
-
-
 def run_one(scene: str, seed: int, lidar: str, columns: int, out: Path) -> dict:
     seq = cached_sequence(scene, seed=seed, lidar=lidar, columns=columns)
     cfg = load_config(None, seq.config_path)
-    run = out / f"{scene}_s{seed}_{lidar}"
-    run_bag(seq.bag_path, cfg, run, progress=False)
-    est = _sorted_tum(run / "trajectory.tum")
-    within = sigma_consistency(est, seq.gt_path, read_scans_csv(run / "scans.csv")).within_3sigma
+    res = run_bag(seq.bag_path, cfg, out / f"{scene}_s{seed}_{lidar}", progress=False)
+    est = res.trajectory_path  # written in time order
+    within = sigma_consistency(est, seq.gt_path,
+                               read_scans_csv(res.scans_csv_path)).within_3sigma
     return {"ate_m": ate(est, seq.gt_path, "se3")["rmse_m"],
             "max_first_m": ate(est, seq.gt_path, "first")["max_m"], "z_within": within[2]}
 

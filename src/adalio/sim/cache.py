@@ -59,7 +59,8 @@ def evict_cache(root: Path, budget_bytes: int, keep: Path | None = None,
     another simulator ``version`` than the given one (its key does not end in ``-v<version>``).
     Then, while the disk has less than ``need_bytes`` free, the least recently used of the
     rest go too, protected or not: a full disk fails every run, an evicted sequence is only
-    generated again. Nothing goes for that when even an empty cache would leave too little. Sequences of other versions go first in both passes; ``keep`` never goes.
+    generated again. Nothing goes for that when even an empty cache would leave too little.
+    Sequences of other versions go first in both passes; ``keep`` never goes.
     Unfinished folders older than a day (a generation that died) go too. Returns the folders
     removed."""
     removed: list[Path] = []
@@ -84,20 +85,20 @@ def evict_cache(root: Path, budget_bytes: int, keep: Path | None = None,
         entries = [e for e in entries if e[3].resolve() != keep.resolve()]
     entries.sort(key=lambda e: (e[0], e[1]))  # other versions first, then least recently used
     total = sum(size for _, _, size, _ in entries) + (_folder_bytes(keep) if keep else 0)
-    left = []
+    left: list[tuple[int, Path]] = []
     for current, last_use, size, d in entries:
         if total > budget_bytes and not (current and now - last_use < protect_s):
             shutil.rmtree(d, ignore_errors=True)
             removed.append(d)
             total -= size
         else:
-            left.append(d)
+            left.append((size, d))
     if need_bytes <= 0:
         return removed
     free = shutil.disk_usage(root).free
-    if free + sum(_folder_bytes(d) for d in left) < need_bytes:
+    if free + sum(size for size, _ in left) < need_bytes:
         return removed  # even an empty cache would not make the room: keep what is there
-    for d in left:
+    for _, d in left:
         if shutil.disk_usage(root).free >= need_bytes:
             break
         shutil.rmtree(d, ignore_errors=True)
