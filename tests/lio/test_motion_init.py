@@ -1,6 +1,7 @@
 """The moving start's fit covariance against brute force (Monte Carlo over noisy fits)."""
 
 import numpy as np
+import pytest
 
 from adalio.lio.motion_init import _lsq_covariance
 
@@ -61,3 +62,85 @@ def test_handover_gravity_covariance_is_the_fit_s_on_the_sphere_tangent():
                                                                              np.diag(S))).max())
     # 0.6-1.8° of tilt, where the still start's P0 claims 0.18°
     assert np.all(np.sqrt(np.diag(P[G, G])) > np.deg2rad(0.5))
+
+
+# --- the nested-window check (motion_init step 3c) against a walk known in closed form --------
+
+G_WORLD = np.array([0.0, 0.0, -9.81])
+OMEGA = np.array([0.05, -0.08, 0.25])
+"""Constant body rate (rad/s): R(t) = R_START Exp(OMEGA t)."""
+B_GYRO = np.array([0.003, -0.002, 0.001])
+
+
+def _walk(t):
+    """Position, acceleration (world, z up) and attitude of a walk at 0.9 m/s along x."""
+    from adalio.lio import so3
+
+    t = np.atleast_1d(np.asarray(t, float))
+    p = np.stack([0.9 * t + 0.1 * np.sin(1.7 * t), 0.2 * np.sin(1.1 * t),
+                  0.05 * np.sin(2.3 * t)], -1)
+    a = np.stack([-0.1 * 1.7**2 * np.sin(1.7 * t), -0.2 * 1.1**2 * np.sin(1.1 * t),
+                  -0.05 * 2.3**2 * np.sin(2.3 * t)], -1)
+    R0 = so3.exp(np.array([0.1, -0.05, 0.4]))
+    return p, a, np.array([R0 @ so3.exp(OMEGA * ti) for ti in t])
+
+
+def _registrar(t_end_s: float, slide_m: float, seed: int):
+    """A MovingInit fed the walk's IMU (400 Hz, noisy) and its registrations at 10 Hz (5 mm,
+    1 mrad noise) up to ``t_end_s``; the registrations slide along x by ``slide_m`` sin(πt),
+    the way a registration slides along a corridor's axis (period 2 s)."""
+    from adalio.config import Config
+    from adalio.lio import so3
+    from adalio.lio.motion_init import MovingInit, _Registered
+
+    rng = np.random.default_rng(seed)
+    mi = MovingInit(Config(), np.eye(3), np.zeros(3))
+    t_imu = np.arange(0.0, t_end_s + 0.05, 1 / 400)
+    _, a, R = _walk(t_imu)
+    accel = np.einsum("nji,nj->ni", R, a - G_WORLD) + rng.normal(scale=0.01, size=a.shape)
+    gyro = OMEGA + B_GYRO + rng.normal(scale=1e-3, size=a.shape)
+    mi.add_imu(np.round(t_imu * 1e9).astype(np.int64), gyro, accel)
+    ts = np.arange(0.1, t_end_s + 1e-9, 0.1)
+    p, _, R = _walk(ts)
+    p = p + np.outer(slide_m * np.sin(np.pi * ts), [1.0, 0.0, 0.0])
+    p = p + rng.normal(scale=0.005, size=p.shape)
+    R = np.array([r @ so3.exp(rng.normal(scale=1e-3, size=3)) for r in R])
+    mi.scans = [_Registered(round(float(t) * 1e9), r, q, 1.0) for t, r, q in zip(ts, R, p)]
+    pts = rng.normal(size=(20, 3)) + np.array([5.0, 0.0, 0.0])
+    t_pts = np.round(np.linspace(ts[-1] - 0.1, ts[-1], 20) * 1e9).astype(np.int64)
+    mi.last_points, mi._last_scan = pts, (pts, t_pts)
+    return mi
+
+
+def _tilt_deg(g: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip(g @ G_WORLD / np.linalg.norm(g) / 9.81, -1, 1))))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_sliding_registration_that_fits_one_window_is_refused_by_the_nested_window(seed):
+    """Against the walk's true gravity: a registration sliding 5 cm along x (2 s period) passes
+    the one-window fit's tests with the same residual as a clean one (under 1 cm) but gravity
+    2-3° off; the fit over two windows has it right, disagrees, and the start is refused. The
+    same registrations without the slide are accepted, gravity within 0.5°."""
+    slid = _registrar(3.0, 0.05, seed)
+    one = slid._fit(slid._window(1))
+    assert not isinstance(one, str)  # the one-window tests pass...
+    assert one.residual < 0.01 and _tilt_deg(one.g) > 2.0  # ...with gravity 2-3° off
+    two = slid._fit(slid._window(2))
+    assert not isinstance(two, str) and _tilt_deg(two.g) < 0.3
+    assert slid.solve() is None and not slid.waiting
+    assert "disagrees with the fit over 2 s" in slid.failure
+    clean = _registrar(3.0, 0.0, seed)
+    fit = clean.solve()
+    assert fit is not None, clean.failure
+    assert _tilt_deg(fit.gravity_world_m_s2) < 0.5
+    assert fit.window_s == pytest.approx(1.0, abs=0.05)
+
+
+def test_the_nested_window_waits_for_two_windows_of_registrations():
+    """Registrations over 1.5 s: the one-window fit exists, but the start waits (not a refused
+    fit) until they span twice imu.moving_init_window_s."""
+    mi = _registrar(1.6, 0.0, 0)
+    assert not isinstance(mi._fit(mi._window(1)), str)
+    assert mi.solve() is None and mi.waiting
+    assert "the registrations span 1.5 s" in mi.failure

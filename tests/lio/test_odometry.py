@@ -201,25 +201,28 @@ def test_motion_is_not_taken_for_rest():
 
 @pytest.mark.parametrize("align", [False, True])
 def test_moving_start_initializes_from_registered_scans(align):
-    """The sequence starts 0.6 s into the motion: after imu.init_timeout_s the registered scans
-    give gyro bias, gravity and velocity; the estimate then tracks ground truth."""
+    """The sequence starts 0.6 s into the motion: once the registered scans span twice
+    imu.moving_init_window_s (the nested-window check), they give gyro bias, gravity and
+    velocity; the estimate then tracks ground truth."""
     cfg = _config()
     cfg.imu.init_timeout_s = 1.0
     cfg.imu.moving_init_window_s = 1.0
     cfg.imu.gravity_align_world = align
-    odom, est = _run(cfg, 4.0, 1000, seed=4, t_begin=1.6)
+    odom, est = _run(cfg, 5.0, 1000, seed=4, t_begin=1.6)
     rep = odom.init_report
     assert rep.method == "moving" and rep.window_s >= 0.8
     first = est[0]
-    assert first.t_ns * 1e-9 <= 1.6 + cfg.imu.init_timeout_s + 0.25
+    span_s = 2 * cfg.imu.moving_init_window_s
+    assert first.t_ns * 1e-9 <= 1.6 + span_s + 0.25
     assert len(est) >= 12
     # every scan before the one that gives the first pose was fed without a pose
-    starts = np.arange(1.6, 4.0, 0.1)
+    starts = np.arange(1.6, 5.0, 0.1)
     assert rep.scans_without_pose == int(np.sum(starts < first.t_ns * 1e-9 - 0.15))
     assert rep.wait_s == pytest.approx(first.t_ns * 1e-9 - 1.6, abs=1e-3)
-    # the first fit after the timeout passes on this clean walk: nothing refused
+    # the first fit over two windows passes on this clean walk: nothing refused (waiting for
+    # the span is not a refusal)
     assert rep.refused_fits == 0 and rep.last_refusal == ""
-    assert rep.wait_s < cfg.imu.init_timeout_s + 0.2
+    assert rep.wait_s < span_s + 0.2
     t = np.array([e.t_ns for e in est]) * 1e-9
     gt_p, gt_R, gt_v, *_ = trajectory(t)
     R_est = first.T_world_imu[:3, :3]
@@ -580,7 +583,7 @@ def test_moving_start_registers_with_faster_lio_planes_whatever_the_filter_uses(
         cfg = _config()
         cfg.imu.init_timeout_s = 1.0
         cfg.filter.plane_within_support = within
-        odom, est = _run(cfg, 2.9, 600, seed=4, t_begin=1.6)
+        odom, est = _run(cfg, 3.9, 600, seed=4, t_begin=1.6)
         assert odom.init_report.method == "moving" and est
         states.append((est[0].t_ns, est[0].T_world_imu, est[0].velocity_world_m_s,
                        est[0].gravity_world_m_s2))
@@ -636,7 +639,8 @@ def test_group_ids_partition_rows_by_identical_point() -> None:
 def _moving_init_first_fit(min_restoring: float = 0.6):
     """The moving-start registrar fed the room's walk from 1.6 s on (seed 4, 600 columns,
     points beyond 100 m gated as ``preprocess.max_range_m`` would), asked for a fit from 2.6 s
-    on. Returns (first fit or None, registrar, points and times of the last scan fed)."""
+    on (the nested-window check waits until 3.7 s). Returns (first fit or None, registrar,
+    points and times of the last scan fed)."""
     from adalio.lio.motion_init import MovingInit
 
     cfg = _config()
@@ -644,10 +648,11 @@ def _moving_init_first_fit(min_restoring: float = 0.6):
     cfg.imu.moving_init_window_s = 1.0
     cfg.imu.moving_init_min_restoring_ratio = min_restoring
     rng = np.random.default_rng(4)
-    t_imu, gyro, acc = imu_samples(1.6, 4.0, 400.0, rng, noise=0.01)
+    t_imu, gyro, acc = imu_samples(1.6, 5.0, 400.0, rng, noise=0.01)
     reg = MovingInit(cfg, R_LI, T_LI)
+    reg.refusals = []  # every refusal's reason, in order
     k, fit = 0, None
-    for s in np.arange(1.6, 4.0, 0.1):
+    for s in np.arange(1.6, 5.0, 0.1):
         pts, t_ns = lidar_scan(s, 600, rng)
         near = np.linalg.norm(pts, axis=1) < 100.0
         pts, t_ns = pts[near], t_ns[near]
@@ -655,8 +660,10 @@ def _moving_init_first_fit(min_restoring: float = 0.6):
         reg.add_imu(t_imu[k:hi], gyro[k:hi], acc[k:hi])
         k = hi
         reg.add_scan(pts, t_ns)
-        if s >= 2.6 - 1e-9 and (fit := reg.solve()) is not None:
-            break
+        if s >= 2.6 - 1e-9:
+            if (fit := reg.solve()) is not None:
+                break
+            reg.refusals.append(reg.failure)
     return fit, reg, pts, t_ns
 
 
@@ -688,23 +695,34 @@ def test_moving_start_is_refused_while_the_registration_cannot_vouch_for_the_vel
     """In a corridor without features along its axis the LiDAR-only registration does not see
     the motion along it, and the IMU cannot tell a constant velocity from rest: a fit over such
     registrations passes the residual test with a velocity metres per second off and a sigma of
-    centimetres per second. The restoring test of the window's registrations refuses it."""
+    centimetres per second. The restoring test of the window's registrations refuses it, and
+    so, on its own, does the nested-window check (motion_init step 3c): over two windows the
+    stuck registration no longer fits the IMU."""
     import sys
+
+    from adalio.lio.motion_init import MovingInit
 
     mod = sys.modules[__name__]
     monkeypatch.setattr(mod, "ROOM_LO", np.array([-300.0, -1.5, -1.6]))
     monkeypatch.setattr(mod, "ROOM_HI", np.array([300.0, 3.5, 3.4]))
 
-    # without the restoring test a fit passes, with the wrong velocity
-    fit, reg, *_ = _moving_init_first_fit(0.0)
+    # without the restoring test and the nested-window check a fit passes, with the wrong
+    # velocity
+    with monkeypatch.context() as m:
+        m.setattr(MovingInit, "_nested_disagreement", lambda self, short: "")
+        fit, reg, *_ = _moving_init_first_fit(0.0)
     assert fit is not None
     _, R, v, *_ = trajectory(fit.t_ns * 1e-9)
     v_err_imu = fit.R_world_imu.T @ fit.v_world_m_s - R[0].T @ v[0]
     sigma_v = np.sqrt(np.trace(fit.velocity_cov_m2_s2))
     assert np.linalg.norm(v_err_imu) > max(3 * sigma_v, 0.5)  # 0.77 m/s against 3 x 0.12
+    # the nested-window check alone refuses every window once the registrations span two
+    fit, reg, *_ = _moving_init_first_fit(0.0)
+    assert fit is None
+    assert any("over 2 s: the motion fit over 21 scans leaves" in r for r in reg.refusals)
     fit, reg, *_ = _moving_init_first_fit()  # the default: refused on every window
     assert fit is None
-    assert "cannot vouch for the velocity" in reg.failure
+    assert any("cannot vouch for the velocity" in r for r in reg.refusals)
     # in the box room the same walk restores most of the information (the fit passes there:
     # test_moving_start_initializes_from_registered_scans)
     monkeypatch.undo()

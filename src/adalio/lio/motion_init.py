@@ -28,11 +28,22 @@ of VINS-Mono:
 3b. **First map**: the last scan, which becomes the filter's first map, is deskewed again with
    the fitted motion (velocity, gravity, gyro bias) instead of the registration's
    finite-difference velocity.
+3c. **Nested windows**: the fit is accepted only once the registrations span twice the window
+   and the fit over both windows passes the same residual and ``|g|`` tests and agrees with it:
+   gravity direction and end velocity within 3σ of the short fit's covariance (chi-square at
+   99.73 %; Hausman's test of nested estimators). Over one second a registration that slides
+   smoothly along a weak direction (a corridor's axis seen by a 16-ring LiDAR) passes for a
+   quadratic, and the fit takes it into gravity and velocity: the VLP-16's corridor walks were
+   accepted with gravity 3-4° and velocity 0.4 m/s off at a 3 cm residual, and slid 0.7-0.9 m.
+   Over two seconds the slide no longer fits, and the two fits disagree.
 4. **Hand-over covariance**: the filter starts from the fit's own uncertainty, not the static
    start's generic one. Position and attitude: the RMS residuals of the two fits (the hand-over
    pose anchors the new map, so it is known to the registration's scatter); velocity at the
    window's end: the least-squares covariance ``σ² (AᵀA)⁻¹`` of the motion fit, ``σ²`` its
-   residual variance, through ``v_end = v_0 + g t`` (so gravity's share is in it). The gyro bias
+   residual variance, through ``v_end = v_0 + g t`` (so gravity's share is in it); gravity
+   and velocity also carry the accelerometer bias the fit does not model, at its P₀ (as a
+   tilt of ``σ_ba/|g|``, 0.18°, the still start's P₀ for gravity; as a velocity error of
+   ``σ_ba`` times the window). The gyro bias
    keeps the static start's P₀: the rotation residuals accumulate the gyro's noise from the
    window's first scan on, so they are correlated and their least-squares covariance is several
    times too small (measured: the bias error is 6-11 of its sigmas on the test walk).
@@ -56,7 +67,7 @@ from adalio.lio import imu, so3
 from adalio.lio.ieskf import iterated_update
 from adalio.lio.ivox import IVox
 from adalio.lio.measurement import points_to_world
-from adalio.lio.state import DIM, P_, TH, G, State, V, initial_covariance
+from adalio.lio.state import BA, DIM, P_, TH, G, State, V, initial_covariance
 from adalio.lio.voxel import voxel_downsample
 
 MIN_SCANS = 5
@@ -67,6 +78,10 @@ PRIOR_SIGMA_P_M = 0.5
 PRIOR_SIGMA_TH_RAD = 0.1
 """Loose prior of the LiDAR-only registration around the constant-velocity prediction."""
 GRAVITY_NORM_TOLERANCE = 0.1
+CHI2_2DOF_3SIGMA = 11.829
+CHI2_3DOF_3SIGMA = 14.156
+"""Chi-square quantiles at 99.73 % (the 3σ of a normal) with 2 and 3 degrees of freedom: the
+nested-window agreement test of a moving start's gravity direction and velocity (step 3c)."""
 
 
 @kernel()
@@ -135,9 +150,11 @@ class MovingInitResult:
     rotation_residual_rad: float
     """RMS of the gyro-bias fit's rotation residuals."""
     velocity_cov_m2_s2: np.ndarray
-    """(3,3) covariance of ``v_world_m_s`` (least squares of the motion fit)."""
+    """(3,3) covariance of ``v_world_m_s``: least squares of the motion fit, plus the
+    accelerometer bias's P₀ variance times the window squared (the fit does not model it)."""
     gravity_cov_m2_s4: np.ndarray
-    """(3,3) covariance of the unconstrained gravity of the motion fit (least squares)."""
+    """(3,3) covariance of the unconstrained gravity of the motion fit: least squares, plus the
+    accelerometer bias's P₀ variance (it passes for a tilt, as in a still start)."""
 
 
 @dataclass
@@ -148,6 +165,26 @@ class _Registered:
     restoring: float = float("nan")
     """Restoring ratio of the registration along its weakest translation (NaN: not
     registered, or not probed)."""
+
+
+@dataclass
+class _Fit:
+    """One motion fit (steps 2-3) over the registered scans ``win``."""
+
+    win: list[_Registered]
+    R0: np.ndarray
+    b_g: np.ndarray
+    g: np.ndarray
+    """Gravity scaled to imu.gravity_m_s2 (world = IMU at the first registered scan)."""
+    g_norm: float
+    """The unconstrained fit's |g|."""
+    v0: np.ndarray
+    v_end: np.ndarray
+    residual: float
+    rot_rms: float
+    span_s: float
+    v_cov: np.ndarray
+    g_cov: np.ndarray
 
 
 class MovingInit:
@@ -175,6 +212,9 @@ class MovingInit:
         """The last registered scan as handed in (points, times), to deskew it again with the
         fitted motion (:meth:`solve`); it was deskewed from the registered scan before it."""
         self.failure = "no scan registered yet"
+        self.waiting = False
+        """True when the last :meth:`solve` found too short a span of registrations for the
+        nested-window check (step 3c): waiting, not a refused fit."""
         self.last_t_ns = np.iinfo(np.int64).min
         """End of the latest scan handed in (int64 ns)."""
 
@@ -302,19 +342,99 @@ class MovingInit:
 
     # ------------------------------------------------------------------ alignment
     def solve(self) -> MovingInitResult | None:
-        """Fit gyro bias, gravity and velocity over the last ``moving_init_window_s``."""
+        """Fit gyro bias, gravity and velocity over the last ``moving_init_window_s``, and
+        accept the fit only if the fit over twice that window agrees with it (step 3c)."""
         cfg = self.cfg.imu
+        self.waiting = False
         if len(self.scans) < MIN_SCANS:
             self.failure = (f"{len(self.scans)} scans registered, the fit needs {MIN_SCANS}")
             return None
-        t_last = self.scans[-1].t_ns
-        win = [s for s in self.scans if s.t_ns >= t_last - round(cfg.moving_init_window_s * 1e9)]
-        if len(win) < MIN_SCANS:
-            win = self.scans[-MIN_SCANS:]
-        t0 = win[0].t_ns
-        if self.imu_t_ns[0] > t0:
+        if self.imu_t_ns[0] > self._window(1)[0].t_ns:
             self.failure = "IMU samples missing in the window"
             return None
+        short = self._fit(self._window(1))
+        if isinstance(short, str):
+            self.failure = short
+            return None
+        probed = np.array([s.restoring for s in short.win if np.isfinite(s.restoring)])
+        restoring = float(np.median(probed)) if probed.size else 0.0
+        need = cfg.moving_init_min_restoring_ratio
+        n = len(short.win)
+        if not restoring >= need:
+            self.failure = (f"the LiDAR-only registrations of the {n} scans restore "
+                            f"{restoring:.2f} (median) of the information they claim along "
+                            "their weakest translation (limit "
+                            f"imu.moving_init_min_restoring_ratio = {need:g}): "
+                            "they cannot vouch for the velocity along it")
+            return None
+        refusal = self._nested_disagreement(short)
+        if refusal:
+            self.failure = refusal
+            return None
+        last = short.win[-1]
+        assert self.last_points is not None
+        points_end = self._deskew_last(short.v0, short.g, short.b_g, short.win[0].t_ns,
+                                       short.R0)
+        return MovingInitResult(
+            t_ns=last.t_ns, R_world_imu=last.R.copy(), p_world_imu_m=last.p.copy(),
+            v_world_m_s=short.v_end, gyro_bias_rad_s=short.b_g, gravity_world_m_s2=short.g,
+            residual_m=short.residual, gravity_norm_fit_m_s2=short.g_norm, n_scans=n,
+            window_s=short.span_s, points_lidar_end=points_end,
+            rotation_residual_rad=short.rot_rms, velocity_cov_m2_s2=short.v_cov,
+            gravity_cov_m2_s4=short.g_cov)
+
+    def _window(self, multiple: int) -> list[_Registered]:
+        """The registered scans of the last ``multiple`` fit windows (at least MIN_SCANS)."""
+        t_last = self.scans[-1].t_ns
+        span = round(multiple * self.cfg.imu.moving_init_window_s * 1e9)
+        win = [s for s in self.scans if s.t_ns >= t_last - span]
+        return win if len(win) >= MIN_SCANS else self.scans[-MIN_SCANS:]
+
+    def _nested_disagreement(self, short: _Fit) -> str:
+        """Step 3c: the reason to refuse ``short``, or "" to accept it.
+
+        Over one window, a registration that slides smoothly (a corridor's axis seen by few
+        rings) fits as well as the true walk: its slide is a quadratic the fit takes into
+        gravity (several degrees of tilt) and velocity at a residual within the limit. Over
+        twice the window the same slide no longer passes for a quadratic. So the registrations
+        must span two windows, the fit over both must pass the residual and gravity-norm tests,
+        and its gravity direction and end velocity must lie within the short fit's 3σ
+        (chi-square at 99.73 %, with the short fit's covariance: the long fit contains the
+        short one's data, so the difference has at most that covariance, Hausman's test). That
+        covariance includes the accelerometer bias the fits do not model (:meth:`_fit`)."""
+        cfg = self.cfg.imu
+        wanted_s = 2.0 * cfg.moving_init_window_s
+        have_s = (short.win[-1].t_ns - self.scans[0].t_ns) * 1e-9
+        # the windows count scan ends; allow half a scan period of slack in the span
+        period_s = short.span_s / max(len(short.win) - 1, 1)
+        if have_s < wanted_s - 0.5 * period_s:
+            self.waiting = True
+            return (f"the registrations span {have_s:.1f} s; the fit is checked against one "
+                    f"over {wanted_s:g} s (twice imu.moving_init_window_s)")
+        if self.imu_t_ns[0] > self._window(2)[0].t_ns:
+            return "IMU samples missing in the window"
+        long = self._fit(self._window(2))
+        if isinstance(long, str):
+            return f"over {wanted_s:g} s: {long}"
+        u = short.g / np.linalg.norm(short.g)
+        T = np.eye(3) - np.outer(u, u)
+        g_dir = T @ (long.g / np.linalg.norm(long.g) - u)  # on the tangent plane, radians
+        C_dir = T @ short.g_cov @ T / float(short.g @ short.g)
+        d_g = float(g_dir @ np.linalg.pinv(C_dir, hermitian=True) @ g_dir)
+        dv = long.v_end - short.v_end
+        d_v = float(dv @ np.linalg.inv(short.v_cov) @ dv)
+        if d_g > CHI2_2DOF_3SIGMA or d_v > CHI2_3DOF_3SIGMA:
+            return (f"the fit over {len(short.win)} scans disagrees with the fit over "
+                    f"{wanted_s:g} s ({len(long.win)} scans): gravity "
+                    f"{np.degrees(np.linalg.norm(g_dir)):.1f} deg and velocity "
+                    f"{np.linalg.norm(dv):.2f} m/s apart, beyond 3 sigma of the shorter fit "
+                    "(a registration sliding along a weak direction)")
+        return ""
+
+    def _fit(self, win: list[_Registered]) -> _Fit | str:
+        """Steps 2-3 over ``win``: the fit, or why it is refused (residual, gravity norm)."""
+        cfg = self.cfg.imu
+        t0 = win[0].t_ns
         tau_imu = (self.imu_t_ns - t0) * 1e-9
         tau_q = np.array([(s.t_ns - t0) * 1e-9 for s in win])
         R0 = win[0].R
@@ -345,41 +465,27 @@ class MovingInit:
         g_fit = sol[6:9]
         g_norm = float(np.linalg.norm(g_fit))
         if not abs(g_norm - cfg.gravity_m_s2) <= GRAVITY_NORM_TOLERANCE * cfg.gravity_m_s2:
-            self.failure = (f"the gravity fitted over {n} scans has norm {g_norm:.2f} m/s^2, "
-                            f"not {cfg.gravity_m_s2:g}")
-            return None
+            return (f"the gravity fitted over {n} scans has norm {g_norm:.2f} m/s^2, "
+                    f"not {cfg.gravity_m_s2:g}")
         g = g_fit * (cfg.gravity_m_s2 / g_norm)
         rhs_g = rhs - (A[:, 6:9] @ g)
         pv = np.linalg.lstsq(A[:, :6], rhs_g, rcond=None)[0]
         residual = float(np.sqrt(np.mean((A[:, :6] @ pv - rhs_g) ** 2) * 3))
         if not residual <= cfg.moving_init_max_residual_m:
-            self.failure = (f"the motion fit over {n} scans leaves {residual * 100:.1f} cm RMS "
-                            f"(limit imu.moving_init_max_residual_m = "
-                            f"{cfg.moving_init_max_residual_m * 100:g} cm)")
-            return None
-        probed = np.array([s.restoring for s in win if np.isfinite(s.restoring)])
-        restoring = float(np.median(probed)) if probed.size else 0.0
-        need = cfg.moving_init_min_restoring_ratio
-        if not restoring >= need:
-            self.failure = (f"the LiDAR-only registrations of the {n} scans restore "
-                            f"{restoring:.2f} (median) of the information they claim along "
-                            "their weakest translation (limit "
-                            f"imu.moving_init_min_restoring_ratio = {need:g}): "
-                            "they cannot vouch for the velocity along it")
-            return None
+            return (f"the motion fit over {n} scans leaves {residual * 100:.1f} cm RMS "
+                    f"(limit imu.moving_init_max_residual_m = "
+                    f"{cfg.moving_init_max_residual_m * 100:g} cm)")
         v_end = pv[3:6] + g * tau_q[-1] + R0 @ dv[-1]
         C = _lsq_covariance(A, A @ sol - rhs, 9)
         Jv = np.hstack([np.eye(3), tau_q[-1] * np.eye(3)])
-        v_cov = Jv @ C[3:9, 3:9] @ Jv.T
-        last = win[-1]
-        assert self.last_points is not None
-        points_end = self._deskew_last(pv[3:6], g, b_g, t0, R0)
-        return MovingInitResult(
-            t_ns=last.t_ns, R_world_imu=last.R.copy(), p_world_imu_m=last.p.copy(),
-            v_world_m_s=v_end, gyro_bias_rad_s=b_g, gravity_world_m_s2=g, residual_m=residual,
-            gravity_norm_fit_m_s2=g_norm, n_scans=n, window_s=float(tau_q[-1]),
-            points_lidar_end=points_end, rotation_residual_rad=rot_rms,
-            velocity_cov_m2_s2=v_cov, gravity_cov_m2_s4=C[6:9, 6:9].copy())
+        # the fit does not model the accelerometer bias: within its prior (the filter's P0, as
+        # in a still start) it passes for a gravity tilt and, over the window, for a velocity
+        var_ba = float(np.mean(np.diag(initial_covariance(False)[BA, BA])))
+        span_s = float(tau_q[-1])
+        return _Fit(win=win, R0=R0, b_g=b_g, g=g, g_norm=g_norm, v0=pv[3:6], v_end=v_end,
+                    residual=residual, rot_rms=rot_rms, span_s=span_s,
+                    v_cov=Jv @ C[3:9, 3:9] @ Jv.T + var_ba * span_s**2 * np.eye(3),
+                    g_cov=C[6:9, 6:9] + var_ba * np.eye(3))
 
 
 def _restoring_along_weakest_translation(assoc, x: State, step_m: float) -> float:
