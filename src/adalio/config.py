@@ -115,7 +115,8 @@ class ImuConfig:
     init_timeout_s: float = 1.0
     """No still window within this long after the first scan: initialize in motion (s)."""
     moving_init_window_s: float = 1.0
-    """Moving start: LiDAR-registered scans over this long are fitted against the IMU (s)."""
+    """Moving start: LiDAR-registered scans over this long are fitted against the IMU (s); the
+    fit is accepted once the fit over twice this long agrees with it (motion_init step 3c)."""
     moving_init_max_residual_m: float = 0.03
     """Moving start: largest RMS position residual of that fit accepted (m)."""
     moving_init_min_restoring_ratio: float = 0.6
