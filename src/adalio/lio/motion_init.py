@@ -349,9 +349,6 @@ class MovingInit:
         if len(self.scans) < MIN_SCANS:
             self.failure = (f"{len(self.scans)} scans registered, the fit needs {MIN_SCANS}")
             return None
-        if self.imu_t_ns[0] > self._window(1)[0].t_ns:
-            self.failure = "IMU samples missing in the window"
-            return None
         short = self._fit(self._window(1))
         if isinstance(short, str):
             self.failure = short
@@ -411,8 +408,6 @@ class MovingInit:
             self.waiting = True
             return (f"the registrations span {have_s:.1f} s; the fit is checked against one "
                     f"over {wanted_s:g} s (twice imu.moving_init_window_s)")
-        if self.imu_t_ns[0] > self._window(2)[0].t_ns:
-            return "IMU samples missing in the window"
         long = self._fit(self._window(2))
         if isinstance(long, str):
             return f"over {wanted_s:g} s: {long}"
@@ -432,9 +427,12 @@ class MovingInit:
         return ""
 
     def _fit(self, win: list[_Registered]) -> _Fit | str:
-        """Steps 2-3 over ``win``: the fit, or why it is refused (residual, gravity norm)."""
+        """Steps 2-3 over ``win``: the fit, or why it is refused (IMU missing, residual,
+        gravity norm)."""
         cfg = self.cfg.imu
         t0 = win[0].t_ns
+        if self.imu_t_ns[0] > t0:
+            return "IMU samples missing in the window"
         tau_imu = (self.imu_t_ns - t0) * 1e-9
         tau_q = np.array([(s.t_ns - t0) * 1e-9 for s in win])
         R0 = win[0].R

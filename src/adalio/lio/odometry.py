@@ -810,7 +810,8 @@ class Odometry:
         self._judge_gyro_units(self._moving, np.zeros(3))
         fit = self._moving.solve()
         if fit is None:
-            self._refused_fits += 0 if self._moving.waiting else 1
+            if not self._moving.waiting:  # waiting for the nested window is no refusal
+                self._refused_fits += 1
             return None
         return self._moving_initialize(fit)
 
