@@ -179,6 +179,12 @@ class MapConfig:
     cell_follows_voxel: bool = True
     """Map cell of a scan = min(map_leaf_m, the active parameter set's voxel_size_m), so a
     degenerate scan (finer leaf) also densifies the map where it sees."""
+    cell_point: str = "first"
+    """Which point a map cell keeps: 'first' (the first point to reach it; descending past a wall,
+    that layers the wall's map points one cell apart) or 'uniform' (a uniform sample of every
+    point that reached it, by a hash of its coordinates: better in the simulated spiral shaft on
+    every LiDAR, worse in the corridor at 512 columns and with the VLP-16; README, "Session
+    35")."""
 
 
 @dataclass
@@ -464,6 +470,7 @@ CHOICES: dict[str, tuple] = {
     "imu.noise_source": ("config", "measured"),
     "sensor.gyro_unit": ("rad_s", "deg_s"),
     "map.nearby_type": (0, 6, 18, 26),
+    "map.cell_point": ("first", "uniform"),
     "filter.plane_fit": ("ls", "pca"),
     "filter.robust_kernel": ROBUST_KERNELS,
     "adaptive.mode": MODES,

@@ -25,6 +25,15 @@ Deviations from upstream, documented in lio-design.md §7:
   instead of a scan of the voxels overlapping its cell. Upstream's rule (lio-design.md §7) lets
   a cell accumulate points creeping towards its centre; plane fits over such clusters have
   arbitrary normals and act as fake constraints (degenerate corridors "stick").
+* Which point a cell keeps (``cell_point``, ``map.cell_point``): ``"first"`` (the default)
+  keeps the first point to reach it. ``"uniform"`` keeps, of all the points that reached it, the
+  one of highest :func:`cell_priority` (a hash of its coordinates): a uniform sample of them (the
+  reservoir rule), so a later point replaces the kept one with probability 1/n once n points have
+  reached the cell, and the kept point's place in the cell owes nothing to the order of the
+  sweeps. With ``"first"``, a sensor descending past a wall fills each cell from its top, so the
+  wall's map points form horizontal layers one cell apart (README, Session 35). The replaced point
+  is looked for among the points of the new point's own voxel; one stored in the neighbouring
+  voxel (a cell across a voxel boundary) is kept, as with ``"first"``.
 """
 
 from __future__ import annotations
@@ -155,8 +164,9 @@ def _cell_of(x: float, y: float, z: float, cell_m: float):
 
 @kernel(inline="always")
 def _occ_add(okeys: np.ndarray, ocount: np.ndarray, ostate: np.ndarray, cell_sizes: np.ndarray,
-             x: float, y: float, z: float, delta: int) -> None:
-    """Count a stored point in (``delta`` = 1) or out of (-1) its cell of every tracked edge."""
+             x: float, y: float, z: float, delta: int, v: int, j: int) -> None:
+    """Count a stored point in (``delta`` = 1) or out of (-1) its cell of every tracked edge; a
+    point counted in is recorded as its cells' last (voxel ``v``, slot ``j``), columns 4-5."""
     for si in range(cell_sizes.shape[0]):
         ok, cx, cy, cz = _cell_of(x, y, z, cell_sizes[si])
         if not ok:
@@ -168,6 +178,9 @@ def _occ_add(okeys: np.ndarray, ocount: np.ndarray, ostate: np.ndarray, cell_siz
             ocount[h] = 0
             ostate[0] += 1
         ocount[h] += delta
+        if delta > 0:
+            okeys[h, 4] = v
+            okeys[h, 5] = j
 
 
 @kernel()
@@ -184,7 +197,88 @@ def _occ_rebuild(okeys: np.ndarray, ocount: np.ndarray, ostate: np.ndarray,
             b = vblocks[v, j >> _BLOCK_SHIFT]
             s = j & (BLOCK_POINTS - 1)
             _occ_add(okeys, ocount, ostate, cell_sizes, pool[b, s, 0], pool[b, s, 1],
-                     pool[b, s, 2], 1)
+                     pool[b, s, 2], 1, v, j)
+
+
+CELL_POINTS = ("first", "uniform")
+"""Which point a map cell keeps (module docstring)."""
+_PRIORITY_SCALE = 1.0e5
+"""Coordinates are hashed at 10 µm (points closer than that share a priority)."""
+_PRIORITY_MASK = (1 << 52) - 1
+
+
+@kernel(inline="always")
+def _priority(x: float, y: float, z: float) -> int:
+    return hash_key3(np.int64(np.floor(x * _PRIORITY_SCALE)),
+                     np.int64(np.floor(y * _PRIORITY_SCALE)),
+                     np.int64(np.floor(z * _PRIORITY_SCALE)), _PRIORITY_MASK)
+
+
+@kernel()
+def _priorities(points: np.ndarray) -> np.ndarray:
+    out = np.empty(points.shape[0], np.int64)
+    for i in range(points.shape[0]):
+        out[i] = _priority(points[i, 0], points[i, 1], points[i, 2])
+    return out
+
+
+def cell_priority(points_world: np.ndarray) -> np.ndarray:
+    """(N,) int64 pseudo-random priority of world points (a hash of their coordinates at 10 µm):
+    with ``cell_point="uniform"`` a cell keeps the highest of the points that reached it."""
+    return _priorities(_as_points(points_world, "points_world"))
+
+
+@kernel(inline="always")
+def _in_cell(pool: np.ndarray, vblocks: np.ndarray, v: int, j: int, cx: int, cy: int, cz: int,
+             cell_m: float) -> bool:
+    b = vblocks[v, j >> _BLOCK_SHIFT]
+    s = j & (BLOCK_POINTS - 1)
+    ok, qx, qy, qz = _cell_of(pool[b, s, 0], pool[b, s, 1], pool[b, s, 2], cell_m)
+    return ok and qx == cx and qy == cy and qz == cz
+
+
+@kernel(inline="always")
+def _keep_uniform(x: float, y: float, z: float, cx: int, cy: int, cz: int, cell_m: float, h: int,
+                  v: int, nv: int, cap: int, vstamp: np.ndarray, vtotal: np.ndarray,
+                  vblocks: np.ndarray, pool: np.ndarray, cell_sizes: np.ndarray,
+                  okeys: np.ndarray, ocount: np.ndarray, ostate: np.ndarray, seq: int) -> int:
+    """Cell (cx, cy, cz) (occupancy slot ``h``) is occupied: the point (x, y, z) takes the slot
+    of the lowest-priority point of that cell stored in voxel ``v`` if its priority is higher.
+    A cell holding one point whose recorded slot still holds a point of the cell is decided
+    from that slot alone; otherwise voxel ``v`` is scanned. Returns the next sequence number."""
+    best = -1
+    best_prio = _PRIORITY_MASK + 1
+    lv = okeys[h, 4]
+    lj = okeys[h, 5]
+    if (ocount[h] == 1 and 0 <= lv < nv and 0 <= lj < min(vtotal[lv], cap)
+            and _in_cell(pool, vblocks, lv, lj, cx, cy, cz, cell_m)):
+        if lv == v:  # the cell's one point; in another voxel it is kept
+            b = vblocks[v, lj >> _BLOCK_SHIFT]
+            s = lj & (BLOCK_POINTS - 1)
+            best = lj
+            best_prio = _priority(pool[b, s, 0], pool[b, s, 1], pool[b, s, 2])
+    else:
+        for j in range(min(vtotal[v], cap)):
+            if not _in_cell(pool, vblocks, v, j, cx, cy, cz, cell_m):
+                continue
+            b = vblocks[v, j >> _BLOCK_SHIFT]
+            s = j & (BLOCK_POINTS - 1)
+            prio = _priority(pool[b, s, 0], pool[b, s, 1], pool[b, s, 2])
+            if prio < best_prio:
+                best_prio = prio
+                best = j
+    if best < 0 or _priority(x, y, z) <= best_prio:
+        return seq
+    b = vblocks[v, best >> _BLOCK_SHIFT]
+    s = best & (BLOCK_POINTS - 1)
+    _occ_add(okeys, ocount, ostate, cell_sizes, pool[b, s, 0], pool[b, s, 1], pool[b, s, 2], -1,
+             v, best)
+    _occ_add(okeys, ocount, ostate, cell_sizes, x, y, z, 1, v, best)
+    pool[b, s, 0] = x
+    pool[b, s, 1] = y
+    pool[b, s, 2] = z
+    vstamp[v] = seq
+    return seq + 1
 
 
 @kernel()
@@ -207,12 +301,14 @@ def _insert_points(
     okeys: np.ndarray,
     ocount: np.ndarray,
     ostate: np.ndarray,
+    uniform: bool,
 ) -> int:
     """Sequential, deterministic insertion of world points into their round(p/s) voxels (§7).
 
     Processes rows from ``start`` on; a voxel holding ``cap`` points overwrites its oldest point
     (ring order). With ``cell_m > 0`` a row whose cell floor(p / cell_m) already holds a stored
-    point is skipped: ``cell_sizes[cell_index] == cell_m``, and the occupancy table (``okeys``,
+    point is skipped, or with ``uniform`` may take that point's slot (:func:`_keep_uniform`):
+    ``cell_sizes[cell_index] == cell_m``, and the occupancy table (``okeys``,
     ``ocount``, ``ostate``) counts the stored points per cell of every edge in ``cell_sizes``; it
     must have room for ``len(cell_sizes)`` new cells per row. Stops before a row that might need
     a voxel, table slot or block the arrays do not have, and returns that row (``len(points)``
@@ -241,6 +337,13 @@ def _insert_points(
             if ok:
                 h = _occ_slot(okeys, cell_index, cx, cy, cz, False)
                 if h >= 0 and ocount[h] > 0:
+                    if uniform:
+                        v = _lookup(table, vkeys, kx, ky, kz)
+                        if v >= 0:
+                            seq = _keep_uniform(points[row, 0], points[row, 1], points[row, 2],
+                                                cx, cy, cz, cell_m, h, v, nv, cap, vstamp,
+                                                vtotal, vblocks, pool, cell_sizes, okeys,
+                                                ocount, ostate, seq)
                     continue
         h = hash_key3(kx, ky, kz, mask)
         while True:
@@ -275,9 +378,9 @@ def _insert_points(
         j = slot & (BLOCK_POINTS - 1)
         if t >= cap:  # the oldest point of the voxel leaves its cells
             _occ_add(okeys, ocount, ostate, cell_sizes, pool[b, j, 0], pool[b, j, 1],
-                     pool[b, j, 2], -1)
+                     pool[b, j, 2], -1, v, slot)
         _occ_add(okeys, ocount, ostate, cell_sizes, points[row, 0], points[row, 1],
-                 points[row, 2], 1)
+                 points[row, 2], 1, v, slot)
         pool[b, j, 0] = points[row, 0]
         pool[b, j, 1] = points[row, 1]
         pool[b, j, 2] = points[row, 2]
@@ -450,8 +553,9 @@ def _grow(arr: np.ndarray, n_rows: int) -> np.ndarray:
 class IVox:
     """Incremental voxel map with approximate kNN over a voxel neighbourhood (lio-design.md §7).
 
-    ``IVox(resolution_m, nearby_type, capacity_voxels, max_points_per_voxel, cell_m=0.0)``;
-    points in world frame, metres. ``cell_m > 0`` keeps at most one point per cell of that edge.
+    ``IVox(resolution_m, nearby_type, capacity_voxels, max_points_per_voxel, cell_m=0.0,
+    cell_point="first")``; points in world frame, metres. ``cell_m > 0`` keeps at most one point
+    per cell of that edge, chosen by ``cell_point``.
     See the module docstring for the deviations from upstream.
     """
 
@@ -462,6 +566,7 @@ class IVox:
         capacity_voxels: int = 1_000_000,
         max_points_per_voxel: int = 64,
         cell_m: float = 0.0,
+        cell_point: str = "first",
     ) -> None:
         if not (np.isfinite(resolution_m) and resolution_m > 0.0):
             raise ConfigError(
@@ -476,7 +581,11 @@ class IVox:
         if not (np.isfinite(cell_m) and cell_m >= 0.0):
             raise ConfigError(f"map.map_leaf_m must be a positive number of metres, got {cell_m!r}")
         self.resolution_m = float(resolution_m)
+        if cell_point not in CELL_POINTS:
+            raise ConfigError(f"map.cell_point must be one of {', '.join(CELL_POINTS)}, got "
+                              f"{cell_point!r}")
         self.cell_m = float(cell_m)
+        self.cell_point = cell_point
         self.nearby_type = int(nearby_type)
         self.capacity_voxels = int(capacity_voxels)
         self.max_points_per_voxel = int(max_points_per_voxel)
@@ -492,7 +601,7 @@ class IVox:
         self._state = np.zeros(5, np.int64)
         # one-point-per-cell: stored points counted per cell of every cell edge used so far
         self._cell_sizes = np.empty(0, np.float64)
-        self._okeys = np.full((16, 4), -1, np.int64)
+        self._okeys = np.full((16, 6), -1, np.int64)
         self._ocount = np.full(16, -1, np.int64)
         self._ostate = np.zeros(1, np.int64)
 
@@ -505,6 +614,7 @@ class IVox:
             cfg.capacity_voxels,
             cfg.max_points_per_voxel,
             cell_m=cfg.map_leaf_m,
+            cell_point=cfg.cell_point,
         )
 
     @property
@@ -557,6 +667,7 @@ class IVox:
                 self._okeys,
                 self._ocount,
                 self._ostate,
+                self.cell_point == "uniform",
             )
         nv = self.num_voxels
         if nv > self.capacity_voxels:
@@ -585,7 +696,7 @@ class IVox:
         need = 2 * self._cell_sizes.size * (self.num_points + n_new)
         size = max(16, 1 << int(need - 1).bit_length())
         if size != self._okeys.shape[0]:
-            self._okeys = np.empty((size, 4), np.int64)
+            self._okeys = np.empty((size, 6), np.int64)
             self._ocount = np.empty(size, np.int64)
         _occ_rebuild(self._okeys, self._ocount, self._ostate, self._cell_sizes, self.num_voxels,
                      self.max_points_per_voxel, self._vtotal, self._vblocks, self._pool)

@@ -202,7 +202,9 @@ class MovingInit:
         registration is independent of the gyro (the unit check)."""
         self.R_LI, self.t_LI = R_LI, t_LI
         self.cell_m = min(cfg.map.map_leaf_m, cfg.imu.moving_init_map_leaf_m)
-        self.ivox = IVox.from_config(replace(cfg.map, map_leaf_m=self.cell_m))
+        self.ivox = IVox.from_config(replace(cfg.map, map_leaf_m=self.cell_m, cell_point="first"))
+        """The registration map keeps each cell's first point, as when the fit's tests were
+        measured (session 34); ``map.cell_point`` is for the filter's map."""
         self.scans: list[_Registered] = []
         self.imu_t_ns = np.empty(0, np.int64)
         self.gyro = np.empty((0, 3))
