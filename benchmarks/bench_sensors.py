@@ -14,7 +14,7 @@ LiDAR (XT-32 at 512 / 2000 columns, Ouster OS1-64), the simulator's sequence is 
   says little).
 
 Per cell: poses / scans in the part of the bag that was read, how the estimator initialized
-(static / moving), SE(3)-aligned ATE RMSE against ground truth (evo), the median time per
+(static / moving) and how long after the first scan read (``InitReport.wait_s``), SE(3)-aligned ATE RMSE against ground truth (evo), the median time per
 scan, and the share of scans whose error (aligned on the filter's first scan) lies within 3
 sigma of the ``scans.csv`` sigmas on x / y / z (``adalio.eval.metrics.sigma_consistency``).
 The summary gives, per scene, start and noise level, the mean and worst ATE of the runs that
@@ -74,6 +74,10 @@ class Cell:
     """Share of scans whose error (aligned on the filter's first scan) is within 3 sigma on x, y,
     z."""
     mean_nees: float = float("nan")
+    init_wait_s: float = float("nan")
+    """From the first scan read to the end of the initialization (InitReport.wait_s)."""
+    refused_fits: int = 0
+    """Moving start: fits refused before one passed."""
 
     @property
     def pose_ratio(self) -> float:
@@ -106,6 +110,9 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
         return cell
     cell.poses = res.n_scans
     cell.init = res.init_report.method if res.init_report is not None else "none"
+    if res.init_report is not None:
+        cell.init_wait_s = float(res.init_report.wait_s)
+        cell.refused_fits = int(res.init_report.refused_fits)
     cell.ms_per_scan = res.ms_per_scan_median
     cell.ate_m = float(ate(res.trajectory_path, sim.gt_path, align="se3")["rmse_m"])
     with contextlib.suppress(InputError):
@@ -124,14 +131,22 @@ def sigma_cells(w: np.ndarray) -> str:
                       for k in range(3)) + " %"
 
 
+def wait_cells(wait_s: np.ndarray) -> str:
+    """'median (max) s' of the initialization waits (NaN: no initialization)."""
+    if not np.isfinite(wait_s).any():
+        return "–"
+    return f"{np.nanmedian(wait_s):.1f} ({np.nanmax(wait_s):.1f}) s"
+
+
 def cm(x: float) -> str:
     return "–" if not np.isfinite(x) else f"{x * 100:.2f} cm"
 
 
 def summary_table(cells: list[Cell]) -> str:
     lines = [("| scene | start | IMU noise | LiDARs | runs | poses/scans min | ATE mean | "
-              "ATE worst | runs > 1 m or failed | init | target | within 3σ x / y / z |"),
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "ATE worst | runs > 1 m or failed | init | init after, median (max) | target | "
+              "within 3σ x / y / z |"),
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     keys = sorted({(c.scene, c.start, c.imu_noise) for c in cells},
                   key=lambda k: (k[0], k[1] != "still", k[2]))
     for scene, start, noise in keys:
@@ -146,7 +161,8 @@ def summary_table(cells: list[Cell]) -> str:
             f"{cm(float(on_track.mean())) if on_track.size else '–'} | "
             f"{cm(float(on_track.max())) if on_track.size else '–'} | "
             f"{ates.size - on_track.size} | "
-            f"{'/'.join(inits)} | {'pass' if ok else 'FAIL'} | "
+            f"{'/'.join(inits)} | {wait_cells(np.array([c.init_wait_s for c in cs]))} | "
+            f"{'pass' if ok else 'FAIL'} | "
             f"{sigma_cells(np.array([c.within_3sigma for c in cs]))} |")
     return "\n".join(lines)
 
@@ -186,7 +202,8 @@ def main(argv: list[str] | None = None) -> int:
                         cells.append(c)
                         label = f"moving {cut_s:g} s" if start == "moving" else start
                         print(f"| {scene} | {seed} | x{noise:g} | {lidar} | {label} | "
-                              f"{c.poses}/{c.scans} ({100 * c.pose_ratio:.0f} %) | {c.init} | "
+                              f"{c.poses}/{c.scans} ({100 * c.pose_ratio:.0f} %) | "
+                              f"{c.init} after {c.init_wait_s:.1f} s | "
                               f"{cm(c.ate_m)} | {c.ms_per_scan:.1f} | "
                               f"{sigma_cells(np.array([c.within_3sigma]))} | {c.error} |",
                               flush=True)
