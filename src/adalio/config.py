@@ -185,6 +185,10 @@ class MapConfig:
     point that reached it, by a hash of its coordinates: better in the simulated spiral shaft on
     every LiDAR, worse in the corridor at 512 columns and with the VLP-16; README, "Session
     35")."""
+    cell_sample_scans: int = 5
+    """With cell_point 'uniform': a cell samples the points of the scans within this many of the
+    one that first filled it, then stays fixed (a walking sensor's field-of-view edge crosses a
+    0.1-0.2 m cell in 1-7 scans at 10 Hz); 0: never fixed, so the map follows later poses."""
 
 
 @dataclass
@@ -510,6 +514,7 @@ RANGES: dict[str, Range] = {
     "map.ivox_resolution_m": POSITIVE,
     "map.capacity_voxels": AT_LEAST_ONE,
     "map.max_points_per_voxel": AT_LEAST_ONE,
+    "map.cell_sample_scans": Range(0),
     "map.map_leaf_m": POSITIVE,
     "filter.max_iterations": AT_LEAST_ONE,
     "filter.knn_k": Range(3),

@@ -26,14 +26,18 @@ Deviations from upstream, documented in lio-design.md §7:
   a cell accumulate points creeping towards its centre; plane fits over such clusters have
   arbitrary normals and act as fake constraints (degenerate corridors "stick").
 * Which point a cell keeps (``cell_point``, ``map.cell_point``): ``"first"`` (the default)
-  keeps the first point to reach it. ``"uniform"`` keeps, of all the points that reached it, the
-  one of highest :func:`cell_priority` (a hash of its coordinates): a uniform sample of them (the
-  reservoir rule), so a later point replaces the kept one with probability 1/n once n points have
-  reached the cell, and the kept point's place in the cell owes nothing to the order of the
-  sweeps. With ``"first"``, a sensor descending past a wall fills each cell from its top, so the
+  keeps the first point to reach it. ``"uniform"`` keeps, of the points that reached it within
+  ``sample_batches`` insertions (``add_points`` calls: scans) of its first, the one of highest
+  :func:`cell_priority` (a hash of its coordinates): a uniform sample of them (the reservoir
+  rule), so the kept point's place in the cell owes nothing to the order of the sweeps, and
+  after those insertions the cell is fixed, as with ``"first"`` (``sample_batches`` 0: never
+  fixed; a later point then replaces the kept one with probability 1/n once n points have
+  reached the cell, and the map follows the poses of later scans). With ``"first"``, a sensor descending past a wall fills each cell from its top, so the
   wall's map points form horizontal layers one cell apart (README, Session 35). The replaced point
   is looked for among the points of the new point's own voxel; one stored in the neighbouring
-  voxel (a cell across a voxel boundary) is kept, as with ``"first"``.
+  voxel (a cell across a voxel boundary) is kept, as with ``"first"``. The insertion that first
+  filled a cell is kept in the occupancy table, across its recounts; the cells of a newly used
+  cell edge are fixed.
 """
 
 from __future__ import annotations
@@ -166,7 +170,8 @@ def _cell_of(x: float, y: float, z: float, cell_m: float):
 def _occ_add(okeys: np.ndarray, ocount: np.ndarray, ostate: np.ndarray, cell_sizes: np.ndarray,
              x: float, y: float, z: float, delta: int, v: int, j: int) -> None:
     """Count a stored point in (``delta`` = 1) or out of (-1) its cell of every tracked edge; a
-    point counted in is recorded as its cells' last (voxel ``v``, slot ``j``), columns 4-5."""
+    point counted in is recorded as its cells' last (voxel ``v``, slot ``j``), columns 4-5, and a
+    cell's first point stamps it with the insertion number ``ostate[1]``, column 6."""
     for si in range(cell_sizes.shape[0]):
         ok, cx, cy, cz = _cell_of(x, y, z, cell_sizes[si])
         if not ok:
@@ -177,6 +182,7 @@ def _occ_add(okeys: np.ndarray, ocount: np.ndarray, ostate: np.ndarray, cell_siz
         if ocount[h] < 0:
             ocount[h] = 0
             ostate[0] += 1
+            okeys[h, 6] = ostate[1]
         ocount[h] += delta
         if delta > 0:
             okeys[h, 4] = v
@@ -187,7 +193,7 @@ def _occ_add(okeys: np.ndarray, ocount: np.ndarray, ostate: np.ndarray, cell_siz
 def _occ_rebuild(okeys: np.ndarray, ocount: np.ndarray, ostate: np.ndarray,
                  cell_sizes: np.ndarray, nv: int, cap: int, vtotal: np.ndarray,
                  vblocks: np.ndarray, pool: np.ndarray) -> None:
-    """The occupancy table counted afresh from every stored point."""
+    """The occupancy table counted afresh from every stored point (``ostate[0]``: cells)."""
     for h in range(okeys.shape[0]):
         okeys[h, 0] = -1
         ocount[h] = -1
@@ -198,6 +204,20 @@ def _occ_rebuild(okeys: np.ndarray, ocount: np.ndarray, ostate: np.ndarray,
             s = j & (BLOCK_POINTS - 1)
             _occ_add(okeys, ocount, ostate, cell_sizes, pool[b, s, 0], pool[b, s, 1],
                      pool[b, s, 2], 1, v, j)
+    for h in range(okeys.shape[0]):  # until _copy_stamps restores a counted cell's stamp
+        okeys[h, 6] = _FIXED
+
+
+@kernel()
+def _copy_stamps(old_keys: np.ndarray, old_count: np.ndarray, okeys: np.ndarray) -> None:
+    """Each cell of the old occupancy table still counted in the new one keeps its stamp."""
+    for h in range(old_keys.shape[0]):
+        if old_count[h] < 0 or old_keys[h, 0] < 0:
+            continue
+        h2 = _occ_slot(okeys, old_keys[h, 0], old_keys[h, 1], old_keys[h, 2], old_keys[h, 3],
+                       False)
+        if h2 >= 0:
+            okeys[h2, 6] = old_keys[h, 6]
 
 
 CELL_POINTS = ("first", "uniform")
@@ -205,6 +225,8 @@ CELL_POINTS = ("first", "uniform")
 _PRIORITY_SCALE = 1.0e5
 """Coordinates are hashed at 10 µm (points closer than that share a priority)."""
 _PRIORITY_MASK = (1 << 52) - 1
+_FIXED = -(1 << 60)
+"""Insertion stamp of a cell whose sampling window is over."""
 
 
 @kernel(inline="always")
@@ -302,12 +324,14 @@ def _insert_points(
     ocount: np.ndarray,
     ostate: np.ndarray,
     uniform: bool,
+    sample_batches: int,
 ) -> int:
     """Sequential, deterministic insertion of world points into their round(p/s) voxels (§7).
 
     Processes rows from ``start`` on; a voxel holding ``cap`` points overwrites its oldest point
     (ring order). With ``cell_m > 0`` a row whose cell floor(p / cell_m) already holds a stored
-    point is skipped, or with ``uniform`` may take that point's slot (:func:`_keep_uniform`):
+    point is skipped, or with ``uniform`` may take that point's slot (:func:`_keep_uniform`)
+    while the insertion ``ostate[1]`` is within ``sample_batches`` of the cell's first (0: ever):
     ``cell_sizes[cell_index] == cell_m``, and the occupancy table (``okeys``,
     ``ocount``, ``ostate``) counts the stored points per cell of every edge in ``cell_sizes``; it
     must have room for ``len(cell_sizes)`` new cells per row. Stops before a row that might need
@@ -337,7 +361,8 @@ def _insert_points(
             if ok:
                 h = _occ_slot(okeys, cell_index, cx, cy, cz, False)
                 if h >= 0 and ocount[h] > 0:
-                    if uniform:
+                    if uniform and (sample_batches <= 0
+                                    or ostate[1] - okeys[h, 6] < sample_batches):
                         v = _lookup(table, vkeys, kx, ky, kz)
                         if v >= 0:
                             seq = _keep_uniform(points[row, 0], points[row, 1], points[row, 2],
@@ -554,8 +579,8 @@ class IVox:
     """Incremental voxel map with approximate kNN over a voxel neighbourhood (lio-design.md §7).
 
     ``IVox(resolution_m, nearby_type, capacity_voxels, max_points_per_voxel, cell_m=0.0,
-    cell_point="first")``; points in world frame, metres. ``cell_m > 0`` keeps at most one point
-    per cell of that edge, chosen by ``cell_point``.
+    cell_point="first", sample_batches=5)``; points in world frame, metres. ``cell_m > 0`` keeps
+    at most one point per cell of that edge, chosen by ``cell_point`` and ``sample_batches``.
     See the module docstring for the deviations from upstream.
     """
 
@@ -567,6 +592,7 @@ class IVox:
         max_points_per_voxel: int = 64,
         cell_m: float = 0.0,
         cell_point: str = "first",
+        sample_batches: int = 5,
     ) -> None:
         if not (np.isfinite(resolution_m) and resolution_m > 0.0):
             raise ConfigError(
@@ -584,8 +610,11 @@ class IVox:
         if cell_point not in CELL_POINTS:
             raise ConfigError(f"map.cell_point must be one of {', '.join(CELL_POINTS)}, got "
                               f"{cell_point!r}")
+        if int(sample_batches) < 0:
+            raise ConfigError(f"map.cell_sample_scans must be >= 0, got {sample_batches!r}")
         self.cell_m = float(cell_m)
         self.cell_point = cell_point
+        self.sample_batches = int(sample_batches)
         self.nearby_type = int(nearby_type)
         self.capacity_voxels = int(capacity_voxels)
         self.max_points_per_voxel = int(max_points_per_voxel)
@@ -601,9 +630,10 @@ class IVox:
         self._state = np.zeros(5, np.int64)
         # one-point-per-cell: stored points counted per cell of every cell edge used so far
         self._cell_sizes = np.empty(0, np.float64)
-        self._okeys = np.full((16, 6), -1, np.int64)
+        self._okeys = np.full((16, 7), -1, np.int64)
         self._ocount = np.full(16, -1, np.int64)
-        self._ostate = np.zeros(1, np.int64)
+        self._ostate = np.zeros(2, np.int64)
+        """[cells counted, insertions so far]"""
 
     @classmethod
     def from_config(cls, cfg: MapConfig) -> IVox:
@@ -615,6 +645,7 @@ class IVox:
             cfg.max_points_per_voxel,
             cell_m=cfg.map_leaf_m,
             cell_point=cfg.cell_point,
+            sample_batches=cfg.cell_sample_scans,
         )
 
     @property
@@ -638,6 +669,7 @@ class IVox:
         n = pts.shape[0]
         if n == 0:
             return
+        self._ostate[1] += 1
         if cell > 0.0 and cell not in self._cell_sizes:
             self._cell_sizes = np.append(self._cell_sizes, cell)
             self._rebuild_occupancy(n)
@@ -668,6 +700,7 @@ class IVox:
                 self._ocount,
                 self._ostate,
                 self.cell_point == "uniform",
+                self.sample_batches,
             )
         nv = self.num_voxels
         if nv > self.capacity_voxels:
@@ -695,11 +728,13 @@ class IVox:
         more points are in (each adds at most one cell per tracked edge)."""
         need = 2 * self._cell_sizes.size * (self.num_points + n_new)
         size = max(16, 1 << int(need - 1).bit_length())
+        old_keys, old_count = self._okeys.copy(), self._ocount.copy()
         if size != self._okeys.shape[0]:
-            self._okeys = np.empty((size, 6), np.int64)
+            self._okeys = np.empty((size, 7), np.int64)
             self._ocount = np.empty(size, np.int64)
         _occ_rebuild(self._okeys, self._ocount, self._ostate, self._cell_sizes, self.num_voxels,
                      self.max_points_per_voxel, self._vtotal, self._vblocks, self._pool)
+        _copy_stamps(old_keys, old_count, self._okeys)
 
     def _make_room(self) -> None:
         """Double whichever store is full (voxel rows, hash table at load 1/2, block pool)."""
