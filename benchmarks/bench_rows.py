@@ -10,7 +10,7 @@ share of wrong rows, the share of the claimed height information (``n_z²`` summ
 they hold, and the same split by the face the point lies on: horizontal (``|n_z| > 0.9``),
 vertical (``|n_z| < 0.3``) or other. The default windows lie in each scene's narrow part.
 
-    python benchmarks/bench_rows.py --scenes spiral stairs_garage --seeds 2     # README, Session 35
+    python benchmarks/bench_rows.py --scenes hall corridor spiral stairs_garage   # README, S. 35
 """
 
 from __future__ import annotations

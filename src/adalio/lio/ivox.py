@@ -26,18 +26,20 @@ Deviations from upstream, documented in lio-design.md §7:
   a cell accumulate points creeping towards its centre; plane fits over such clusters have
   arbitrary normals and act as fake constraints (degenerate corridors "stick").
 * Which point a cell keeps (``cell_point``, ``map.cell_point``): ``"first"`` (the default)
-  keeps the first point to reach it. ``"uniform"`` keeps, of the points that reached it within
-  ``sample_batches`` insertions (``add_points`` calls: scans) of its first, the one of highest
+  keeps the first point to reach it. With it, a sensor descending past a wall fills each cell
+  from its top, so the wall's map points form horizontal layers one cell apart (README, Session
+  35). ``"uniform"`` keeps, of the points that reached the cell within ``sample_batches``
+  insertions (``add_points`` calls: scans) of its first, the one of highest
   :func:`cell_priority` (a hash of its coordinates): a uniform sample of them (the reservoir
-  rule), so the kept point's place in the cell owes nothing to the order of the sweeps, and
-  after those insertions the cell is fixed, as with ``"first"`` (``sample_batches`` 0: never
-  fixed; a later point then replaces the kept one with probability 1/n once n points have
-  reached the cell, and the map follows the poses of later scans). With ``"first"``, a sensor descending past a wall fills each cell from its top, so the
-  wall's map points form horizontal layers one cell apart (README, Session 35). The replaced point
-  is looked for among the points of the new point's own voxel; one stored in the neighbouring
-  voxel (a cell across a voxel boundary) is kept, as with ``"first"``. The insertion that first
-  filled a cell is kept in the occupancy table, across its recounts; the cells of a newly used
-  cell edge are fixed.
+  rule), so the kept point's place in the cell owes nothing to the order of the sweeps; after
+  those insertions the cell is fixed, as with ``"first"``. With ``sample_batches`` 0 it is never
+  fixed: a later point replaces the kept one with probability 1/n once n points have reached
+  the cell, and the map follows the poses of later scans. The replaced point is looked for among
+  the points of the new point's own voxel; one stored in the neighbouring voxel (a cell across a
+  voxel boundary) is kept, as with ``"first"``. The occupancy table stamps a cell with the
+  insertion that first counted it and keeps the stamp while it keeps the cell, across recounts
+  (a cell emptied by the per-voxel cap keeps its stamp; a recount drops emptied cells, and
+  fixes the cells of a newly used cell edge).
 """
 
 from __future__ import annotations
