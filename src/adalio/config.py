@@ -181,10 +181,10 @@ class MapConfig:
     degenerate scan (finer leaf) also densifies the map where it sees."""
     cell_point: str = "first"
     """Which point a map cell keeps: 'first' (the first point to reach it; descending past a wall,
-    that layers the wall's map points one cell apart) or 'uniform' (a uniform sample of every
-    point that reached it, by a hash of its coordinates: better in the simulated spiral shaft on
-    every LiDAR, worse in the corridor at 512 columns and with the VLP-16; README, "Session
-    35")."""
+    that layers the wall's map points one cell apart) or 'uniform' (a uniform sample, by a hash of
+    their coordinates, of the points that reached it within cell_sample_scans: better in the
+    simulated spiral shaft on every LiDAR, worse in the corridor at 2000 columns; README,
+    "Session 35")."""
     cell_sample_scans: int = 5
     """With cell_point 'uniform': a cell samples the points of the scans within this many of the
     one that first filled it, then stays fixed (a walking sensor's field-of-view edge crosses a

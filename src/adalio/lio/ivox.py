@@ -730,13 +730,17 @@ class IVox:
         more points are in (each adds at most one cell per tracked edge)."""
         need = 2 * self._cell_sizes.size * (self.num_points + n_new)
         size = max(16, 1 << int(need - 1).bit_length())
-        old_keys, old_count = self._okeys.copy(), self._ocount.copy()
+        # the cells' sampling stamps matter only while a 'uniform' cell can still be replaced
+        stamps = self.cell_point == "uniform" and self.sample_batches > 0
+        if stamps:
+            old_keys, old_count = self._okeys.copy(), self._ocount.copy()
         if size != self._okeys.shape[0]:
             self._okeys = np.empty((size, 7), np.int64)
             self._ocount = np.empty(size, np.int64)
         _occ_rebuild(self._okeys, self._ocount, self._ostate, self._cell_sizes, self.num_voxels,
                      self.max_points_per_voxel, self._vtotal, self._vblocks, self._pool)
-        _copy_stamps(old_keys, old_count, self._okeys)
+        if stamps:
+            _copy_stamps(old_keys, old_count, self._okeys)
 
     def _make_room(self) -> None:
         """Double whichever store is full (voxel rows, hash table at load 1/2, block pool)."""
