@@ -8,16 +8,19 @@ import errno
 import json
 import os
 import shutil
+import subprocess
 import sys
 import time
 from collections import namedtuple
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
 
+import adalio.sim.cache as cache_mod
 from adalio import cli
 from adalio.sim import generate
-from adalio.sim.cache import cached_sequence, evict_cache
+from adalio.sim.cache import LOCKS, cached_sequence, evict_cache, reserved_bytes
 from adalio.sim.generate import SPARE_BYTES, sequence_bytes, simulate
 
 Usage = namedtuple("Usage", "total used free")
@@ -84,8 +87,6 @@ def _small_disk(monkeypatch, root: Path, capacity: int) -> None:
         used = _bytes(root)
         return Usage(capacity, used, capacity - used)
 
-    import adalio.sim.cache as cache_mod
-
     monkeypatch.setattr(cache_mod.shutil, "disk_usage", usage)
 
 
@@ -135,4 +136,75 @@ def test_cached_sequence_evicts_for_room_then_reports_what_is_missing(tmp_path, 
     with pytest.raises(OSError) as info:
         cached_sequence("corridor", seed=2, duration_s=1.0, columns=36)
     assert info.value.errno == errno.ENOSPC and str(root) in info.value.filename
-    assert [p.name for p in root.iterdir()] == [second.bag_path.parent.name]  # no temp folder
+    # no temp folder, and no reservation left
+    assert [p.name for p in root.iterdir() if p.name != LOCKS] == [second.bag_path.parent.name]
+    assert not list((root / LOCKS).glob("*.reserve"))
+
+
+def _reserve(root: Path, pid: int, need: int, folder: Path) -> Path:
+    f = root / LOCKS / f"{pid}-test.reserve"
+    f.parent.mkdir(parents=True, exist_ok=True)
+    f.write_text(f"{need}\n{folder}\n")
+    return f
+
+
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_reserved_bytes_count_what_live_generations_still_need(tmp_path):
+    root = tmp_path / "sim"
+    folder = root / ".x.tmp-1"
+    folder.mkdir(parents=True)
+    (folder / "part.bin").write_bytes(b"x" * 30_000)
+    live = _reserve(root, os.getpid(), 100_000, folder)
+    assert reserved_bytes(root) == 70_000  # asked for 100 kB, 30 kB of it written
+    (folder / "more.bin").write_bytes(b"x" * 90_000)
+    assert reserved_bytes(root) == 0  # never negative
+    live.unlink()
+    dead = _reserve(root, _dead_pid(), 100_000, folder)
+    assert reserved_bytes(root) == 0 and not dead.exists()  # a dead process's goes
+
+
+def test_cached_sequence_counts_the_room_other_generations_reserved(tmp_path, monkeypatch):
+    """Two benchmarks generating at once: each checks the disk for itself, so without
+    reservations both see room for their own sequence and together fill it."""
+    monkeypatch.setenv("ADALIO_CACHE_DIR", str(tmp_path))
+    first = cached_sequence("corridor", duration_s=1.0, columns=36)
+    root = first.bag_path.parent.parent
+    need = sequence_bytes(10, 36, 32, 401)
+    _small_disk(monkeypatch, root, _bytes(root) + 2 * need)  # room for two more sequences
+    other = root / ".other.tmp-1"
+    other.mkdir()
+    reservation = _reserve(root, os.getpid(), 2 * need, other)  # another one needs both
+    with pytest.raises(OSError) as info:
+        cached_sequence("corridor", seed=1, duration_s=1.0, columns=36)
+    assert info.value.errno == errno.ENOSPC and str(root) in info.value.filename
+    assert "reserved by other generations in progress" in info.value.strerror
+    assert first.bag_path.is_file()  # nothing evicted for a room it could not make
+    # the other generation took under half of what it asked for and finished: room for one
+    (other / "half.bin").write_bytes(b"x" * (need - 4096))
+    reservation.unlink()
+    second = cached_sequence("corridor", seed=1, duration_s=1.0, columns=36)
+    assert second.bag_path.is_file() and first.bag_path.is_file()
+
+
+def test_one_process_generates_a_key_the_others_wait_and_reuse(tmp_path, monkeypatch):
+    monkeypatch.setenv("ADALIO_CACHE_DIR", str(tmp_path))
+    calls = []
+    real = cache_mod.simulate
+
+    def slow_simulate(*args, **kwargs):
+        calls.append(args[1])
+        time.sleep(0.5)  # the others arrive while it generates
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(cache_mod, "simulate", slow_simulate)
+    with ThreadPoolExecutor(3) as pool:
+        results = list(pool.map(
+            lambda _: cached_sequence("hall", duration_s=1.0, columns=36), range(3)))
+    assert len(calls) == 1
+    assert {r.bag_path for r in results} == {results[0].bag_path}
+    assert results[0].bag_path.is_file()

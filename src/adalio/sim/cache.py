@@ -4,12 +4,20 @@ used first out)."""
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import hashlib
 import os
 import shutil
 import time
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
+
+try:
+    import fcntl
+except ImportError:  # not POSIX: no cross-process coordination
+    fcntl = None
 
 from adalio.errors import InputError
 from adalio.sim.bagout import bag_path_for
@@ -47,7 +55,65 @@ def cache_budget_bytes() -> int:
 
 
 def _folder_bytes(d: Path) -> int:
-    return sum(f.stat().st_size for f in d.rglob("*") if f.is_file())
+    total = 0
+    for f in d.rglob("*"):
+        try:
+            if f.is_file():
+                total += f.stat().st_size
+        except OSError:  # removed meanwhile (another process's generation or eviction)
+            continue
+    return total
+
+
+LOCKS = ".locks"
+"""Folder of the cache's lock files and space reservations (never evicted)."""
+
+
+@contextlib.contextmanager
+def _locked(path: Path) -> Iterator[None]:
+    """An exclusive cross-process lock (``flock``) on ``path`` while the block runs. The lock
+    file stays: unlinking a lock file lets a later process lock a new file while an earlier
+    one still holds the old."""
+    if fcntl is None:
+        yield
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def reserved_bytes(root: Path) -> int:
+    """Disk space other generations in progress still need: for each live reservation in
+    ``root/.locks`` (``<pid>-<id>.reserve``: the bytes it asked for and its folder), what it asked
+    for less what its folder already holds. A dead process's reservation is removed."""
+    total = 0
+    for f in (root / LOCKS).glob("*.reserve"):
+        try:
+            pid = int(f.name.split("-", 1)[0])
+            need_text, folder = f.read_text().split("\n", 1)
+            need = int(need_text)
+        except (OSError, ValueError):
+            continue
+        if not _pid_alive(pid):
+            f.unlink(missing_ok=True)
+            continue
+        held = Path(folder.strip())
+        total += max(0, need - (_folder_bytes(held) if held.is_dir() else 0))
+    return total
 
 
 def evict_cache(root: Path, budget_bytes: int, keep: Path | None = None,
@@ -69,7 +135,7 @@ def evict_cache(root: Path, budget_bytes: int, keep: Path | None = None,
     now = time.time()
     entries: list[tuple[bool, float, int, Path]] = []
     for d in root.iterdir():
-        if not d.is_dir():
+        if not d.is_dir() or d.name == LOCKS:
             continue
         marker = d / "COMPLETE"
         try:
@@ -126,8 +192,11 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     trimmed to ``$ADALIO_SIM_CACHE_GB`` (default 20 GB) by :func:`evict_cache`, least recently
     used first; a sequence larger than the cap on its own is still kept while it is the newest.
     Before generating, older sequences are evicted while the disk lacks the room the new one
-    needs (``generate.sequence_bytes``), even those the cap would keep; if that is not enough,
-    ``simulate`` raises an ``OSError`` (ENOSPC) before writing anything."""
+    needs (``generate.sequence_bytes``) on top of what other generations in progress still need
+    (:func:`reserved_bytes`), even those the cap would keep; if that is not enough, an
+    ``OSError`` (ENOSPC) is raised before writing anything. Processes sharing the cache
+    coordinate through lock files in ``.locks``: one generates a key while the others wait for it
+    and reuse it, and the check and reservation of room happen one process at a time."""
     _check_args(scene, duration_s, lidar, fmt, 1.0)
     cols = lidar_model(lidar, columns).columns
     dur = "full" if duration_s is None else f"{float(duration_s):g}"
@@ -147,33 +216,56 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
         return SimResult(bag_path=bag_path_for(d, scene, fmt), gt_path=d / "gt.tum",
                          meta_path=d / "meta.json", config_path=d / "config.yaml")
 
-    if (final / "COMPLETE").is_file():
+    def reuse() -> bool:
+        if not (final / "COMPLETE").is_file():
+            return False
         try:
             os.utime(final / "COMPLETE")  # last use, for the least-recently-used eviction
         except OSError:
             pass
+        return True
+
+    if reuse():
         return result(final)
     budget = cache_budget_bytes()
-    final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = final.parent / f".{key}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    root = final.parent
+    root.mkdir(parents=True, exist_ok=True)
+    with _locked(root / LOCKS / f"{key}.lock"):  # another process generating it: wait, reuse
+        if reuse():
+            return result(final)
+        token = f"{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        tmp = root / f".{key}.tmp-{token}"
+        reservation = root / LOCKS / f"{token}.reserve"
 
-    def make_room(need_bytes: int) -> None:
-        evict_cache(final.parent, budget, need_bytes=need_bytes, version=_code_version())
+        def make_room(need_bytes: int) -> None:
+            with _locked(root / LOCKS / "space.lock"):
+                others = reserved_bytes(root)
+                evict_cache(root, budget, need_bytes=need_bytes + others,
+                            version=_code_version())
+                free = shutil.disk_usage(root).free
+                if free - others < need_bytes:
+                    raise OSError(errno.ENOSPC, f"not enough free space: the sequence needs up "
+                                  f"to {need_bytes / 1e9:.1f} GB and the disk has "
+                                  f"{free / 1e9:.1f} GB free, {others / 1e9:.1f} GB of it "
+                                  "reserved by other generations in progress", str(root))
+                reservation.write_text(f"{need_bytes}\n{tmp}\n")
 
-    try:
-        simulate(scene, tmp, seed=seed, duration_s=duration_s, lidar=lidar, fmt=fmt,
-                 columns=columns, imu_noise_scale=imu_noise_scale,
-                 imu_bias_scale=imu_bias_scale, motion_from=motion_from, make_room=make_room)
-        (tmp / "COMPLETE").write_text("ok\n")
-        if final.exists() and not (final / "COMPLETE").is_file():
-            shutil.rmtree(final, ignore_errors=True)
         try:
-            os.rename(tmp, final)
-        except OSError:
-            if not (final / "COMPLETE").is_file():
-                raise
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
-    evict_cache(final.parent, budget, keep=final, version=_code_version())
+            simulate(scene, tmp, seed=seed, duration_s=duration_s, lidar=lidar, fmt=fmt,
+                     columns=columns, imu_noise_scale=imu_noise_scale,
+                     imu_bias_scale=imu_bias_scale, motion_from=motion_from,
+                     make_room=make_room)
+            (tmp / "COMPLETE").write_text("ok\n")
+            if final.exists() and not (final / "COMPLETE").is_file():
+                shutil.rmtree(final, ignore_errors=True)
+            try:
+                os.rename(tmp, final)
+            except OSError:
+                if not (final / "COMPLETE").is_file():
+                    raise
+        finally:
+            reservation.unlink(missing_ok=True)
+            if tmp.exists():
+                shutil.rmtree(tmp, ignore_errors=True)
+    evict_cache(root, budget, keep=final, version=_code_version())
     return result(final)
