@@ -16,7 +16,7 @@ from adalio.errors import InputError
 from adalio.io.bag import Bag
 from adalio.io.sequencer import Sequencer
 from adalio.sim import cached_sequence, simulate
-from adalio.sim.cache import evict_cache
+from adalio.sim.cache import LOCKS, evict_cache
 from adalio.types import ImuBatch, Scan
 
 
@@ -135,6 +135,11 @@ def test_config_is_accepted_and_meta_is_complete(tmp_path):
     assert t_ns[0] == meta["start_time_ns"]
 
 
+def _sequences(root: Path) -> list[str]:
+    """The cache's entries, without its lock files' folder."""
+    return [p.name for p in root.iterdir() if p.name != LOCKS]
+
+
 def test_cached_sequence_generates_once(tmp_path, monkeypatch):
     monkeypatch.setenv("ADALIO_CACHE_DIR", str(tmp_path))
     r1 = cached_sequence("corridor", duration_s=1.0, columns=36)
@@ -142,7 +147,7 @@ def test_cached_sequence_generates_once(tmp_path, monkeypatch):
     mtime = r1.bag_path.stat().st_mtime_ns
     r2 = cached_sequence("corridor", duration_s=1.0, columns=36)
     assert r2 == r1 and r2.bag_path.stat().st_mtime_ns == mtime
-    assert [p.name for p in (tmp_path / "sim").iterdir()] == [r1.bag_path.parent.name]
+    assert _sequences(tmp_path / "sim") == [r1.bag_path.parent.name]
     assert r1.bag_path.parent.name.startswith("corridor-s0-d1-xt32-ros1-c36-v")
 
 
@@ -195,7 +200,7 @@ def test_cached_sequence_reuse_marks_last_use_and_cap_applies(tmp_path, monkeypa
     os.utime(marker, (1e9, 1e9))
     monkeypatch.setenv("ADALIO_SIM_CACHE_GB", "0")
     r2 = cached_sequence("corridor", seed=1, duration_s=1.0, columns=36)
-    assert [p.name for p in (tmp_path / "sim").iterdir()] == [r2.bag_path.parent.name]
+    assert _sequences(tmp_path / "sim") == [r2.bag_path.parent.name]
     monkeypatch.setenv("ADALIO_SIM_CACHE_GB", "lots")
     with pytest.raises(InputError, match="ADALIO_SIM_CACHE_GB"):
         cached_sequence("corridor", seed=2, duration_s=1.0, columns=36)
