@@ -106,6 +106,28 @@ def test_eviction_makes_room_on_the_disk_before_the_cap(tmp_path, monkeypatch):
     # more than an empty cache would give: nothing goes for it (the caller's check reports)
     assert evict_cache(root, 10**9, need_bytes=10**9, version="1") == []
     assert b.exists() and c.exists()
+    # room for 60 kB and 20 kB to spare: the next least recently used goes too
+    assert evict_cache(root, 10**9, need_bytes=60_000, version="1", headroom_bytes=20_000) == [b]
+    assert c.exists() and shutil.disk_usage(root).free >= 80_000
+
+
+def test_a_generation_leaves_the_headroom_free(tmp_path, monkeypatch):
+    """Sequences used minutes ago are protected from the cap, not from the disk: the cache
+    frees the new sequence's room plus a share of the disk (5 %, at most 10 GB), so the
+    generation does not leave the disk full for the runs that follow."""
+    monkeypatch.setenv("ADALIO_CACHE_DIR", str(tmp_path))
+    old = cached_sequence("corridor", duration_s=1.0, columns=36)
+    new = cached_sequence("corridor", seed=1, duration_s=1.0, columns=36)
+    os.utime(old.bag_path.parent / "COMPLETE", (time.time() - 60, time.time() - 60))
+    root = old.bag_path.parent.parent
+    need = sequence_bytes(10, 36, 32, 401)  # its bound (0.2 GB of it spare) dwarfs the bags
+    capacity = _bytes(root) + need + 1000  # room for the third, not for the headroom
+    _small_disk(monkeypatch, root, capacity)
+    assert cache_mod.headroom_bytes(root) == int(0.05 * capacity)
+    monkeypatch.setattr(cache_mod, "HEADROOM_MAX_BYTES", 1000 + _bytes(old.bag_path.parent) // 2)
+    third = cached_sequence("corridor", seed=2, duration_s=1.0, columns=36)
+    assert third.bag_path.is_file() and new.bag_path.is_file()
+    assert not old.bag_path.exists()  # the least recently used went for the headroom
 
 
 def test_another_simulator_version_goes_first_and_unprotected(tmp_path):
@@ -184,8 +206,9 @@ def test_cached_sequence_counts_the_room_other_generations_reserved(tmp_path, mo
     assert info.value.errno == errno.ENOSPC and str(root) in info.value.filename
     assert "reserved by other generations in progress" in info.value.strerror
     assert first.bag_path.is_file()  # nothing evicted for a room it could not make
-    # the other generation took under half of what it asked for and finished: room for one
-    (other / "half.bin").write_bytes(b"x" * (need - 4096))
+    # the other generation took a quarter of what it asked for and finished: room for one more,
+    # and for the headroom (5 % of this disk)
+    (other / "part.bin").write_bytes(b"x" * (need // 2))
     reservation.unlink()
     second = cached_sequence("corridor", seed=1, duration_s=1.0, columns=36)
     assert second.bag_path.is_file() and first.bag_path.is_file()

@@ -41,6 +41,18 @@ the cap until they age). The disk's free space overrides it (:func:`evict_cache`
 ``need_bytes``), and so does another simulator version (its sequences can never be reused)."""
 
 
+HEADROOM_FRACTION = 0.05
+"""Before generating, the cache frees room for the new sequence plus this share of the disk
+(at most :data:`HEADROOM_MAX_BYTES`), protected sequences included, so a generation does not
+leave the disk full for the runs' outputs and whatever else shares it."""
+HEADROOM_MAX_BYTES = 10_000_000_000
+
+
+def headroom_bytes(root: Path) -> int:
+    """The free space the cache leaves on ``root``'s disk after a generation, where it can."""
+    return int(min(HEADROOM_FRACTION * shutil.disk_usage(root).total, HEADROOM_MAX_BYTES))
+
+
 def cache_budget_bytes() -> int:
     """``$ADALIO_SIM_CACHE_GB`` (default :data:`CACHE_BUDGET_GB`) in bytes."""
     text = os.environ.get("ADALIO_SIM_CACHE_GB", "")
@@ -118,14 +130,15 @@ def reserved_bytes(root: Path) -> int:
 
 def evict_cache(root: Path, budget_bytes: int, keep: Path | None = None,
                 protect_s: float = PROTECT_S, need_bytes: int = 0,
-                version: str | None = None) -> list[Path]:
+                version: str | None = None, headroom_bytes: int = 0) -> list[Path]:
     """Least-recently-used eviction: delete finished sequences, the least recently used first
     (last use = the ``COMPLETE`` marker's mtime, touched on every reuse), until the folder holds
     at most ``budget_bytes``; not a sequence used within ``protect_s``, unless it was made by
     another simulator ``version`` than the given one (its key does not end in ``-v<version>``).
-    Then, while the disk has less than ``need_bytes`` free, the least recently used of the
-    rest go too, protected or not: a full disk fails every run, an evicted sequence is only
-    generated again. Nothing goes for that when even an empty cache would leave too little.
+    Then, while the disk has less than ``need_bytes`` + ``headroom_bytes`` free, the least
+    recently used of the rest go too, protected or not: a full disk fails every run, an evicted
+    sequence is only generated again. Nothing goes for that when even an empty cache would leave
+    less than ``need_bytes``.
     Sequences of other versions go first in both passes; ``keep`` never goes.
     Unfinished folders older than a day (a generation that died) go too. Returns the folders
     removed."""
@@ -165,7 +178,7 @@ def evict_cache(root: Path, budget_bytes: int, keep: Path | None = None,
     if free + sum(size for size, _ in left) < need_bytes:
         return removed  # even an empty cache would not make the room: keep what is there
     for _, d in left:
-        if shutil.disk_usage(root).free >= need_bytes:
+        if shutil.disk_usage(root).free >= need_bytes + headroom_bytes:
             break
         shutil.rmtree(d, ignore_errors=True)
         removed.append(d)
@@ -193,7 +206,8 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     used first; a sequence larger than the cap on its own is still kept while it is the newest.
     Before generating, older sequences are evicted while the disk lacks the room the new one
     needs (``generate.sequence_bytes``) on top of what other generations in progress still need
-    (:func:`reserved_bytes`), even those the cap would keep; if that is not enough, an
+    (:func:`reserved_bytes`) and :func:`headroom_bytes`, even those the cap would keep; if even
+    the room for the sequence itself cannot be made, an
     ``OSError`` (ENOSPC) is raised before writing anything. Processes sharing the cache
     coordinate through lock files in ``.locks``: one generates a key while the others wait for it
     and reuse it, and the check and reservation of room happen one process at a time."""
@@ -241,7 +255,7 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
             with _locked(root / LOCKS / "space.lock"):
                 others = reserved_bytes(root)
                 evict_cache(root, budget, need_bytes=need_bytes + others,
-                            version=_code_version())
+                            version=_code_version(), headroom_bytes=headroom_bytes(root))
                 free = shutil.disk_usage(root).free
                 if free - others < need_bytes:
                     raise OSError(errno.ENOSPC, f"not enough free space: the sequence needs up "
