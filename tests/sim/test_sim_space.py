@@ -158,6 +158,8 @@ def test_cached_sequence_evicts_for_room_then_reports_what_is_missing(tmp_path, 
     with pytest.raises(OSError) as info:
         cached_sequence("corridor", seed=2, duration_s=1.0, columns=36)
     assert info.value.errno == errno.ENOSPC and str(root) in info.value.filename
+    assert "not enough free space" in info.value.strerror
+    assert "reserved" not in info.value.strerror  # no other generation holds any
     # no temp folder, and no reservation left
     assert [p.name for p in root.iterdir() if p.name != LOCKS] == [second.bag_path.parent.name]
     assert not list((root / LOCKS).glob("*.reserve"))

@@ -258,10 +258,11 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
                             version=_code_version(), headroom_bytes=headroom_bytes(root))
                 free = shutil.disk_usage(root).free
                 if free - others < need_bytes:
+                    held = (f", {others / 1e9:.1f} GB of it reserved by other generations in "
+                            "progress" if others else "")
                     raise OSError(errno.ENOSPC, f"not enough free space: the sequence needs up "
                                   f"to {need_bytes / 1e9:.1f} GB and the disk has "
-                                  f"{free / 1e9:.1f} GB free, {others / 1e9:.1f} GB of it "
-                                  "reserved by other generations in progress", str(root))
+                                  f"{free / 1e9:.1f} GB free{held}", str(root))
                 reservation.write_text(f"{need_bytes}\n{tmp}\n")
 
         try:
