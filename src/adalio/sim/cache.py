@@ -5,7 +5,6 @@ used first out)."""
 from __future__ import annotations
 
 import contextlib
-import errno
 import hashlib
 import os
 import shutil
@@ -21,7 +20,7 @@ except ImportError:  # not POSIX: no cross-process coordination
 
 from adalio.errors import InputError
 from adalio.sim.bagout import bag_path_for
-from adalio.sim.generate import SimResult, _check_args, simulate
+from adalio.sim.generate import SimResult, _check_args, check_free_space, simulate
 from adalio.sim.lidar import lidar_model
 
 
@@ -256,13 +255,7 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
                 others = reserved_bytes(root)
                 evict_cache(root, budget, need_bytes=need_bytes + others,
                             version=_code_version(), headroom_bytes=headroom_bytes(root))
-                free = shutil.disk_usage(root).free
-                if free - others < need_bytes:
-                    held = (f", {others / 1e9:.1f} GB of it reserved by other generations in "
-                            "progress" if others else "")
-                    raise OSError(errno.ENOSPC, f"not enough free space: the sequence needs up "
-                                  f"to {need_bytes / 1e9:.1f} GB and the disk has "
-                                  f"{free / 1e9:.1f} GB free{held}", str(root))
+                check_free_space(root, need_bytes, others)
                 reservation.write_text(f"{need_bytes}\n{tmp}\n")
 
         try:

@@ -59,14 +59,17 @@ def sequence_bytes(n_scans: int, columns: int, channels: int, n_imu: int) -> int
         + int(n_imu) * IMU_MESSAGE_BYTES + SPARE_BYTES
 
 
-def check_free_space(out_dir: Path, need_bytes: int) -> None:
+def check_free_space(out_dir: Path, need_bytes: int, reserved_bytes: int = 0) -> None:
     """An ``OSError`` (ENOSPC, naming ``out_dir``) when its disk has less than ``need_bytes``
-    free: before minutes of generation, not after, and with no partial bag left behind."""
+    free beyond ``reserved_bytes`` (what other writers in progress still need): before minutes of
+    generation, not after, and with no partial bag left behind."""
     free = shutil.disk_usage(out_dir).free
-    if free < need_bytes:
+    if free - reserved_bytes < need_bytes:
+        held = (f", {reserved_bytes / 1e9:.1f} GB of it reserved by other generations in "
+                "progress" if reserved_bytes else "")
         raise OSError(errno.ENOSPC, f"not enough free space: the sequence needs up to "
-                      f"{need_bytes / 1e9:.1f} GB and the disk has {free / 1e9:.1f} GB free",
-                      str(out_dir))
+                      f"{need_bytes / 1e9:.1f} GB and the disk has {free / 1e9:.1f} GB "
+                      f"free{held}", str(out_dir))
 
 
 @dataclass
