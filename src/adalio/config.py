@@ -110,8 +110,10 @@ class ImuConfig:
     still_false_alarm: float = 1e-3
     """Stillness test: probability that a window at rest is judged moving (chi-square level)."""
     noise_source: str = "config"
-    """'config' (gyro_cov / accel_cov as given) or 'measured' (white-noise densities measured in
-    the still window replace them; bias walks stay as configured)."""
+    """'config' (gyro_cov / accel_cov as given), 'measured' (white-noise densities measured in
+    the still window replace them; bias walks stay as configured) or 'at_least_config' (a
+    sensor's measured density replaces its configured one only where the window shows it
+    noisier beyond the ``still_false_alarm`` level: the configured values are a floor)."""
     init_timeout_s: float = 1.0
     """No still window within this long after the first scan: initialize in motion (s)."""
     moving_init_window_s: float = 1.0
@@ -471,7 +473,7 @@ CHOICES: dict[str, tuple] = {
     "sensor.point_time_unit": ("auto", "s", "ms", "us", "ns"),
     "sensor.point_time_reference": ("auto", "absolute", "relative"),
     "imu.noise_discretization": ("dt2", "dt"),
-    "imu.noise_source": ("config", "measured"),
+    "imu.noise_source": ("config", "measured", "at_least_config"),
     "sensor.gyro_unit": ("rad_s", "deg_s"),
     "map.nearby_type": (0, 6, 18, 26),
     "map.cell_point": ("first", "uniform"),
@@ -683,7 +685,7 @@ def imu_noise_is_generic(imu_cfg: ImuConfig) -> bool:
     discretization at its default, the white noise not measured. In shafts and stairwells they
     cost 2-3x the ATE or the track (README, Presets)."""
     default = ImuConfig()
-    return imu_cfg.noise_source == "config" and all(
+    return imu_cfg.noise_source != "measured" and all(
         getattr(imu_cfg, k) == getattr(default, k) for k in GENERIC_IMU_FIELDS)
 
 

@@ -144,7 +144,8 @@ class InitReport:
     accel_noise_m_s2_sqrt_hz: float = float("nan")
     """Static: accelerometer white-noise density measured in the still window."""
     noise_used: str = "config"
-    """Which densities the filter uses: 'config' or 'measured'."""
+    """Which densities the filter uses: 'config', 'measured', or which sensor
+    'at_least_config' raised to its measured density (``imu.noise_used``)."""
     generic_noise: bool = False
     """The config's densities are Faster-LIO's generic values (``config.imu_noise_is_generic``):
     the summary line says to set the IMU's own."""

@@ -111,11 +111,9 @@ def test_stillness_test_adapts_to_the_imu_noise(rate_hz, noise_scale):
         test = imu.stillness_test(t_ns, gyro, acc, cfg)
         verdicts.append(test.still)
         if seed < 10:
-            # within-block variance over 3 axes: 3 B (n_b - 1) dof; its square root has a
-            # relative standard deviation of about 1 / sqrt(2 dof); allow 4 of those
-            n_b = round(cfg.still_block_s * rate_hz)
-            dof = 3 * (len(t_ns) // n_b) * (n_b - 1)
-            rel = 4.0 / np.sqrt(2 * dof)
+            # a variance with dof degrees of freedom: its square root has a relative standard
+            # deviation of about 1 / sqrt(2 dof); allow 4 of those
+            rel = 4.0 / np.sqrt(2 * test.noise_dof)
             assert test.gyro_noise_rad_s_sqrt_hz == pytest.approx(
                 noise_scale * HILTI_GYRO_DENSITY, rel=rel)
             assert test.accel_noise_m_s2_sqrt_hz == pytest.approx(
@@ -166,6 +164,60 @@ def test_measured_noise_config_matches_the_discretization():
     m2 = imu.measured_noise_config(ImuConfig(noise_discretization="dt2"), test)
     # dt2 injects Q dt^2 per step: Q = per-sample variance = density^2 * rate
     assert m2.accel_cov == pytest.approx(np.var(acc - acc.mean(axis=0), axis=0).mean(), rel=0.1)
+
+
+def test_measured_noise_is_the_white_noise_not_a_hands_tremor():
+    """Held still by hand (9-11 Hz tremor of 0.03 rad/s and 0.3 m/s², 6x and 30x the BMI085's
+    white noise per sample at 400 Hz), the measured densities are still the sensor's own."""
+    cfg = ImuConfig()
+    for seed in range(10):
+        t_ns, gyro, acc = _imu_window(400.0, 1.0, seed, motion=_tremor)
+        test = imu.stillness_test(t_ns, gyro, acc, cfg)
+        assert test.still
+        rel = 4.0 / np.sqrt(2 * test.noise_dof)
+        assert test.gyro_noise_rad_s_sqrt_hz == pytest.approx(HILTI_GYRO_DENSITY, rel=rel)
+        assert test.accel_noise_m_s2_sqrt_hz == pytest.approx(HILTI_ACCEL_DENSITY, rel=rel)
+
+
+def test_white_noise_variance_dof_matches_its_spread():
+    """The effective degrees of freedom describe the estimator's spread (Monte Carlo)."""
+    r = np.random.default_rng(3)
+    est = [imu.white_noise_variance(r.normal(size=(200, 3)))[0] for _ in range(4000)]
+    _, dof = imu.white_noise_variance(np.zeros((200, 3)))
+    assert np.mean(est) == pytest.approx(1.0, abs=0.01)
+    assert np.var(est) == pytest.approx(2.0 / dof, rel=0.1)
+
+
+@pytest.mark.parametrize("discretization", ["dt", "dt2"])
+def test_at_least_config_raises_only_a_sensor_shown_noisier(discretization):
+    """'at_least_config': a configured density stays unless the still window shows that sensor
+    noisier beyond the false-alarm level; then the measured (true) density is used. The config
+    here is the BMI085's gyro and 12x its accelerometer (as ``hilti2022``)."""
+    rate = 400.0
+    scale = 1.0 if discretization == "dt" else rate
+    cfg = ImuConfig(noise_discretization=discretization,
+                    gyro_cov=HILTI_GYRO_DENSITY**2 * scale,
+                    accel_cov=(12 * HILTI_ACCEL_DENSITY) ** 2 * scale)
+    for noise_scale, gyro_raised, accel_raised in ((1.0, False, False), (10.0, True, False),
+                                                   (50.0, True, True)):
+        kept = []
+        for seed in range(200 if noise_scale == 1.0 else 10):
+            t_ns, gyro, acc = _imu_window(rate, noise_scale, seed)
+            test = imu.stillness_test(t_ns, gyro, acc, cfg)
+            m = imu.measured_noise_config(cfg, test, only_if_noisier=True)
+            kept.append((m.gyro_cov == cfg.gyro_cov, m.accel_cov == cfg.accel_cov))
+            rel = 4.0 / np.sqrt(2 * test.noise_dof) * 2  # of a variance: twice the density's
+            if gyro_raised:
+                assert m.gyro_cov == pytest.approx((noise_scale * HILTI_GYRO_DENSITY) ** 2 * scale,
+                                                   rel=rel)
+            if accel_raised:
+                assert m.accel_cov == pytest.approx(
+                    (noise_scale * HILTI_ACCEL_DENSITY) ** 2 * scale, rel=rel)
+            assert m.gyro_bias_cov == cfg.gyro_bias_cov
+        kept = np.array(kept)
+        for k, raised in enumerate((gyro_raised, accel_raised)):
+            # at the true density the configured value stays (false raises near 1e-3)
+            assert not kept[:, k].any() if raised else kept[:, k].mean() >= 0.98
 
 
 def test_F_and_G_match_numerical_differentiation():

@@ -199,6 +199,36 @@ def test_motion_is_not_taken_for_rest():
             in rep.describe())
 
 
+@pytest.mark.parametrize("source", ["config", "at_least_config"])
+def test_a_noisier_gyro_than_configured_raises_the_filter_noise(source):
+    """A still start with a gyro 10x noisier than configured: 'at_least_config' hands the
+    filter the measured gyro density and keeps the configured accelerometer one (whose
+    configured density is 50x the accelerometer's true one here); 'config' keeps both."""
+    density = 1.9e-4
+    cfg = _config()
+    cfg.imu.noise_discretization = "dt"
+    cfg.imu.gyro_cov, cfg.imu.accel_cov = density**2, (50 * 1.32e-3) ** 2
+    cfg.imu.noise_source = source
+    odom = Odometry(cfg.validate())
+    rng = np.random.default_rng(5)
+    t = np.arange(0.0, 0.8, 0.0025)
+    gyro = GYRO_BIAS + 10 * density * np.sqrt(400.0) * rng.normal(size=(t.size, 3))
+    acc = np.array([0.0, 0.0, 9.81]) + 1.32e-3 * np.sqrt(400.0) * rng.normal(size=(t.size, 3))
+    odom.add_imu(np.round(t * 1e9).astype(np.int64), gyro, acc)
+    pts = rng.uniform(-5, 5, size=(100, 3))
+    assert odom.add_scan(pts, np.full(100, int(0.6e9), np.int64)) is not None
+    q = odom._q_diag
+    assert q[3:6] == pytest.approx(cfg.imu.accel_cov)
+    if source == "config":
+        assert q[:3] == pytest.approx(density**2) and odom.init_report.noise_used == "config"
+    else:
+        assert q[:3] == pytest.approx((10 * density) ** 2, rel=0.25)
+        used = odom.init_report.noise_used
+        ratio = float(used.removeprefix("measured gyro (").split("x")[0])
+        assert ratio == pytest.approx(np.sqrt(q[0]) / density, abs=0.05)
+        assert used.endswith("x the configured density) and config accelerometer")
+
+
 @pytest.mark.parametrize("align", [False, True])
 def test_moving_start_initializes_from_registered_scans(align):
     """The sequence starts 0.6 s into the motion: once the registered scans span twice

@@ -48,7 +48,8 @@ class StillnessTest:
 
     ``gyro_ratio`` / ``accel_ratio`` are the test statistics divided by their thresholds: the
     window is still when both are <= 1. The densities are the white-noise densities measured in
-    the window (per-axis RMS), valid as a noise calibration only when ``still``.
+    the window (second differences, pooled over the axes: :func:`white_noise_variance`), valid
+    as a noise calibration only when ``still``.
     """
 
     still: bool
@@ -59,6 +60,9 @@ class StillnessTest:
     rate_hz: float
     n_samples: int
     window_s: float
+    noise_dof: int = 0
+    """Effective degrees of freedom of each measured density's variance
+    (:func:`white_noise_variance`)."""
 
     def describe(self) -> str:
         return (f"{self.window_s:.2f} s window of {self.n_samples} samples at "
@@ -79,12 +83,12 @@ def _blocks(x: np.ndarray, n_block: int) -> np.ndarray:
     return x[: n_blocks * n_block].reshape(n_blocks, n_block, 3)
 
 
-def _block_statistic(x: np.ndarray, n_block: int, floor: float) -> tuple[float, int, float]:
+def _block_statistic(x: np.ndarray, n_block: int, floor: float) -> tuple[float, int]:
     """Chi-square statistic of the block means of ``x`` (n, 3) around their mean.
 
     The within-block (pooled, per axis) variance s² is what averages out inside a block (white
     noise, tremor, vibration); a block mean of n_b samples then has variance s²/n_b at rest.
-    ``floor`` is a motion amplitude still counted as rest. Returns (statistic, dof, mean s²).
+    ``floor`` is a motion amplitude still counted as rest. Returns (statistic, dof).
     """
     blocks = _blocks(x, n_block)
     n_blocks = blocks.shape[0]
@@ -92,7 +96,23 @@ def _block_statistic(x: np.ndarray, n_block: int, floor: float) -> tuple[float, 
     within = blocks.var(axis=1, ddof=1).mean(axis=0)
     dev2 = (means - means.mean(axis=0)) ** 2
     stat = float(np.sum(dev2 / (within / n_block + floor * floor)))
-    return stat, 3 * (n_blocks - 1), float(within.mean())
+    return stat, 3 * (n_blocks - 1)
+
+
+SECOND_DIFFERENCE_DOF_FACTOR = 36.0 / 70.0
+"""Effective degrees of freedom per sample of the mean squared second difference of white
+noise: its autocovariances are 6, -4, 1 (x σ²), so the mean of N squares has the variance of a
+chi-square mean with N·36/(36 + 2·16 + 2·1) degrees of freedom."""
+
+
+def white_noise_variance(x: np.ndarray) -> tuple[float, int]:
+    """Per-sample white-noise variance of ``x`` (n, 3), pooled over the axes, from second
+    differences: ``mean((x[i+1] − 2x[i] + x[i−1])²) / 6``. Unbiased for white noise, and blind to
+    what moves slowly against the sample rate (a hand's tremor at 10 Hz reaches a 400 Hz
+    IMU's second differences at 6e-4 of its power, its within-block spread in full). Returns
+    (variance, effective degrees of freedom)."""
+    d = x[2:] - 2.0 * x[1:-1] + x[:-2]
+    return float(np.mean(d * d)) / 6.0, max(int(d.size * SECOND_DIFFERENCE_DOF_FACTOR), 1)
 
 
 def stillness_test(t_ns: np.ndarray, gyro_rad_s: np.ndarray, accel: np.ndarray,
@@ -123,13 +143,15 @@ def stillness_test(t_ns: np.ndarray, gyro_rad_s: np.ndarray, accel: np.ndarray,
     if not acc_norm > 0:
         return StillnessTest(False, nan, nan, nan, nan, rate, n, span_s)
     acc = accel * (cfg.gravity_m_s2 / acc_norm)
-    g_stat, dof, g_var = _block_statistic(gyro_rad_s, n_block, cfg.still_gyro_floor_rad_s)
-    a_stat, _, a_var = _block_statistic(acc, n_block, cfg.still_accel_floor_m_s2)
+    g_stat, dof = _block_statistic(gyro_rad_s, n_block, cfg.still_gyro_floor_rad_s)
+    a_stat, _ = _block_statistic(acc, n_block, cfg.still_accel_floor_m_s2)
     limit = float(chi2.ppf(1.0 - cfg.still_false_alarm, dof))
     g_ratio, a_ratio = g_stat / limit, a_stat / limit
+    g_var, noise_dof = white_noise_variance(gyro_rad_s)
+    a_var, _ = white_noise_variance(acc)
     return StillnessTest(bool(g_ratio <= 1.0 and a_ratio <= 1.0), g_ratio, a_ratio,
                          float(np.sqrt(g_var / rate)), float(np.sqrt(a_var / rate)), rate, n,
-                         span_s)
+                         span_s, noise_dof)
 
 
 def rest_mean_variances(gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray,
@@ -177,14 +199,43 @@ def static_init(gyro_rad_s: np.ndarray, accel: np.ndarray, cfg: ImuConfig) -> St
                       n_samples=int(gyro_rad_s.shape[0]))
 
 
-def measured_noise_config(cfg: ImuConfig, test: StillnessTest) -> ImuConfig:
+def measured_noise_config(cfg: ImuConfig, test: StillnessTest,
+                          only_if_noisier: bool = False) -> ImuConfig:
     """``cfg`` with gyro_cov / accel_cov replaced by the densities measured in a still window,
-    in the configured discretization: ``σ²`` for 'dt' (Q dt), ``σ² f_s`` for 'dt2' (Q dt²)."""
+    in the configured discretization: ``σ²`` for 'dt' (Q dt), ``σ² f_s`` for 'dt2' (Q dt²).
+
+    ``only_if_noisier`` ('at_least_config'): a sensor's configured value is kept unless the
+    window shows that sensor noisier than configured beyond doubt: its measured variance (a
+    chi-square variable with ``test.noise_dof`` degrees of freedom) exceeds the configured one
+    by more than the ``1 − still_false_alarm`` quantile allows. The configured values then act
+    as a floor (they may include vibration and model error the window does not show)."""
     from dataclasses import replace
 
+    from scipy.stats import chi2
+
     scale = 1.0 if cfg.noise_discretization == "dt" else test.rate_hz
-    return replace(cfg, gyro_cov=test.gyro_noise_rad_s_sqrt_hz**2 * scale,
-                   accel_cov=test.accel_noise_m_s2_sqrt_hz**2 * scale)
+    gyro = test.gyro_noise_rad_s_sqrt_hz**2 * scale
+    accel = test.accel_noise_m_s2_sqrt_hz**2 * scale
+    if only_if_noisier:
+        dof = max(test.noise_dof, 1)
+        limit = float(chi2.ppf(1.0 - cfg.still_false_alarm, dof)) / dof
+        gyro = gyro if gyro > cfg.gyro_cov * limit else cfg.gyro_cov
+        accel = accel if accel > cfg.accel_cov * limit else cfg.accel_cov
+    return replace(cfg, gyro_cov=gyro, accel_cov=accel)
+
+
+def noise_used(cfg: ImuConfig, used: ImuConfig) -> str:
+    """Which white-noise densities the filter uses, for the run summary: 'config', 'measured',
+    or, where 'at_least_config' raised a sensor, e.g. 'measured gyro (9.8x the configured
+    density) and config accelerometer'."""
+    if cfg.noise_source != "at_least_config":
+        return cfg.noise_source
+    pairs = (("gyro", cfg.gyro_cov, used.gyro_cov), ("accelerometer", cfg.accel_cov,
+                                                     used.accel_cov))
+    if all(u == c for _, c, u in pairs):
+        return "config"
+    return " and ".join(f"measured {name} ({np.sqrt(u / c):.1f}x the configured density)"
+                        if u != c else f"config {name}" for name, c, u in pairs)
 
 
 def process_noise(cfg: ImuConfig) -> np.ndarray:

@@ -840,8 +840,11 @@ class Odometry:
         self._t_state_ns = t_b_ns
         last = window.stop - 1
         self._prev_sample = (int(b.t_ns[last]), b.gyro[last].copy(), b.accel[last].copy())
-        if cfg.noise_source == "measured":
-            self._q_diag = imu.process_noise(imu.measured_noise_config(cfg, test))
+        used = cfg
+        if cfg.noise_source != "config":
+            used = imu.measured_noise_config(
+                cfg, test, only_if_noisier=cfg.noise_source == "at_least_config")
+            self._q_diag = imu.process_noise(used)
         self._set_gap_model(b.t_ns[window])
         self._buf = _ImuBuffer(b.t_ns[window.stop:], b.gyro[window.stop:], b.accel[window.stop:])
         wait = self._wait_fields(t_b_ns)
@@ -855,7 +858,7 @@ class Odometry:
             accel_norm_m_s2=float(np.linalg.norm(acc_mean)),
             gyro_noise_rad_s_sqrt_hz=test.gyro_noise_rad_s_sqrt_hz,
             accel_noise_m_s2_sqrt_hz=test.accel_noise_m_s2_sqrt_hz,
-            noise_used=cfg.noise_source, generic_noise=imu_noise_is_generic(cfg),
+            noise_used=imu.noise_used(cfg, used), generic_noise=imu_noise_is_generic(cfg),
             detail=test.describe(), **wait)
 
     def _moving_initialize(self, fit) -> np.ndarray:
