@@ -78,6 +78,8 @@ class Cell:
     """From the first scan read to the end of the initialization (InitReport.wait_s)."""
     refused_fits: int = 0
     """Moving start: fits refused before one passed."""
+    filter_noise: str = ""
+    """Which IMU white-noise densities the filter used (``InitReport.noise_used``)."""
 
     @property
     def pose_ratio(self) -> float:
@@ -113,6 +115,7 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     if res.init_report is not None:
         cell.init_wait_s = float(res.init_report.wait_s)
         cell.refused_fits = int(res.init_report.refused_fits)
+        cell.filter_noise = res.init_report.noise_used
     cell.ms_per_scan = res.ms_per_scan_median
     cell.ate_m = float(ate(res.trajectory_path, sim.gt_path, align="se3")["rmse_m"])
     with contextlib.suppress(InputError):
