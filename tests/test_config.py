@@ -64,6 +64,7 @@ def test_generic_imu_noise_is_named_in_the_init_line(tmp_path):
     assert not imu_noise_is_generic(load_config("hilti2022").imu)
     generic = load_config("velodyne").imu
     assert not imu_noise_is_generic(replace(generic, noise_source="measured"))
+    assert imu_noise_is_generic(replace(generic, noise_source="config"))
     assert not imu_noise_is_generic(replace(generic, accel_bias_cov=1.85e-5))
 
     seq = simulate("hall", tmp_path / "seq", duration_s=3.0, columns=180, lidar="vlp16")

@@ -109,11 +109,12 @@ class ImuConfig:
     """Stillness test: slow acceleration (block-mean spread, m/s^2) still treated as rest."""
     still_false_alarm: float = 1e-3
     """Stillness test: probability that a window at rest is judged moving (chi-square level)."""
-    noise_source: str = "config"
-    """'config' (gyro_cov / accel_cov as given), 'measured' (white-noise densities measured in
-    the still window replace them; bias walks stay as configured) or 'at_least_config' (a
-    sensor's measured density replaces its configured one only where the window shows it
-    noisier beyond the ``still_false_alarm`` level: the configured values are a floor)."""
+    noise_source: str = "at_least_config"
+    """'at_least_config' (a still start's measured white-noise density replaces a sensor's
+    configured one only where the window shows that sensor noisier beyond the
+    ``still_false_alarm`` level: the configured values are a floor; README, Initialization),
+    'config' (gyro_cov / accel_cov as given) or 'measured' (the densities measured in the still
+    window replace them). Bias walks always stay as configured."""
     init_timeout_s: float = 1.0
     """No still window within this long after the first scan: initialize in motion (s)."""
     moving_init_window_s: float = 1.0
