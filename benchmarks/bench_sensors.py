@@ -174,6 +174,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", nargs="+", default=["hall", "corridor"])
     ap.add_argument("--seeds", type=int, default=2)
+    ap.add_argument("--first-seed", type=int, default=0,
+                    help="seeds first-seed .. first-seed + seeds - 1")
     ap.add_argument("--imu-noise", nargs="+", type=float, default=[1.0, 10.0])
     ap.add_argument("--lidars", nargs="+", default=list(LIDARS), choices=list(LIDARS))
     ap.add_argument("--starts", nargs="+", default=["still", "moving"],
@@ -196,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     starts = [("still", 0.0)] if "still" in args.starts else []
     starts += [("moving", c) for c in args.cut_s] if "moving" in args.starts else []
     for scene in args.scenes:
-        for seed in range(args.seeds):
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
             for noise in args.imu_noise:
                 for lidar in args.lidars:
                     for start, cut_s in starts:
