@@ -116,8 +116,14 @@ def test_a_generation_leaves_the_headroom_free(tmp_path, monkeypatch):
     frees the new sequence's room plus a share of the disk (5 %, at most 10 GB), so the
     generation does not leave the disk full for the runs that follow."""
     monkeypatch.setenv("ADALIO_CACHE_DIR", str(tmp_path))
+    # the first two without a headroom: on a real disk with less free than that, the second
+    # would already evict the first
+    headroom_max = cache_mod.HEADROOM_MAX_BYTES
+    monkeypatch.setattr(cache_mod, "HEADROOM_MAX_BYTES", 0)
     old = cached_sequence("corridor", duration_s=1.0, columns=36)
     new = cached_sequence("corridor", seed=1, duration_s=1.0, columns=36)
+    assert old.bag_path.is_file()
+    monkeypatch.setattr(cache_mod, "HEADROOM_MAX_BYTES", headroom_max)
     os.utime(old.bag_path.parent / "COMPLETE", (time.time() - 60, time.time() - 60))
     root = old.bag_path.parent.parent
     need = sequence_bytes(10, 36, 32, 401)  # its bound (0.2 GB of it spare) dwarfs the bags
