@@ -76,3 +76,29 @@ def test_generic_imu_noise_is_named_in_the_init_line(tmp_path):
         assert res.n_scans > 0
         lines[label] = res.init_report.describe()
     assert "generic values" in lines["generic"] and "generic values" not in lines["own"]
+
+
+def test_a_simulated_imu_10x_noisier_than_its_config_gets_its_gyro_raised(tmp_path):
+    """End to end on simulated bags whose config.yaml describes the HILTI BMI085: with the
+    simulator's IMU at its own noise the filter keeps the configured densities; with its white
+    noise 10x, the default (at_least_config) raises the gyro's about 10x and keeps the
+    accelerometer's, whose configured value (12x the BMI085's) the x10 noise does not exceed."""
+    import re
+
+    from adalio.pipeline import run_bag
+    from adalio.sim import simulate
+
+    used = {}
+    for scale in (1.0, 10.0):
+        seq = simulate("hall", tmp_path / f"seq{scale:g}", duration_s=1.5, columns=180,
+                       lidar="vlp16", imu_noise_scale=scale)
+        cfg = load_config(config_file=seq.config_path)
+        assert cfg.imu.noise_source == "at_least_config"
+        res = run_bag(seq.bag_path, cfg, tmp_path / f"run{scale:g}", progress=False)
+        assert res.n_scans > 0
+        used[scale] = res.init_report.noise_used
+    assert used[1.0] == "config"
+    m = re.fullmatch(r"measured gyro \(([0-9.]+)x the configured density\) and config "
+                     r"accelerometer", used[10.0])
+    assert m is not None, used[10.0]
+    assert 8.5 <= float(m.group(1)) <= 11.5
