@@ -239,3 +239,66 @@ def test_one_process_generates_a_key_the_others_wait_and_reuse(tmp_path, monkeyp
     assert len(calls) == 1
     assert {r.bag_path for r in results} == {results[0].bag_path}
     assert results[0].bag_path.is_file()
+
+
+_TRY_EXCLUSIVE = """import fcntl, sys
+fh = open(sys.argv[1], "a")
+try:
+    fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+except OSError:
+    sys.exit(1)
+"""
+
+
+def _free_in_another_process(path: Path) -> bool:
+    """Could another process lock ``path`` exclusively right now (no one holds it)?"""
+    return subprocess.run([sys.executable, "-c", _TRY_EXCLUSIVE, str(path)],
+                          check=False).returncode == 0
+
+
+@pytest.mark.skipif(cache_mod.fcntl is None, reason="needs fcntl (POSIX)")
+def test_eviction_skips_a_sequence_another_process_holds(tmp_path):
+    """A sequence a process is using (its ``.use`` lock held shared) is not evicted, by the cap
+    or for the disk, even when it is the least recently used; once let go, it is."""
+    now = time.time()
+    root = tmp_path / "sim"
+    a = _entry(root, "a-v1", 40_000, now - 300)
+    b = _entry(root, "b-v1", 40_000, now - 200)
+    (root / LOCKS).mkdir()
+    hold = ("import fcntl, sys\nfh = open(sys.argv[1], 'a')\nfcntl.flock(fh, fcntl.LOCK_SH)\n"
+            "print('held', flush=True)\nsys.stdin.read()\n")
+    holder = subprocess.Popen([sys.executable, "-c", hold, str(root / LOCKS / "a-v1.use")],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert evict_cache(root, 0, protect_s=0) == [b]
+        assert a.exists()
+        c = _entry(root, "c-v1", 40_000, now - 100)
+        assert evict_cache(root, 10**9, protect_s=0, need_bytes=shutil.disk_usage(root).free
+                           + 10**6) == []  # not even for the disk
+        assert a.exists() and c.exists()
+    finally:
+        holder.stdin.close()
+        holder.wait(timeout=30)
+    assert evict_cache(root, 0, protect_s=0) == [a, c]
+
+
+@pytest.mark.skipif(cache_mod.fcntl is None, reason="needs fcntl (POSIX)")
+def test_the_sequence_handed_out_last_stays_held(tmp_path, monkeypatch):
+    """``cached_sequence`` holds the sequence it returns until it returns another: another
+    process's eviction then keeps the one in use and removes the one let go."""
+    monkeypatch.setenv("ADALIO_CACHE_DIR", str(tmp_path))
+    first = cached_sequence("corridor", duration_s=1.0, columns=36)
+    root = first.bag_path.parent.parent
+
+    def use_lock(res):
+        return root / LOCKS / f"{res.bag_path.parent.name}.use"
+
+    assert not _free_in_another_process(use_lock(first))
+    second = cached_sequence("corridor", seed=1, duration_s=1.0, columns=36)
+    assert _free_in_another_process(use_lock(first))
+    assert not _free_in_another_process(use_lock(second))
+    evict = ("import sys\nfrom pathlib import Path\nfrom adalio.sim.cache import evict_cache\n"
+             "evict_cache(Path(sys.argv[1]), 0, protect_s=0)\n")
+    subprocess.run([sys.executable, "-c", evict, str(root)], check=True)
+    assert not first.bag_path.exists() and second.bag_path.is_file()

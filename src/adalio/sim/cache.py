@@ -8,6 +8,7 @@ import contextlib
 import hashlib
 import os
 import shutil
+import threading
 import time
 import uuid
 from collections.abc import Iterator
@@ -97,6 +98,48 @@ def _locked(path: Path) -> Iterator[None]:
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
+_HELD: list = []
+"""``[key, open lock file]`` of the sequence this process was handed last (:func:`_hold`)."""
+_HELD_LOCK = threading.Lock()
+
+
+def _hold(root: Path, key: str) -> None:
+    """Hold a shared ``flock`` on ``.locks/<key>.use`` until this process is handed another
+    sequence or exits: evictions skip a sequence so held (:func:`_remove_unless_in_use`), so a
+    run does not lose its bag to another process making room. Blocks while an eviction of that
+    key is under way, so the reuse check that follows sees whether it is gone."""
+    if fcntl is None:
+        return
+    path = root / LOCKS / f"{key}.use"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fh = open(path, "a")  # noqa: SIM115 - held beyond this function on purpose
+    fcntl.flock(fh, fcntl.LOCK_SH)
+    with _HELD_LOCK:
+        if _HELD:
+            _HELD[1].close()
+        _HELD[:] = [key, fh]
+
+
+def _remove_unless_in_use(root: Path, d: Path) -> bool:
+    """Delete the sequence folder ``d`` unless a process holds it (:func:`_hold`; this process's
+    own last sequence counts as held). The exclusive lock is kept while deleting, so no process
+    starts using ``d`` meanwhile. Returns whether it was deleted."""
+    path = root / LOCKS / f"{d.name}.use"
+    if fcntl is None or not path.is_file():
+        shutil.rmtree(d, ignore_errors=True)
+        return True
+    with open(path, "a") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            return False
+        try:
+            shutil.rmtree(d, ignore_errors=True)
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+    return True
+
+
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -138,7 +181,8 @@ def evict_cache(root: Path, budget_bytes: int, keep: Path | None = None,
     recently used of the rest go too, protected or not: a full disk fails every run, an evicted
     sequence is only generated again. Nothing goes for that when even an empty cache would leave
     less than ``need_bytes``.
-    Sequences of other versions go first in both passes; ``keep`` never goes.
+    Sequences of other versions go first in both passes; ``keep`` never goes, nor does a
+    sequence a process holds (the last one :func:`cached_sequence` handed it).
     Unfinished folders older than a day (a generation that died) go too. Returns the folders
     removed."""
     removed: list[Path] = []
@@ -165,8 +209,8 @@ def evict_cache(root: Path, budget_bytes: int, keep: Path | None = None,
     total = sum(size for _, _, size, _ in entries) + (_folder_bytes(keep) if keep else 0)
     left: list[tuple[int, Path]] = []
     for current, last_use, size, d in entries:
-        if total > budget_bytes and not (current and now - last_use < protect_s):
-            shutil.rmtree(d, ignore_errors=True)
+        if (total > budget_bytes and not (current and now - last_use < protect_s)
+                and _remove_unless_in_use(root, d)):
             removed.append(d)
             total -= size
         else:
@@ -179,8 +223,8 @@ def evict_cache(root: Path, budget_bytes: int, keep: Path | None = None,
     for _, d in left:
         if shutil.disk_usage(root).free >= need_bytes + headroom_bytes:
             break
-        shutil.rmtree(d, ignore_errors=True)
-        removed.append(d)
+        if _remove_unless_in_use(root, d):
+            removed.append(d)
     return removed
 
 
@@ -209,7 +253,8 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     the room for the sequence itself cannot be made, an
     ``OSError`` (ENOSPC) is raised before writing anything. Processes sharing the cache
     coordinate through lock files in ``.locks``: one generates a key while the others wait for it
-    and reuse it, and the check and reservation of room happen one process at a time."""
+    and reuse it, and the check and reservation of room happen one process at a time. The
+    sequence returned stays held (no process evicts it) until this process asks for another."""
     _check_args(scene, duration_s, lidar, fmt, 1.0)
     cols = lidar_model(lidar, columns).columns
     dur = "full" if duration_s is None else f"{float(duration_s):g}"
@@ -238,11 +283,12 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
             pass
         return True
 
+    root = final.parent
+    root.mkdir(parents=True, exist_ok=True)
+    _hold(root, key)  # before the reuse check: an eviction under way finishes first
     if reuse():
         return result(final)
     budget = cache_budget_bytes()
-    root = final.parent
-    root.mkdir(parents=True, exist_ok=True)
     with _locked(root / LOCKS / f"{key}.lock"):  # another process generating it: wait, reuse
         if reuse():
             return result(final)
