@@ -99,7 +99,7 @@ def _locked(path: Path) -> Iterator[None]:
 
 
 _HELD: list = []
-"""``[key, open lock file]`` of the sequence this process was handed last (:func:`_hold`)."""
+"""The open ``.use`` lock file of the sequence this process was handed last (:func:`_hold`)."""
 _HELD_LOCK = threading.Lock()
 
 
@@ -116,8 +116,8 @@ def _hold(root: Path, key: str) -> None:
     fcntl.flock(fh, fcntl.LOCK_SH)
     with _HELD_LOCK:
         if _HELD:
-            _HELD[1].close()
-        _HELD[:] = [key, fh]
+            _HELD.pop().close()
+        _HELD.append(fh)
 
 
 def _remove_unless_in_use(root: Path, d: Path) -> bool:
