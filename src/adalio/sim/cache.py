@@ -123,11 +123,14 @@ def _hold(root: Path, key: str) -> None:
 def _remove_unless_in_use(root: Path, d: Path) -> bool:
     """Delete the sequence folder ``d`` unless a process holds it (:func:`_hold`; this process's
     own last sequence counts as held). The exclusive lock is kept while deleting, so no process
-    starts using ``d`` meanwhile. Returns whether it was deleted."""
-    path = root / LOCKS / f"{d.name}.use"
-    if fcntl is None or not path.is_file():
+    starts using ``d`` meanwhile (the lock file is created if missing: a process that creates
+    it just after a check for it would otherwise hold it while ``d`` goes). Returns whether it
+    was deleted."""
+    if fcntl is None:
         shutil.rmtree(d, ignore_errors=True)
         return True
+    path = root / LOCKS / f"{d.name}.use"
+    path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "a") as fh:
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
