@@ -188,6 +188,42 @@ def test_white_noise_variance_dof_matches_its_spread():
     assert np.var(est) == pytest.approx(2.0 / dof, rel=0.1)
 
 
+def test_robust_white_noise_variance_dof_matches_its_spread():
+    """The median estimator is unbiased for white noise and its effective degrees of freedom
+    (derived from the second differences' correlations) describe its spread (Monte Carlo)."""
+    r = np.random.default_rng(5)
+    est = [imu.robust_white_noise_variance(r.normal(size=(400, 3)))[0] for _ in range(4000)]
+    _, dof = imu.robust_white_noise_variance(np.zeros((400, 3)))
+    assert np.mean(est) == pytest.approx(1.0, abs=0.01)
+    assert np.var(est) == pytest.approx(2.0 / dof, rel=0.1)
+
+
+def _jolts(t):
+    """A slow walk with a footfall every 0.5 s: a 5 ms jolt of 20 m/s^2 and 1 rad/s."""
+    gyro, acc = _slow_walk(t)
+    hit = (np.mod(t, 0.5) < 0.005)[:, None]
+    return gyro + 1.0 * hit, acc + 20.0 * hit
+
+
+@pytest.mark.parametrize("noise_scale", [1.0, 10.0])
+def test_moving_noise_measures_the_sensor_through_a_walk_and_its_jolts(noise_scale):
+    """In a 1 s moving window (a slow walk, footfalls every 0.5 s), the median of the second
+    differences gives the sensor's white-noise densities; their mean (the still window's
+    estimator) reads the footfalls as several times the noise."""
+    for seed in range(10):
+        t_ns, gyro, acc = _imu_window(400.0, noise_scale, seed, duration_s=1.0, motion=_jolts)
+        m = imu.moving_noise(t_ns, gyro, acc)
+        rel = 4.0 / np.sqrt(2 * m.noise_dof)
+        assert m.rate_hz == pytest.approx(400.0)
+        assert m.gyro_noise_rad_s_sqrt_hz == pytest.approx(noise_scale * HILTI_GYRO_DENSITY,
+                                                           rel=rel)
+        assert m.accel_noise_m_s2_sqrt_hz == pytest.approx(noise_scale * HILTI_ACCEL_DENSITY,
+                                                           rel=rel)
+        mean_var, _ = imu.white_noise_variance(acc)
+        assert np.sqrt(mean_var / 400.0) > 3.0 * noise_scale * HILTI_ACCEL_DENSITY
+    assert imu.moving_noise(t_ns[:50], gyro[:50], acc[:50]) is None
+
+
 @pytest.mark.parametrize("discretization", ["dt", "dt2"])
 def test_at_least_config_raises_only_a_sensor_shown_noisier(discretization):
     """'at_least_config': a configured density stays unless the still window shows that sensor

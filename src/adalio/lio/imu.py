@@ -115,6 +115,60 @@ def white_noise_variance(x: np.ndarray) -> tuple[float, int]:
     return float(np.mean(d * d)) / 6.0, max(int(d.size * SECOND_DIFFERENCE_DOF_FACTOR), 1)
 
 
+CHI2_1_MEDIAN = 0.454936423119572
+"""Median of a chi-square variable with one degree of freedom (``scipy.stats.chi2.ppf(0.5, 1)``)."""
+MEDIAN_DOF_FACTOR = 0.25287394
+"""Effective degrees of freedom per sample of the median of squared second differences of white
+noise, as a scale estimate: ``2 (m f(m))² / Σ_k cov(I_0, I_k)`` with ``m`` :data:`CHI2_1_MEDIAN`,
+``f`` the chi-square(1) density and ``I_k`` the indicator that the ``k``-th second difference is
+below its median; the second differences are normal with correlations -2/3 and 1/6 at lags 1
+and 2, so ``Σ_k = 1/4 + 2 (cov_1 + cov_2)`` = 0.3633 (bivariate normal probabilities). Checked
+by Monte Carlo in ``tests/lio/test_imu.py``."""
+
+
+def robust_white_noise_variance(x: np.ndarray) -> tuple[float, int]:
+    """:func:`white_noise_variance` from the median of the squared second differences instead
+    of their mean: ``median(d²) / (6 · CHI2_1_MEDIAN)``, pooled over the axes. Unbiased for
+    white noise, and a few samples of a jolt (a foot strike or a bump in a moving window, whose
+    second differences are tens of times the noise's) move it by their share of the samples,
+    not by their power. Effective degrees of freedom: :data:`MEDIAN_DOF_FACTOR` per second
+    difference (the mean's: :data:`SECOND_DIFFERENCE_DOF_FACTOR`)."""
+    d = x[2:] - 2.0 * x[1:-1] + x[:-2]
+    var = float(np.median(d * d)) / (6.0 * CHI2_1_MEDIAN)
+    return var, max(int(d.size * MEDIAN_DOF_FACTOR), 1)
+
+
+@dataclass
+class NoiseMeasurement:
+    """White-noise densities measured in an IMU window while moving (:func:`moving_noise`);
+    the fields :func:`measured_noise_config` reads, as a :class:`StillnessTest` has them."""
+
+    gyro_noise_rad_s_sqrt_hz: float
+    accel_noise_m_s2_sqrt_hz: float
+    rate_hz: float
+    noise_dof: int
+
+
+MIN_NOISE_SAMPLES = 100
+"""Fewest IMU samples :func:`moving_noise` measures from."""
+
+
+def moving_noise(t_ns: np.ndarray, gyro_rad_s: np.ndarray,
+                 accel_m_s2: np.ndarray) -> NoiseMeasurement | None:
+    """The gyro's and accelerometer's white-noise densities in a window where the IMU moves
+    (a moving start's), from :func:`robust_white_noise_variance`: a hand's or a robot's motion
+    varies slowly against the sample rate, so the second differences see the noise, and their
+    median ignores the jolts. None with fewer than ``MIN_NOISE_SAMPLES`` samples."""
+    n = int(gyro_rad_s.shape[0])
+    span_s = float(t_ns[-1] - t_ns[0]) * 1e-9 if n > 1 else 0.0
+    if n < MIN_NOISE_SAMPLES or not span_s > 0:
+        return None
+    rate = (n - 1) / span_s
+    g_var, dof = robust_white_noise_variance(gyro_rad_s)
+    a_var, _ = robust_white_noise_variance(accel_m_s2)
+    return NoiseMeasurement(float(np.sqrt(g_var / rate)), float(np.sqrt(a_var / rate)), rate, dof)
+
+
 def stillness_test(t_ns: np.ndarray, gyro_rad_s: np.ndarray, accel: np.ndarray,
                    cfg: ImuConfig) -> StillnessTest:
     """Is the IMU at rest over this window? A test that adapts to the sensor's own noise (§4).
@@ -199,10 +253,10 @@ def static_init(gyro_rad_s: np.ndarray, accel: np.ndarray, cfg: ImuConfig) -> St
                       n_samples=int(gyro_rad_s.shape[0]))
 
 
-def measured_noise_config(cfg: ImuConfig, test: StillnessTest,
+def measured_noise_config(cfg: ImuConfig, test: StillnessTest | NoiseMeasurement,
                           only_if_noisier: bool = False) -> ImuConfig:
-    """``cfg`` with gyro_cov / accel_cov replaced by the densities measured in a still window,
-    in the configured discretization: ``σ²`` for 'dt' (Q dt), ``σ² f_s`` for 'dt2' (Q dt²).
+    """``cfg`` with gyro_cov / accel_cov replaced by the densities measured in a still window
+    (or a moving start's, :func:`moving_noise`), in the configured discretization: ``σ²`` for 'dt' (Q dt), ``σ² f_s`` for 'dt2' (Q dt²).
 
     ``only_if_noisier`` ('at_least_config'): a sensor's configured value is kept unless the
     window shows that sensor noisier than configured beyond doubt: its measured variance (a
