@@ -102,3 +102,28 @@ def test_a_simulated_imu_10x_noisier_than_its_config_gets_its_gyro_raised(tmp_pa
                      r"accelerometer", used[10.0])
     assert m is not None, used[10.0]
     assert 8.5 <= float(m.group(1)) <= 11.5
+
+
+def test_a_moving_start_measures_a_noisier_imu_too(tmp_path):
+    """As above from a moving start (3 s cut from a walk): the moving start's IMU samples are
+    measured (median of second differences), so the x10 IMU's gyro density is raised about 10x
+    and the x1 IMU keeps the configured densities."""
+    import re
+
+    from adalio.pipeline import run_bag
+    from adalio.sim import simulate
+
+    used = {}
+    for scale in (1.0, 10.0):
+        seq = simulate("hall", tmp_path / f"seq{scale:g}", seed=3, duration_s=6.0, columns=512,
+                       imu_noise_scale=scale)
+        cfg = load_config(config_file=seq.config_path, overrides={"imu.backfill_s": "0"})
+        res = run_bag(seq.bag_path, cfg, tmp_path / f"run{scale:g}", progress=False,
+                      start_s=3.0)
+        assert res.init_report.method == "moving" and res.n_scans > 0
+        used[scale] = res.init_report.noise_used
+    assert used[1.0] == "config"
+    m = re.fullmatch(r"measured gyro \(([0-9.]+)x the configured density\) and config "
+                     r"accelerometer", used[10.0])
+    assert m is not None, used[10.0]
+    assert 8.5 <= float(m.group(1)) <= 11.5

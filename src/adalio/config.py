@@ -110,11 +110,11 @@ class ImuConfig:
     still_false_alarm: float = 1e-3
     """Stillness test: probability that a window at rest is judged moving (chi-square level)."""
     noise_source: str = "at_least_config"
-    """'at_least_config' (a still start's measured white-noise density replaces a sensor's
-    configured one only where the window shows that sensor noisier beyond the
-    ``still_false_alarm`` level: the configured values are a floor; README, Initialization),
-    'config' (gyro_cov / accel_cov as given) or 'measured' (the densities measured in the still
-    window replace them). Bias walks always stay as configured."""
+    """'at_least_config' (the white-noise density measured at the start, in the still window or
+    over a moving start's IMU samples, replaces a sensor's configured one only where it shows
+    that sensor noisier beyond the ``still_false_alarm`` level: the configured values are a
+    floor; README, Initialization), 'config' (gyro_cov / accel_cov as given) or 'measured' (the
+    measured densities replace them). Bias walks always stay as configured."""
     init_timeout_s: float = 1.0
     """No still window within this long after the first scan: initialize in motion (s)."""
     moving_init_window_s: float = 1.0

@@ -140,9 +140,10 @@ class InitReport:
     accel_norm_m_s2: float = float("nan")
     """Static: mean accelerometer norm over the window (in the bag's unit, before scaling)."""
     gyro_noise_rad_s_sqrt_hz: float = float("nan")
-    """Static: gyro white-noise density measured in the still window (NaN when moving)."""
+    """Gyro white-noise density measured in the still window, or over the moving start's IMU
+    samples (``imu.moving_noise``); NaN when not measured."""
     accel_noise_m_s2_sqrt_hz: float = float("nan")
-    """Static: accelerometer white-noise density measured in the still window."""
+    """Accelerometer white-noise density measured as the gyro's."""
     noise_used: str = "config"
     """Which densities the filter uses: 'config', 'measured', or which sensor
     'at_least_config' raised to its measured density (``imu.noise_used``)."""

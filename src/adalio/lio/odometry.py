@@ -875,6 +875,15 @@ class Odometry:
                             t_LI=self._t_LI.copy(), b_g=fit.gyro_bias_rad_s.copy(), g=g,
                             g_anchor=so3.anchor_frame(g))
         self._P = handover_covariance(fit, R_align, self.cfg.filter.estimate_extrinsic)
+        used, measured = cfg, None
+        if cfg.noise_source != "config":
+            m = self._moving
+            held = m.imu_t_ns <= fit.t_ns
+            measured = imu.moving_noise(m.imu_t_ns[held], m.gyro[held], m.accel[held])
+        if measured is not None:
+            used = imu.measured_noise_config(
+                cfg, measured, only_if_noisier=cfg.noise_source == "at_least_config")
+            self._q_diag = imu.process_noise(used)
         self._t_state_ns = fit.t_ns
         self._set_gap_model(self._moving.imu_t_ns)
         last = max(int(np.searchsorted(b.t_ns, fit.t_ns, side="right")) - 1, 0)
@@ -886,7 +895,11 @@ class Odometry:
         self.init_report = InitReport(
             method="moving", t_ns=fit.t_ns, gyro_bias_rad_s=fit.gyro_bias_rad_s.copy(),
             gravity_imu_m_s2=fit.R_world_imu.T @ fit.gravity_world_m_s2,
-            window_s=fit.window_s, noise_used="config",
+            window_s=fit.window_s, noise_used=imu.noise_used(cfg, used),
+            gyro_noise_rad_s_sqrt_hz=(float("nan") if measured is None
+                                      else measured.gyro_noise_rad_s_sqrt_hz),
+            accel_noise_m_s2_sqrt_hz=(float("nan") if measured is None
+                                      else measured.accel_noise_m_s2_sqrt_hz),
             generic_noise=imu_noise_is_generic(self.cfg.imu),
             detail=(f"{fit.n_scans} scans over {fit.window_s:.1f} s, position residual "
                     f"{fit.residual_m * 100:.1f} cm RMS, unconstrained |g| "
