@@ -78,49 +78,33 @@ def test_generic_imu_noise_is_named_in_the_init_line(tmp_path):
     assert "generic values" in lines["generic"] and "generic values" not in lines["own"]
 
 
-def test_a_simulated_imu_10x_noisier_than_its_config_gets_its_gyro_raised(tmp_path):
+@pytest.mark.parametrize("start", ["still", "moving"])
+def test_a_simulated_imu_10x_noisier_than_its_config_gets_its_gyro_raised(tmp_path, start):
     """End to end on simulated bags whose config.yaml describes the HILTI BMI085: with the
     simulator's IMU at its own noise the filter keeps the configured densities; with its white
     noise 10x, the default (at_least_config) raises the gyro's about 10x and keeps the
-    accelerometer's, whose configured value (12x the BMI085's) the x10 noise does not exceed."""
+    accelerometer's, whose configured value (12x the BMI085's) the x10 noise does not exceed.
+    From a still start (the still window) and from a moving start (3 s cut from a walk: the
+    moving start's IMU samples, median of second differences)."""
     import re
 
     from adalio.pipeline import run_bag
     from adalio.sim import simulate
 
+    moving = start == "moving"
     used = {}
     for scale in (1.0, 10.0):
-        seq = simulate("hall", tmp_path / f"seq{scale:g}", duration_s=1.5, columns=180,
-                       lidar="vlp16", imu_noise_scale=scale)
-        cfg = load_config(config_file=seq.config_path)
-        assert cfg.imu.noise_source == "at_least_config"
-        res = run_bag(seq.bag_path, cfg, tmp_path / f"run{scale:g}", progress=False)
-        assert res.n_scans > 0
-        used[scale] = res.init_report.noise_used
-    assert used[1.0] == "config"
-    m = re.fullmatch(r"measured gyro \(([0-9.]+)x the configured density\) and config "
-                     r"accelerometer", used[10.0])
-    assert m is not None, used[10.0]
-    assert 8.5 <= float(m.group(1)) <= 11.5
-
-
-def test_a_moving_start_measures_a_noisier_imu_too(tmp_path):
-    """As above from a moving start (3 s cut from a walk): the moving start's IMU samples are
-    measured (median of second differences), so the x10 IMU's gyro density is raised about 10x
-    and the x1 IMU keeps the configured densities."""
-    import re
-
-    from adalio.pipeline import run_bag
-    from adalio.sim import simulate
-
-    used = {}
-    for scale in (1.0, 10.0):
-        seq = simulate("hall", tmp_path / f"seq{scale:g}", seed=3, duration_s=6.0, columns=512,
-                       imu_noise_scale=scale)
+        if moving:
+            seq = simulate("hall", tmp_path / f"seq{scale:g}", seed=3, duration_s=6.0,
+                           columns=512, imu_noise_scale=scale)
+        else:
+            seq = simulate("hall", tmp_path / f"seq{scale:g}", duration_s=1.5, columns=180,
+                           lidar="vlp16", imu_noise_scale=scale)
         cfg = load_config(config_file=seq.config_path, overrides={"imu.backfill_s": "0"})
+        assert cfg.imu.noise_source == "at_least_config"
         res = run_bag(seq.bag_path, cfg, tmp_path / f"run{scale:g}", progress=False,
-                      start_s=3.0)
-        assert res.init_report.method == "moving" and res.n_scans > 0
+                      start_s=3.0 if moving else 0.0)
+        assert res.init_report.method == ("moving" if moving else "static") and res.n_scans > 0
         used[scale] = res.init_report.noise_used
     assert used[1.0] == "config"
     m = re.fullmatch(r"measured gyro \(([0-9.]+)x the configured density\) and config "
