@@ -105,13 +105,19 @@ noise: its autocovariances are 6, -4, 1 (x σ²), so the mean of N squares has t
 chi-square mean with N·36/(36 + 2·16 + 2·1) degrees of freedom."""
 
 
+def _second_differences(x: np.ndarray) -> np.ndarray:
+    """``x[i+1] − 2x[i] + x[i−1]`` of the rows of ``x`` (n, 3): white noise of per-sample
+    variance σ² gives 6σ² each, a motion slow against the sample rate almost nothing."""
+    return x[2:] - 2.0 * x[1:-1] + x[:-2]
+
+
 def white_noise_variance(x: np.ndarray) -> tuple[float, int]:
     """Per-sample white-noise variance of ``x`` (n, 3), pooled over the axes, from second
     differences: ``mean((x[i+1] − 2x[i] + x[i−1])²) / 6``. Unbiased for white noise, and blind to
     what moves slowly against the sample rate (a hand's tremor at 10 Hz reaches a 400 Hz
     IMU's second differences at 6e-4 of its power, its within-block spread in full). Returns
     (variance, effective degrees of freedom)."""
-    d = x[2:] - 2.0 * x[1:-1] + x[:-2]
+    d = _second_differences(x)
     return float(np.mean(d * d)) / 6.0, max(int(d.size * SECOND_DIFFERENCE_DOF_FACTOR), 1)
 
 
@@ -133,7 +139,7 @@ def robust_white_noise_variance(x: np.ndarray) -> tuple[float, int]:
     second differences are tens of times the noise's) move it by their share of the samples,
     not by their power. Effective degrees of freedom: :data:`MEDIAN_DOF_FACTOR` per second
     difference (the mean's: :data:`SECOND_DIFFERENCE_DOF_FACTOR`)."""
-    d = x[2:] - 2.0 * x[1:-1] + x[:-2]
+    d = _second_differences(x)
     var = float(np.median(d * d)) / (6.0 * CHI2_1_MEDIAN)
     return var, max(int(d.size * MEDIAN_DOF_FACTOR), 1)
 
@@ -256,7 +262,8 @@ def static_init(gyro_rad_s: np.ndarray, accel: np.ndarray, cfg: ImuConfig) -> St
 def measured_noise_config(cfg: ImuConfig, test: StillnessTest | NoiseMeasurement,
                           only_if_noisier: bool = False) -> ImuConfig:
     """``cfg`` with gyro_cov / accel_cov replaced by the densities measured in a still window
-    (or a moving start's, :func:`moving_noise`), in the configured discretization: ``σ²`` for 'dt' (Q dt), ``σ² f_s`` for 'dt2' (Q dt²).
+    (or a moving start's, :func:`moving_noise`), in the configured discretization: ``σ²`` for
+    'dt' (Q dt), ``σ² f_s`` for 'dt2' (Q dt²).
 
     ``only_if_noisier`` ('at_least_config'): a sensor's configured value is kept unless the
     window shows that sensor noisier than configured beyond doubt: its measured variance (a

@@ -50,7 +50,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from adalio.config import Config, imu_noise_is_generic
+from adalio.config import Config, ImuConfig, imu_noise_is_generic
 from adalio.errors import InputError
 from adalio.jit import kernel
 from adalio.lio import imu, so3
@@ -840,11 +840,7 @@ class Odometry:
         self._t_state_ns = t_b_ns
         last = window.stop - 1
         self._prev_sample = (int(b.t_ns[last]), b.gyro[last].copy(), b.accel[last].copy())
-        used = cfg
-        if cfg.noise_source != "config":
-            used = imu.measured_noise_config(
-                cfg, test, only_if_noisier=cfg.noise_source == "at_least_config")
-            self._q_diag = imu.process_noise(used)
+        used = self._use_measured_noise(test)
         self._set_gap_model(b.t_ns[window])
         self._buf = _ImuBuffer(b.t_ns[window.stop:], b.gyro[window.stop:], b.accel[window.stop:])
         wait = self._wait_fields(t_b_ns)
@@ -861,6 +857,19 @@ class Odometry:
             noise_used=imu.noise_used(cfg, used), generic_noise=imu_noise_is_generic(cfg),
             detail=test.describe(), **wait)
 
+    def _use_measured_noise(
+            self, measured: imu.StillnessTest | imu.NoiseMeasurement | None) -> ImuConfig:
+        """The IMU config whose white-noise densities the filter uses from here on, by
+        ``imu.noise_source`` (``imu.measured_noise_config``), its process noise set; the
+        configured one with ``config`` or when nothing was ``measured``."""
+        cfg = self.cfg.imu
+        if cfg.noise_source == "config" or measured is None:
+            return cfg
+        used = imu.measured_noise_config(
+            cfg, measured, only_if_noisier=cfg.noise_source == "at_least_config")
+        self._q_diag = imu.process_noise(used)
+        return used
+
     def _moving_initialize(self, fit) -> np.ndarray:
         """Hand the moving-start fit (``motion_init.MovingInitResult``) over to the filter."""
         cfg = self.cfg.imu
@@ -875,15 +884,12 @@ class Odometry:
                             t_LI=self._t_LI.copy(), b_g=fit.gyro_bias_rad_s.copy(), g=g,
                             g_anchor=so3.anchor_frame(g))
         self._P = handover_covariance(fit, R_align, self.cfg.filter.estimate_extrinsic)
-        used, measured = cfg, None
+        measured = None
         if cfg.noise_source != "config":
             m = self._moving
             held = m.imu_t_ns <= fit.t_ns
             measured = imu.moving_noise(m.imu_t_ns[held], m.gyro[held], m.accel[held])
-        if measured is not None:
-            used = imu.measured_noise_config(
-                cfg, measured, only_if_noisier=cfg.noise_source == "at_least_config")
-            self._q_diag = imu.process_noise(used)
+        used = self._use_measured_noise(measured)
         self._t_state_ns = fit.t_ns
         self._set_gap_model(self._moving.imu_t_ns)
         last = max(int(np.searchsorted(b.t_ns, fit.t_ns, side="right")) - 1, 0)
