@@ -85,10 +85,12 @@ def _walk(t):
     return p, a, np.array([R0 @ so3.exp(OMEGA * ti) for ti in t])
 
 
-def _registrar(t_end_s: float, slide_m: float, seed: int):
+def _registrar(t_end_s: float, slide_m: float, seed: int,
+               spin_rad_s: np.ndarray | None = None):
     """A MovingInit fed the walk's IMU (400 Hz, noisy) and its registrations at 10 Hz (5 mm,
     1 mrad noise) up to ``t_end_s``; the registrations slide along x by ``slide_m`` sin(πt),
-    the way a registration slides along a corridor's axis (period 2 s)."""
+    the way a registration slides along a corridor's axis (period 2 s), and turn at
+    ``spin_rad_s`` (body frame) more than the walk does."""
     from adalio.config import Config
     from adalio.lio import so3
     from adalio.lio.motion_init import MovingInit, _Registered
@@ -105,6 +107,8 @@ def _registrar(t_end_s: float, slide_m: float, seed: int):
     p = p + np.outer(slide_m * np.sin(np.pi * ts), [1.0, 0.0, 0.0])
     p = p + rng.normal(scale=0.005, size=p.shape)
     R = np.array([r @ so3.exp(rng.normal(scale=1e-3, size=3)) for r in R])
+    if spin_rad_s is not None:
+        R = np.array([r @ so3.exp(spin_rad_s * t) for r, t in zip(R, ts)])
     mi.scans = [_Registered(round(float(t) * 1e9), r, q, 1.0) for t, r, q in zip(ts, R, p)]
     pts = rng.normal(size=(20, 3)) + np.array([5.0, 0.0, 0.0])
     t_pts = np.round(np.linspace(ts[-1] - 0.1, ts[-1], 20) * 1e9).astype(np.int64)
@@ -144,3 +148,27 @@ def test_the_nested_window_waits_for_two_windows_of_registrations():
     assert not isinstance(mi._fit(mi._window(1)), str)
     assert mi.solve() is None and mi.waiting
     assert "the registrations span 1.5 s" in mi.failure
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_fitted_gyro_bias_beyond_the_filter_s_prior_is_refused(seed):
+    """The gyro bias is fitted so that the gyro's rotations match the registrations'. Clean
+    registrations give the walk's true bias within 8 mrad/s (1 mrad registration noise over a
+    1 s window). Registrations that turn 0.1 rad/s more than the walk (a registration slipping
+    in yaw, as a 16-ring LiDAR's did in a spiral shaft) give a bias 0.1 rad/s off, beyond 3
+    sigma of the prior the filter holds the bias to after the hand-over (P0, 0.01 rad/s per
+    axis), and the start is refused. A slip within that prior (0.01 rad/s) is still accepted,
+    its bias off by the slip. Without the check the spun fit was accepted."""
+    from adalio.lio.state import BG, initial_covariance
+
+    clean = _registrar(3.0, 0.0, seed).solve()
+    assert clean is not None
+    assert np.linalg.norm(clean.gyro_bias_rad_s - B_GYRO) < 8e-3
+    spun = _registrar(3.0, 0.0, seed, np.array([0.0, 0.0, 0.1]))
+    assert spun.solve() is None and not spun.waiting
+    assert "gyro bias fitted over" in spun.failure and "beyond 3 sigma" in spun.failure
+    slow = np.array([0.0, 0.0, 0.01])
+    assert 0.01**2 < 14.156 * initial_covariance(False)[BG, BG][2, 2]
+    fit = _registrar(3.0, 0.0, seed, slow).solve()
+    assert fit is not None
+    assert np.linalg.norm(fit.gyro_bias_rad_s - (B_GYRO - slow)) < 8e-3
