@@ -159,6 +159,7 @@ def test_a_fitted_gyro_bias_beyond_the_filter_s_prior_is_refused(seed):
     sigma of the prior the filter holds the bias to after the hand-over (P0, 0.01 rad/s per
     axis), and the start is refused. A slip within that prior (0.01 rad/s) is still accepted,
     its bias off by the slip. Without the check the spun fit was accepted."""
+    from adalio.lio.motion_init import CHI2_3DOF_3SIGMA
     from adalio.lio.state import BG, initial_covariance
 
     clean = _registrar(3.0, 0.0, seed).solve()
@@ -168,7 +169,7 @@ def test_a_fitted_gyro_bias_beyond_the_filter_s_prior_is_refused(seed):
     assert spun.solve() is None and not spun.waiting
     assert "gyro bias fitted over" in spun.failure and "beyond 3 sigma" in spun.failure
     slow = np.array([0.0, 0.0, 0.01])
-    assert 0.01**2 < 14.156 * initial_covariance(False)[BG, BG][2, 2]
+    assert 0.01**2 < CHI2_3DOF_3SIGMA * initial_covariance(False)[BG, BG][2, 2]
     fit = _registrar(3.0, 0.0, seed, slow).solve()
     assert fit is not None
     assert np.linalg.norm(fit.gyro_bias_rad_s - (B_GYRO - slow)) < 8e-3
