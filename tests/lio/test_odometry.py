@@ -229,18 +229,28 @@ def test_a_noisier_gyro_than_configured_raises_the_filter_noise(source):
         assert used.endswith("x the configured density) and config accelerometer")
 
 
-@pytest.mark.parametrize("align", [False, True])
-def test_moving_start_initializes_from_registered_scans(align):
+@pytest.mark.parametrize(("align", "source"), [(False, "at_least_config"), (True, "config")])
+def test_moving_start_initializes_from_registered_scans(align, source):
     """The sequence starts 0.6 s into the motion: once the registered scans span twice
     imu.moving_init_window_s (the nested-window check), they give gyro bias, gravity and
-    velocity; the estimate then tracks ground truth."""
+    velocity; the estimate then tracks ground truth. The IMU's white-noise densities are
+    measured over the walk and reported whatever imu.noise_source (with 'config' the filter
+    keeps the configured ones)."""
     cfg = _config()
     cfg.imu.init_timeout_s = 1.0
     cfg.imu.moving_init_window_s = 1.0
     cfg.imu.gravity_align_world = align
+    cfg.imu.noise_source = source
     odom, est = _run(cfg, 5.0, 1000, seed=4, t_begin=1.6)
     rep = odom.init_report
     assert rep.method == "moving" and rep.window_s >= 0.8
+    # _run's IMU: per-sample sigma 0.001 rad/s and 0.01 m/s^2 at 400 Hz
+    assert rep.gyro_noise_rad_s_sqrt_hz == pytest.approx(0.001 / np.sqrt(400.0), rel=0.2)
+    assert rep.accel_noise_m_s2_sqrt_hz == pytest.approx(0.01 / np.sqrt(400.0), rel=0.2)
+    if source == "config":
+        assert rep.noise_used == "config"
+        assert odom._q_diag[:6] == pytest.approx(
+            np.r_[np.full(3, cfg.imu.gyro_cov), np.full(3, cfg.imu.accel_cov)])
     first = est[0]
     span_s = 2 * cfg.imu.moving_init_window_s
     assert first.t_ns * 1e-9 <= 1.6 + span_s + 0.25

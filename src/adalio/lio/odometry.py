@@ -884,11 +884,10 @@ class Odometry:
                             t_LI=self._t_LI.copy(), b_g=fit.gyro_bias_rad_s.copy(), g=g,
                             g_anchor=so3.anchor_frame(g))
         self._P = handover_covariance(fit, R_align, self.cfg.filter.estimate_extrinsic)
-        measured = None
-        if cfg.noise_source != "config":
-            m = self._moving
-            held = m.imu_t_ns <= fit.t_ns
-            measured = imu.moving_noise(m.imu_t_ns[held], m.gyro[held], m.accel[held])
+        m = self._moving
+        held = m.imu_t_ns <= fit.t_ns
+        # measured whatever imu.noise_source says, so the report has it as a still start's does
+        measured = imu.moving_noise(m.imu_t_ns[held], m.gyro[held], m.accel[held])
         used = self._use_measured_noise(measured)
         self._t_state_ns = fit.t_ns
         self._set_gap_model(self._moving.imu_t_ns)
