@@ -186,8 +186,8 @@ class MapConfig:
     """Which point a map cell keeps: 'first' (the first point to reach it; descending past a wall,
     that layers the wall's map points one cell apart) or 'uniform' (a uniform sample, by a hash of
     their coordinates, of the points that reached it within cell_sample_scans: better in the
-    simulated spiral shaft on every LiDAR, worse in the corridor at 2000 columns; README,
-    "Session 35")."""
+    simulated spiral shaft on every LiDAR, worse in the floor-blind stairwell; README, "Session
+    35" and "Session 39")."""
     cell_sample_scans: int = 5
     """With cell_point 'uniform': a cell samples the points of the scans within this many of the
     one that first filled it, then stays fixed (a walking sensor's field-of-view edge crosses a
