@@ -10,7 +10,16 @@ share of wrong rows, the share of the claimed height information (``n_z²`` summ
 they hold, and the same split by the face the point lies on: horizontal (``|n_z| > 0.9``),
 vertical (``|n_z| < 0.3``) or other. The default windows lie in each scene's narrow part.
 
+With ``--pull`` it also prints what the rows do to the pose, still at the truth: the step one
+update of the filter would take from the true pose on each sweep's rows (the filter's row
+weights and robust kernel, a prior of ``NOMINAL_POSE_SIGMA``; :func:`pull`), as its mean per
+sweep along the height and the yaw with its standard error. Rows that are right pull
+nowhere on average; a systematic pull is a bias the closed loop integrates, and unlike an
+odometry run it has no chaos: a rule that changes the rows (``--set``) can be compared on one
+window and seed.
+
     python benchmarks/bench_rows.py --scenes hall corridor spiral stairs_garage   # README, S. 35
+    python benchmarks/bench_rows.py --scenes spiral --seeds 4 --pull [--set KEY=VALUE]  # S. 40
 """
 
 from __future__ import annotations
@@ -19,9 +28,10 @@ import argparse
 import sys
 
 import numpy as np
+from bench_modes import parse_overrides
 from scipy.spatial import cKDTree
 
-from adalio.config import Config
+from adalio.config import Config, load_config
 from adalio.lio.ivox import IVox
 from adalio.lio.odometry import _Association
 from adalio.lio.state import State
@@ -35,6 +45,30 @@ WINDOWS_S = {"hall": (6.0, 12.0), "corridor": (6.0, 12.0), "spiral": (24.0, 30.0
              "stairs_garage": (8.0, 14.0)}
 """Default census windows (seconds after the start): the corridor, the shaft, a flight."""
 SCAN_PERIOD_S = 0.1
+NOMINAL_POSE_SIGMA = (0.01, float(np.radians(0.1)))
+"""(position m, rotation rad) standard deviations of the prior of :func:`pull`: a prediction as
+well known as the filter's over one sweep in a well-observed place (1 cm, 0.1°)."""
+
+
+def pull(assoc: _Association, x: State, laser_point_cov: float) -> np.ndarray:
+    """The pose step, world frame ``[δp (m), δθ (rad)]``, of one update from the prior ``x``
+    (covariance ``diag(NOMINAL_POSE_SIGMA²)``) on the rows of ``assoc`` evaluated at ``x``:
+    ``δ = −(P⁻¹ + HᵀH/R)⁻¹ Hᵀ r / R`` (``H`` and ``r`` carry the filter's row weights and, as
+    ``assoc`` was built with that prior, its robust kernel). The rotation is turned from the
+    body frame (``R ⊞ δθ = R Exp(δθ)``) into the world frame."""
+    H, r = assoc.measure(x, True)
+    H = H[:, :6]
+    s_p, s_th = NOMINAL_POSE_SIGMA
+    info = np.diag([s_p**-2] * 3 + [s_th**-2] * 3) + H.T @ H / laser_point_cov
+    step = -np.linalg.solve(info, H.T @ r / laser_point_cov)
+    return np.r_[step[:3], x.R @ step[3:]]
+
+
+def nominal_prior() -> np.ndarray:
+    """(6,6) ``diag(NOMINAL_POSE_SIGMA²)`` in the error order [δp, δθ]: the prior of :func:`pull`
+    and the pose covariance its robust kernel's width reads."""
+    s_p, s_th = NOMINAL_POSE_SIGMA
+    return np.diag([s_p**2] * 3 + [s_th**2] * 3)
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -43,9 +77,10 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: float,
-           max_angle_deg: float) -> dict:
-    """Rows of every sweep in [t0_s, t1_s): true face normal, fitted normal (world frame)."""
-    cfg = Config()
+           max_angle_deg: float, cfg: Config | None = None, with_pull: bool = False) -> dict:
+    """Rows of every sweep in [t0_s, t1_s): true face normal, fitted normal (world frame); with
+    ``with_pull`` also each sweep's :func:`pull` at the true pose."""
+    cfg = cfg or Config()
     deg = cfg.adaptive.degenerate
     T_il = np.asarray(T_IMU_LIDAR_HILTI, dtype=np.float64)
     scn = build_scene(scene, seed)
@@ -58,7 +93,7 @@ def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: f
         return s.R_world_imu @ T_il[:3, :3], s.p_world_imu_m + s.R_world_imu @ T_il[:3, 3]
 
     ivox = IVox.from_config(cfg.map)
-    face_n, fit_n = [], []
+    face_n, fit_n, pulls = [], [], []
     for k, t_s in enumerate(np.arange(t0_s, t1_s, SCAN_PERIOD_S)):
         sw = sim.sweep(START_NS + round(t_s * 1e9), np.random.default_rng([seed, k]))
         v = sw.valid & (sw.face >= 0)
@@ -79,6 +114,10 @@ def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: f
             sel = assoc.selected
             face_n.append(true_n[sel])
             fit_n.append(assoc.normals[sel])
+            if with_pull:
+                weighted = _Association(down, ivox, cfg, deg.search_radius_m, deg.plane_margin_m,
+                                        deg.voxel_size_m, prior_pose_cov=nominal_prior())
+                pulls.append(pull(weighted, x, cfg.filter.laser_point_cov))
         ivox.add_points(down_world, min(cfg.map.map_leaf_m, deg.voxel_size_m))
     face = np.vstack(face_n)
     fit = np.vstack(fit_n)
@@ -92,6 +131,12 @@ def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: f
         out[f"{name}_rows"] = float(on.mean())
         out[f"{name}_wrong"] = float(wrong[on].mean()) if on.any() else float("nan")
         out[f"{name}_wrong_height_info"] = float(hz[on & wrong].sum() / hz.sum())
+    if pulls:
+        steps = np.array(pulls)
+        se = steps.std(axis=0) / np.sqrt(len(steps))
+        out["pull_z_mm"], out["pull_z_se_mm"] = steps[:, 2].mean() * 1e3, se[2] * 1e3
+        out["pull_yaw_mdeg"] = float(np.degrees(steps[:, 5].mean()) * 1e3)
+        out["pull_yaw_se_mdeg"] = float(np.degrees(se[5]) * 1e3)
     return out
 
 
@@ -105,26 +150,38 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--window-s", type=float, nargs=2, default=None, metavar=("T0", "T1"),
                     help="census window in seconds after the start (default: per scene)")
     ap.add_argument("--max-angle-deg", type=float, default=30.0)
+    ap.add_argument("--pull", action="store_true",
+                    help="also the rows' pull on the pose at the truth (height, yaw)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override, e.g. --set map.cell_point=uniform")
     args = ap.parse_args(argv)
     if args.seeds < 1 or args.columns < 16:
         raise SystemExit("error: --seeds must be >= 1 and --columns >= 16")
+    cfg = load_config(overrides=parse_overrides(args.set))
     print(f"Command: `python benchmarks/bench_rows.py {' '.join(argv or sys.argv[1:])}`"
           f"  ({args.lidar} at {args.columns} columns, map from true poses, a row is wrong "
           f"beyond {args.max_angle_deg:g} deg)\n")
+    pull_head = (" pull per sweep, mean (standard error): height, mm, + up | yaw, mdeg |"
+                 if args.pull else "")
     print("| scene | seed | window | rows | wrong | their share of the height information | "
-          "horizontal faces: rows / wrong / height info | vertical faces | other faces |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "horizontal faces: rows / wrong / height info | vertical faces | other faces |"
+          + pull_head)
+    print("|---|---|---|---|---|---|---|---|---|" + ("---|---|" if args.pull else ""))
     for scene in args.scenes:
         t0, t1 = args.window_s or WINDOWS_S[scene]
         for seed in range(args.seeds):
-            c = census(scene, seed, args.lidar, args.columns, t0, t1, args.max_angle_deg)
+            c = census(scene, seed, args.lidar, args.columns, t0, t1, args.max_angle_deg, cfg,
+                       args.pull)
             cols = " | ".join(
                 f"{c[f'{n}_rows'] * 100:.0f} / {c[f'{n}_wrong'] * 100:.1f} / "
                 f"{c[f'{n}_wrong_height_info'] * 100:.0f} %"
                 for n in ("horizontal", "vertical", "other"))
+            pulls = (f" {c['pull_z_mm']:+.2f} ({c['pull_z_se_mm']:.2f}) | "
+                     f"{c['pull_yaw_mdeg']:+.1f} ({c['pull_yaw_se_mdeg']:.1f}) |"
+                     if args.pull else "")
             print(f"| {scene} | {seed} | {t0:g}-{t1:g} s | {c['rows']} | "
-                  f"{c['wrong'] * 100:.1f} % | {c['wrong_height_info'] * 100:.0f} % | {cols} |",
-                  flush=True)
+                  f"{c['wrong'] * 100:.1f} % | {c['wrong_height_info'] * 100:.0f} % | {cols} |"
+                  + pulls, flush=True)
     return 0
 
 

@@ -1,0 +1,85 @@
+"""``bench_rows.pull``: the step one update takes on a scan's rows from a given pose. Checked
+against a known offset in a box room: at the true pose the rows pull nowhere, from a pose off
+by a few centimetres or a fraction of a degree they pull it back by that much."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+from bench_rows import nominal_prior, pull
+
+from adalio.config import Config
+from adalio.lio import so3
+from adalio.lio.ivox import IVox
+from adalio.lio.odometry import _Association
+from adalio.lio.state import State
+
+ROOM_LO = np.array([-4.0, -3.0, -1.2])
+ROOM_HI = np.array([5.0, 2.5, 1.8])
+
+
+def _room_points(rng: np.random.Generator, n_per_face: int, noise_m: float) -> np.ndarray:
+    """Points on the six faces of the box room, with normal noise, plus a box on the floor so
+    that the yaw is seen by more than the corners."""
+    faces = []
+    for axis in range(3):
+        for side in (ROOM_LO, ROOM_HI):
+            p = rng.uniform(ROOM_LO, ROOM_HI, size=(n_per_face, 3))
+            p[:, axis] = side[axis] + rng.normal(scale=noise_m, size=n_per_face)
+            faces.append(p)
+    lo, hi = np.array([1.0, 0.5, ROOM_LO[2]]), np.array([2.0, 1.5, -0.4])
+    for axis in range(2):
+        for side in (lo, hi):
+            p = rng.uniform(lo, hi, size=(n_per_face // 8, 3))
+            p[:, axis] = side[axis] + rng.normal(scale=noise_m, size=n_per_face // 8)
+            faces.append(p)
+    return np.vstack(faces)
+
+
+def _pull_from(offset: np.ndarray, seed: int = 0) -> tuple[np.ndarray, State]:
+    """The pull at a pose off the true one by ``offset`` ([δp, δθ], world frame)."""
+    rng = np.random.default_rng(seed)
+    cfg = Config()
+    deg = cfg.adaptive.degenerate
+    ivox = IVox.from_config(cfg.map)
+    ivox.add_points(_room_points(rng, 6000, 0.003), deg.voxel_size_m)
+    R_true = so3.exp(np.array([0.02, -0.03, 0.7]))
+    p_true = np.array([0.3, -0.2, 0.1])
+    scan_world = _room_points(rng, 1500, 0.003)
+    scan_world = scan_world[np.linalg.norm(scan_world - p_true, axis=1) > 0.5]
+    points_lidar = (scan_world - p_true) @ R_true  # R_LI = I, t_LI = 0
+    x = State(R=so3.exp(offset[3:]) @ R_true, p=p_true + offset[:3], R_LI=np.eye(3),
+              t_LI=np.zeros(3))
+    assoc = _Association(points_lidar, ivox, cfg, deg.search_radius_m, deg.plane_margin_m,
+                         deg.voxel_size_m, prior_pose_cov=nominal_prior())
+    return pull(assoc, x, cfg.filter.laser_point_cov), x
+
+
+def test_rows_on_the_right_planes_pull_nowhere_at_the_truth():
+    step, _ = _pull_from(np.zeros(6))
+    assert np.all(np.abs(step[:3]) < 1e-3)
+    assert np.all(np.abs(np.degrees(step[3:])) < 0.01)
+
+
+@pytest.mark.parametrize("offset", [
+    np.array([0.0, 0.0, 0.02, 0.0, 0.0, 0.0]),
+    np.array([-0.015, 0.01, 0.0, 0.0, 0.0, 0.0]),
+    np.array([0.0, 0.0, 0.0, 0.0, 0.0, np.radians(0.2)]),
+    np.array([0.0, 0.0, 0.0, np.radians(0.2), 0.0, 0.0]),
+])
+def test_rows_pull_an_offset_pose_back_by_the_offset(offset):
+    """The step is the world-frame correction: it undoes a height, a horizontal shift, a yaw or
+    a roll about the world's x (the room's pose is turned 40° in yaw, so a rotation left in the
+    body frame would be off by a quarter)."""
+    step, _ = _pull_from(offset)
+    moved = np.flatnonzero(offset)
+    assert np.allclose(step[moved], -offset[moved], rtol=0.2)
+    rest = np.setdiff1d(np.arange(6), moved)
+    scale = np.where(rest < 3, 2e-3, np.radians(0.02))
+    assert np.all(np.abs(step[rest]) < scale)
