@@ -13,7 +13,8 @@ vertical (``|n_z| < 0.3``) or other. The default windows lie in each scene's nar
 With ``--pull`` it also prints what the rows do to the pose, still at the truth: the step one
 update of the filter would take from the true pose on each sweep's rows (the filter's row
 weights and robust kernel, a prior of ``NOMINAL_POSE_SIGMA``; :func:`pull`), as its mean per
-sweep along the height and the yaw with its standard error. Rows that are right pull
+sweep along the height, the yaw and the direction of travel (the true velocity's, on sweeps
+moving faster than ``MOVING_M_S``), with standard errors. Rows that are right pull
 nowhere on average; a systematic pull is a bias the closed loop integrates, and unlike an
 odometry run it has no chaos: a rule that changes the rows (``--set``) can be compared on one
 window and seed.
@@ -32,6 +33,7 @@ from bench_modes import parse_overrides
 from scipy.spatial import cKDTree
 
 from adalio.config import Config, load_config
+from adalio.errors import InputError
 from adalio.lio.ivox import IVox
 from adalio.lio.odometry import _Association
 from adalio.lio.state import State
@@ -40,6 +42,7 @@ from adalio.sim import SCENES
 from adalio.sim.generate import START_NS, T_IMU_LIDAR_HILTI, build_trajectory
 from adalio.sim.lidar import LIDAR_MODELS, RayCaster, SweepSimulator, lidar_model
 from adalio.sim.scenes import build_scene
+from adalio.sim.trajectory import HandheldMotion
 
 WINDOWS_S = {"hall": (6.0, 12.0), "corridor": (6.0, 12.0), "spiral": (24.0, 30.0),
              "stairs_garage": (8.0, 14.0)}
@@ -64,6 +67,10 @@ def pull(assoc: _Association, x: State, laser_point_cov: float) -> np.ndarray:
     return np.r_[step[:3], x.R @ step[3:]]
 
 
+MOVING_M_S = 0.2
+"""A sweep counts for the along-track pull when the sensor moves faster than this (m/s)."""
+
+
 def nominal_prior() -> np.ndarray:
     """(6,6) ``diag(NOMINAL_POSE_SIGMA²)`` in the error order [δp, δθ]: the prior of :func:`pull`
     and the pose covariance its robust kernel's width reads."""
@@ -77,14 +84,17 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: float,
-           max_angle_deg: float, cfg: Config | None = None, with_pull: bool = False) -> dict:
+           max_angle_deg: float, cfg: Config | None = None, with_pull: bool = False,
+           warmup_s: float = 0.0, handheld: HandheldMotion | None = None) -> dict:
     """Rows of every sweep in [t0_s, t1_s): true face normal, fitted normal (world frame); with
-    ``with_pull`` also each sweep's :func:`pull` at the true pose."""
+    ``with_pull`` also each sweep's :func:`pull` at the true pose. The map starts with the
+    sweeps of the ``warmup_s`` before ``t0_s`` (0: empty at ``t0_s``); ``handheld``: a recorded
+    walk's motion instead of the synthetic one."""
     cfg = cfg or Config()
     deg = cfg.adaptive.degenerate
     T_il = np.asarray(T_IMU_LIDAR_HILTI, dtype=np.float64)
     scn = build_scene(scene, seed)
-    traj = build_trajectory(scn, T_il, seed)
+    traj = build_trajectory(scn, T_il, seed, handheld)
     sim = SweepSimulator(RayCaster(scn.mesh, seed), traj, lidar_model(lidar, columns), T_il,
                          START_NS)
 
@@ -94,7 +104,7 @@ def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: f
 
     ivox = IVox.from_config(cfg.map)
     face_n, fit_n, pulls = [], [], []
-    for k, t_s in enumerate(np.arange(t0_s, t1_s, SCAN_PERIOD_S)):
+    for k, t_s in enumerate(np.arange(max(t0_s - warmup_s, 0.0), t1_s, SCAN_PERIOD_S)):
         sw = sim.sweep(START_NS + round(t_s * 1e9), np.random.default_rng([seed, k]))
         v = sw.valid & (sw.face >= 0)
         R, p = lidar_pose(sw.t_ns[v])
@@ -104,7 +114,7 @@ def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: f
         down = voxel_downsample(end, deg.voxel_size_m)
         true_n = sim.caster.face_normals[sw.face[v]][cKDTree(end).query(down)[1]]
         down_world = down @ R_e[0].T + p_e[0]
-        if k:
+        if k and t_s >= t0_s - 1e-9:
             R_wi = R_e[0] @ T_il[:3, :3].T
             x = State(R=R_wi, p=p_e[0] - R_wi @ T_il[:3, 3], R_LI=T_il[:3, :3].copy(),
                       t_LI=T_il[:3, 3].copy())
@@ -117,7 +127,12 @@ def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: f
             if with_pull:
                 weighted = _Association(down, ivox, cfg, deg.search_radius_m, deg.plane_margin_m,
                                         deg.voxel_size_m, prior_pose_cov=nominal_prior())
-                pulls.append(pull(weighted, x, cfg.filter.laser_point_cov))
+                step = pull(weighted, x, cfg.filter.laser_point_cov)
+                t_end_s = (sw.t_ns[v].max() - START_NS) * 1e-9
+                vel = traj.sample(np.array([t_end_s])).v_world_m_s[0]
+                speed = float(np.linalg.norm(vel))
+                along = step[:3] @ vel / speed if speed > MOVING_M_S else np.nan
+                pulls.append(np.r_[step, along])
         ivox.add_points(down_world, min(cfg.map.map_leaf_m, deg.voxel_size_m))
     face = np.vstack(face_n)
     fit = np.vstack(fit_n)
@@ -133,10 +148,14 @@ def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: f
         out[f"{name}_wrong_height_info"] = float(hz[on & wrong].sum() / hz.sum())
     if pulls:
         steps = np.array(pulls)
-        se = steps.std(axis=0) / np.sqrt(len(steps))
+        se = steps[:, :6].std(axis=0) / np.sqrt(len(steps))
         out["pull_z_mm"], out["pull_z_se_mm"] = steps[:, 2].mean() * 1e3, se[2] * 1e3
         out["pull_yaw_mdeg"] = float(np.degrees(steps[:, 5].mean()) * 1e3)
         out["pull_yaw_se_mdeg"] = float(np.degrees(se[5]) * 1e3)
+        moving = steps[np.isfinite(steps[:, 6]), 6]
+        out["pull_along_mm"] = float(moving.mean() * 1e3) if moving.size else float("nan")
+        out["pull_along_se_mm"] = (float(moving.std() / np.sqrt(moving.size) * 1e3)
+                                   if moving.size > 1 else float("nan"))
     return out
 
 
@@ -154,30 +173,40 @@ def main(argv: list[str] | None = None) -> int:
                     help="also the rows' pull on the pose at the truth (height, yaw)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override, e.g. --set map.cell_point=uniform")
+    ap.add_argument("--warmup-s", type=float, default=0.0,
+                    help="the map starts with the sweeps of this many seconds before the window")
+    ap.add_argument("--motion-from", default=None, metavar="TUM",
+                    help="a recorded walk's handheld motion (as bench_modes.py)")
     args = ap.parse_args(argv)
-    if args.seeds < 1 or args.columns < 16:
-        raise SystemExit("error: --seeds must be >= 1 and --columns >= 16")
+    if args.seeds < 1 or args.columns < 16 or not args.warmup_s >= 0:
+        raise SystemExit("error: --seeds must be >= 1, --columns >= 16 and --warmup-s >= 0")
     cfg = load_config(overrides=parse_overrides(args.set))
+    try:
+        handheld = (None if args.motion_from is None
+                    else HandheldMotion.from_tum(args.motion_from))
+    except (OSError, ValueError, InputError) as exc:
+        raise SystemExit(f"error: --motion-from: {exc}") from None
     print(f"Command: `python benchmarks/bench_rows.py {' '.join(argv or sys.argv[1:])}`"
           f"  ({args.lidar} at {args.columns} columns, map from true poses, a row is wrong "
           f"beyond {args.max_angle_deg:g} deg)\n")
-    pull_head = (" pull per sweep, mean (standard error): height, mm, + up | yaw, mdeg |"
-                 if args.pull else "")
+    pull_head = (" pull per sweep, mean (standard error): height, mm, + up | yaw, mdeg | "
+                 "along the travel, mm, + ahead |" if args.pull else "")
     print("| scene | seed | window | rows | wrong | their share of the height information | "
           "horizontal faces: rows / wrong / height info | vertical faces | other faces |"
           + pull_head)
-    print("|---|---|---|---|---|---|---|---|---|" + ("---|---|" if args.pull else ""))
+    print("|---|---|---|---|---|---|---|---|---|" + ("---|---|---|" if args.pull else ""))
     for scene in args.scenes:
         t0, t1 = args.window_s or WINDOWS_S[scene]
         for seed in range(args.seeds):
             c = census(scene, seed, args.lidar, args.columns, t0, t1, args.max_angle_deg, cfg,
-                       args.pull)
+                       args.pull, args.warmup_s, handheld)
             cols = " | ".join(
                 f"{c[f'{n}_rows'] * 100:.0f} / {c[f'{n}_wrong'] * 100:.1f} / "
                 f"{c[f'{n}_wrong_height_info'] * 100:.0f} %"
                 for n in ("horizontal", "vertical", "other"))
             pulls = (f" {c['pull_z_mm']:+.2f} ({c['pull_z_se_mm']:.2f}) | "
-                     f"{c['pull_yaw_mdeg']:+.1f} ({c['pull_yaw_se_mdeg']:.1f}) |"
+                     f"{c['pull_yaw_mdeg']:+.1f} ({c['pull_yaw_se_mdeg']:.1f}) | "
+                     f"{c['pull_along_mm']:+.2f} ({c['pull_along_se_mm']:.2f}) |"
                      if args.pull else "")
             print(f"| {scene} | {seed} | {t0:g}-{t1:g} s | {c['rows']} | "
                   f"{c['wrong'] * 100:.1f} % | {c['wrong_height_info'] * 100:.0f} % | {cols} |"
