@@ -51,22 +51,6 @@ SCAN_PERIOD_S = 0.1
 NOMINAL_POSE_SIGMA = (0.01, float(np.radians(0.1)))
 """(position m, rotation rad) standard deviations of the prior of :func:`pull`: a prediction as
 well known as the filter's over one sweep in a well-observed place (1 cm, 0.1°)."""
-
-
-def pull(assoc: _Association, x: State, laser_point_cov: float) -> np.ndarray:
-    """The pose step, world frame ``[δp (m), δθ (rad)]``, of one update from the prior ``x``
-    (covariance ``diag(NOMINAL_POSE_SIGMA²)``) on the rows of ``assoc`` evaluated at ``x``:
-    ``δ = −(P⁻¹ + HᵀH/R)⁻¹ Hᵀ r / R`` (``H`` and ``r`` carry the filter's row weights and, as
-    ``assoc`` was built with that prior, its robust kernel). The rotation is turned from the
-    body frame (``R ⊞ δθ = R Exp(δθ)``) into the world frame."""
-    H, r = assoc.measure(x, True)
-    H = H[:, :6]
-    s_p, s_th = NOMINAL_POSE_SIGMA
-    info = np.diag([s_p**-2] * 3 + [s_th**-2] * 3) + H.T @ H / laser_point_cov
-    step = -np.linalg.solve(info, H.T @ r / laser_point_cov)
-    return np.r_[step[:3], x.R @ step[3:]]
-
-
 MOVING_M_S = 0.2
 """A sweep counts for the along-track pull when the sensor moves faster than this (m/s)."""
 
@@ -76,6 +60,20 @@ def nominal_prior() -> np.ndarray:
     and the pose covariance its robust kernel's width reads."""
     s_p, s_th = NOMINAL_POSE_SIGMA
     return np.diag([s_p**2] * 3 + [s_th**2] * 3)
+
+
+def pull(H: np.ndarray, r: np.ndarray, R_world_imu: np.ndarray,
+         laser_point_cov: float) -> np.ndarray:
+    """The pose step, world frame ``[δp (m), δθ (rad)]``, of one update from a prior with
+    covariance :func:`nominal_prior` on the rows ``H`` (m, ≥6), ``r`` (m,) evaluated there (as
+    ``_Association.measure`` returns them: with the filter's row weights and, when the
+    association was built with that prior, its robust kernel):
+    ``δ = −(P⁻¹ + HᵀH/R)⁻¹ Hᵀ r / R``. The rotation is turned from the body frame
+    (``R ⊞ δθ = R Exp(δθ)``, ``R = R_world_imu``) into the world frame."""
+    H = H[:, :6]
+    info = np.diag(1.0 / np.diag(nominal_prior())) + H.T @ H / laser_point_cov
+    step = -np.linalg.solve(info, H.T @ r / laser_point_cov)
+    return np.r_[step[:3], R_world_imu @ step[3:]]
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -118,16 +116,16 @@ def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: f
             R_wi = R_e[0] @ T_il[:3, :3].T
             x = State(R=R_wi, p=p_e[0] - R_wi @ T_il[:3, 3], R_LI=T_il[:3, :3].copy(),
                       t_LI=T_il[:3, 3].copy())
+            # the kernel (with the prior) scales rows and selects none: same rows either way
             assoc = _Association(down, ivox, cfg, deg.search_radius_m, deg.plane_margin_m,
-                                 deg.voxel_size_m)
-            assoc.measure(x, True)
+                                 deg.voxel_size_m,
+                                 prior_pose_cov=nominal_prior() if with_pull else None)
+            H, r = assoc.measure(x, True)
             sel = assoc.selected
             face_n.append(true_n[sel])
             fit_n.append(assoc.normals[sel])
             if with_pull:
-                weighted = _Association(down, ivox, cfg, deg.search_radius_m, deg.plane_margin_m,
-                                        deg.voxel_size_m, prior_pose_cov=nominal_prior())
-                step = pull(weighted, x, cfg.filter.laser_point_cov)
+                step = pull(H, r, x.R, cfg.filter.laser_point_cov)
                 t_end_s = (sw.t_ns[v].max() - START_NS) * 1e-9
                 vel = traj.sample(np.array([t_end_s])).v_world_m_s[0]
                 speed = float(np.linalg.norm(vel))

@@ -58,7 +58,8 @@ def _pull_from(offset: np.ndarray, seed: int = 0) -> tuple[np.ndarray, State]:
               t_LI=np.zeros(3))
     assoc = _Association(points_lidar, ivox, cfg, deg.search_radius_m, deg.plane_margin_m,
                          deg.voxel_size_m, prior_pose_cov=nominal_prior())
-    return pull(assoc, x, cfg.filter.laser_point_cov), x
+    H, r = assoc.measure(x, True)
+    return pull(H, r, x.R, cfg.filter.laser_point_cov), x
 
 
 def test_rows_on_the_right_planes_pull_nowhere_at_the_truth():

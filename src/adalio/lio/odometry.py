@@ -890,7 +890,7 @@ class Odometry:
         measured = imu.moving_noise(m.imu_t_ns[held], m.gyro[held], m.accel[held])
         used = self._use_measured_noise(measured)
         self._t_state_ns = fit.t_ns
-        self._set_gap_model(self._moving.imu_t_ns)
+        self._set_gap_model(m.imu_t_ns)
         last = max(int(np.searchsorted(b.t_ns, fit.t_ns, side="right")) - 1, 0)
         self._prev_sample = (int(b.t_ns[last]), b.gyro[last].copy(), b.accel[last].copy())
         self._buf = _ImuBuffer(b.t_ns[last + 1:], b.gyro[last + 1:], b.accel[last + 1:])
