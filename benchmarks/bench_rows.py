@@ -17,15 +17,19 @@ sweep along the height, the yaw and the direction of travel (the true velocity's
 moving faster than ``MOVING_M_S``), with standard errors. Rows that are right pull
 nowhere on average; a systematic pull is a bias the closed loop integrates, and unlike an
 odometry run it has no chaos: a rule that changes the rows (``--set``) can be compared on one
-window and seed.
+window and seed. ``--future-s`` puts the next sweeps into each sweep's map too, at their true
+poses, as a smoother's map would hold them: the map then has no leading edge where the sensor
+moves into new space, and the pull left is what the rows owe to anything else.
 
     python benchmarks/bench_rows.py --scenes hall corridor spiral stairs_garage   # README, S. 35
     python benchmarks/bench_rows.py --scenes spiral --seeds 4 --pull [--set KEY=VALUE]  # S. 40
+    python benchmarks/bench_rows.py --pull --warmup-s 3 --future-s 0.5                # S. 41
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import sys
 
 import numpy as np
@@ -81,13 +85,23 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(c, 0.0, 1.0)))
 
 
+def map_sweeps(times_s: np.ndarray, k: int, future_s: float) -> np.ndarray:
+    """Indices of the sweeps in sweep ``k``'s map: every earlier one, and with ``future_s > 0``
+    the later ones up to ``future_s`` after it; never sweep ``k`` itself."""
+    later = np.flatnonzero((times_s > times_s[k]) & (times_s <= times_s[k] + future_s + 1e-9))
+    return np.r_[np.arange(k), later[later > k]].astype(np.int64)
+
+
 def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: float,
            max_angle_deg: float, cfg: Config | None = None, with_pull: bool = False,
-           warmup_s: float = 0.0, handheld: HandheldMotion | None = None) -> dict:
+           warmup_s: float = 0.0, handheld: HandheldMotion | None = None,
+           future_s: float = 0.0) -> dict:
     """Rows of every sweep in [t0_s, t1_s): true face normal, fitted normal (world frame); with
     ``with_pull`` also each sweep's :func:`pull` at the true pose. The map starts with the
     sweeps of the ``warmup_s`` before ``t0_s`` (0: empty at ``t0_s``); ``handheld``: a recorded
-    walk's motion instead of the synthetic one."""
+    walk's motion instead of the synthetic one. ``future_s > 0``: each sweep's map also holds
+    the sweeps of the next ``future_s`` seconds, at their true poses (:func:`map_sweeps`), as a
+    smoother's would: what is left of the pull when the map has no leading edge."""
     cfg = cfg or Config()
     deg = cfg.adaptive.degenerate
     T_il = np.asarray(T_IMU_LIDAR_HILTI, dtype=np.float64)
@@ -101,23 +115,43 @@ def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: f
         return s.R_world_imu @ T_il[:3, :3], s.p_world_imu_m + s.R_world_imu @ T_il[:3, 3]
 
     ivox = IVox.from_config(cfg.map)
+    cell_m = min(cfg.map.map_leaf_m, deg.voxel_size_m)
+    start_s = max(t0_s - warmup_s, 0.0)
+    n_sweeps = len(np.arange(start_s, t1_s, SCAN_PERIOD_S))
+    times_s = np.arange(start_s, t1_s + future_s, SCAN_PERIOD_S)
+    sweeps: dict[int, tuple] = {}
+
+    def sweep_at(j: int) -> tuple:
+        """Sweep ``j``, undistorted at the true poses: its downsampled points at the sweep end
+        (LiDAR frame) and in the world, their true face normals, the end's LiDAR pose and time."""
+        if j not in sweeps:
+            sw = sim.sweep(START_NS + round(times_s[j] * 1e9), np.random.default_rng([seed, j]))
+            v = sw.valid & (sw.face >= 0)
+            R, p = lidar_pose(sw.t_ns[v])
+            world = np.einsum("nij,nj->ni", R, sw.xyz_lidar_m[v].astype(np.float64)) + p
+            R_e, p_e = lidar_pose(np.array([sw.t_ns[v].max()]))
+            end = (world - p_e[0]) @ R_e[0]
+            down = voxel_downsample(end, deg.voxel_size_m)
+            true_n = sim.caster.face_normals[sw.face[v]][cKDTree(end).query(down)[1]]
+            sweeps[j] = (down, down @ R_e[0].T + p_e[0], true_n, R_e[0], p_e[0],
+                         (sw.t_ns[v].max() - START_NS) * 1e-9)
+        return sweeps[j]
+
     face_n, fit_n, pulls = [], [], []
-    for k, t_s in enumerate(np.arange(max(t0_s - warmup_s, 0.0), t1_s, SCAN_PERIOD_S)):
-        sw = sim.sweep(START_NS + round(t_s * 1e9), np.random.default_rng([seed, k]))
-        v = sw.valid & (sw.face >= 0)
-        R, p = lidar_pose(sw.t_ns[v])
-        world = np.einsum("nij,nj->ni", R, sw.xyz_lidar_m[v].astype(np.float64)) + p
-        R_e, p_e = lidar_pose(np.array([sw.t_ns[v].max()]))
-        end = (world - p_e[0]) @ R_e[0]
-        down = voxel_downsample(end, deg.voxel_size_m)
-        true_n = sim.caster.face_normals[sw.face[v]][cKDTree(end).query(down)[1]]
-        down_world = down @ R_e[0].T + p_e[0]
-        if k and t_s >= t0_s - 1e-9:
-            R_wi = R_e[0] @ T_il[:3, :3].T
-            x = State(R=R_wi, p=p_e[0] - R_wi @ T_il[:3, 3], R_LI=T_il[:3, :3].copy(),
+    for k in range(n_sweeps):
+        down, down_world, true_n, R_e, p_e, t_end_s = sweep_at(k)
+        if k and times_s[k] >= t0_s - 1e-9:
+            later = [j for j in map_sweeps(times_s, k, future_s) if j > k]
+            local = ivox
+            if later:  # the earlier sweeps are in ``ivox`` already
+                local = copy.deepcopy(ivox)
+                for j in later:
+                    local.add_points(sweep_at(j)[1], cell_m)
+            R_wi = R_e @ T_il[:3, :3].T
+            x = State(R=R_wi, p=p_e - R_wi @ T_il[:3, 3], R_LI=T_il[:3, :3].copy(),
                       t_LI=T_il[:3, 3].copy())
             # the kernel (with the prior) scales rows and selects none: same rows either way
-            assoc = _Association(down, ivox, cfg, deg.search_radius_m, deg.plane_margin_m,
+            assoc = _Association(down, local, cfg, deg.search_radius_m, deg.plane_margin_m,
                                  deg.voxel_size_m,
                                  prior_pose_cov=nominal_prior() if with_pull else None)
             H, r = assoc.measure(x, True)
@@ -126,12 +160,12 @@ def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: f
             fit_n.append(assoc.normals[sel])
             if with_pull:
                 step = pull(H, r, x.R, cfg.filter.laser_point_cov)
-                t_end_s = (sw.t_ns[v].max() - START_NS) * 1e-9
                 vel = traj.sample(np.array([t_end_s])).v_world_m_s[0]
                 speed = float(np.linalg.norm(vel))
                 along = step[:3] @ vel / speed if speed > MOVING_M_S else np.nan
                 pulls.append(np.r_[step, along])
-        ivox.add_points(down_world, min(cfg.map.map_leaf_m, deg.voxel_size_m))
+        ivox.add_points(down_world, cell_m)
+        sweeps.pop(k)
     face = np.vstack(face_n)
     fit = np.vstack(fit_n)
     wrong = _angle_deg(fit, face) > max_angle_deg
@@ -175,9 +209,14 @@ def main(argv: list[str] | None = None) -> int:
                     help="the map starts with the sweeps of this many seconds before the window")
     ap.add_argument("--motion-from", default=None, metavar="TUM",
                     help="a recorded walk's handheld motion (as bench_modes.py)")
+    ap.add_argument("--future-s", type=float, default=0.0,
+                    help="each sweep's map also holds the sweeps of the next seconds, at their "
+                         "true poses (a smoother's map; 0: only earlier sweeps, as the filter's)")
     args = ap.parse_args(argv)
-    if args.seeds < 1 or args.columns < 16 or not args.warmup_s >= 0:
-        raise SystemExit("error: --seeds must be >= 1, --columns >= 16 and --warmup-s >= 0")
+    if (args.seeds < 1 or args.columns < 16 or not args.warmup_s >= 0
+            or not 0 <= args.future_s < np.inf):
+        raise SystemExit("error: --seeds must be >= 1, --columns >= 16, and --warmup-s and "
+                         "--future-s finite and >= 0")
     cfg = load_config(overrides=parse_overrides(args.set))
     try:
         handheld = (None if args.motion_from is None
@@ -185,7 +224,9 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError, InputError) as exc:
         raise SystemExit(f"error: --motion-from: {exc}") from None
     print(f"Command: `python benchmarks/bench_rows.py {' '.join(argv or sys.argv[1:])}`"
-          f"  ({args.lidar} at {args.columns} columns, map from true poses, a row is wrong "
+          f"  ({args.lidar} at {args.columns} columns, map from true poses"
+          f"{f' (and the next {args.future_s:g} s of sweeps)' if args.future_s else ''}, "
+          f"a row is wrong "
           f"beyond {args.max_angle_deg:g} deg)\n")
     pull_head = (" pull per sweep, mean (standard error): height, mm, + up | yaw, mdeg | "
                  "along the travel, mm, + ahead |" if args.pull else "")
@@ -197,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
         t0, t1 = args.window_s or WINDOWS_S[scene]
         for seed in range(args.seeds):
             c = census(scene, seed, args.lidar, args.columns, t0, t1, args.max_angle_deg, cfg,
-                       args.pull, args.warmup_s, handheld)
+                       args.pull, args.warmup_s, handheld, args.future_s)
             cols = " | ".join(
                 f"{c[f'{n}_rows'] * 100:.0f} / {c[f'{n}_wrong'] * 100:.1f} / "
                 f"{c[f'{n}_wrong_height_info'] * 100:.0f} %"

@@ -30,3 +30,14 @@ def test_bad_set_is_one_error_line(script: str, item: str, names: str, tmp_path:
     assert len(lines) == 1 and lines[0].startswith("error:") and names in lines[0], proc.stderr
     assert "Traceback" not in proc.stderr
     assert not any(tmp_path.iterdir())  # no run started
+
+
+@pytest.mark.parametrize("args", [["--future-s", "-1"], ["--future-s", "nan"],
+                                  ["--warmup-s", "-1"]])
+def test_bench_rows_bad_window_is_one_error_line(args: list[str], tmp_path: Path) -> None:
+    proc = subprocess.run([sys.executable, str(BENCHMARKS / "bench_rows.py"), *args],
+                          check=False, capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert proc.returncode == 1, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:") and args[0] in lines[0]
+    assert not any(tmp_path.iterdir())
