@@ -89,7 +89,7 @@ def map_sweeps(times_s: np.ndarray, k: int, future_s: float) -> np.ndarray:
     """Indices of the sweeps in sweep ``k``'s map: every earlier one, and with ``future_s > 0``
     the later ones up to ``future_s`` after it; never sweep ``k`` itself."""
     later = np.flatnonzero((times_s > times_s[k]) & (times_s <= times_s[k] + future_s + 1e-9))
-    return np.r_[np.arange(k), later[later > k]].astype(np.int64)
+    return np.r_[np.arange(k), later].astype(np.int64)  # times_s increases: later ones are > k
 
 
 def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: float,
