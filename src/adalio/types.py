@@ -92,6 +92,9 @@ class ScanStats:
     real information, ~0 = the residuals follow the pose; NaN = not probed)."""
     imu_gap_s: float = 0.0
     """Length of an IMU gap bridged by the motion model in this scan (s; 0 = none)."""
+    rest_update: bool = False
+    """The IMU rested before the scan end and the filter took a zero velocity there
+    (imu.zero_velocity_update)."""
     sigma_p_world_m: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
     """Standard deviations of the world-frame position x, y, z from the filter covariance at
     the scan end (m)."""

@@ -414,3 +414,37 @@ def test_condition_on_rest_is_the_information_form_update_with_numerical_jacobia
     S_a = J[3:6] @ P1 @ J[3:6].T
     assert np.all(np.diag(S_a) < 1.01 * var_a)
     assert np.all(np.diag(P1)[18:21] > 0.25 * np.diag(P0)[18:21])
+
+
+def test_rest_velocity_update_is_the_kalman_update_of_a_zero_velocity_and_gates_motion():
+    """rest_velocity_update against the textbook Kalman update with an explicit H (taken by
+    central differences of the state's velocity through boxplus): the same correction and
+    posterior; its NIS is the innovation's Mahalanobis length; a velocity many sigmas from
+    zero is refused."""
+    from adalio.lio.state import rest_velocity_covariance, rest_velocity_update
+
+    x = _random_state()
+    x.v = np.array([0.02, -0.01, 0.03])
+    A = rng.normal(size=(DIM, DIM))
+    P = A @ A.T * 1e-3 + np.eye(DIM) * 1e-5
+    H = np.zeros((3, DIM))
+    for i in range(DIM):
+        e = np.zeros(DIM)
+        e[i] = 1e-6
+        H[:, i] = (x.boxplus(e).v - x.boxplus(-e).v) / 2e-6
+    var_v = 2.5e-5
+    S = H @ P @ H.T + var_v * np.eye(3)
+    K = P @ H.T @ np.linalg.inv(S)
+    out = rest_velocity_update(P, x.v, var_v, gate=1e9)
+    assert out is not None
+    dx, P1, nis = out
+    assert np.allclose(dx, K @ (0.0 - x.v), rtol=1e-6, atol=1e-12)
+    assert np.allclose(P1, P - K @ S @ K.T, rtol=1e-6, atol=1e-12)
+    assert np.allclose(rest_velocity_covariance(P, var_v), P1, rtol=1e-9, atol=1e-15)
+    assert nis == pytest.approx(float(x.v @ np.linalg.solve(S, x.v)), rel=1e-9)
+    # the posterior velocity is nearer zero than both the prior and the measurement's spread
+    assert np.linalg.norm(x.boxplus(dx).v) < np.linalg.norm(x.v)
+    assert np.all(np.diag(P1)[12:15] < var_v)
+    # a velocity the filter is sure of is no rest: refused at the gate
+    assert rest_velocity_update(P, x.v, var_v, gate=0.5 * nis) is None
+    assert rest_velocity_update(P, x.v, var_v, gate=2.0 * nis) is not None

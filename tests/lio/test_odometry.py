@@ -1,5 +1,6 @@
 """End-to-end tests of the estimator on a synthetic box room generated here (ray-box casting)."""
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -769,3 +770,67 @@ def test_moving_start_is_refused_while_the_registration_cannot_vouch_for_the_vel
     fit, reg, *_ = _moving_init_first_fit()
     assert fit is not None
     assert np.median([s.restoring for s in reg.scans[1:]]) > 0.8
+
+
+def test_zero_velocity_update_holds_rest_and_only_rest():
+    """imu.zero_velocity_update: the box room's walk rests until T_MOVE (1 s). Every scan
+    ending in that rest after the initialization takes the zero velocity and ends within
+    3 sigma of the update's noise (the rest-level velocity, 5 mm/s) of the true zero; no scan
+    takes it once the walk has built up (from T_MOVE + 0.3 s on), and the walk's ATE stays
+    that of the run without it."""
+    runs = {}
+    for zupt in (False, True):
+        cfg = _config()
+        cfg.imu.zero_velocity_update = zupt
+        runs[zupt] = _run(cfg, 2.5, 300)[1]
+    sigma_v = 0.05 * 0.1
+    rest = [e for e in runs[True] if e.t_ns * 1e-9 <= T_MOVE]
+    moving = [e for e in runs[True] if e.t_ns * 1e-9 >= T_MOVE + 0.3]
+    assert len(rest) >= 4 and len(moving) >= 10
+    assert all(e.stats.rest_update for e in rest)
+    assert not any(e.stats.rest_update for e in moving)
+    assert not any(e.stats.rest_update for e in runs[False])
+    assert max(np.linalg.norm(e.velocity_world_m_s) for e in rest) < 3 * sigma_v
+
+    def ate(est):
+        t = np.array([e.t_ns * 1e-9 for e in est])
+        return umeyama_ate(np.array([e.T_world_imu[:3, 3] for e in est]), trajectory(t)[0])
+
+    assert ate(runs[True]) < 1.2 * ate(runs[False]) + 0.002
+
+
+def test_zero_velocity_update_refuses_a_cruise_the_imu_cannot_tell_from_rest(monkeypatch):
+    """A rig that accelerates from rest to 0.5 m/s and then cruises at constant velocity and
+    attitude: during the cruise the IMU reads exactly what it reads at rest, so the stillness
+    test passes, but the filter's velocity (tracked by the LiDAR) refutes rest at the gate. No
+    cruise scan takes the zero velocity, and the velocity stays within 5 cm/s of the truth."""
+    me = sys.modules[__name__]
+    speed, t_acc = np.array([0.5, 0.0, 0.0]), 1.0
+    R0 = so3.exp(np.array([0.02, -0.03, 0.1]))
+
+    def cruise(t):
+        t = np.atleast_1d(np.asarray(t, float))
+        u = np.clip(t - T_MOVE, 0.0, t_acc) / t_acc
+        # smoothstep of the speed (C1 acceleration), then constant velocity
+        s = 3 * u**2 - 2 * u**3
+        ds = np.where((t > T_MOVE) & (t < T_MOVE + t_acc), (6 * u - 6 * u**2) / t_acc, 0.0)
+        dist = np.where(t < T_MOVE + t_acc, t_acc * (u**3 - u**4 / 2),
+                        t_acc / 2 + (t - T_MOVE - t_acc))
+        p = np.array([0.5, -0.3, 0.2]) + dist[:, None] * speed
+        v = s[:, None] * speed
+        a = ds[:, None] * speed
+        R = np.broadcast_to(R0, (t.size, 3, 3)).copy()
+        return p, R, v, a, np.zeros((t.size, 3))
+
+    monkeypatch.setattr(me, "trajectory", cruise)
+    cfg = _config()
+    cfg.imu.zero_velocity_update = True
+    _, est = _run(cfg, 4.0, 300)
+    t = np.array([e.t_ns * 1e-9 for e in est])
+    cruising = t >= T_MOVE + t_acc + 0.6  # the 0.5 s test window holds no acceleration
+    assert cruising.sum() >= 10
+    assert not any(e.stats.rest_update for e, c in zip(est, cruising, strict=True) if c)
+    assert any(e.stats.rest_update for e in est)  # the start's rest did take it
+    # the filter's world is the IMU frame at the initialization (attitude R0 here)
+    v_err = np.array([e.velocity_world_m_s for e in est]) - cruise(t)[2] @ R0
+    assert np.abs(v_err[cruising]).max() < 0.05

@@ -32,6 +32,11 @@ class StaticInit:
     n_samples: int
 
 
+MAX_REST_LAG_S = 0.05
+"""The zero-velocity update judges rest only on samples reaching within this long of the scan
+end: across an IMU gap or a stalled IMU stream nothing says the rig still rests."""
+
+
 def stillness_window(t_ns: np.ndarray, t_end_ns: int, window_s: float) -> slice | None:
     """Index range of the samples in ``[t_end − window, t_end]`` if the buffer reaches back that far."""
     start_ns = t_end_ns - round(window_s * 1e9)

@@ -85,6 +85,8 @@ from adalio.lio.state import (
     condition_on_rest,
     initial_covariance,
     pose_covariance_world,
+    rest_velocity_covariance,
+    rest_velocity_update,
     sigmas_from_world_covariance,
 )
 from adalio.lio.voxel import voxel_downsample, voxel_downsample_with_index
@@ -343,6 +345,11 @@ class Odometry:
         self._pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._buf = _ImuBuffer(np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)))
         self._last_imu_t_ns: int | None = None
+        self._rest_imu = _ImuBuffer(np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)))
+        """The IMU samples (accelerometer scaled) of the last ``imu.init_window_s`` before the
+        state's time, for the zero-velocity update's stillness test."""
+        self.n_rest_updates = 0
+        """Scans whose velocity was held at zero (imu.zero_velocity_update)."""
         self._ivox = IVox.from_config(config.map)
         self._detector = DegeneracyDetector(config.adaptive)
         self._q_diag = imu.process_noise(config.imu)
@@ -514,6 +521,8 @@ class Odometry:
             pts_e = pts_all_e[rows]
             surface = LocalSurface(pts_all, pts_all_e, ring_all, rows,
                                    cfg.filter.local_surface_window_ring_spacings)
+        if cfg.imu.zero_velocity_update:
+            stats.rest_update = self._rest_update(t_e)
         t0 = _timer(stage_ms, "undistort", t0)
         if self._last_gap is not None:
             stats.imu_gap_s = self._last_gap[1]
@@ -772,6 +781,7 @@ class Odometry:
             rev._P_report = self._P_report * np.outer(flip, flip)
         rev._t_state_ns = mirror_ns - self._t_state_ns
         rev._buf = _ImuBuffer(np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)))
+        rev._rest_imu = rev._buf
         rev._pending, rev._last_imu_t_ns = [], None
         rev._held_scans, rev._held_imu, rev._backfilled = [], [], []
         rev._backfill_map = np.zeros((0, 3))
@@ -843,6 +853,8 @@ class Odometry:
         used = self._use_measured_noise(test)
         self._set_gap_model(b.t_ns[window])
         self._buf = _ImuBuffer(b.t_ns[window.stop:], b.gyro[window.stop:], b.accel[window.stop:])
+        self._rest_imu = _ImuBuffer(b.t_ns[window], b.gyro[window],
+                                    b.accel[window] * init.accel_scale)
         wait = self._wait_fields(t_b_ns)
         self._moving = None
         self.initialized = True
@@ -1019,12 +1031,49 @@ class Odometry:
         if self._P_report is not None:  # the same propagation, along the same state
             self._P_report = P[:, DIM:].copy()
         if n_use:
+            self._keep_rest_samples(b.t_ns[:n_use], b.gyro[:n_use],
+                                    b.accel[:n_use] * self._accel_scale)
             self._prev_sample = (int(b.t_ns[n_use - 1]), b.gyro[n_use - 1].copy(),
                                  b.accel[n_use - 1].copy())
             self._buf = _ImuBuffer(b.t_ns[n_use:], b.gyro[n_use:], b.accel[n_use:])
         self._t_state_ns = max(t_e_ns, t_ref)
         s = self._state
         return imu.undistort(pts, (t_pts - t_ref) * 1e-9, rec, s.R, s.p, s.R_LI, s.t_LI)
+
+    def _keep_rest_samples(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        """Append samples to the rest window and drop those older than ``imu.init_window_s``."""
+        r = self._rest_imu
+        t = np.concatenate([r.t_ns, t_ns])
+        lo = max(int(np.searchsorted(t, t[-1] - round(self.cfg.imu.init_window_s * 1e9))) - 1, 0)
+        self._rest_imu = _ImuBuffer(t[lo:], np.vstack([r.gyro, gyro])[lo:],
+                                    np.vstack([r.accel, accel])[lo:])
+
+    def _rest_update(self, t_e_ns: int) -> bool:
+        """imu.zero_velocity_update: if the IMU rested over the last ``imu.init_window_s``
+        before the scan end, take a zero velocity there as a measurement (state.
+        ``rest_velocity_update``), gated by the filter's own velocity. The discounted covariance
+        takes the same information: rest is real information, not a plane's. True if taken."""
+        cfg = self.cfg.imu
+        r = self._rest_imu
+        window = imu.stillness_window(r.t_ns, t_e_ns, cfg.init_window_s)
+        if window is None or r.t_ns[-1] < t_e_ns - round(imu.MAX_REST_LAG_S * 1e9):
+            return False
+        test = imu.stillness_test(r.t_ns[window], r.gyro[window], r.accel[window], cfg)
+        if not test.still:
+            return False
+        from scipy.stats import chi2
+
+        var_v = (cfg.still_accel_floor_m_s2 * cfg.still_block_s) ** 2
+        out = rest_velocity_update(self._P, self._state.v, var_v,
+                                   float(chi2.ppf(1.0 - cfg.still_false_alarm, 3)))
+        if out is None:
+            return False
+        dx, self._P, _ = out
+        self._state = self._state.boxplus(dx)
+        if self._P_report is not None:
+            self._P_report = rest_velocity_covariance(self._P_report, var_v)
+        self.n_rest_updates += 1
+        return True
 
     def _refine(self, pts_e, down, assoc, leaf_m, params, surface):
         """AdaLIO+ (degeneracy.py §3-4): halve the leaf while the translation information is weak

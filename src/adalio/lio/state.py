@@ -117,6 +117,34 @@ def condition_on_rest(P: np.ndarray, state: State, gyro_mean_var: float,
     return 0.5 * (out + out.T)
 
 
+def rest_velocity_update(P: np.ndarray, v: np.ndarray, var_v: float,
+                         gate: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """A zero-velocity measurement (``H = [I on v]``, noise ``var_v`` per axis) on the error
+    state: (error-state correction, posterior covariance, normalised innovation squared), or
+    None where the innovation's squared Mahalanobis length exceeds ``gate`` (the filter's
+    velocity refutes rest). Joseph form, so the posterior stays symmetric positive definite."""
+    S = P[V, V] + var_v * np.eye(3)
+    innov = -np.asarray(v, dtype=np.float64)
+    nis = float(innov @ np.linalg.solve(S, innov))
+    if not nis <= gate:
+        return None
+    K = np.linalg.solve(S, P[V, :]).T
+    A = np.eye(P.shape[0])
+    A[:, V] -= K
+    out = A @ P @ A.T + var_v * (K @ K.T)
+    return K @ innov, 0.5 * (out + out.T), nis
+
+
+def rest_velocity_covariance(P: np.ndarray, var_v: float) -> np.ndarray:
+    """``P`` after the same zero-velocity measurement (covariance only)."""
+    S = P[V, V] + var_v * np.eye(3)
+    K = np.linalg.solve(S, P[V, :]).T
+    A = np.eye(P.shape[0])
+    A[:, V] -= K
+    out = A @ P @ A.T + var_v * (K @ K.T)
+    return 0.5 * (out + out.T)
+
+
 def pose_covariance_world(R_world_imu: np.ndarray, P: np.ndarray) -> np.ndarray:
     """6x6 covariance of (world position, small rotation about the world axes) from the
     error-state covariance ``P``. The position error is already world-frame; ``R ⊞ δθ =
