@@ -154,14 +154,16 @@ class ImuConfig:
     On by default since session 26, together with the filter's errors in variables and support
     test: with the real HILTI hands in the corridor, 5 of 12 runs diverged without them and none
     with them (README, "Session 26: new defaults"). False: Faster-LIO's P0."""
-    zero_velocity_update: bool = False
+    zero_velocity_update: bool = True
     """While the IMU rests (the stillness test of the initialization, on the last
     ``init_window_s`` of samples before each scan end), the filter takes a zero velocity at the
     scan end as a measurement (a zero-velocity update, as pedestrian and visual-inertial
     navigation do at rest; lio/state.py, ``rest_velocity_update``), unless the filter's own
     velocity refutes rest (chi-square gate at ``still_false_alarm``): motion at constant
     velocity looks still to an IMU. Its standard deviation is the velocity that rest-level
-    motion makes within one block, ``still_accel_floor_m_s2 * still_block_s``."""
+    motion makes within one block, ``still_accel_floor_m_s2 * still_block_s``. On by default
+    since session 42 (README, Initialization, *Zero-velocity update*); False: no velocity
+    information but the LiDAR's after the initialization (Faster-LIO's behaviour)."""
     backfill_s: float = 60.0
     """Scans read before the initialization (a moving start's refused fits, or motion before a
     still window) get their pose from a time-reversed pass of the filter, started from the first

@@ -350,6 +350,8 @@ class Odometry:
         state's time, for the zero-velocity update's stillness test."""
         self.n_rest_updates = 0
         """Scans whose velocity was held at zero (imu.zero_velocity_update)."""
+        self._rest_gate: float | None = None
+        """The zero-velocity update's chi-square gate (3 dof at imu.still_false_alarm)."""
         self._ivox = IVox.from_config(config.map)
         self._detector = DegeneracyDetector(config.adaptive)
         self._q_diag = imu.process_noise(config.imu)
@@ -1061,11 +1063,12 @@ class Odometry:
         test = imu.stillness_test(r.t_ns[window], r.gyro[window], r.accel[window], cfg)
         if not test.still:
             return False
-        from scipy.stats import chi2
+        if self._rest_gate is None:
+            from scipy.stats import chi2
 
+            self._rest_gate = float(chi2.ppf(1.0 - cfg.still_false_alarm, 3))
         var_v = (cfg.still_accel_floor_m_s2 * cfg.still_block_s) ** 2
-        out = rest_velocity_update(self._P, self._state.v, var_v,
-                                   float(chi2.ppf(1.0 - cfg.still_false_alarm, 3)))
+        out = rest_velocity_update(self._P, self._state.v, var_v, self._rest_gate)
         if out is None:
             return False
         dx, self._P, _ = out
