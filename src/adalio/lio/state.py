@@ -122,27 +122,29 @@ def rest_velocity_update(P: np.ndarray, v: np.ndarray, var_v: float,
     """A zero-velocity measurement (``H = [I on v]``, noise ``var_v`` per axis) on the error
     state: (error-state correction, posterior covariance, normalised innovation squared), or
     None where the innovation's squared Mahalanobis length exceeds ``gate`` (the filter's
-    velocity refutes rest). Joseph form, so the posterior stays symmetric positive definite."""
-    S = P[V, V] + var_v * np.eye(3)
+    velocity refutes rest)."""
     innov = -np.asarray(v, dtype=np.float64)
-    nis = float(innov @ np.linalg.solve(S, innov))
+    nis = float(innov @ np.linalg.solve(P[V, V] + var_v * np.eye(3), innov))
     if not nis <= gate:
         return None
-    K = np.linalg.solve(S, P[V, :]).T
-    A = np.eye(P.shape[0])
-    A[:, V] -= K
-    out = A @ P @ A.T + var_v * (K @ K.T)
-    return K @ innov, 0.5 * (out + out.T), nis
+    K, P_post = _rest_velocity_gain(P, var_v)
+    return K @ innov, P_post, nis
 
 
 def rest_velocity_covariance(P: np.ndarray, var_v: float) -> np.ndarray:
     """``P`` after the same zero-velocity measurement (covariance only)."""
+    return _rest_velocity_gain(P, var_v)[1]
+
+
+def _rest_velocity_gain(P: np.ndarray, var_v: float) -> tuple[np.ndarray, np.ndarray]:
+    """(Kalman gain, posterior in Joseph form, so it stays symmetric positive definite) of the
+    zero-velocity measurement."""
     S = P[V, V] + var_v * np.eye(3)
     K = np.linalg.solve(S, P[V, :]).T
     A = np.eye(P.shape[0])
     A[:, V] -= K
     out = A @ P @ A.T + var_v * (K @ K.T)
-    return 0.5 * (out + out.T)
+    return K, 0.5 * (out + out.T)
 
 
 def pose_covariance_world(R_world_imu: np.ndarray, P: np.ndarray) -> np.ndarray:
