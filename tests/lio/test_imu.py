@@ -448,3 +448,12 @@ def test_rest_velocity_update_is_the_kalman_update_of_a_zero_velocity_and_gates_
     # a velocity the filter is sure of is no rest: refused at the gate
     assert rest_velocity_update(P, x.v, var_v, gate=0.5 * nis) is None
     assert rest_velocity_update(P, x.v, var_v, gate=2.0 * nis) is not None
+    # the gate may ask another covariance (the discounted one): a wider velocity spread there
+    # lets through what P alone refuses, and the correction is still P's
+    wide = P.copy()
+    wide[12:15, 12:15] += 10 * S
+    out_wide = rest_velocity_update(P, x.v, var_v, gate=0.5 * nis, P_gate=wide)
+    assert out_wide is not None
+    S_wide = wide[12:15, 12:15] + var_v * np.eye(3)
+    assert out_wide[2] == pytest.approx(float(x.v @ np.linalg.solve(S_wide, x.v)), rel=1e-9)
+    assert np.allclose(out_wide[0], dx) and np.allclose(out_wide[1], P1)

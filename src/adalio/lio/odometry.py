@@ -1068,7 +1068,11 @@ class Odometry:
 
             self._rest_gate = float(chi2.ppf(1.0 - cfg.still_false_alarm, 3))
         var_v = (cfg.still_accel_floor_m_s2 * cfg.still_block_s) ** 2
-        out = rest_velocity_update(self._P, self._state.v, var_v, self._rest_gate)
+        # the gate asks the discounted covariance (the sigmas'): a filter sure of a velocity
+        # that only faked information supports (a drift the rows cannot see) must not refuse
+        # the rest that would correct it
+        out = rest_velocity_update(self._P, self._state.v, var_v, self._rest_gate,
+                                   self._discounted_P)
         if out is None:
             return False
         dx, self._P, _ = out

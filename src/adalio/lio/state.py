@@ -117,14 +117,17 @@ def condition_on_rest(P: np.ndarray, state: State, gyro_mean_var: float,
     return 0.5 * (out + out.T)
 
 
-def rest_velocity_update(P: np.ndarray, v: np.ndarray, var_v: float,
-                         gate: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+def rest_velocity_update(P: np.ndarray, v: np.ndarray, var_v: float, gate: float,
+                         P_gate: np.ndarray | None = None
+                         ) -> tuple[np.ndarray, np.ndarray, float] | None:
     """A zero-velocity measurement (``H = [I on v]``, noise ``var_v`` per axis) on the error
     state: (error-state correction, posterior covariance, normalised innovation squared), or
     None where the innovation's squared Mahalanobis length exceeds ``gate`` (the filter's
-    velocity refutes rest)."""
+    velocity refutes rest), that length taken with ``P_gate``'s velocity block if given (the
+    discounted covariance) and ``P``'s otherwise."""
     innov = -np.asarray(v, dtype=np.float64)
-    nis = float(innov @ np.linalg.solve(P[V, V] + var_v * np.eye(3), innov))
+    Pg = P if P_gate is None else P_gate
+    nis = float(innov @ np.linalg.solve(Pg[V, V] + var_v * np.eye(3), innov))
     if not nis <= gate:
         return None
     K, P_post = _rest_velocity_gain(P, var_v)
