@@ -158,9 +158,10 @@ class ImuConfig:
     """While the IMU rests (the stillness test of the initialization, on the last
     ``init_window_s`` of samples before each scan end), the filter takes a zero velocity at the
     scan end as a measurement (a zero-velocity update, as pedestrian and visual-inertial
-    navigation do at rest; lio/state.py, ``rest_velocity_update``), unless the filter's own
-    velocity refutes rest (chi-square gate at ``still_false_alarm``): motion at constant
-    velocity looks still to an IMU. Its standard deviation is the velocity that rest-level
+    navigation do at rest; lio/state.py, ``rest_velocity_update``), unless the filter's
+    velocity refutes rest (chi-square gate at ``still_false_alarm``, with the velocity spread
+    of the discounted covariance behind the reported sigmas): motion at constant velocity looks
+    still to an IMU. Its standard deviation is the velocity that rest-level
     motion makes within one block, ``still_accel_floor_m_s2 * still_block_s``. On by default
     since session 42 (README, Initialization, *Zero-velocity update*); False: no velocity
     information but the LiDAR's after the initialization (Faster-LIO's behaviour)."""

@@ -350,7 +350,9 @@ class Odometry:
         state's time, for the zero-velocity update's stillness test."""
         self.n_rest_updates = 0
         """Scans whose velocity was held at zero (imu.zero_velocity_update)."""
-        self._rest_gate: float | None = None
+        from scipy.stats import chi2  # scipy.stats only once a filter is built (start-up)
+
+        self._rest_gate = float(chi2.ppf(1.0 - config.imu.still_false_alarm, 3))
         """The zero-velocity update's chi-square gate (3 dof at imu.still_false_alarm)."""
         self._ivox = IVox.from_config(config.map)
         self._detector = DegeneracyDetector(config.adaptive)
@@ -1053,8 +1055,9 @@ class Odometry:
     def _rest_update(self, t_e_ns: int) -> bool:
         """imu.zero_velocity_update: if the IMU rested over the last ``imu.init_window_s``
         before the scan end, take a zero velocity there as a measurement (state.
-        ``rest_velocity_update``), gated by the filter's own velocity. The discounted covariance
-        takes the same information: rest is real information, not a plane's. True if taken."""
+        ``rest_velocity_update``), unless the filter's velocity refutes rest against the
+        discounted covariance's spread. The discounted covariance takes the same information:
+        rest is real information, not a plane's. True if taken."""
         cfg = self.cfg.imu
         r = self._rest_imu
         window = imu.stillness_window(r.t_ns, t_e_ns, cfg.init_window_s)
@@ -1063,10 +1066,6 @@ class Odometry:
         test = imu.stillness_test(r.t_ns[window], r.gyro[window], r.accel[window], cfg)
         if not test.still:
             return False
-        if self._rest_gate is None:
-            from scipy.stats import chi2
-
-            self._rest_gate = float(chi2.ppf(1.0 - cfg.still_false_alarm, 3))
         var_v = (cfg.still_accel_floor_m_s2 * cfg.still_block_s) ** 2
         # the gate asks the discounted covariance (the sigmas'): a filter sure of a velocity
         # that only faked information supports (a drift the rows cannot see) must not refuse

@@ -110,11 +110,21 @@ def condition_on_rest(P: np.ndarray, state: State, gyro_mean_var: float,
     H[3:6, BA] = np.eye(3)
     H[3:6, G] = state.R.T @ so3.hat(state.g) @ B
     Rn = np.diag([gyro_mean_var] * 3 + [accel_mean_var] * 3)
-    S = H @ P @ H.T + Rn
+    return joseph_update(P, H, Rn)[1]
+
+
+def joseph_update(P: np.ndarray, H: np.ndarray,
+                  Rn: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+    """(Kalman gain, posterior covariance) of a linear measurement ``H`` with noise ``Rn`` on the
+    error state (an (m, m) matrix, or a variance ``σ²`` for ``σ² I``), the posterior in Joseph
+    form ``(I − KH) P (I − KH)ᵀ + K Rn Kᵀ`` and symmetrized, so it stays symmetric positive
+    definite."""
+    iso = np.ndim(Rn) == 0
+    S = H @ P @ H.T + (Rn * np.eye(H.shape[0]) if iso else Rn)
     K = np.linalg.solve(S, H @ P).T
-    A = np.eye(DIM) - K @ H
-    out = A @ P @ A.T + K @ Rn @ K.T
-    return 0.5 * (out + out.T)
+    A = np.eye(P.shape[0]) - K @ H
+    out = A @ P @ A.T + (Rn * (K @ K.T) if iso else K @ Rn @ K.T)
+    return K, 0.5 * (out + out.T)
 
 
 def rest_velocity_update(P: np.ndarray, v: np.ndarray, var_v: float, gate: float,
@@ -130,24 +140,20 @@ def rest_velocity_update(P: np.ndarray, v: np.ndarray, var_v: float, gate: float
     nis = float(innov @ np.linalg.solve(Pg[V, V] + var_v * np.eye(3), innov))
     if not nis <= gate:
         return None
-    K, P_post = _rest_velocity_gain(P, var_v)
+    K, P_post = joseph_update(P, _velocity_rows(P.shape[0]), var_v)
     return K @ innov, P_post, nis
 
 
 def rest_velocity_covariance(P: np.ndarray, var_v: float) -> np.ndarray:
     """``P`` after the same zero-velocity measurement (covariance only)."""
-    return _rest_velocity_gain(P, var_v)[1]
+    return joseph_update(P, _velocity_rows(P.shape[0]), var_v)[1]
 
 
-def _rest_velocity_gain(P: np.ndarray, var_v: float) -> tuple[np.ndarray, np.ndarray]:
-    """(Kalman gain, posterior in Joseph form, so it stays symmetric positive definite) of the
-    zero-velocity measurement."""
-    S = P[V, V] + var_v * np.eye(3)
-    K = np.linalg.solve(S, P[V, :]).T
-    A = np.eye(P.shape[0])
-    A[:, V] -= K
-    out = A @ P @ A.T + var_v * (K @ K.T)
-    return K, 0.5 * (out + out.T)
+def _velocity_rows(dim: int) -> np.ndarray:
+    """``H = [I on v]`` (3, dim) of the error state."""
+    H = np.zeros((3, dim))
+    H[:, V] = np.eye(3)
+    return H
 
 
 def pose_covariance_world(R_world_imu: np.ndarray, P: np.ndarray) -> np.ndarray:
