@@ -228,6 +228,17 @@ class FilterConfig:
     plane_min_extent_fraction: float = 0.25
     """A plane needs neighbours spanning sqrt(middle covariance eigenvalue) >= this fraction of
     the map cell; rejects fits on stray clusters (0 disables)."""
+    one_ring_max_deg: float = 0.0
+    """Use a plane only where its neighbours, seen from the scan's LiDAR position, spread over
+    at least this many degrees of elevation about the LiDAR's spin axis. A spinning LiDAR's ring
+    is a cone of one elevation; neighbours one ring laid down from (near) here lie on it, and
+    the plane fitted to them is the cone's tangent (it contains the rays), not the surface,
+    whose tilt about the ring no single ring shows. A point of a later ring off that line then
+    gets a residual from the cone's tilt: the floor and ceiling rows of a 16-ring LiDAR pulled
+    the pitch into the walk by 0.2-0.4 degrees as a walk set off from a still start (README,
+    "Session 43"). Far below any spinning LiDAR's ring spacing (0.35 degrees on a 128-ring
+    unit, 2 on a VLP-16), so a plane fitted across two rings passes. Applies to the filter,
+    not to the moving start's registration. 0 disables it."""
     plane_within_support: bool = True
     """Use a plane only where the query lies within its neighbours' span along the plane (not
     beyond every neighbour): no residuals against extrapolated planes. Applies to the filter,
@@ -538,6 +549,7 @@ RANGES: dict[str, Range] = {
     "filter.convergence_eps": POSITIVE,
     "filter.knn_max_range_m": POSITIVE,
     "filter.plane_min_extent_fraction": NON_NEGATIVE,
+    "filter.one_ring_max_deg": Range(0.0, 90.0),
     "filter.research_min_shift_m": NON_NEGATIVE,
     "filter.map_provenance_cell_m": POSITIVE,
     "filter.local_surface_max_angle_deg": Range(0.0, 90.0, lo_open=True),

@@ -8,7 +8,7 @@ import pytest
 from adalio.lio import associate as assoc_mod
 from adalio.lio.associate import associate
 from adalio.lio.ivox import IVox
-from adalio.lio.plane import fit_planes, neighbour_moments
+from adalio.lio.plane import elevation_spread, fit_planes, neighbour_moments
 
 
 def _room_map(rng: np.random.Generator) -> IVox:
@@ -173,3 +173,61 @@ def test_support_test_rejects_extrapolated_planes_on_a_curved_wall() -> None:
     # the farther beyond the edge
     assert resid["outer"].min() > 2 * resid["inner"].max()
     assert resid["outer"][-1] > 2 * resid["outer"][0]
+
+
+def test_elevation_spread_equals_brute_force() -> None:
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        nbrs = rng.normal(0, 3, (8, 3))
+        cnt = int(rng.integers(2, 9))
+        origin = rng.normal(0, 1, 3)
+        axis = rng.normal(0, 1, 3)
+        axis /= np.linalg.norm(axis)
+        u = nbrs[:cnt] - origin
+        el = np.arcsin(u @ axis / np.linalg.norm(u, axis=1))
+        assert elevation_spread(nbrs, cnt, origin, axis) == pytest.approx(np.ptp(el), abs=1e-12)
+    # neighbours at the origin are skipped; fewer than two others judge nothing
+    assert elevation_spread(np.zeros((3, 3)), 3, np.zeros(3), np.array([0.0, 0, 1])) == np.inf
+
+
+def _ring_on_floor(origin: np.ndarray, elevation_deg: float, rng: np.random.Generator,
+                   azimuth_deg: np.ndarray, roughness_m: float = 0.01) -> np.ndarray:
+    """Where the rays of one ring (a cone of one elevation about the vertical) from ``origin``
+    hit a rough floor (height N(0, roughness_m) per ray): the points lie on the cone."""
+    e, a = np.radians(elevation_deg), np.radians(azimuth_deg)
+    u = np.c_[np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.full(a.shape, np.sin(e))]
+    z = rng.normal(0.0, roughness_m, a.shape)
+    return origin + ((z - origin[2]) / u[:, 2])[:, None] * u
+
+
+def test_one_ring_test_rejects_the_cone_tangent_planes_of_one_ring() -> None:
+    """A LiDAR 1.5 m over a rough floor (1 cm), two of its rings in the map: where a
+    query's neighbours all come from one ring they lie on its cone, and the plane fitted to them
+    contains the rays (the cone's tangent), tilted from the floor by the ring's elevation,
+    whatever the floor does. Seen from the sensor 0.3 m further on (where the filter would judge
+    them), the one-ring test rejects exactly those planes (which ring laid down each neighbour
+    is known here) and keeps the planes fitted across both rings, which lie near the floor."""
+    rng = np.random.default_rng(11)
+    o_map = np.array([0.0, 0.0, 1.5])
+    o_now = o_map + [0.3, 0.0, 0.0]
+    up = np.array([0.0, 0.0, 1.0])
+    az = np.arange(-30.0, 30.0, 1.0)
+    rings = [_ring_on_floor(o_map, e, rng, az) for e in (-9.0, -8.7)]  # 33 cm apart
+    ring_of = {tuple(p): r for r, pts in enumerate(rings) for p in pts}
+    ivox = IVox(resolution_m=0.5, nearby_type=18, max_points_per_voxel=32, cell_m=0.05)
+    ivox.add_points(np.vstack(rings))
+    q = _ring_on_floor(o_now, -8.85, rng, np.arange(-20.0, 20.0, 0.25))  # a later sweep's ring
+    args = (ivox, q, 5, 5.0, 3, 3.0, 0.1, "pca", 0.0)
+    plain = associate(*args, keep_neighbours=True)
+    got = associate(*args, ring_origin=o_now, ring_axis=up, ring_max_deg=0.1)
+    both = np.array([len({ring_of[tuple(p)] for p in nb[:c]}) == 2
+                     for nb, c in zip(plain.neighbours, plain.counts)])
+    one = plain.valid & ~both
+    assert one.sum() >= 20 and (plain.valid & both).sum() >= 20  # the scene has both kinds
+    np.testing.assert_array_equal(got.valid, plain.valid & both)
+    tilt = np.degrees(np.arccos(np.abs(plain.normals @ up)))
+    rays = plain.mu - o_map
+    rays /= np.linalg.norm(rays, axis=1)[:, None]
+    assert np.median(np.abs(np.sum(plain.normals[one] * rays[one], axis=1))) < 0.02  # hold rays
+    assert np.median(tilt[one]) == pytest.approx(9.0, abs=1.0)  # the cone's tangent
+    assert np.median(tilt[got.valid]) < 3.0  # across two rings: near the floor

@@ -617,13 +617,15 @@ def test_backfill_keeps_the_latest_backfill_s_and_runs_at_the_end_if_it_must():
 
 def test_moving_start_registers_with_faster_lio_planes_whatever_the_filter_uses():
     """The moving start's acceptance (3 cm RMS) was measured with Faster-LIO's association; the
-    support test of filter.plane_within_support applies to the filter after the hand-over, not
-    to the registration the fit is built on, so the hand-over state is the same with it on."""
+    support test of filter.plane_within_support and the one-ring test of
+    filter.one_ring_max_deg apply to the filter after the hand-over, not to the registration the
+    fit is built on, so the hand-over state is the same with them on."""
     states = []
-    for within in (False, True):
+    for within, ring_deg in ((False, 0.0), (True, 0.1)):
         cfg = _config()
         cfg.imu.init_timeout_s = 1.0
         cfg.filter.plane_within_support = within
+        cfg.filter.one_ring_max_deg = ring_deg
         odom, est = _run(cfg, 3.9, 600, seed=4, t_begin=1.6)
         assert odom.init_report.method == "moving" and est
         states.append((est[0].t_ns, est[0].T_world_imu, est[0].velocity_world_m_s,

@@ -30,6 +30,7 @@ from adalio.lio.plane import (
     PLANE_METHODS,
     _middle_eigenvalue,
     _scatter,
+    elevation_spread,
     fit_plane,
     within_margin,
     within_support,
@@ -92,7 +93,7 @@ def _warm_bound(queries, prev_queries, prev_nbrs, i, k, max_d2, resolution_m):
 def _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
                    radius2, margin_m, min_extent_m, use_ls, support_test, nb, d2, scratch,
                    normals, dist, valid, counts, mu, lam_mid, nearest, warm, prev_queries,
-                   prev_nbrs, prev_counts, out_nbrs):
+                   prev_nbrs, prev_counts, out_nbrs, ring):
     for j in range(k):
         d2[0, j] = np.inf
         nb[0, j, 0] = np.nan
@@ -126,13 +127,16 @@ def _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min
     if support_test and not within_support(nb[0], c, normals[i], mu[i, 0], mu[i, 1], mu[i, 2],
                                            queries[i, 0], queries[i, 1], queries[i, 2]):
         return
+    if ring[6] > 0.0 and elevation_spread(nb[0], c, ring[0:3], ring[3:6]) < ring[6]:
+        return
     valid[i] = True
 
 
 @kernel()
 def _associate_serial(queries, k, max_d2, resolution_m, offsets, cap, store, min_count, radius2,
                       margin_m, min_extent_m, use_ls, support_test, normals, dist, valid, counts,
-                      mu, lam_mid, nearest, warm, prev_queries, prev_nbrs, prev_counts, out_nbrs):
+                      mu, lam_mid, nearest, warm, prev_queries, prev_nbrs, prev_counts, out_nbrs,
+                      ring):
     """All rows, one thread, one scratch buffer."""
     nb = np.empty((1, k, 3))
     d2 = np.empty((1, k))
@@ -141,14 +145,14 @@ def _associate_serial(queries, k, max_d2, resolution_m, offsets, cap, store, min
         _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
                        radius2, margin_m, min_extent_m, use_ls, support_test, nb, d2, scratch,
                        normals, dist, valid, counts, mu, lam_mid, nearest, warm, prev_queries,
-                       prev_nbrs, prev_counts, out_nbrs)
+                       prev_nbrs, prev_counts, out_nbrs, ring)
 
 
 @kernel(parallel=True)
 def _associate_parallel(queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
                         radius2, margin_m, min_extent_m, use_ls, support_test, normals, dist,
                         valid, counts, mu, lam_mid, nearest, warm, prev_queries, prev_nbrs,
-                        prev_counts, out_nbrs):
+                        prev_counts, out_nbrs, ring):
     """All rows on all numba threads; rows are independent (own scratch), so deterministic."""
     for i in prange(queries.shape[0]):
         nb = np.empty((1, k, 3))
@@ -157,7 +161,7 @@ def _associate_parallel(queries, k, max_d2, resolution_m, offsets, cap, store, m
         _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min_count,
                        radius2, margin_m, min_extent_m, use_ls, support_test, nb, d2, scratch,
                        normals, dist, valid, counts, mu, lam_mid, nearest, warm, prev_queries,
-                       prev_nbrs, prev_counts, out_nbrs)
+                       prev_nbrs, prev_counts, out_nbrs, ring)
 
 
 def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
@@ -165,7 +169,9 @@ def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
               min_extent_m: float = 0.0, support_test: bool = False,
               keep_neighbours: bool = False,
               warm_from: Correspondences | None = None,
-              compile_only: bool = False) -> Correspondences:
+              compile_only: bool = False,
+              ring_origin: np.ndarray | None = None, ring_axis: np.ndarray | None = None,
+              ring_max_deg: float = 0.0) -> Correspondences:
     """Planes from the k nearest map points of each world point (§6.2, §7, §9.4).
 
     Same arguments and result as ``ivox.knn(points_world, k, max_range_m)``, then
@@ -181,11 +187,26 @@ def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
 
     ``compile_only`` compiles the search kernel these arguments would run (for their types, on
     any map, even an empty one) and searches nothing (:mod:`adalio.lio.warmup`).
+
+    ``ring_max_deg > 0`` (the one-ring test, ``filter.one_ring_max_deg``): a plane is also valid
+    only where its neighbours' elevations seen from ``ring_origin`` (the LiDAR's world position)
+    about ``ring_axis`` (its spin axis in the world) spread over at least that many degrees
+    (:func:`adalio.lio.plane.elevation_spread`): not one ring's cone from (near) here.
     """
     if method not in PLANE_METHODS:
         raise ConfigError(f"filter.plane_fit must be 'ls' or 'pca', got {method!r}")
     if not (np.isfinite(min_extent_m) and min_extent_m >= 0.0):
         raise ConfigError(f"plane min_extent_m must be >= 0 metres, got {min_extent_m!r}")
+    if not (np.isfinite(ring_max_deg) and ring_max_deg >= 0.0):
+        raise ConfigError(f"one-ring test: max spread must be >= 0 degrees, got {ring_max_deg!r}")
+    ring_o = np.zeros(3) if ring_origin is None else np.asarray(ring_origin, dtype=np.float64)
+    ring_a = (np.array([0.0, 0.0, 1.0]) if ring_axis is None
+              else np.asarray(ring_axis, dtype=np.float64))
+    if ring_max_deg > 0.0 and not (ring_o.shape == (3,) and ring_a.shape == (3,)
+                                   and np.all(np.isfinite(ring_o))
+                                   and abs(np.linalg.norm(ring_a) - 1.0) < 1e-6):
+        raise ConfigError("one-ring test: ring_origin must be a finite (3,) point and "
+                          "ring_axis a (3,) unit vector")
     q = np.ascontiguousarray(points_world, dtype=np.float64)
     m = q.shape[0]
     k = int(k)
@@ -213,7 +234,7 @@ def associate(ivox: IVox, points_world: np.ndarray, k: int, max_range_m: float,
             max(int(min_neighbors), 3), float(radius_m) ** 2, float(margin_m),
             float(min_extent_m), method == "ls", bool(support_test), out.normals, out.d,
             out.valid, out.counts, out.mu, out.lam_mid, out.nearest, warm, prev_q, prev_nb,
-            prev_c, out_nb)
+            prev_c, out_nb, np.r_[ring_o, ring_a, np.radians(ring_max_deg)])
     if compile_only:
         kernel.compile(tuple(numba.typeof(a) for a in args))
     else:

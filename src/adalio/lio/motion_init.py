@@ -197,11 +197,13 @@ class MovingInit:
 
     def __init__(self, cfg: Config, R_LI: np.ndarray, t_LI: np.ndarray,
                  use_gyro: bool = True) -> None:
-        self.cfg = replace(cfg, filter=replace(cfg.filter, plane_within_support=False))
+        self.cfg = replace(cfg, filter=replace(cfg.filter, plane_within_support=False,
+                                               one_ring_max_deg=0.0))
         """The registration uses Faster-LIO's association whatever ``filter.plane_within_support``
-        says: the fit's acceptance (``imu.moving_init_max_residual_m``) was measured with it, and
-        with the support test a corridor registration that slides along the axis fits a wrong
-        state within 3 cm (README, "Planes within their support")."""
+        and ``filter.one_ring_max_deg`` say: the fit's acceptance
+        (``imu.moving_init_max_residual_m``) was measured with it, and with the support test a
+        corridor registration that slides along the axis fits a wrong state within 3 cm (README,
+        "Planes within their support")."""
         self.use_gyro = use_gyro
         """False: deskew and predict with zero rotation instead of the gyro, so the
         registration is independent of the gyro (the unit check)."""

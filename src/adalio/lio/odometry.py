@@ -235,7 +235,9 @@ class _Association:
             self.n_searches += 1
             c = associate(self.ivox, p_world, f.knn_k, f.knn_max_range_m, f.min_neighbors,
                           self.radius_m, self.margin_m, f.plane_fit, self.min_extent_m,
-                          f.plane_within_support, keep_neighbours=True, warm_from=self._last)
+                          f.plane_within_support, keep_neighbours=True, warm_from=self._last,
+                          ring_origin=x.R @ x.t_LI + x.p, ring_axis=x.R @ x.R_LI[:, 2],
+                          ring_max_deg=f.one_ring_max_deg)
             self._last = c
             self.normals, self.d, self.counts = c.normals, c.d, c.counts
             self.mu, self.lam_mid, self.nearest = c.mu, c.lam_mid, c.nearest

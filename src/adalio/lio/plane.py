@@ -293,6 +293,31 @@ def within_support(nbrs: np.ndarray, cnt: int, n: np.ndarray, mx: float, my: flo
 
 
 @kernel()
+def elevation_spread(nbrs: np.ndarray, cnt: int, origin: np.ndarray, axis: np.ndarray) -> float:
+    """The spread (max - min, rad) of the elevation angles of the first ``cnt`` neighbours seen
+    from ``origin`` about the unit ``axis``: ``asin(axis . u_j)`` with ``u_j`` the unit
+    direction from ``origin`` to neighbour ``j``. A spinning LiDAR's ring is a cone of one
+    elevation about its spin axis, so neighbours that one ring laid down from (near) ``origin``
+    have a spread of about 0, and the plane fitted to them is the cone's tangent plane: it
+    contains the rays, whatever the surface's tilt about the ring. Neighbours at ``origin``
+    itself are skipped; fewer than two others give infinity (nothing to judge)."""
+    lo = np.inf
+    hi = -np.inf
+    for j in range(cnt):
+        dx = nbrs[j, 0] - origin[0]
+        dy = nbrs[j, 1] - origin[1]
+        dz = nbrs[j, 2] - origin[2]
+        r = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if not r > 0.0:
+            continue
+        s = (dx * axis[0] + dy * axis[1] + dz * axis[2]) / r
+        e = np.arcsin(min(max(s, -1.0), 1.0))
+        lo = min(lo, e)
+        hi = max(hi, e)
+    return hi - lo if hi >= lo else np.inf
+
+
+@kernel()
 def _fit_row(
     i: int,
     nbrs: np.ndarray,
