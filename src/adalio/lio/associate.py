@@ -94,6 +94,9 @@ def _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min
                    radius2, margin_m, min_extent_m, use_ls, support_test, nb, d2, scratch,
                    normals, dist, valid, counts, mu, lam_mid, nearest, warm, prev_queries,
                    prev_nbrs, prev_counts, out_nbrs, ring):
+    # ring (7,): the one-ring test's LiDAR position (0:3), spin axis (3:6) and least elevation
+    # spread in rad (6; 0 = off), in one array: passed as three arguments, numba 0.68 refused to
+    # inline the call ("Calling a closure with *args is unsupported")
     for j in range(k):
         d2[0, j] = np.inf
         nb[0, j, 0] = np.nan
