@@ -300,7 +300,8 @@ def elevation_spread(nbrs: np.ndarray, cnt: int, origin: np.ndarray, axis: np.nd
     elevation about its spin axis, so neighbours that one ring laid down from (near) ``origin``
     have a spread of about 0, and the plane fitted to them is the cone's tangent plane: it
     contains the rays, whatever the surface's tilt about the ring. Neighbours at ``origin``
-    itself are skipped; fewer than two others give infinity (nothing to judge)."""
+    itself are skipped; if none is left, infinity (nothing to judge). The extremes
+    are taken on the sines (asin is monotone), so two asin per call, not one per neighbour."""
     lo = np.inf
     hi = -np.inf
     for j in range(cnt):
@@ -311,10 +312,11 @@ def elevation_spread(nbrs: np.ndarray, cnt: int, origin: np.ndarray, axis: np.nd
         if not r > 0.0:
             continue
         s = (dx * axis[0] + dy * axis[1] + dz * axis[2]) / r
-        e = np.arcsin(min(max(s, -1.0), 1.0))
-        lo = min(lo, e)
-        hi = max(hi, e)
-    return hi - lo if hi >= lo else np.inf
+        lo = min(lo, s)
+        hi = max(hi, s)
+    if not hi >= lo:
+        return np.inf
+    return np.arcsin(min(max(hi, -1.0), 1.0)) - np.arcsin(min(max(lo, -1.0), 1.0))
 
 
 @kernel()
