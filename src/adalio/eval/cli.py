@@ -54,6 +54,9 @@ def eval_command(
     ] = None,
     rpe_delta: Annotated[str, typer.Option(
         "--rpe-delta", help="RPE segment lengths in metres, comma-separated.")] = "1,5",
+    nearest: Annotated[bool, typer.Option(
+        "--nearest", help="Pair each estimate with the nearest GT pose (evo's association) "
+                          "instead of the GT interpolated at its time stamp.")] = False,
 ) -> None:
     """Accuracy of a trajectory: ATE and RPE (evo), or the HILTI 2022 score."""
     console = term_console()
@@ -80,12 +83,15 @@ def eval_command(
     from adalio.eval.metrics import DEFAULT_MAX_DIFF_S, ate, rpe
 
     diff = max_diff if max_diff is not None else DEFAULT_MAX_DIFF_S
-    a = ate(est, gt, align=align, max_diff_s=diff)
-    r = rpe(est, gt, _parse_floats(rpe_delta, "--rpe-delta"), max_diff_s=diff)
+    a = ate(est, gt, align=align, max_diff_s=diff, interpolate=not nearest)
+    r = rpe(est, gt, _parse_floats(rpe_delta, "--rpe-delta"), max_diff_s=diff,
+            interpolate=not nearest)
     if json_out:
         print(json.dumps({"est": str(est), "gt": str(gt), "ate": a, "rpe": r}))
         return
+    pairing = "nearest GT pose" if nearest else "GT interpolated"
     table = Table(title=f"ATE (translation, align={align}, {a['n']} pairs within {diff} s, "
+                        f"{pairing}, "
                         f"{a['duration_s']:.1f} s)")
     for col in ("RMSE (m)", "mean (m)", "median (m)", "std (m)", "max (m)"):
         table.add_column(col, justify="right")

@@ -3,8 +3,13 @@
 Both trajectories are TUM files (or evo ``PoseTrajectory3D``) of the IMU pose in their own world
 frame, stamped in seconds on the same clock. Association is evo's
 ``sync.associate_trajectories``: starting from the trajectory with fewer poses, every pose is
-paired with the nearest-in-time pose of the other one if they are within ``max_diff_s``; so with
-a denser ground truth each estimate gets its nearest GT pose, and vice versa.
+paired with the nearest-in-time pose of the other one if they are within ``max_diff_s``. The GT
+pose of a pair is then interpolated at the estimate's time stamp (positions linearly, rotations
+by slerp) wherever the GT has a pose within ``max_diff_s`` on either side of it
+(:func:`interpolate_gt`); elsewhere (a sparse GT, its ends) it stays the nearest GT pose.
+Without this a GT at 100 Hz and a LiDAR whose scans end 3.6 ms off its grid (the simulated
+OS1-64) add the 4.5 mm the sensor moves in 3.6 ms at a walk to every error: 0.30 instead of
+0.19 cm of ATE on the hall. ``interpolate=False`` gives evo's nearest pose.
 
 Alignment of the estimate onto the ground truth before the ATE:
 
@@ -56,9 +61,11 @@ class AlignedPair:
         return np.asarray(self.gt.timestamps, dtype=np.float64)
 
 
-def associate(est: TrajectoryLike, gt: TrajectoryLike,
-              max_diff_s: float = DEFAULT_MAX_DIFF_S) -> tuple[PoseTrajectory3D, PoseTrajectory3D]:
-    """Return ``(gt_sync, est_sync)`` with equal length, via evo's associate_trajectories."""
+def associate(est: TrajectoryLike, gt: TrajectoryLike, max_diff_s: float = DEFAULT_MAX_DIFF_S,
+              interpolate: bool = True) -> tuple[PoseTrajectory3D, PoseTrajectory3D]:
+    """Return ``(gt_sync, est_sync)`` with equal length, via evo's associate_trajectories; with
+    ``interpolate`` the GT poses are interpolated at the estimate's stamps where the GT brackets
+    them within ``max_diff_s`` (:func:`interpolate_gt`)."""
     if not max_diff_s > 0:
         raise InputError(f"--max-diff must be > 0 s (got {max_diff_s})")
     est_t = read_trajectory(est, "estimate")
@@ -73,7 +80,41 @@ def associate(est: TrajectoryLike, gt: TrajectoryLike,
         raise InputError(
             f"no estimate/GT pose pairs within {max_diff_s} s: the estimate spans "
             f"{_span(est_t)} and the GT {_span(gt_t)}{hint}") from None
+    if interpolate:
+        gt_s = interpolate_gt(gt_t, gt_s, np.asarray(est_s.timestamps, dtype=np.float64),
+                              max_diff_s)
     return gt_s, est_s
+
+
+def interpolate_gt(gt: PoseTrajectory3D, gt_sync: PoseTrajectory3D, t_s: np.ndarray,
+                   max_diff_s: float) -> PoseTrajectory3D:
+    """The GT poses at the times ``t_s`` (sorted, one per pose of ``gt_sync``, the GT poses
+    associated with them): where ``gt`` has a pose at most ``max_diff_s`` before and one at most
+    ``max_diff_s`` after a time, the pose between them at that time (position linear in time,
+    rotation by slerp, the shorter way); elsewhere the pose of ``gt_sync``."""
+    tg = np.asarray(gt.timestamps, dtype=np.float64)
+    t = np.asarray(t_s, dtype=np.float64)
+    pos = np.array(gt_sync.positions_xyz, dtype=np.float64)
+    quat = np.array(gt_sync.orientations_quat_wxyz, dtype=np.float64)
+    hi = np.searchsorted(tg, t, side="left")  # tg[hi - 1] < t <= tg[hi]
+    inside = (hi > 0) & (hi < len(tg))
+    lo = np.clip(hi - 1, 0, len(tg) - 1)
+    hi = np.clip(hi, 0, len(tg) - 1)
+    ok = inside & (t - tg[lo] <= max_diff_s) & (tg[hi] - t <= max_diff_s) & (tg[hi] > tg[lo])
+    if not np.any(ok):
+        return gt_sync
+    from scipy.spatial.transform import Rotation
+
+    a, b = lo[ok], hi[ok]
+    s = ((t[ok] - tg[a]) / (tg[b] - tg[a]))[:, None]
+    p_all = np.asarray(gt.positions_xyz, dtype=np.float64)
+    pos[ok] = (1.0 - s) * p_all[a] + s * p_all[b]
+    q_all = np.asarray(gt.orientations_quat_wxyz, dtype=np.float64)
+    r_a = Rotation.from_quat(q_all[a][:, [1, 2, 3, 0]])
+    r_b = Rotation.from_quat(q_all[b][:, [1, 2, 3, 0]])
+    r = r_a * Rotation.from_rotvec(s * (r_a.inv() * r_b).as_rotvec())
+    quat[ok] = r.as_quat()[:, [3, 0, 1, 2]]
+    return PoseTrajectory3D(positions_xyz=pos, orientations_quat_wxyz=quat, timestamps=t.copy())
 
 
 def _span(traj: PoseTrajectory3D) -> str:
@@ -82,11 +123,11 @@ def _span(traj: PoseTrajectory3D) -> str:
 
 
 def align_pair(est: TrajectoryLike, gt: TrajectoryLike, align: str = "se3",
-               max_diff_s: float = DEFAULT_MAX_DIFF_S) -> AlignedPair:
+               max_diff_s: float = DEFAULT_MAX_DIFF_S, interpolate: bool = True) -> AlignedPair:
     """Associate, align the estimate onto the GT (see module docstring) and compute errors."""
     if align not in ALIGNMENTS:
         raise InputError(f"--align must be one of {', '.join(ALIGNMENTS)} (got {align!r})")
-    gt_s, est_s = associate(est, gt, max_diff_s)
+    gt_s, est_s = associate(est, gt, max_diff_s, interpolate)
     est_a = copy.deepcopy(est_s)
     T = np.eye(4)
     if align == "se3":
@@ -113,13 +154,13 @@ def align_pair(est: TrajectoryLike, gt: TrajectoryLike, align: str = "se3",
 
 
 def ate(est_tum: TrajectoryLike, gt_tum: TrajectoryLike, align: str = "se3",
-        max_diff_s: float = DEFAULT_MAX_DIFF_S) -> dict:
+        max_diff_s: float = DEFAULT_MAX_DIFF_S, interpolate: bool = True) -> dict:
     """Absolute trajectory error (translation) after alignment.
 
     Returns ``dict(rmse_m, mean_m, median_m, std_m, max_m, n, align, max_diff_s,
     duration_s)`` where ``n`` is the number of associated pose pairs.
     """
-    pair = align_pair(est_tum, gt_tum, align, max_diff_s)
+    pair = align_pair(est_tum, gt_tum, align, max_diff_s, interpolate)
     return ate_from_pair(pair, max_diff_s)
 
 
@@ -142,13 +183,13 @@ def ate_from_pair(pair: AlignedPair, max_diff_s: float = DEFAULT_MAX_DIFF_S) -> 
 
 def rpe(est_tum: TrajectoryLike, gt_tum: TrajectoryLike,
         deltas_m: tuple[float, ...] | list[float] = DEFAULT_RPE_DELTAS_M,
-        max_diff_s: float = DEFAULT_MAX_DIFF_S) -> list[dict]:
+        max_diff_s: float = DEFAULT_MAX_DIFF_S, interpolate: bool = True) -> list[dict]:
     """Relative pose error over GT path segments of each length in ``deltas_m``.
 
     One dict per delta: ``delta_m, n, rmse_m, mean_m, median_m, max_m, drift_pct`` (mean / delta
     x 100) and ``rot_rmse_deg``; the statistics are None when the GT path is shorter than delta.
     """
-    gt_s, est_s = associate(est_tum, gt_tum, max_diff_s)
+    gt_s, est_s = associate(est_tum, gt_tum, max_diff_s, interpolate)
     out = []
     for delta in deltas_m:
         if not delta > 0:
@@ -213,14 +254,15 @@ class SigmaConsistency:
 
 def sigma_consistency(est_tum: TrajectoryLike, gt_tum: TrajectoryLike,
                       scans: dict[str, np.ndarray],
-                      max_diff_s: float = DEFAULT_MAX_DIFF_S) -> SigmaConsistency:
+                      max_diff_s: float = DEFAULT_MAX_DIFF_S,
+                      interpolate: bool = True) -> SigmaConsistency:
     """Compare the errors of a run with the sigma columns of its ``scans.csv`` (as read by
     :func:`adalio.eval.files.read_scans_csv`)."""
     missing = [c for c in SIGMA_COLUMNS if c not in scans]
     if missing:
         raise InputError(f"scans.csv has no {', '.join(missing)} column: it was written by an "
                          "adalio without sigma columns; re-run the bag")
-    gt_s, est_s = associate(est_tum, gt_tum, max_diff_s)
+    gt_s, est_s = associate(est_tum, gt_tum, max_diff_s, interpolate)
     t_est = np.asarray(est_s.timestamps, dtype=np.float64)
     t_csv = np.asarray(scans["t_s"], dtype=np.float64)
     order = np.argsort(t_csv, kind="stable")  # the backfill's rows are written after later ones
