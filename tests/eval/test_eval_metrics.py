@@ -245,6 +245,12 @@ def test_cli_json_and_table(synthetic_pair):
     data = json.loads(out.output)
     assert data["ate"] == ate(p["est"], p["gt"], align="first")
     assert [r["delta_m"] for r in data["rpe"]] == [1.0, 5.0]
+    out = runner.invoke(app, ["eval", str(p["est"]), str(p["gt"]), "--json", "--align", "first",
+                              "--nearest"])
+    assert out.exit_code == 0, out.output
+    assert json.loads(out.output)["ate"] == ate(p["est"], p["gt"], align="first",
+                                                interpolate=False)
+    assert json.loads(out.output)["ate"] != data["ate"]
     out = runner.invoke(app, ["eval", str(p["est"]), str(p["gt"]), "--rpe-delta", "2"])
     assert out.exit_code == 0 and "RMSE" in out.output
     out = runner.invoke(app, ["eval", str(p["est"]), "/nonexistent.tum"])
