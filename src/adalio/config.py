@@ -295,6 +295,14 @@ class FilterConfig:
     walls whose fitted normals lean by noise claim in a shaft. The filter's own covariance and
     the trajectory are unchanged; only the reported sigmas (and the map's, which inherits them)
     grow where the scene holds no information."""
+    sigmas_deskew_noise: bool = True
+    """Report sigmas whose attitude holds the rotation the gyro's white noise puts into the
+    scan's undistortion (``lio/map_uncertainty.py``, ``deskew_covariance``): the points are
+    moved to the scan's end with the integrated gyro, a random walk pinned at that end, and
+    the registration takes its average over the sweep (variance ``q_g T / 3`` per axis for a
+    sweep of T seconds and a gyro noise density² q_g), which no update sees. It enters the map's
+    uncertainty with the lever arm (not the first scan's: that scan defines the world, and its
+    map stays exact, as before). Only the reported sigmas change, never the trajectory."""
     local_surface_check: bool = False
     """Drop a row whose map plane disagrees with the scan's own surface at the point
     (``lio/local_surface.py``): the plane fitted to the samples around the point on its ring and

@@ -164,3 +164,65 @@ def test_odometry_sigmas_add_the_map_and_leave_the_trajectory_alone(tmp_path):
     var_on, var_off = np.sum(s_on[-1, :3] ** 2), np.sum(s_off[-1, :3] ** 2)
     assert var_on > 1.15 * var_off, (s_on[-1], s_off[-1])
     assert cons_on.mean_nees < cons_off.mean_nees
+
+
+def test_deskew_covariance_against_monte_carlo():
+    """The rotation a sweep's undistortion takes from the gyro's white noise, brute force: 400 Hz
+    gyro samples of density² q, each of 200 points evenly over 0.1 s moved to the sweep's end by
+    the noise integrated from its time to the end, the registration's rotation their mean. Its
+    variance per axis over many sweeps is ``deskew_covariance``'s, the axes uncorrelated, no
+    position."""
+    from adalio.lio.map_uncertainty import deskew_covariance
+
+    rng = np.random.default_rng(3)
+    q, span, rate = 3.6e-6, 0.1, 400.0
+    n_samples = int(span * rate)
+    t_pts = np.linspace(0.0, span, 200, endpoint=False)  # time before the end
+    # sample j covers [j, j+1) / rate before the end; a point integrates the samples it has passed
+    steps = rng.normal(0.0, np.sqrt(q * rate), (20000, n_samples, 3)) / rate
+    cum = np.concatenate([np.zeros((20000, 1, 3)), np.cumsum(steps, axis=1)], axis=1)
+    k = t_pts * rate
+    lo = np.floor(k).astype(int)
+    frac = (k - lo)[None, :, None]
+    walk = cum[:, lo] * (1 - frac) + cum[:, np.minimum(lo + 1, n_samples)] * frac
+    mean_rot = walk.mean(axis=1)  # (trials, 3)
+    W = deskew_covariance(q, span)
+    np.testing.assert_array_equal(W[:3], 0.0)
+    np.testing.assert_allclose(np.cov(mean_rot.T), W[3:, 3:], rtol=0.05, atol=0.03 * W[3, 3])
+    assert not deskew_covariance(0.0, span).any() and not deskew_covariance(q, 0.0).any()
+
+
+def test_odometry_sigmas_hold_the_deskew_noise_and_leave_the_trajectory_alone(tmp_path):
+    """``filter.sigmas_deskew_noise`` adds ``q T / 3`` per axis to every reported attitude
+    variance (the map's term off, so the sum is plain; the gyro noise as configured) and
+    changes nothing else: the trajectory is bit-identical and the anchor has no sigma."""
+    from adalio.config import load_config
+    from adalio.pipeline import run_bag
+    from adalio.sim import cached_sequence
+
+    sim = cached_sequence("corridor", seed=0, duration_s=4.0, columns=512)
+    q = 3.6e-6  # rad²/s, the x10 BMI085's
+    runs = {}
+    for on in (False, True):
+        cfg = load_config(None, sim.config_path)
+        cfg.imu.noise_source, cfg.imu.noise_discretization, cfg.imu.gyro_cov = "config", "dt", q
+        cfg.filter.map_uncertainty = False
+        cfg.filter.sigmas_deskew_noise = on
+        ests = []
+        run_bag(sim.bag_path, cfg, tmp_path / f"deskew_{on}", progress=False,
+                on_estimate=ests.append)
+        runs[on] = ests
+    off, on = runs[False], runs[True]
+    assert len(on) == len(off) > 30
+    for a, b in zip(off, on, strict=True):
+        assert a.t_ns == b.t_ns
+        np.testing.assert_array_equal(a.T_world_imu, b.T_world_imu)
+    def var(e):
+        return np.radians(np.asarray(e.stats.sigma_rot_world_deg)) ** 2
+
+    extra = np.array([var(b) - var(a) for a, b in zip(off, on, strict=True)
+                      if np.any(var(a) > 0)])
+    assert len(extra) > 30
+    assert any(not np.any(var(b)) for b in on)  # the anchor
+    # the simulated sweeps' points span 0.1 s less one column
+    assert np.all(extra > q * 0.099 / 3 * (1 - 1e-6)) and np.all(extra < q * 0.1 / 3 * (1 + 1e-6))

@@ -16,6 +16,11 @@ filter's pose covariance turned into world axes (position, then small world rota
 is stored as the covariance of the map cells scan ``k`` is the first to fill, so the uncertainty
 accumulates as the map is extended (odometry drift) and stays put while the sensor re-observes
 the same map. The first scan anchors the world: ``W_0 = 0``.
+With ``filter.sigmas_deskew_noise`` every later ``W_rel,k`` also holds the rotation the gyro's
+noise puts into that scan's undistortion (:func:`deskew_covariance`), and so does the map that
+scan extends. The first scan's own is left out: ``W_0`` with it made the bound below scale its
+rotation by ``1/α`` with ``α`` near 0 (a map of rotation and hardly any position near the
+start), and the height sigmas of the spiral's first 25 s grew by up to 2x for it.
 
 The two terms are not independent. Where the scans are weakly constrained (a spiral shaft, a
 stairwell's height) each scan's registration is biased the same way as the scans that built the
@@ -72,6 +77,21 @@ def world_covariance(W_rel: np.ndarray, W_map: np.ndarray, correlated: bool) -> 
         return W_rel + W_map
     alpha = np.sqrt(b / a)
     return (1.0 + alpha) * W_rel + (1.0 + 1.0 / alpha) * W_map
+
+
+def deskew_covariance(q_gyro_rad2_s: float, span_s: float) -> np.ndarray:
+    """6x6 world covariance (position, small world rotation) of the rotation the gyro's white
+    noise puts into a sweep's undistortion, which the filter treats as exact. Each point is
+    moved to the sweep's end by the gyro integrated from its time to the end: a random walk of
+    density² ``q_gyro_rad2_s`` (rad²/s) pinned at the end, ``W(τ)`` for a point ``τ`` before
+    it. The registration takes its mean over the sweep; for points spread evenly over
+    ``span_s`` seconds ``Var(mean W) = q span / 3`` per axis (∫₀ᵀ∫₀ᵀ min(s, t) ds dt / T² =
+    T / 3), the same about every axis, so the same in the body and the world frame. Position:
+    none (the rotation is about the sensor)."""
+    W = np.zeros((6, 6))
+    if q_gyro_rad2_s > 0 and span_s > 0:
+        W[3:, 3:] = np.eye(3) * (q_gyro_rad2_s * span_s / 3.0)
+    return W
 
 
 @kernel()

@@ -66,7 +66,7 @@ from adalio.lio.degeneracy import (
 from adalio.lio.ieskf import _reprojection, iterated_update, real_information
 from adalio.lio.ivox import IVox, hash_key3
 from adalio.lio.local_surface import LocalSurface, disagrees
-from adalio.lio.map_uncertainty import MapProvenance, world_covariance
+from adalio.lio.map_uncertainty import MapProvenance, deskew_covariance, world_covariance
 from adalio.lio.measurement import (
     normal_noise_information,
     normal_noise_terms,
@@ -379,6 +379,8 @@ class Odometry:
         """How the filter initialized (None until it has)."""
         self._t_first_scan_ns: int | None = None
         self._scans_without_pose = 0
+        self._span_s = 0.0
+        """Time span (s) of the latest scan's points (filter.sigmas_deskew_noise)."""
         """Scans handed to the initialization that left it uninitialized (no pose)."""
         self._refused_fits = 0
         self._closest_still: imu.StillnessTest | None = None
@@ -498,6 +500,7 @@ class Odometry:
             self.n_skipped_scans += 1
             return None
         stats.t_ns = t_e
+        self._span_s = (t_e - t_b) * 1e-9
 
         if self._units_check is not None:
             self._check_gyro_units(pts, t_pts, t_e)
@@ -1183,11 +1186,23 @@ class Odometry:
             P = P - PE @ J @ np.linalg.solve(np.eye(6) + P[:6, :6] @ J, PE.T)
         self._P_report = 0.5 * (P + P.T)
 
+    def _deskew_covariance(self) -> np.ndarray:
+        """The latest scan's undistortion rotation noise (``map_uncertainty.deskew_covariance``)
+        with the gyro noise density the filter uses, zero without
+        ``filter.sigmas_deskew_noise``. In the ``dt2`` form the configured value is per sample,
+        so the density² is it times the nominal sample period."""
+        if not self.cfg.filter.sigmas_deskew_noise:
+            return np.zeros((6, 6))
+        q = float(self._q_diag[0])
+        if self.cfg.imu.noise_discretization != "dt":
+            q /= self.cfg.sensor.imu_rate_hz
+        return deskew_covariance(q, self._span_s)
+
     def _world_covariance(self) -> np.ndarray:
         """6x6 world covariance of the pose: the filter's (or, with
         ``filter.sigmas_discount_normal_noise``, the one behind the reported sigmas), combined
         with the map's if ``filter.map_uncertainty`` (``map_uncertainty.world_covariance``)."""
-        W = pose_covariance_world(self._state.R, self._sigmas_P)
+        W = pose_covariance_world(self._state.R, self._sigmas_P) + self._deskew_covariance()
         f = self.cfg.filter
         return world_covariance(W, self._W_map, f.map_error_correlated) if f.map_uncertainty else W
 
