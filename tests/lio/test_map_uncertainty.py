@@ -226,3 +226,34 @@ def test_odometry_sigmas_hold_the_deskew_noise_and_leave_the_trajectory_alone(tm
     assert any(not np.any(var(b)) for b in on)  # the anchor
     # the simulated sweeps' points span 0.1 s less one column
     assert np.all(extra > q * 0.099 / 3 * (1 - 1e-6)) and np.all(extra < q * 0.1 / 3 * (1 + 1e-6))
+
+
+def test_deskew_noise_is_the_measured_gyro_noise_not_a_generic_config(tmp_path):
+    """With a generic process noise (FAST-LIO's gyro_cov 0.1 in the dt2 form, the ``ouster``
+    preset's) and the default ``imu.noise_source: at_least_config``, the term takes the gyro
+    density the still start measured, which is the simulated BMI085's (1.9e-4 rad/s/sqrt(Hz)),
+    not the configured floor (80 times larger in sigma)."""
+    from adalio.config import load_config
+    from adalio.pipeline import run_bag
+    from adalio.sim import cached_sequence
+
+    sim = cached_sequence("corridor", seed=0, duration_s=4.0, columns=512)
+    runs = {}
+    for on in (False, True):
+        cfg = load_config(None, sim.config_path)
+        cfg.imu.noise_discretization, cfg.imu.gyro_cov, cfg.imu.accel_cov = "dt2", 0.1, 0.1
+        cfg.filter.map_uncertainty = False
+        cfg.filter.sigmas_deskew_noise = on
+        ests = []
+        res = run_bag(sim.bag_path, cfg, tmp_path / f"generic_{on}", progress=False,
+                      on_estimate=ests.append)
+        runs[on] = (ests, res.init_report)
+    (off, _), (on, report) = runs[False], runs[True]
+    q = report.gyro_noise_rad_s_sqrt_hz ** 2
+    assert 0.5 * 1.9e-4**2 < q < 2.0 * 1.9e-4**2
+    extra = np.array([np.radians(b.stats.sigma_rot_world_deg) ** 2
+                      - np.radians(a.stats.sigma_rot_world_deg) ** 2
+                      for a, b in zip(off, on, strict=True)
+                      if np.any(np.asarray(a.stats.sigma_rot_world_deg) > 0)])
+    assert len(extra) > 30
+    np.testing.assert_allclose(extra, q * 0.0995 / 3, rtol=0.01)

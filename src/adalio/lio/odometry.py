@@ -381,6 +381,8 @@ class Odometry:
         self._scans_without_pose = 0
         self._span_s = 0.0
         """Time span (s) of the latest scan's points (filter.sigmas_deskew_noise)."""
+        self._q_deskew: float | None = None
+        """Gyro white-noise density² (rad²/s) the start measured (filter.sigmas_deskew_noise)."""
         """Scans handed to the initialization that left it uninitialized (no pose)."""
         self._refused_fits = 0
         self._closest_still: imu.StillnessTest | None = None
@@ -886,6 +888,8 @@ class Odometry:
         cfg = self.cfg.imu
         if cfg.noise_source == "config" or measured is None:
             return cfg
+        density = float(measured.gyro_noise_rad_s_sqrt_hz)
+        self._q_deskew = density**2 if np.isfinite(density) and density > 0 else None
         used = imu.measured_noise_config(
             cfg, measured, only_if_noisier=cfg.noise_source == "at_least_config")
         self._q_diag = imu.process_noise(used)
@@ -1187,15 +1191,20 @@ class Odometry:
         self._P_report = 0.5 * (P + P.T)
 
     def _deskew_covariance(self) -> np.ndarray:
-        """The latest scan's undistortion rotation noise (``map_uncertainty.deskew_covariance``)
-        with the gyro noise density the filter uses, zero without
-        ``filter.sigmas_deskew_noise``. In the ``dt2`` form the configured value is per sample,
-        so the density² is it times the nominal sample period."""
+        """The latest scan's undistortion rotation noise (``map_uncertainty.deskew_covariance``),
+        zero without ``filter.sigmas_deskew_noise``. The gyro's white noise is the one the
+        start measured (still window or moving start), not floored by the configured value,
+        which may be a generic process noise (FAST-LIO's 0.1 in the ``dt2`` form is 0.17° per
+        0.1 s sweep, 80 times the HILTI BMI085's); with ``imu.noise_source: config`` or
+        nothing measured, the configured one. In the ``dt2`` form the configured value is per
+        sample, so the density² is it times the nominal sample period."""
         if not self.cfg.filter.sigmas_deskew_noise:
             return np.zeros((6, 6))
-        q = float(self._q_diag[0])
-        if self.cfg.imu.noise_discretization != "dt":
-            q /= self.cfg.sensor.imu_rate_hz
+        q = self._q_deskew
+        if q is None:
+            q = float(self._q_diag[0])
+            if self.cfg.imu.noise_discretization != "dt":
+                q /= self.cfg.sensor.imu_rate_hz
         return deskew_covariance(q, self._span_s)
 
     def _world_covariance(self) -> np.ndarray:
