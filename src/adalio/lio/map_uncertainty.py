@@ -16,10 +16,11 @@ filter's pose covariance turned into world axes (position, then small world rota
 is stored as the covariance of the map cells scan ``k`` is the first to fill, so the uncertainty
 accumulates as the map is extended (odometry drift) and stays put while the sensor re-observes
 the same map. The first scan anchors the world: ``W_0 = 0``.
-With ``filter.sigmas_deskew_noise`` every later ``W_rel,k`` also holds the rotation the gyro's
-noise puts into that scan's undistortion (:func:`deskew_covariance`), and so does the map that
-scan extends. The first scan's own is left out: ``W_0`` with it made the bound below scale its
-rotation by ``1/α`` with ``α`` near 0 (a map of rotation and hardly any position near the
+With ``filter.sigmas_deskew_noise`` every later ``W_k`` also holds the rotation the gyro's
+noise puts into that scan's undistortion (:func:`deskew_covariance`), added after the bound
+below (it is independent of the map's error and of the registration's bias), and so does the
+map that scan extends. The first scan's own is left out: ``W_0`` with it made the bound scale
+its rotation by ``1/α`` with ``α`` near 0 (a map of rotation and hardly any position near the
 start), and the height sigmas of the spiral's first 25 s grew by up to 2x for it.
 
 The two terms are not independent. Where the scans are weakly constrained (a spiral shaft, a

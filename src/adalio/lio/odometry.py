@@ -1210,10 +1210,15 @@ class Odometry:
     def _world_covariance(self) -> np.ndarray:
         """6x6 world covariance of the pose: the filter's (or, with
         ``filter.sigmas_discount_normal_noise``, the one behind the reported sigmas), combined
-        with the map's if ``filter.map_uncertainty`` (``map_uncertainty.world_covariance``)."""
-        W = pose_covariance_world(self._state.R, self._sigmas_P) + self._deskew_covariance()
+        with the map's if ``filter.map_uncertainty`` (``map_uncertainty.world_covariance``),
+        plus the scan's undistortion rotation (``filter.sigmas_deskew_noise``) outside that
+        combination: the gyro noise of this sweep is independent of the map's error and of the
+        registration's bias, which the combination's bound is for."""
+        W = pose_covariance_world(self._state.R, self._sigmas_P)
         f = self.cfg.filter
-        return world_covariance(W, self._W_map, f.map_error_correlated) if f.map_uncertainty else W
+        if f.map_uncertainty:
+            W = world_covariance(W, self._W_map, f.map_error_correlated)
+        return W + self._deskew_covariance()
 
     def _emit(self, stats: ScanStats, stage_ms: dict[str, float], t_start: float,
               p_world: np.ndarray, W_world: np.ndarray | None = None) -> Estimate:
