@@ -192,38 +192,54 @@ def test_deskew_covariance_against_monte_carlo():
     assert not deskew_covariance(0.0, span).any() and not deskew_covariance(q, 0.0).any()
 
 
-def test_odometry_sigmas_hold_the_deskew_noise_and_leave_the_trajectory_alone(tmp_path):
-    """``filter.sigmas_deskew_noise`` adds ``q T / 3`` per axis to every reported attitude
-    variance (the map's term off, so the sum is plain; the gyro noise as configured) and
-    changes nothing else: the trajectory is bit-identical and the anchor has no sigma."""
+def _deskew_off_on(tmp_path, **imu_settings):
+    """The simulated 4 s corridor run twice, the map's term off (so the sigmas' sum is plain),
+    with ``imu_settings`` and ``filter.sigmas_deskew_noise`` off, then on: (the estimates off,
+    the estimates on, the second run's initialization report)."""
     from adalio.config import load_config
     from adalio.pipeline import run_bag
     from adalio.sim import cached_sequence
 
     sim = cached_sequence("corridor", seed=0, duration_s=4.0, columns=512)
-    q = 3.6e-6  # rad²/s, the x10 BMI085's
-    runs = {}
+    runs = []
     for on in (False, True):
         cfg = load_config(None, sim.config_path)
-        cfg.imu.noise_source, cfg.imu.noise_discretization, cfg.imu.gyro_cov = "config", "dt", q
+        for key, value in imu_settings.items():
+            setattr(cfg.imu, key, value)
         cfg.filter.map_uncertainty = False
         cfg.filter.sigmas_deskew_noise = on
         ests = []
-        run_bag(sim.bag_path, cfg, tmp_path / f"deskew_{on}", progress=False,
-                on_estimate=ests.append)
-        runs[on] = ests
-    off, on = runs[False], runs[True]
+        res = run_bag(sim.bag_path, cfg, tmp_path / f"deskew_{on}", progress=False,
+                      on_estimate=ests.append)
+        runs.append((ests, res.init_report))
+    (off, _), (on, report) = runs
+    return off, on, report
+
+
+def _attitude_variance(e) -> np.ndarray:
+    return np.radians(np.asarray(e.stats.sigma_rot_world_deg)) ** 2
+
+
+def _extra_attitude_variance(off, on) -> np.ndarray:
+    """Per scan whose attitude sigma off is not zero: the attitude variance (rad²) on adds."""
+    return np.array([_attitude_variance(b) - _attitude_variance(a)
+                     for a, b in zip(off, on, strict=True) if np.any(_attitude_variance(a) > 0)])
+
+
+def test_odometry_sigmas_hold_the_deskew_noise_and_leave_the_trajectory_alone(tmp_path):
+    """``filter.sigmas_deskew_noise`` adds ``q T / 3`` per axis to every reported attitude
+    variance (the map's term off, so the sum is plain; the gyro noise as configured) and
+    changes nothing else: the trajectory is bit-identical and the anchor has no sigma."""
+    q = 3.6e-6  # rad²/s, the x10 BMI085's
+    off, on, _ = _deskew_off_on(tmp_path, noise_source="config", noise_discretization="dt",
+                                gyro_cov=q)
     assert len(on) == len(off) > 30
     for a, b in zip(off, on, strict=True):
         assert a.t_ns == b.t_ns
         np.testing.assert_array_equal(a.T_world_imu, b.T_world_imu)
-    def var(e):
-        return np.radians(np.asarray(e.stats.sigma_rot_world_deg)) ** 2
-
-    extra = np.array([var(b) - var(a) for a, b in zip(off, on, strict=True)
-                      if np.any(var(a) > 0)])
+    extra = _extra_attitude_variance(off, on)
     assert len(extra) > 30
-    assert any(not np.any(var(b)) for b in on)  # the anchor
+    assert any(not np.any(_attitude_variance(b)) for b in on)  # the anchor
     # the simulated sweeps' points span 0.1 s less one column
     assert np.all(extra > q * 0.099 / 3 * (1 - 1e-6)) and np.all(extra < q * 0.1 / 3 * (1 + 1e-6))
 
@@ -233,27 +249,10 @@ def test_deskew_noise_is_the_measured_gyro_noise_not_a_generic_config(tmp_path):
     preset's) and the default ``imu.noise_source: at_least_config``, the term takes the gyro
     density the still start measured, which is the simulated BMI085's (1.9e-4 rad/s/sqrt(Hz)),
     not the configured floor (80 times larger in sigma)."""
-    from adalio.config import load_config
-    from adalio.pipeline import run_bag
-    from adalio.sim import cached_sequence
-
-    sim = cached_sequence("corridor", seed=0, duration_s=4.0, columns=512)
-    runs = {}
-    for on in (False, True):
-        cfg = load_config(None, sim.config_path)
-        cfg.imu.noise_discretization, cfg.imu.gyro_cov, cfg.imu.accel_cov = "dt2", 0.1, 0.1
-        cfg.filter.map_uncertainty = False
-        cfg.filter.sigmas_deskew_noise = on
-        ests = []
-        res = run_bag(sim.bag_path, cfg, tmp_path / f"generic_{on}", progress=False,
-                      on_estimate=ests.append)
-        runs[on] = (ests, res.init_report)
-    (off, _), (on, report) = runs[False], runs[True]
+    off, on, report = _deskew_off_on(tmp_path, noise_discretization="dt2", gyro_cov=0.1,
+                                     accel_cov=0.1)
     q = report.gyro_noise_rad_s_sqrt_hz ** 2
     assert 0.5 * 1.9e-4**2 < q < 2.0 * 1.9e-4**2
-    extra = np.array([np.radians(b.stats.sigma_rot_world_deg) ** 2
-                      - np.radians(a.stats.sigma_rot_world_deg) ** 2
-                      for a, b in zip(off, on, strict=True)
-                      if np.any(np.asarray(a.stats.sigma_rot_world_deg) > 0)])
+    extra = _extra_attitude_variance(off, on)
     assert len(extra) > 30
     np.testing.assert_allclose(extra, q * 0.0995 / 3, rtol=0.01)

@@ -379,11 +379,11 @@ class Odometry:
         """How the filter initialized (None until it has)."""
         self._t_first_scan_ns: int | None = None
         self._scans_without_pose = 0
+        """Scans handed to the initialization that left it uninitialized (no pose)."""
         self._span_s = 0.0
         """Time span (s) of the latest scan's points (filter.sigmas_deskew_noise)."""
         self._q_deskew: float | None = None
         """Gyro white-noise density² (rad²/s) the start measured (filter.sigmas_deskew_noise)."""
-        """Scans handed to the initialization that left it uninitialized (no pose)."""
         self._refused_fits = 0
         self._closest_still: imu.StillnessTest | None = None
         self._moving: MovingInit | None = None
