@@ -59,6 +59,11 @@ MAX_INSERTED_SAMPLES = 1024
 """Cells are claimed from at most this many of a scan's inserted points (a regular stride): a
 cell a scan fills holds several of its points, and a cell missed is claimed by a scan or two
 later, with nearly the same covariance."""
+MIN_SHARE = 1e-4
+"""With ``filter.map_error_shares: information``, an owner's share matrix whose largest entry
+falls below this leaves the chain (:meth:`MapProvenance.shared_map_covariance`): the shares
+carried through the prior shrink by the prior's share every scan, so the chain holds the owners
+of the last few scans' rows, not the whole map."""
 _OFFSET = 1 << 20
 """Cell indices are shifted by this before packing 21 bits per axis (±2^20 cells)."""
 _MASK21 = (1 << 21) - 1
@@ -95,14 +100,30 @@ def deskew_covariance(q_gyro_rad2_s: float, span_s: float) -> np.ndarray:
     return W
 
 
+def world_rows(H_pose: np.ndarray, R_world_imu: np.ndarray, point_var_m2: float) -> np.ndarray:
+    """(m, 6) point-to-plane rows with respect to the world pose error ``[δp, δφ]`` (a small
+    rotation about the world axes), over the point noise: the filter's rows ``H_pose`` (m, 6)
+    take the body-frame attitude error ``δθ = Rᵀ δφ`` (``state.pose_covariance_world``), so
+    their rotation columns turn by ``Rᵀ`` on the right; each row over ``sqrt(point_var_m2)``,
+    so that ``Σ gᵢ gᵢᵀ`` is the rows' information."""
+    H = np.asarray(H_pose, dtype=np.float64)
+    return np.hstack([H[:, :3], H[:, 3:6] @ np.asarray(R_world_imu).T]) / np.sqrt(point_var_m2)
+
+
 @kernel()
-def transport(W: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """A 6x6 covariance moved by the lever arm d (3,): T(d) W T(d)ᵀ (module doc)."""
+def _lever(d: np.ndarray) -> np.ndarray:
+    """T(d) (module doc): a world pose error moved by the lever arm d (3,)."""
     T = np.eye(6)
-    # -[d]x in the position-rotation block
     T[0, 4], T[0, 5] = d[2], -d[1]
     T[1, 3], T[1, 5] = -d[2], d[0]
     T[2, 3], T[2, 4] = d[1], -d[0]
+    return T
+
+
+@kernel()
+def transport(W: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """A 6x6 covariance moved by the lever arm d (3,): T(d) W T(d)ᵀ (module doc)."""
+    T = _lever(d)
     return so3.mul(so3.mul(T, W), T.T)
 
 
@@ -204,6 +225,73 @@ def _map_covariance(keys: np.ndarray, owner: np.ndarray, n_scans: int, cell_m: f
     return out
 
 
+@kernel()
+def _shared_covariance(owners: np.ndarray, rows: np.ndarray, S: np.ndarray, BT: np.ndarray,
+                       n_scans: int, covariances: np.ndarray, positions: np.ndarray,
+                       p_world: np.ndarray, chain_owner: np.ndarray, chain_M: np.ndarray,
+                       min_share: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:meth:`MapProvenance.shared_map_covariance` after the owners' lookup: each owner's
+    share ``M_j = S Λ_j T(p - p_j) + BT M_j,prev`` (``Λ_j = Σ gᵢ gᵢᵀ`` over its rows), the
+    shares below ``min_share`` dropped, and the bound ``(Σ r_j) Σ M_j C_j M_jᵀ / r_j`` with
+    ``r_j = sqrt(tr M_j C_j M_jᵀ)``. Returns the kept owners, their shares and the bound."""
+    slot = np.full(n_scans, -1, np.int64)
+    order = np.empty(n_scans, np.int64)
+    n = 0
+    for i in range(owners.shape[0]):
+        o = owners[i]
+        if o >= 0 and slot[o] < 0:
+            slot[o] = n
+            order[n] = o
+            n += 1
+    n_rows = n
+    for q in range(chain_owner.shape[0]):
+        o = chain_owner[q]
+        if slot[o] < 0:
+            slot[o] = n
+            order[n] = o
+            n += 1
+    L = np.zeros((n_rows, 6, 6))
+    for i in range(owners.shape[0]):
+        o = owners[i]
+        if o < 0:
+            continue
+        s = slot[o]
+        for a in range(6):
+            ga = rows[i, a]
+            if ga != 0.0:
+                for b in range(6):
+                    L[s, a, b] += ga * rows[i, b]
+    M = np.zeros((n, 6, 6))
+    for s in range(n_rows):
+        M[s] = so3.mul(so3.mul(S, L[s]), _lever(p_world - positions[order[s]]))
+    for q in range(chain_owner.shape[0]):
+        M[slot[chain_owner[q]]] += so3.mul(BT, chain_M[q])
+    keep = np.zeros(n, np.bool_)
+    for s in range(n):
+        keep[s] = np.max(np.abs(M[s])) >= min_share
+    terms = np.zeros((n, 6, 6))
+    axis = np.zeros(6)  # Σ_j sqrt(t_j,aa): each axis's own smallest bound, squared
+    for s in range(n):
+        if keep[s]:
+            terms[s] = so3.mul(so3.mul(M[s], covariances[order[s]]), M[s].T)
+            for a in range(6):
+                axis[a] += np.sqrt(max(terms[s, a, a], 0.0))
+    acc = np.zeros((6, 6))
+    total = 0.0
+    for s in range(n):
+        if not keep[s]:
+            continue
+        r2 = 0.0
+        for a in range(6):
+            if axis[a] > 0.0:
+                r2 += max(terms[s, a, a], 0.0) / (axis[a] * axis[a])
+        r = np.sqrt(r2)
+        if r > 0.0:
+            acc += terms[s] / r
+            total += r
+    return order[:n][keep], M[keep], total * acc
+
+
 class MapProvenance:
     """Which scan first filled each map cell, and each such scan's world pose covariance."""
 
@@ -219,6 +307,11 @@ class MapProvenance:
         self._covariances = np.empty((64, 6, 6))
         self._n_scans = 0
         """Scans kept: only those that own at least one cell."""
+        self._chain_owner = np.empty(0, np.int64)
+        self._chain_M = np.empty((0, 6, 6))
+        self._chain_p: np.ndarray | None = None
+        """The last pose's shares of its owners' errors and its position
+        (:meth:`shared_map_covariance`)."""
 
     def __len__(self) -> int:
         return self._n_cells
@@ -242,6 +335,41 @@ class MapProvenance:
                                np.ascontiguousarray(matched_world, dtype=np.float64),
                                self._covariances, self._positions,
                                np.asarray(p_world, dtype=np.float64))
+
+    def shared_map_covariance(self, p_world: np.ndarray, matched_world: np.ndarray,
+                              rows_world: np.ndarray, prior_world: np.ndarray) -> np.ndarray:
+        """W_map (6x6) for a pose at ``p_world`` from each owner's share of the update that
+        placed it (``filter.map_error_shares: information``; module doc, *Shares*).
+
+        ``matched_world`` (m, 3): each row's nearest map point (its cell's owner is the row's);
+        ``rows_world`` (m, 6): the rows' Jacobians with respect to the world pose error
+        ``[δp, δφ]``, scaled so that ``Σ gᵢ gᵢᵀ`` is their information ``Λ``; ``prior_world``:
+        the update's prior pose covariance in world axes (``P``). The update moves the pose by
+        ``(P⁻¹ + Λ)⁻¹ Σ gᵢ rᵢ``; a map part displaced by its owner's error moves its rows'
+        residuals, and so the pose, by ``A_j ẽ_j`` with ``A_j = (P⁻¹ + Λ)⁻¹ Λ_j``, and the
+        prior carries the last pose's map error with ``B = (P⁻¹ + Λ)⁻¹ P⁻¹`` (``Σ A_j + B =
+        I``: the pose follows its map). The shares are chained through ``B`` per owner, and
+        the owners' errors, of unknown correlation, combined with the bound of
+        :func:`world_covariance` over all of them. Non-finite ``matched_world`` rows count in
+        ``Λ`` and carry no map error."""
+        p = np.asarray(p_world, dtype=np.float64)
+        matched = np.ascontiguousarray(matched_world, dtype=np.float64)
+        G = np.ascontiguousarray(rows_world, dtype=np.float64)
+        finite = np.all(np.isfinite(matched), axis=1)
+        owners = np.full(matched.shape[0], -1, np.int64)
+        if self._n_scans and np.any(finite):
+            owners[finite] = self.owners(matched[finite])
+        P = np.asarray(prior_world, dtype=np.float64)
+        B = np.linalg.inv(np.eye(6) + P @ (G.T @ G))
+        S = B @ P
+        BT = (np.zeros((6, 6)) if self._chain_p is None
+              else B @ _lever(p - self._chain_p))
+        n = max(self._n_scans, 1)
+        order, M, W = _shared_covariance(owners, G, S, BT, n, self._covariances[:n],
+                                         self._positions[:n], p, self._chain_owner,
+                                         self._chain_M, MIN_SHARE)
+        self._chain_owner, self._chain_M, self._chain_p = order, M, p.copy()
+        return 0.5 * (W + W.T)
 
     def add_scan(self, p_world: np.ndarray, W_world: np.ndarray,
                  inserted_world: np.ndarray) -> int:
@@ -275,4 +403,4 @@ class MapProvenance:
         return j
 
 
-__all__ = ["MapProvenance", "transport", "world_covariance"]
+__all__ = ["MIN_SHARE", "MapProvenance", "transport", "world_covariance", "world_rows"]
