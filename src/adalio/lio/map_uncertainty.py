@@ -19,9 +19,27 @@ the same map. The first scan anchors the world: ``W_0 = 0``.
 With ``filter.sigmas_deskew_noise`` every later ``W_k`` also holds the rotation the gyro's
 noise puts into that scan's undistortion (:func:`deskew_covariance`), added after the bound
 below (it is independent of the map's error and of the registration's bias), and so does the
-map that scan extends. The first scan's own is left out: ``W_0`` with it made the bound scale
-its rotation by ``1/α`` with ``α`` near 0 (a map of rotation and hardly any position near the
-start), and the height sigmas of the spiral's first 25 s grew by up to 2x for it.
+map that scan extends. The first scan's own is left out: ``W_0`` with it made the bound (then
+with ``α`` chosen from the position traces alone) scale its rotation by ``1/α`` with ``α`` near 0
+(a map of rotation and hardly any position near the start), and the height sigmas of the
+spiral's first 25 s grew by up to 2x for it.
+
+*Shares* (``filter.map_error_shares``). The mean above weighs every matched point alike. By
+default (``information``) a pose inherits each owner's error by the share the update gave it
+instead: the update moves the pose by ``(P⁻¹ + Λ)⁻¹ Σ gᵢ rᵢ`` (``gᵢ`` the rows in world axes
+over the point noise, ``Λ = Σ gᵢ gᵢᵀ``, ``P`` the prior's pose covariance), and owner ``j``'s
+error ``e_j`` moves its rows' residuals by ``-gᵢᵀ T(p - p_j) e_j``, so the pose by
+``A_j T(p - p_j) e_j`` with ``A_j = (P⁻¹ + Λ)⁻¹ Λ_j``; the prior carries the last pose's map
+error with ``B = (P⁻¹ + Λ)⁻¹ P⁻¹`` (``Σ A_j + B = I``: moved with its map, the pose moves with
+it). Chained, a pose's map error is ``Σ_j M_j e_j`` with ``M_j = A_j T(p - p_j) + B T(p - p')
+M_j'`` over the last pose ``p'``'s shares (owners whose share falls below ``MIN_SHARE`` leave
+the chain). A direction that only a few rows hold (a stairwell's height, held by the last steps
+in the map, which the last scans inserted) inherits the error of the scans that inserted those
+rows' map, not the mean over all rows, and a direction no row holds keeps the last pose's. The
+owners' errors have unknown correlations, so ``W_map`` is the bound ``Cov(Σ_j a_j) ⪯ (Σ_j r_j)
+Σ_j Cov(a_j) / r_j``, which holds for any weights ``r_j > 0`` (Cauchy-Schwarz), with
+``r_j² = Σ_a Cov(a_j)_aa / v_a`` and ``v_a = (Σ_j sqrt(Cov(a_j)_aa))²``, each axis's own
+smallest bound: every axis, position and rotation, counts alike, in its own units.
 
 The two terms are not independent. Where the scans are weakly constrained (a spiral shaft, a
 stairwell's height) each scan's registration is biased the same way as the scans that built the
@@ -31,15 +49,17 @@ error are correlated from one second to the next by +0.5 to +0.9 there, by -0.2 
 open hall; ``benchmarks/bench_modes.py``). The correlation is unknown, so by default
 (``filter.map_error_correlated``) ``W_k`` is the bound that holds for any correlation between
 two errors ``a`` and ``b``: ``Cov(a + b) ⪯ (1 + α) Cov(a) + (1 + 1/α) Cov(b)`` for every
-``α > 0``, with ``α = sqrt(tr W_map,pp / tr W_rel,pp)``, the value that minimises the position
-trace, which then is ``(sqrt(tr W_rel,pp) + sqrt(tr W_map,pp))²``: the position standard
-deviations of a chain of map extensions add up instead of their variances
-(:func:`world_covariance`). ``filter.map_error_correlated: false`` adds them as independent.
+``α > 0``, with ``α = r_b / r_a`` balanced over the axes as above (before session 45 ``α =
+sqrt(tr W_map,pp / tr W_rel,pp)``, which minimised the position trace and could inflate a
+rotation without a position by ``1/α``): the standard deviations of a chain of map extensions
+add up instead of their variances (:func:`world_covariance`). ``filter.map_error_correlated:
+false`` adds them as independent.
 
 Chosen approximations, conservative or neutral for the 3σ test: the map errors of different
-scans are averaged (fully correlated, not independent, which would shrink ``W_map``), and in a
-direction no scan constrains, the IMU growth since then is in both terms, so the sum over-states
-it by up to 2x in variance (4x with the bound).
+scans are combined with a bound for any correlation, and in a direction no scan constrains, the
+IMU growth since then is in both terms, so the sum over-states it by up to 2x in variance (4x
+with the bound). Rows whose map point lies in no recorded cell count in ``Λ`` and carry no map
+error.
 Provenance is kept per ``cell_m`` cell (first scan to insert a point there), not per point,
 and from regular strides of the inserted and matched points (``MAX_*_SAMPLES``).
 The trajectory is unchanged: this only feeds the reported sigmas.
@@ -72,17 +92,22 @@ _MASK21 = (1 << 21) - 1
 def world_covariance(W_rel: np.ndarray, W_map: np.ndarray, correlated: bool) -> np.ndarray:
     """The 6x6 world covariance ``W_k`` of a pose from the filter's ``W_rel`` and the map's
     ``W_map``: their sum (``correlated=False``), or the bound
-    ``(1 + α) W_rel + (1 + 1/α) W_map`` with ``α = sqrt(tr W_map,pp / tr W_rel,pp)`` on the
-    covariance of the sum of two errors whatever their correlation (module doc). The bound is
-    the sum when either position block is zero (the other term then holds no position error to
-    correlate with), and it is tight when one error is a positive multiple of the other."""
+    ``(1 + α) W_rel + (1 + 1/α) W_map`` on the covariance of the sum of two errors whatever
+    their correlation, with ``α = r_map / r_rel``, ``r² = Σ_a W_aa / (sqrt(W_rel,aa) +
+    sqrt(W_map,aa))²`` over the six axes (module doc): each axis, position or rotation, counts
+    alike in its own units. The bound is the sum when either term is zero, and it is tight when
+    one error is a positive multiple of the other."""
     W_rel = np.asarray(W_rel, dtype=np.float64)
     W_map = np.asarray(W_map, dtype=np.float64)
-    a, b = float(np.trace(W_rel[:3, :3])), float(np.trace(W_map[:3, :3]))
-    if not (correlated and a > 0.0 and b > 0.0):
+    if not correlated:
         return W_rel + W_map
-    alpha = np.sqrt(b / a)
-    return (1.0 + alpha) * W_rel + (1.0 + 1.0 / alpha) * W_map
+    a, b = np.maximum(np.diag(W_rel), 0.0), np.maximum(np.diag(W_map), 0.0)
+    v = (np.sqrt(a) + np.sqrt(b)) ** 2
+    held = v > 0.0
+    ra, rb = np.sqrt(np.sum(a[held] / v[held])), np.sqrt(np.sum(b[held] / v[held]))
+    if not (ra > 0.0 and rb > 0.0):
+        return W_rel + W_map
+    return (1.0 + rb / ra) * W_rel + (1.0 + ra / rb) * W_map
 
 
 def deskew_covariance(q_gyro_rad2_s: float, span_s: float) -> np.ndarray:
