@@ -327,16 +327,6 @@ class FilterConfig:
     whatever their correlation (lio/map_uncertainty.py, ``world_covariance``), instead of as
     independent errors. In shafts and stairwells a scan's registration bias has the sign of the
     bias of the map it registers to, so the map's error grows linearly, not as a random walk."""
-    map_error_shares: str = "information"
-    """With map_uncertainty: how much of each matched map part's error a pose inherits.
-    'information' (since session 45): the share the update gives it, a 6x6 matrix per inserting
-    scan (that scan's rows' information over the update's, ``(P⁻¹ + Λ)⁻¹ Λ_j``), with the
-    prior's share ``(P⁻¹ + Λ)⁻¹ P⁻¹`` carrying the last pose's, so a direction only a few rows
-    hold (a stairwell's height, held by the last steps the map has) inherits the error of the
-    scans that inserted those rows' map, and a direction no row holds keeps the last pose's
-    (lio/map_uncertainty.py, ``shared_map_covariance``). 'count': the matched points' mean of
-    their owners' covariances (before session 45), which weighs every row alike whatever it
-    constrains."""
 
 
 @dataclass
@@ -520,7 +510,6 @@ CHOICES: dict[str, tuple] = {
     "map.cell_point": ("first", "uniform"),
     "filter.plane_fit": ("ls", "pca"),
     "filter.robust_kernel": ROBUST_KERNELS,
-    "filter.map_error_shares": ("information", "count"),
     "adaptive.mode": MODES,
     "adaptive.detector": ("count", "near_ratio"),
     "output.map_format": ("ply", "pcd"),

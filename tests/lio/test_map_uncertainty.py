@@ -125,155 +125,6 @@ def test_a_chain_of_map_extensions_adds_standard_deviations_not_variances():
             prov.add_scan(np.zeros(3), W, block + [3.0 * k, 0, 0])
 
 
-def _rot(v: np.ndarray) -> np.ndarray:
-    return Rotation.from_rotvec(v).as_matrix()
-
-
-def test_world_rows_are_the_residual_s_derivative_by_the_world_pose_error():
-    """Finite differences: the residuals of ``point_to_plane`` with the pose moved by ``δp`` and
-    turned by ``Exp(δφ)`` about the world axes change by ``world_rows`` times ``[δp, δφ]``
-    (times the point sigma)."""
-    from adalio.lio.map_uncertainty import world_rows
-    from adalio.lio.measurement import point_to_plane
-
-    rng = np.random.default_rng(21)
-    n = 40
-    pts = rng.normal(0.0, 4.0, (n, 3))
-    normals = rng.normal(size=(n, 3))
-    normals /= np.linalg.norm(normals, axis=1)[:, None]
-    R = _rot(np.array([0.3, -0.2, 1.1]))
-    p = np.array([2.0, -1.0, 0.5])
-    R_LI, t_LI = _rot(np.array([0.0, 0.1, -0.05])), np.array([0.1, 0.0, -0.2])
-    x_world = (pts @ R_LI.T + t_LI) @ R.T + p
-    d = -np.sum(normals * x_world, axis=1) + rng.normal(0.0, 0.01, n)  # points near their plane
-    sel = np.ones(n, np.bool_)
-
-    def residuals(R_, p_):
-        _, r, acc = point_to_plane(pts, R_, p_, R_LI, t_LI, normals, d, sel, False)
-        assert acc.all()
-        return r
-
-    H, r0, _ = point_to_plane(pts, R, p, R_LI, t_LI, normals, d, sel, False)
-    G = world_rows(H, R, 0.04)
-    eps = 1e-6
-    for k in range(6):
-        e = np.zeros(6)
-        e[k] = eps
-        r = residuals(_rot(e[3:]) @ R, p + e[:3])
-        np.testing.assert_allclose((r - r0) / eps, G[:, k] * 0.2, rtol=1e-4, atol=1e-6)
-
-
-def _update_response(p, x, n, owner, positions, errors, P, prior_mean, sigma2):
-    """Brute force: the pose error of a linear point-to-plane update at ``p`` (world rows
-    through the points ``x`` with normals ``n``, their planes displaced rigidly by their owner's
-    world error ``errors[owner]`` about its position; ``owner`` -1: not displaced) with the
-    prior ``N(prior_mean, P)``."""
-    G, r0 = [], []
-    for xi, ni, j in zip(x, n, owner, strict=True):
-        if j >= 0:
-            a, phi = errors[j][:3], errors[j][3:]
-            mu = positions[j] + a + _rot(phi) @ (xi - positions[j])
-            ni = _rot(phi) @ ni
-        else:
-            mu = xi
-        G.append(np.r_[ni, np.cross(xi - p, ni)])
-        r0.append(ni @ (xi - mu))
-    G, r0 = np.array(G), np.array(r0)
-    Pi = np.linalg.inv(P)
-    return np.linalg.solve(Pi + G.T @ G / sigma2, Pi @ prior_mean - G.T @ r0 / sigma2)
-
-
-def _lever_matrix(d: np.ndarray) -> np.ndarray:
-    T = np.eye(6)
-    T[:3, 3:] = -np.array([[0, -d[2], d[1]], [d[2], 0, -d[0]], [-d[1], d[0], 0]])
-    return T
-
-
-def _bound(terms):
-    """``(Σ r_j) Σ t_j / r_j`` with ``r_j² = Σ_a t_j,aa / v_a``, ``v_a = (Σ_j sqrt(t_j,aa))²``."""
-    v = sum(np.sqrt(np.diag(t)) for t in terms) ** 2
-    r = [np.sqrt(np.sum(np.diag(t) / v)) for t in terms]
-    return sum(t * (sum(r) / ri) for t, ri in zip(terms, r, strict=True))
-
-
-def test_shared_map_covariance_is_the_update_s_response_to_its_owners_errors():
-    """Three scans own three map blocks. A pose registers rows to the first two, the next pose
-    to the last two (one row without an owner) with a prior that carries the first pose's error,
-    then a third pose has no row. Brute force (each owner's planes displaced rigidly along each
-    error direction, the linear update solved, finite differences): each pose's sensitivity
-    ``K_j`` to owner j's error; ``shared_map_covariance`` is the bound over those owners,
-    ``(Σ r_j) Σ K_j C_j K_jᵀ / r_j``, and it bounds the pose error's sampled covariance for
-    independent owners' errors and for errors driven by one noise."""
-    rng = np.random.default_rng(31)
-    prov = MapProvenance(cell_m=1.0)
-    positions = [np.array([0.0, 0.0, 0.0]), np.array([4.0, 1.0, 0.5]), np.array([8.0, -1.0, 1.0])]
-    covs = [_random_covariance(rng, 0.01 * (j + 1), np.radians(0.2 * (j + 1))) for j in range(3)]
-    blocks = [np.array([4.0 * j + 0.5, 0.5, 0.5]) + rng.uniform(0, 2.9, size=(200, 3))
-              for j in range(3)]
-    for p, C, pts in zip(positions, covs, blocks, strict=True):
-        prov.add_scan(p, C, pts)
-    sigma2 = 0.001
-    poses = [np.array([2.0, 3.0, 1.5]), np.array([6.5, 2.0, 1.0]), np.array([7.0, 2.5, 1.0])]
-    rows = []
-    for blocks_used in ((0, 1), (1, 2)):
-        x = np.vstack([blocks[j][:25] for j in blocks_used])
-        owner = np.repeat(blocks_used, 25)
-        n = rng.normal(size=(len(x), 3))
-        n /= np.linalg.norm(n, axis=1)[:, None]
-        rows.append((x, n, owner))
-    x, n, owner = rows[1]
-    rows[1] = (np.vstack([x, [[30.0, 30.0, 30.0]]]), np.vstack([n, [[0.0, 0.0, 1.0]]]),
-               np.r_[owner, -1])
-    priors = [_random_covariance(rng, 0.02, np.radians(0.5)) + 1e-6 * np.eye(6)
-              for _ in range(3)]
-
-    def respond(errors):
-        """The three poses' errors for the owners' errors."""
-        out, prev = [], np.zeros(6)
-        for k in range(3):
-            mean = np.zeros(6) if k == 0 else _lever_matrix(poses[k] - poses[k - 1]) @ prev
-            if k == 2:
-                prev = mean  # no row: the prior alone
-            else:
-                prev = _update_response(poses[k], *rows[k], positions, errors, priors[k], mean,
-                                        sigma2)
-            out.append(prev)
-        return out
-
-    eps = 1e-7
-    K = np.zeros((3, 3, 6, 6))  # pose, owner
-    for j in range(3):
-        for c in range(6):
-            errors = [np.zeros(6) for _ in range(3)]
-            errors[j][c] = eps
-            for k, dx in enumerate(respond(errors)):
-                K[k, j, :, c] = dx / eps
-    for k in range(3):
-        if k < 2:
-            x, n, owner = rows[k]
-            G = np.column_stack([n, np.cross(x - poses[k], n)]) / np.sqrt(sigma2)
-            matched = x.copy()
-            if k == 1:
-                matched[-1] = np.nan
-            W = prov.shared_map_covariance(poses[k], matched, G, priors[k])
-        else:
-            W = prov.shared_map_covariance(poses[k], np.empty((0, 3)), np.empty((0, 6)),
-                                           priors[k])
-        terms = [K[k, j] @ covs[j] @ K[k, j].T for j in range(3) if np.abs(K[k, j]).max() > 0]
-        assert len(terms) == (2 if k == 0 else 3)
-        np.testing.assert_allclose(W, _bound(terms), rtol=1e-5, atol=1e-12)
-    # it bounds the sampled covariance of the last pose's error, whatever the owners' correlation
-    m = 100000
-    halves = [np.linalg.cholesky(C) for C in covs]
-    xi = rng.normal(size=(m, 6))
-    for shared in (0.0, 1.0):
-        e = [(np.sqrt(shared) * xi + np.sqrt(1 - shared) * rng.normal(size=(m, 6))) @ L.T
-             for L in halves]
-        dx = sum(e_j @ K[2, j].T for j, e_j in enumerate(e))
-        C = np.cov(dx.T)
-        assert np.linalg.eigvalsh(W - C).min() > -2e-2 * np.linalg.eigvalsh(C).max()
-
-
 def test_odometry_sigmas_add_the_map_and_leave_the_trajectory_alone(tmp_path):
     """On a simulated corridor walk, ``filter.map_uncertainty`` changes only the reported sigmas:
     the trajectory is bit-identical, every sigma is at least the filter's own, the filter's first
@@ -289,33 +140,30 @@ def test_odometry_sigmas_add_the_map_and_leave_the_trajectory_alone(tmp_path):
 
     sim = cached_sequence("corridor", seed=0, duration_s=4.0, columns=512)
     runs = {}
-    for on in (False, True, "count"):
+    for on in (False, True):
         cfg = load_config(None, sim.config_path)
-        cfg.filter.map_uncertainty = bool(on)
-        if on == "count":
-            cfg.filter.map_error_shares = "count"
+        cfg.filter.map_uncertainty = on
         out = tmp_path / f"map_uncertainty_{on}"
         run_bag(sim.bag_path, cfg, out, progress=False)
         runs[on] = (read_tum(out / "trajectory.tum"), read_scans_csv(out / "scans.csv"),
                     sigma_consistency(out / "trajectory.tum", sim.gt_path,
                                       read_scans_csv(out / "scans.csv")))
     (t_off, T_off), scans_off, cons_off = runs[False]
+    (t_on, T_on), scans_on, cons_on = runs[True]
+    np.testing.assert_array_equal(t_on, t_off)
+    np.testing.assert_array_equal(T_on, T_off)
     cols = ("sigma_x_m", "sigma_y_m", "sigma_z_m", "sigma_roll_deg", "sigma_pitch_deg",
             "sigma_yaw_deg")
     s_off = np.column_stack([scans_off[c] for c in cols])
-    for shares in (True, "count"):  # filter.map_error_shares: information (default), count
-        (t_on, T_on), scans_on, cons_on = runs[shares]
-        np.testing.assert_array_equal(t_on, t_off)
-        np.testing.assert_array_equal(T_on, T_off)
-        s_on = np.column_stack([scans_on[c] for c in cols])
-        assert len(s_on) > 30
-        anchor = int(np.argmax(scans_on["backfill"] == 0))  # after the backfilled first scans
-        np.testing.assert_array_equal(s_on[anchor], 0.0)
-        assert np.all(s_on >= s_off * (1 - 1e-9))
-        # 4 s into the walk the map's share of the position variance is about a quarter
-        var_on, var_off = np.sum(s_on[-1, :3] ** 2), np.sum(s_off[-1, :3] ** 2)
-        assert var_on > 1.15 * var_off, (shares, s_on[-1], s_off[-1])
-        assert cons_on.mean_nees < cons_off.mean_nees
+    s_on = np.column_stack([scans_on[c] for c in cols])
+    assert len(s_on) > 30
+    anchor = int(np.argmax(scans_on["backfill"] == 0))  # after the backfilled first scans
+    np.testing.assert_array_equal(s_on[anchor], 0.0)
+    assert np.all(s_on >= s_off * (1 - 1e-9))
+    # 4 s into the walk the map's share of the position variance is about a quarter
+    var_on, var_off = np.sum(s_on[-1, :3] ** 2), np.sum(s_off[-1, :3] ** 2)
+    assert var_on > 1.15 * var_off, (s_on[-1], s_off[-1])
+    assert cons_on.mean_nees < cons_off.mean_nees
 
 
 def test_deskew_covariance_against_monte_carlo():

@@ -55,7 +55,7 @@ res = run_bag(sys.argv[1], load_config(config_file=sys.argv[2]), tempfile.mkdtem
 used = {d.__module__ + "." + d.__qualname__: sum(d.stats.cache_hits.values())
         for d in (associate._associate_parallel, measurement.point_to_plane,
                   measurement.residual_weights, map_uncertainty._map_covariance,
-                  map_uncertainty._shared_covariance, motion_init.preintegrate)}
+                  motion_init.preintegrate)}
 print(json.dumps({"compiled": compiled, "loaded": used, "poses": res.n_scans}))
 """
 
@@ -86,7 +86,6 @@ def test_a_run_after_the_helper_compiles_none_of_the_helper_s_kernels_again(
                  "adalio.lio.measurement.point_to_plane",
                  "adalio.lio.measurement.residual_weights",
                  "adalio.lio.map_uncertainty._map_covariance",
-                 "adalio.lio.map_uncertainty._shared_covariance",
                  "adalio.lio.motion_init.preintegrate", "adalio.lio.so3.log"):
         assert name in by_helper
     run = _json(_RUN, env, str(sim.bag_path), str(sim.config_path))

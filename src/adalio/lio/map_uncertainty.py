@@ -19,27 +19,9 @@ the same map. The first scan anchors the world: ``W_0 = 0``.
 With ``filter.sigmas_deskew_noise`` every later ``W_k`` also holds the rotation the gyro's
 noise puts into that scan's undistortion (:func:`deskew_covariance`), added after the bound
 below (it is independent of the map's error and of the registration's bias), and so does the
-map that scan extends. The first scan's own is left out: ``W_0`` with it made the bound (then
-with ``α`` chosen from the position traces alone) scale its rotation by ``1/α`` with ``α`` near 0
-(a map of rotation and hardly any position near the start), and the height sigmas of the
-spiral's first 25 s grew by up to 2x for it.
-
-*Shares* (``filter.map_error_shares``). The mean above weighs every matched point alike. By
-default (``information``) a pose inherits each owner's error by the share the update gave it
-instead: the update moves the pose by ``(P⁻¹ + Λ)⁻¹ Σ gᵢ rᵢ`` (``gᵢ`` the rows in world axes
-over the point noise, ``Λ = Σ gᵢ gᵢᵀ``, ``P`` the prior's pose covariance), and owner ``j``'s
-error ``e_j`` moves its rows' residuals by ``-gᵢᵀ T(p - p_j) e_j``, so the pose by
-``A_j T(p - p_j) e_j`` with ``A_j = (P⁻¹ + Λ)⁻¹ Λ_j``; the prior carries the last pose's map
-error with ``B = (P⁻¹ + Λ)⁻¹ P⁻¹`` (``Σ A_j + B = I``: moved with its map, the pose moves with
-it). Chained, a pose's map error is ``Σ_j M_j e_j`` with ``M_j = A_j T(p - p_j) + B T(p - p')
-M_j'`` over the last pose ``p'``'s shares (owners whose share falls below ``MIN_SHARE`` leave
-the chain). A direction that only a few rows hold (a stairwell's height, held by the last steps
-in the map, which the last scans inserted) inherits the error of the scans that inserted those
-rows' map, not the mean over all rows, and a direction no row holds keeps the last pose's. The
-owners' errors have unknown correlations, so ``W_map`` is the bound ``Cov(Σ_j a_j) ⪯ (Σ_j r_j)
-Σ_j Cov(a_j) / r_j``, which holds for any weights ``r_j > 0`` (Cauchy-Schwarz), with
-``r_j² = Σ_a Cov(a_j)_aa / v_a`` and ``v_a = (Σ_j sqrt(Cov(a_j)_aa))²``, each axis's own
-smallest bound: every axis, position and rotation, counts alike, in its own units.
+map that scan extends. The first scan's own is left out: ``W_0`` with it made the bound scale
+its rotation by ``1/α`` with ``α`` near 0 (a map of rotation and hardly any position near the
+start), and the height sigmas of the spiral's first 25 s grew by up to 2x for it.
 
 The two terms are not independent. Where the scans are weakly constrained (a spiral shaft, a
 stairwell's height) each scan's registration is biased the same way as the scans that built the
@@ -49,17 +31,15 @@ error are correlated from one second to the next by +0.5 to +0.9 there, by -0.2 
 open hall; ``benchmarks/bench_modes.py``). The correlation is unknown, so by default
 (``filter.map_error_correlated``) ``W_k`` is the bound that holds for any correlation between
 two errors ``a`` and ``b``: ``Cov(a + b) ⪯ (1 + α) Cov(a) + (1 + 1/α) Cov(b)`` for every
-``α > 0``, with ``α = r_b / r_a`` balanced over the axes as above (before session 45 ``α =
-sqrt(tr W_map,pp / tr W_rel,pp)``, which minimised the position trace and could inflate a
-rotation without a position by ``1/α``): the standard deviations of a chain of map extensions
-add up instead of their variances (:func:`world_covariance`). ``filter.map_error_correlated:
-false`` adds them as independent.
+``α > 0``, with ``α = sqrt(tr W_map,pp / tr W_rel,pp)``, the value that minimises the position
+trace, which then is ``(sqrt(tr W_rel,pp) + sqrt(tr W_map,pp))²``: the position standard
+deviations of a chain of map extensions add up instead of their variances
+(:func:`world_covariance`). ``filter.map_error_correlated: false`` adds them as independent.
 
 Chosen approximations, conservative or neutral for the 3σ test: the map errors of different
-scans are combined with a bound for any correlation, and in a direction no scan constrains, the
-IMU growth since then is in both terms, so the sum over-states it by up to 2x in variance (4x
-with the bound). Rows whose map point lies in no recorded cell count in ``Λ`` and carry no map
-error.
+scans are averaged (fully correlated, not independent, which would shrink ``W_map``), and in a
+direction no scan constrains, the IMU growth since then is in both terms, so the sum over-states
+it by up to 2x in variance (4x with the bound).
 Provenance is kept per ``cell_m`` cell (first scan to insert a point there), not per point,
 and from regular strides of the inserted and matched points (``MAX_*_SAMPLES``).
 The trajectory is unchanged: this only feeds the reported sigmas.
@@ -79,11 +59,6 @@ MAX_INSERTED_SAMPLES = 1024
 """Cells are claimed from at most this many of a scan's inserted points (a regular stride): a
 cell a scan fills holds several of its points, and a cell missed is claimed by a scan or two
 later, with nearly the same covariance."""
-MIN_SHARE = 1e-4
-"""With ``filter.map_error_shares: information``, an owner's share matrix whose largest entry
-falls below this leaves the chain (:meth:`MapProvenance.shared_map_covariance`): the shares
-carried through the prior shrink by the prior's share every scan, so the chain holds the owners
-of the last few scans' rows, not the whole map."""
 _OFFSET = 1 << 20
 """Cell indices are shifted by this before packing 21 bits per axis (±2^20 cells)."""
 _MASK21 = (1 << 21) - 1
@@ -92,22 +67,17 @@ _MASK21 = (1 << 21) - 1
 def world_covariance(W_rel: np.ndarray, W_map: np.ndarray, correlated: bool) -> np.ndarray:
     """The 6x6 world covariance ``W_k`` of a pose from the filter's ``W_rel`` and the map's
     ``W_map``: their sum (``correlated=False``), or the bound
-    ``(1 + α) W_rel + (1 + 1/α) W_map`` on the covariance of the sum of two errors whatever
-    their correlation, with ``α = r_map / r_rel``, ``r² = Σ_a W_aa / (sqrt(W_rel,aa) +
-    sqrt(W_map,aa))²`` over the six axes (module doc): each axis, position or rotation, counts
-    alike in its own units. The bound is the sum when either term is zero, and it is tight when
-    one error is a positive multiple of the other."""
+    ``(1 + α) W_rel + (1 + 1/α) W_map`` with ``α = sqrt(tr W_map,pp / tr W_rel,pp)`` on the
+    covariance of the sum of two errors whatever their correlation (module doc). The bound is
+    the sum when either position block is zero (the other term then holds no position error to
+    correlate with), and it is tight when one error is a positive multiple of the other."""
     W_rel = np.asarray(W_rel, dtype=np.float64)
     W_map = np.asarray(W_map, dtype=np.float64)
-    if not correlated:
+    a, b = float(np.trace(W_rel[:3, :3])), float(np.trace(W_map[:3, :3]))
+    if not (correlated and a > 0.0 and b > 0.0):
         return W_rel + W_map
-    a, b = np.maximum(np.diag(W_rel), 0.0), np.maximum(np.diag(W_map), 0.0)
-    v = (np.sqrt(a) + np.sqrt(b)) ** 2
-    held = v > 0.0
-    ra, rb = np.sqrt(np.sum(a[held] / v[held])), np.sqrt(np.sum(b[held] / v[held]))
-    if not (ra > 0.0 and rb > 0.0):
-        return W_rel + W_map
-    return (1.0 + rb / ra) * W_rel + (1.0 + ra / rb) * W_map
+    alpha = np.sqrt(b / a)
+    return (1.0 + alpha) * W_rel + (1.0 + 1.0 / alpha) * W_map
 
 
 def deskew_covariance(q_gyro_rad2_s: float, span_s: float) -> np.ndarray:
@@ -125,30 +95,14 @@ def deskew_covariance(q_gyro_rad2_s: float, span_s: float) -> np.ndarray:
     return W
 
 
-def world_rows(H_pose: np.ndarray, R_world_imu: np.ndarray, point_var_m2: float) -> np.ndarray:
-    """(m, 6) point-to-plane rows with respect to the world pose error ``[δp, δφ]`` (a small
-    rotation about the world axes), over the point noise: the filter's rows ``H_pose`` (m, 6)
-    take the body-frame attitude error ``δθ = Rᵀ δφ`` (``state.pose_covariance_world``), so
-    their rotation columns turn by ``Rᵀ`` on the right; each row over ``sqrt(point_var_m2)``,
-    so that ``Σ gᵢ gᵢᵀ`` is the rows' information."""
-    H = np.asarray(H_pose, dtype=np.float64)
-    return np.hstack([H[:, :3], H[:, 3:6] @ np.asarray(R_world_imu).T]) / np.sqrt(point_var_m2)
-
-
-@kernel()
-def _lever(d: np.ndarray) -> np.ndarray:
-    """T(d) (module doc): a world pose error moved by the lever arm d (3,)."""
-    T = np.eye(6)
-    T[0, 4], T[0, 5] = d[2], -d[1]
-    T[1, 3], T[1, 5] = -d[2], d[0]
-    T[2, 3], T[2, 4] = d[1], -d[0]
-    return T
-
-
 @kernel()
 def transport(W: np.ndarray, d: np.ndarray) -> np.ndarray:
     """A 6x6 covariance moved by the lever arm d (3,): T(d) W T(d)ᵀ (module doc)."""
-    T = _lever(d)
+    T = np.eye(6)
+    # -[d]x in the position-rotation block
+    T[0, 4], T[0, 5] = d[2], -d[1]
+    T[1, 3], T[1, 5] = -d[2], d[0]
+    T[2, 3], T[2, 4] = d[1], -d[0]
     return so3.mul(so3.mul(T, W), T.T)
 
 
@@ -250,73 +204,6 @@ def _map_covariance(keys: np.ndarray, owner: np.ndarray, n_scans: int, cell_m: f
     return out
 
 
-@kernel()
-def _shared_covariance(owners: np.ndarray, rows: np.ndarray, S: np.ndarray, BT: np.ndarray,
-                       n_scans: int, covariances: np.ndarray, positions: np.ndarray,
-                       p_world: np.ndarray, chain_owner: np.ndarray, chain_M: np.ndarray,
-                       min_share: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:meth:`MapProvenance.shared_map_covariance` after the owners' lookup: each owner's
-    share ``M_j = S Λ_j T(p - p_j) + BT M_j,prev`` (``Λ_j = Σ gᵢ gᵢᵀ`` over its rows), the
-    shares below ``min_share`` dropped, and the bound ``(Σ r_j) Σ M_j C_j M_jᵀ / r_j`` with
-    ``r_j = sqrt(tr M_j C_j M_jᵀ)``. Returns the kept owners, their shares and the bound."""
-    slot = np.full(n_scans, -1, np.int64)
-    order = np.empty(n_scans, np.int64)
-    n = 0
-    for i in range(owners.shape[0]):
-        o = owners[i]
-        if o >= 0 and slot[o] < 0:
-            slot[o] = n
-            order[n] = o
-            n += 1
-    n_rows = n
-    for q in range(chain_owner.shape[0]):
-        o = chain_owner[q]
-        if slot[o] < 0:
-            slot[o] = n
-            order[n] = o
-            n += 1
-    L = np.zeros((n_rows, 6, 6))
-    for i in range(owners.shape[0]):
-        o = owners[i]
-        if o < 0:
-            continue
-        s = slot[o]
-        for a in range(6):
-            ga = rows[i, a]
-            if ga != 0.0:
-                for b in range(6):
-                    L[s, a, b] += ga * rows[i, b]
-    M = np.zeros((n, 6, 6))
-    for s in range(n_rows):
-        M[s] = so3.mul(so3.mul(S, L[s]), _lever(p_world - positions[order[s]]))
-    for q in range(chain_owner.shape[0]):
-        M[slot[chain_owner[q]]] += so3.mul(BT, chain_M[q])
-    keep = np.zeros(n, np.bool_)
-    for s in range(n):
-        keep[s] = np.max(np.abs(M[s])) >= min_share
-    terms = np.zeros((n, 6, 6))
-    axis = np.zeros(6)  # Σ_j sqrt(t_j,aa): each axis's own smallest bound, squared
-    for s in range(n):
-        if keep[s]:
-            terms[s] = so3.mul(so3.mul(M[s], covariances[order[s]]), M[s].T)
-            for a in range(6):
-                axis[a] += np.sqrt(max(terms[s, a, a], 0.0))
-    acc = np.zeros((6, 6))
-    total = 0.0
-    for s in range(n):
-        if not keep[s]:
-            continue
-        r2 = 0.0
-        for a in range(6):
-            if axis[a] > 0.0:
-                r2 += max(terms[s, a, a], 0.0) / (axis[a] * axis[a])
-        r = np.sqrt(r2)
-        if r > 0.0:
-            acc += terms[s] / r
-            total += r
-    return order[:n][keep], M[keep], total * acc
-
-
 class MapProvenance:
     """Which scan first filled each map cell, and each such scan's world pose covariance."""
 
@@ -332,11 +219,6 @@ class MapProvenance:
         self._covariances = np.empty((64, 6, 6))
         self._n_scans = 0
         """Scans kept: only those that own at least one cell."""
-        self._chain_owner = np.empty(0, np.int64)
-        self._chain_M = np.empty((0, 6, 6))
-        self._chain_p: np.ndarray | None = None
-        """The last pose's shares of its owners' errors and its position
-        (:meth:`shared_map_covariance`)."""
 
     def __len__(self) -> int:
         return self._n_cells
@@ -360,41 +242,6 @@ class MapProvenance:
                                np.ascontiguousarray(matched_world, dtype=np.float64),
                                self._covariances, self._positions,
                                np.asarray(p_world, dtype=np.float64))
-
-    def shared_map_covariance(self, p_world: np.ndarray, matched_world: np.ndarray,
-                              rows_world: np.ndarray, prior_world: np.ndarray) -> np.ndarray:
-        """W_map (6x6) for a pose at ``p_world`` from each owner's share of the update that
-        placed it (``filter.map_error_shares: information``; module doc, *Shares*).
-
-        ``matched_world`` (m, 3): each row's nearest map point (its cell's owner is the row's);
-        ``rows_world`` (m, 6): the rows' Jacobians with respect to the world pose error
-        ``[δp, δφ]``, scaled so that ``Σ gᵢ gᵢᵀ`` is their information ``Λ``; ``prior_world``:
-        the update's prior pose covariance in world axes (``P``). The update moves the pose by
-        ``(P⁻¹ + Λ)⁻¹ Σ gᵢ rᵢ``; a map part displaced by its owner's error moves its rows'
-        residuals, and so the pose, by ``A_j ẽ_j`` with ``A_j = (P⁻¹ + Λ)⁻¹ Λ_j``, and the
-        prior carries the last pose's map error with ``B = (P⁻¹ + Λ)⁻¹ P⁻¹`` (``Σ A_j + B =
-        I``: the pose follows its map). The shares are chained through ``B`` per owner, and
-        the owners' errors, of unknown correlation, combined with the bound of
-        :func:`world_covariance` over all of them. Non-finite ``matched_world`` rows count in
-        ``Λ`` and carry no map error."""
-        p = np.asarray(p_world, dtype=np.float64)
-        matched = np.ascontiguousarray(matched_world, dtype=np.float64)
-        G = np.ascontiguousarray(rows_world, dtype=np.float64)
-        finite = np.all(np.isfinite(matched), axis=1)
-        owners = np.full(matched.shape[0], -1, np.int64)
-        if self._n_scans and np.any(finite):
-            owners[finite] = self.owners(matched[finite])
-        P = np.asarray(prior_world, dtype=np.float64)
-        B = np.linalg.inv(np.eye(6) + P @ (G.T @ G))
-        S = B @ P
-        BT = (np.zeros((6, 6)) if self._chain_p is None
-              else B @ _lever(p - self._chain_p))
-        n = max(self._n_scans, 1)
-        order, M, W = _shared_covariance(owners, G, S, BT, n, self._covariances[:n],
-                                         self._positions[:n], p, self._chain_owner,
-                                         self._chain_M, MIN_SHARE)
-        self._chain_owner, self._chain_M, self._chain_p = order, M, p.copy()
-        return 0.5 * (W + W.T)
 
     def add_scan(self, p_world: np.ndarray, W_world: np.ndarray,
                  inserted_world: np.ndarray) -> int:
@@ -428,4 +275,4 @@ class MapProvenance:
         return j
 
 
-__all__ = ["MIN_SHARE", "MapProvenance", "transport", "world_covariance", "world_rows"]
+__all__ = ["MapProvenance", "transport", "world_covariance"]

@@ -66,12 +66,7 @@ from adalio.lio.degeneracy import (
 from adalio.lio.ieskf import _reprojection, iterated_update, real_information
 from adalio.lio.ivox import IVox, hash_key3
 from adalio.lio.local_surface import LocalSurface, disagrees
-from adalio.lio.map_uncertainty import (
-    MapProvenance,
-    deskew_covariance,
-    world_covariance,
-    world_rows,
-)
+from adalio.lio.map_uncertainty import MapProvenance, deskew_covariance, world_covariance
 from adalio.lio.measurement import (
     normal_noise_information,
     normal_noise_terms,
@@ -605,7 +600,7 @@ class Odometry:
             self._ivox.add_points(p_world, cell_m)
             self._finest_cell_m = min(self._finest_cell_m, cell_m)
         if cfg.filter.map_uncertainty and loc is not None:
-            self._W_map = self._map_covariance(assoc, x_pred, P_pred)
+            self._W_map = self._provenance.map_covariance(s.p, assoc.nearest[assoc.selected])
         W_world = self._world_covariance()
         if cfg.filter.map_uncertainty:
             self._provenance.add_scan(s.p, W_world, p_world if inserted else p_world[:0])
@@ -1211,20 +1206,6 @@ class Odometry:
             if self.cfg.imu.noise_discretization != "dt":
                 q /= self.cfg.sensor.imu_rate_hz
         return deskew_covariance(q, self._span_s)
-
-    def _map_covariance(self, assoc: _Association, x_pred: State, P_pred: np.ndarray
-                        ) -> np.ndarray:
-        """``W_map`` of the updated pose (``filter.map_error_shares``): the shares the update
-        gave the matched map's owners (the rows' Jacobians in world axes, over the point
-        noise, against the prior ``P_pred``), or the matched points' mean of their owners'
-        covariances."""
-        s, f = self._state, self.cfg.filter
-        matched = assoc.nearest[assoc.selected]
-        if f.map_error_shares == "count":
-            return self._provenance.map_covariance(s.p, matched)
-        return self._provenance.shared_map_covariance(
-            s.p, matched, world_rows(assoc.H, s.R, f.laser_point_cov),
-            pose_covariance_world(x_pred.R, P_pred))
 
     def _world_covariance(self) -> np.ndarray:
         """6x6 world covariance of the pose: the filter's (or, with

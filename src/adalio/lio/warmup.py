@@ -63,7 +63,7 @@ def compile_update_stage() -> None:
     from adalio.lio.degeneracy import localizability
     from adalio.lio.ieskf import iterated_update
     from adalio.lio.ivox import IVox
-    from adalio.lio.map_uncertainty import MapProvenance, world_rows
+    from adalio.lio.map_uncertainty import MapProvenance
     from adalio.lio.measurement import normal_noise_information, normal_noise_terms
     from adalio.lio.motion_init import preintegrate
     from adalio.lio.odometry import _Association, _group_ids
@@ -105,9 +105,6 @@ def compile_update_stage() -> None:
     provenance = MapProvenance(f.map_provenance_cell_m)
     provenance.add_scan(x.p, pose_covariance_world(x.R, P), pts)
     provenance.map_covariance(result.state.p, pts[::2].copy())
-    provenance.shared_map_covariance(result.state.p, assoc.nearest[assoc.selected],
-                                     world_rows(assoc.H, result.state.R, f.laser_point_cov),
-                                     pose_covariance_world(x.R, P))
     provenance.add_scan(result.state.p, pose_covariance_world(result.state.R, result.P), pts)
     tau = np.linspace(0.0, 0.1, 41)
     preintegrate(tau, rng.normal(0.0, 0.1, (41, 3)), rng.normal(0.0, 0.1, (41, 3)),
