@@ -266,12 +266,14 @@ def test_cli_error_is_one_line(tmp_path):
     assert len(proc.stderr.strip().splitlines()) == 1 and "does not exist" in proc.stderr
 
 
-@pytest.mark.parametrize("scale", [1.0, 0.5])
+@pytest.mark.parametrize("scale", [1.0, 0.5, 10.0])
 def test_sigma_consistency_against_known_errors(tmp_path, scale):
     """The estimate is the GT moved by an arbitrary rigid transform (the first-pose alignment
     must undo it), rotated-frame errors drawn with known per-axis sigma: honest sigmas give 99.7 %
-    within 3 sigma and NEES 3; sigmas reported at half the truth give NEES 12."""
-    from adalio.eval.metrics import sigma_consistency
+    within 3 sigma, NEES 3 and a median |error| / sigma of 0.674; sigmas reported at half the
+    truth give NEES 12; ten times the truth pass the 3-sigma test on every scan, and only the
+    median |error| / sigma (0.067) shows them."""
+    from adalio.eval.metrics import MEDIAN_ABS_Z, sigma_consistency
 
     rng = np.random.default_rng(7)
     n = 4000
@@ -297,7 +299,9 @@ def test_sigma_consistency_against_known_errors(tmp_path, scale):
     z = err / sigma
     np.testing.assert_allclose(c.within_3sigma, np.mean(np.abs(z / scale) <= 3, axis=0))
     assert abs(c.mean_nees - 3.0 / scale**2) < 0.1 * 3.0 / scale**2
-    if scale == 1.0:
+    np.testing.assert_allclose(c.median_abs_z, np.median(np.abs(z), axis=0) / scale, rtol=1e-4)
+    np.testing.assert_allclose(c.median_abs_z, MEDIAN_ABS_Z / scale, rtol=0.06)
+    if scale >= 1.0:
         assert np.all(c.within_3sigma > 0.99)
     else:
         assert np.all(c.within_3sigma < 0.9)

@@ -28,7 +28,7 @@ ATE = evo ``APE(translation_part)`` after alignment. RPE = evo ``RPE(translation
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from evo.core import metrics as evo_metrics
@@ -250,6 +250,15 @@ class SigmaConsistency:
     """(3,) per axis, the correlation of consecutive ``INCREMENT_S`` increments of the error
     (lag 1): about 0 when the error grows as a random walk, towards +1 when it drifts the same
     way for a long time (a bias), negative when it swings back. NaN for fewer than 3 increments."""
+    median_abs_z: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    """(3,) per axis, the median over the scans of ``|error| / sigma``: ``MEDIAN_ABS_Z``
+    (0.674) for honest Gaussian sigmas, far below it for sigmas much larger than the errors
+    (which the within-3σ share and the mean NEES alone do not show), above it for sigmas
+    too small."""
+
+
+MEDIAN_ABS_Z = 0.6744897501960817
+"""The median of ``|z|`` for a standard normal ``z``."""
 
 
 def sigma_consistency(est_tum: TrajectoryLike, gt_tum: TrajectoryLike,
@@ -290,7 +299,8 @@ def sigma_consistency(est_tum: TrajectoryLike, gt_tum: TrajectoryLike,
     return SigmaConsistency(t_s=t_est[ok], errors_world_m=err, sigma_world_m=sig,
                             within_3sigma=np.mean(np.abs(z) <= 3.0, axis=0),
                             mean_nees=float(np.mean(np.sum(z * z, axis=1))),
-                            increment_correlation=increment_correlation(t_est[ok], err))
+                            increment_correlation=increment_correlation(t_est[ok], err),
+                            median_abs_z=np.median(np.abs(z), axis=0))
 
 
 INCREMENT_S = 1.0
