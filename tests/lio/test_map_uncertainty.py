@@ -106,6 +106,26 @@ def test_world_covariance_bounds_the_sum_of_two_errors_whatever_their_correlatio
     np.testing.assert_array_equal(world_covariance(W, np.zeros((6, 6)), correlated=True), W)
 
 
+def test_world_covariance_inflates_no_axis_without_limit():
+    """Over covariances whose axes differ by up to eight orders of magnitude (a map of rotation
+    and hardly any position, as near the anchor), no axis of the bound exceeds 12 times that
+    axis's own smallest bound ``(sqrt(W_rel,aa) + sqrt(W_map,aa))²``; choosing α from the
+    position traces alone (before session 45) exceeded it by orders of magnitude there."""
+    rng = np.random.default_rng(17)
+    worst, worst_old = 0.0, 0.0
+    for _ in range(300):
+        W_rel = _random_covariance(rng, 10.0 ** rng.uniform(-5, -1), 10.0 ** rng.uniform(-5, -1))
+        W_map = _random_covariance(rng, 10.0 ** rng.uniform(-7, -1), 10.0 ** rng.uniform(-5, -1))
+        own = (np.sqrt(np.diag(W_rel)) + np.sqrt(np.diag(W_map))) ** 2
+        W = world_covariance(W_rel, W_map, correlated=True)
+        worst = max(worst, np.max(np.diag(W) / own))
+        alpha = np.sqrt(np.trace(W_map[:3, :3]) / np.trace(W_rel[:3, :3]))
+        old = (1 + alpha) * W_rel + (1 + 1 / alpha) * W_map
+        worst_old = max(worst_old, np.max(np.diag(old) / own))
+    assert 1.0 <= worst <= 12.0
+    assert worst_old > 100.0
+
+
 def test_a_chain_of_map_extensions_adds_standard_deviations_not_variances():
     """Scan k registers against the cells scan k-1 filled (no lever arm) with its own position
     covariance σ² I: with the correlated combination the k-th scan's sigma is (k+1) σ, as for a

@@ -19,9 +19,10 @@ the same map. The first scan anchors the world: ``W_0 = 0``.
 With ``filter.sigmas_deskew_noise`` every later ``W_k`` also holds the rotation the gyro's
 noise puts into that scan's undistortion (:func:`deskew_covariance`), added after the bound
 below (it is independent of the map's error and of the registration's bias), and so does the
-map that scan extends. The first scan's own is left out: ``W_0`` with it made the bound scale
-its rotation by ``1/α`` with ``α`` near 0 (a map of rotation and hardly any position near the
-start), and the height sigmas of the spiral's first 25 s grew by up to 2x for it.
+map that scan extends. The first scan's own is left out: ``W_0`` with it made the bound (then
+with ``α`` from the position traces alone) scale its rotation by ``1/α`` with ``α`` near 0 (a
+map of rotation and hardly any position near the start), and the height sigmas of the spiral's
+first 25 s grew by up to 2x for it.
 
 The two terms are not independent. Where the scans are weakly constrained (a spiral shaft, a
 stairwell's height) each scan's registration is biased the same way as the scans that built the
@@ -31,10 +32,11 @@ error are correlated from one second to the next by +0.5 to +0.9 there, by -0.2 
 open hall; ``benchmarks/bench_modes.py``). The correlation is unknown, so by default
 (``filter.map_error_correlated``) ``W_k`` is the bound that holds for any correlation between
 two errors ``a`` and ``b``: ``Cov(a + b) ⪯ (1 + α) Cov(a) + (1 + 1/α) Cov(b)`` for every
-``α > 0``, with ``α = sqrt(tr W_map,pp / tr W_rel,pp)``, the value that minimises the position
-trace, which then is ``(sqrt(tr W_rel,pp) + sqrt(tr W_map,pp))²``: the position standard
-deviations of a chain of map extensions add up instead of their variances
-(:func:`world_covariance`). ``filter.map_error_correlated: false`` adds them as independent.
+``α > 0``. ``α`` is balanced over the six axes (:func:`world_covariance`; each axis, position
+and rotation, counts alike, so none is inflated without limit: until session 45 ``α = sqrt(tr
+W_map,pp / tr W_rel,pp)`` minimised the position trace alone and scaled a rotation held with
+hardly any position by ``1/α``). Along a chain of map extensions the standard deviations add
+up instead of their variances. ``filter.map_error_correlated: false`` adds them as independent.
 
 Chosen approximations, conservative or neutral for the 3σ test: the map errors of different
 scans are averaged (fully correlated, not independent, which would shrink ``W_map``), and in a
@@ -67,17 +69,23 @@ _MASK21 = (1 << 21) - 1
 def world_covariance(W_rel: np.ndarray, W_map: np.ndarray, correlated: bool) -> np.ndarray:
     """The 6x6 world covariance ``W_k`` of a pose from the filter's ``W_rel`` and the map's
     ``W_map``: their sum (``correlated=False``), or the bound
-    ``(1 + α) W_rel + (1 + 1/α) W_map`` with ``α = sqrt(tr W_map,pp / tr W_rel,pp)`` on the
-    covariance of the sum of two errors whatever their correlation (module doc). The bound is
-    the sum when either position block is zero (the other term then holds no position error to
-    correlate with), and it is tight when one error is a positive multiple of the other."""
+    ``(1 + α) W_rel + (1 + 1/α) W_map`` on the covariance of the sum of two errors whatever
+    their correlation (module doc), with ``α = r_map / r_rel`` balanced over the six axes:
+    ``r² = Σ_a W_aa / v_a`` with ``v_a = (sqrt(W_rel,aa) + sqrt(W_map,aa))²``, each axis's own
+    smallest bound, so every axis, position or rotation, counts alike in its own units, and no
+    axis's variance exceeds 12 ``v_a``. The bound is the sum when either term is zero, and it
+    is tight when one error is a positive multiple of the other."""
     W_rel = np.asarray(W_rel, dtype=np.float64)
     W_map = np.asarray(W_map, dtype=np.float64)
-    a, b = float(np.trace(W_rel[:3, :3])), float(np.trace(W_map[:3, :3]))
-    if not (correlated and a > 0.0 and b > 0.0):
+    if not correlated:
         return W_rel + W_map
-    alpha = np.sqrt(b / a)
-    return (1.0 + alpha) * W_rel + (1.0 + 1.0 / alpha) * W_map
+    a, b = np.maximum(np.diag(W_rel), 0.0), np.maximum(np.diag(W_map), 0.0)
+    v = (np.sqrt(a) + np.sqrt(b)) ** 2  # each axis's own smallest bound
+    held = v > 0.0
+    ra, rb = np.sqrt(np.sum(a[held] / v[held])), np.sqrt(np.sum(b[held] / v[held]))
+    if not (ra > 0.0 and rb > 0.0):
+        return W_rel + W_map
+    return (1.0 + rb / ra) * W_rel + (1.0 + ra / rb) * W_map
 
 
 def deskew_covariance(q_gyro_rad2_s: float, span_s: float) -> np.ndarray:
