@@ -139,7 +139,7 @@ def test_report_detects_hilti_control_points(tmp_path):
 
 def test_report_states_sigma_consistency_and_how_the_error_drifts(tmp_path):
     """With honest sigma columns (3 cm, the estimate's white noise) the report finds about
-    99.7 % of the scans within 3σ and a mean NEES near 3, and the increments of a white error
+    99.7 % of the scans within 3σ, a mean NEES near 3 and a median |error| / σ near 0.67, and the increments of a white error
     swing back (their lag-1 correlation is -0.5 in theory; 11 increments per axis here, so the
     three axes' mean is checked)."""
     out, gt = make_run_dir(tmp_path)
@@ -158,6 +158,8 @@ def test_report_states_sigma_consistency_and_how_the_error_drifts(tmp_path):
     assert sigma["n"] == 120
     assert min(sigma["within_3sigma_xyz"]) > 0.95
     assert 2.0 < sigma["mean_nees"] < 4.0
+    assert all(0.45 < v < 0.95 for v in sigma["median_abs_z_xyz"])  # 0.674 for honest sigmas
+    assert "Median |error| / σ" in text
     r = np.array(sigma["increment_correlation_xyz"])
     assert -0.8 < r.mean() < -0.2, r
     assert "Correlation of consecutive 1 s increments" in text

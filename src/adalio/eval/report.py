@@ -22,6 +22,7 @@ from adalio.eval.files import read_map_points, read_scans_csv, read_trajectory
 from adalio.eval.metrics import (
     DEFAULT_MAX_DIFF_S,
     DEFAULT_RPE_DELTAS_M,
+    MEDIAN_ABS_Z,
     align_pair,
     ate_from_pair,
     rpe,
@@ -152,6 +153,7 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
     if cons is not None:
         metrics["sigma"] = {"within_3sigma_xyz": cons.within_3sigma.tolist(),
                             "mean_nees": cons.mean_nees, "n": len(cons.t_s),
+                            "median_abs_z_xyz": cons.median_abs_z.tolist(),
                             "increment_correlation_xyz": [
                                 float(v) if np.isfinite(v) else None
                                 for v in cons.increment_correlation]}
@@ -211,6 +213,11 @@ def _markdown(metrics: dict[str, Any], figures: list[tuple[str, Path]],
                    f"x {100 * w[0]:.1f} %, y {100 * w[1]:.1f} %, z {100 * w[2]:.1f} % "
                    f"(99.7 % if the σ were honest and Gaussian); "
                    f"mean NEES {c['mean_nees']:.1f} (3 if consistent), {c['n']} scans."), ""]
+        mz = c.get("median_abs_z_xyz")
+        if mz:
+            lines += [(f"Median |error| / σ: x {mz[0]:.2f}, y {mz[1]:.2f}, z {mz[2]:.2f} "
+                       f"({MEDIAN_ABS_Z:.2f} if honest; far below it: σ much larger than the "
+                       "error, which the two figures above do not show)."), ""]
         r = c.get("increment_correlation_xyz") or []
         if any(v is not None for v in r):
             cells = ", ".join(f"{a} {'n/a' if v is None else f'{v:+.2f}'}"
