@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from adalio import Bag, ImuBatch, InputError, Odometry, Sequencer, load_config, simulate
+from adalio.config import ImuConfig
 from adalio.eval.metrics import ate
 from adalio.io.writers import TumWriter
 from adalio.lio import imu, so3
@@ -45,6 +46,30 @@ def test_propagation_across_a_gap_follows_the_motion_model():
     # without the gap model the mid-point of the samples around the gap is integrated instead
     _, P2, _ = imu.propagate(x, P0, t, gyro, accel, 0.0, t_end, q, "dt")
     assert P2[12, 12] - P0[12, 12] < 0.01 * gap
+
+
+@pytest.mark.parametrize("form", ["dt", "dt2"])
+def test_a_gap_adds_the_bias_walk_the_missing_samples_would_have(form):
+    """The bias walks across a 0.6 s gap grow the bias covariance as the 240 samples missing
+    there would have, in both noise forms (brute force: the same stretch with every sample)."""
+    g = np.array([0.0, 0.0, -9.81])
+    x = State(g=g.copy(), g_anchor=so3.anchor_frame(g))
+    rate = 400.0
+    t_all = np.arange(0.0, 1.0, 1.0 / rate)
+    q = np.repeat([1e-6, 1e-4, 3e-6, 2e-4], 3)
+    cfg = ImuConfig(noise_discretization=form)
+    q_gap = imu.gap_noise(cfg, q, 1.0 / rate)
+    P0 = np.eye(DIM) * 1e-6
+    grown = []
+    for t in (t_all, t_all[(t_all < 0.2) | (t_all > 0.8)]):
+        accel = np.tile(-g, (t.size, 1))
+        gyro = np.zeros((t.size, 3))
+        _, P, _ = imu.propagate(x, P0, t, gyro, accel, 0.0, t_all[-1], q, form, 5.0 / rate,
+                                q_gap)
+        grown.append(np.diag(P)[15:21] - np.diag(P0)[15:21])
+    assert grown[1] == pytest.approx(grown[0], rel=1e-9)
+    # the walks grow at all (the 'dt2' form's were left out across a gap before)
+    assert np.all(grown[1] > 0.5 * q[6:] * (1.0 if form == "dt" else 1.0 / rate) * t_all[-1])
 
 
 @pytest.fixture(scope="module")

@@ -5,6 +5,7 @@ correlated combination against sampled correlated errors and a chain of map exte
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from adalio.lio.map_uncertainty import MapProvenance, transport, world_covariance
@@ -246,13 +247,15 @@ def _extra_attitude_variance(off, on) -> np.ndarray:
                      for a, b in zip(off, on, strict=True) if np.any(_attitude_variance(a) > 0)])
 
 
-def test_odometry_sigmas_hold_the_deskew_noise_and_leave_the_trajectory_alone(tmp_path):
+@pytest.mark.parametrize("form", ["dt", "dt2"])
+def test_odometry_sigmas_hold_the_deskew_noise_and_leave_the_trajectory_alone(tmp_path, form):
     """``filter.sigmas_deskew_noise`` adds ``q T / 3`` per axis to every reported attitude
-    variance (the map's term off, so the sum is plain; the gyro noise as configured) and
-    changes nothing else: the trajectory is bit-identical and the anchor has no sigma."""
+    variance (the map's term off, so the sum is plain; the gyro noise as configured: in the
+    'dt2' form a per-sample value, ``q`` times the 400 Hz IMU's rate) and changes nothing else:
+    the trajectory is bit-identical and the anchor has no sigma."""
     q = 3.6e-6  # rad²/s, the x10 BMI085's
-    off, on, _ = _deskew_off_on(tmp_path, noise_source="config", noise_discretization="dt",
-                                gyro_cov=q)
+    off, on, _ = _deskew_off_on(tmp_path, noise_source="config", noise_discretization=form,
+                                gyro_cov=q if form == "dt" else q * 400.0)
     assert len(on) == len(off) > 30
     for a, b in zip(off, on, strict=True):
         assert a.t_ns == b.t_ns

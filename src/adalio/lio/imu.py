@@ -309,13 +309,16 @@ def process_noise(cfg: ImuConfig) -> np.ndarray:
     return np.repeat([cfg.gyro_cov, cfg.accel_cov, cfg.gyro_bias_cov, cfg.accel_bias_cov], 3)
 
 
-def gap_noise(cfg: ImuConfig, q_diag: np.ndarray) -> np.ndarray:
+def gap_noise(cfg: ImuConfig, q_diag: np.ndarray, period_s: float) -> np.ndarray:
     """Q across an IMU gap, continuous-time (Q dt): the motion model's random rate and
-    acceleration densities²; the bias walks as configured in the 'dt' form (the 'dt2' form's
-    per-sample values have no continuous-time reading and are left out)."""
+    acceleration densities²; the bias walks as configured, as densities². In the 'dt2' form a
+    configured value ``c`` adds ``c dt²`` per sample, so over a stretch of ``L`` seconds of
+    samples ``period_s`` apart it adds ``c L period_s``: its density² is ``c period_s`` (the
+    samples' nominal period, as measured), and a gap adds what the missing samples would have."""
     q = np.repeat([cfg.gap_motion_gyro_rad_s_sqrt_hz**2, cfg.gap_motion_accel_m_s2_sqrt_hz**2,
                    0.0, 0.0], 3)
-    q[6:] = q_diag[6:] if cfg.noise_discretization == "dt" else 0.0
+    scale = 1.0 if cfg.noise_discretization == "dt" else period_s
+    q[6:] = q_diag[6:] * (scale if np.isfinite(scale) else 0.0)
     return q
 
 

@@ -389,6 +389,8 @@ class Odometry:
         self._moving: MovingInit | None = None
         self._gap_s = np.inf
         """IMU gap threshold (s): imu.gap_periods nominal periods, set at initialization."""
+        self._imu_period_s = np.inf
+        """The IMU's nominal sample period (s), measured at initialization."""
         self._q_gap = np.zeros(12)
         self._last_gap: tuple[int, float] | None = None
         """(start ns, length s) of the IMU gap bridged in the latest scan."""
@@ -973,8 +975,9 @@ class Odometry:
         """Nominal IMU period from the initialization samples, and the gap threshold."""
         dt = np.diff(t_ns)
         period_s = float(np.median(dt[dt > 0])) * 1e-9 if np.any(dt > 0) else np.inf
+        self._imu_period_s = period_s
         self._gap_s = self.cfg.imu.gap_periods * period_s
-        self._q_gap = imu.gap_noise(self.cfg.imu, self._q_diag)
+        self._q_gap = imu.gap_noise(self.cfg.imu, self._q_diag, period_s)
 
     def _find_gap(self, imu_tau: np.ndarray, tau_end: float, t_ref: int) -> None:
         """Record (and warn once about, or refuse beyond imu.max_gap_s) an IMU gap in this scan."""
@@ -1197,14 +1200,16 @@ class Odometry:
         which may be a generic process noise (FAST-LIO's 0.1 in the ``dt2`` form is 0.17° per
         0.1 s sweep, 80 times the HILTI BMI085's); with ``imu.noise_source: config`` or
         nothing measured, the configured one. In the ``dt2`` form the configured value is per
-        sample, so the density² is it times the nominal sample period."""
+        sample, so the density² is it times the nominal sample period (measured at
+        initialization, as for the gaps' bias walks; the configured rate if none was)."""
         if not self.cfg.filter.sigmas_deskew_noise:
             return np.zeros((6, 6))
         q = self._q_deskew
         if q is None:
             q = float(self._q_diag[0])
             if self.cfg.imu.noise_discretization != "dt":
-                q /= self.cfg.sensor.imu_rate_hz
+                period_s = self._imu_period_s
+                q *= period_s if np.isfinite(period_s) else 1.0 / self.cfg.sensor.imu_rate_hz
         return deskew_covariance(q, self._span_s)
 
     def _world_covariance(self) -> np.ndarray:
