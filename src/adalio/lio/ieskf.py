@@ -73,6 +73,38 @@ def real_information(claimed: np.ndarray, fake: np.ndarray) -> np.ndarray:
     return half @ mid @ half.T
 
 
+def height_blind(claimed: np.ndarray, fake: np.ndarray, axis: int = 2) -> bool:
+    """Whether the information ``claimed`` (6x6 pose block, [δp world, δθ]) holds its height
+    (world ``axis``) mostly where ``fake`` says it is fake: in the generalized eigenbasis of
+    ``(fake, claimed)`` (``fake v = m claimed v``, ``vᵀ claimed v = 1``) the claim's diagonal
+    entry splits as ``claimed_aa = Σ_k (claimed v_k)_a²``; the directions with ``m_k >= 1``
+    are those :func:`real_information` drops. True when they hold more than half of it (or
+    the claim holds no height at all)."""
+    parts = _claim_metric(claimed, fake)
+    if parts is None:
+        return True
+    half, _, W = parts
+    m, V = np.linalg.eigh(W.T @ fake @ W)
+    share = (half @ V)[axis] ** 2
+    total = float(share.sum())
+    if not total > 0.0:
+        return True
+    return bool(share[m >= 1.0].sum() > 0.5 * total)
+
+
+def without_direction(J: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """The information ``J`` with the coordinate ``eᵀx`` marginalised out:
+    ``J − J e eᵀ J / (eᵀ J e)`` (the Schur complement; it holds nothing along ``e`` and only
+    what ``J`` says about the rest without knowing ``eᵀx``). ``J`` unchanged if it holds
+    nothing along ``e``."""
+    Je = J @ e
+    d = float(e @ Je)
+    if not d > 0.0:
+        return J
+    out = J - np.outer(Je, Je) / d
+    return 0.5 * (out + out.T)
+
+
 def errors_in_variables(HTH: np.ndarray, HTh: np.ndarray, F: np.ndarray,
                         b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The normal equations ``(HᵀH, −Hᵀr)`` with the pose block corrected for the noise of the

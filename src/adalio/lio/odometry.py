@@ -63,7 +63,13 @@ from adalio.lio.degeneracy import (
     observable_projector,
     weak_directions,
 )
-from adalio.lio.ieskf import _reprojection, iterated_update, real_information
+from adalio.lio.ieskf import (
+    _reprojection,
+    height_blind,
+    iterated_update,
+    real_information,
+    without_direction,
+)
 from adalio.lio.ivox import IVox, hash_key3
 from adalio.lio.local_surface import LocalSurface, disagrees
 from adalio.lio.map_uncertainty import MapProvenance, deskew_covariance, world_covariance
@@ -327,6 +333,14 @@ def restoring_ratios(assoc: _Association, x: State, dirs: np.ndarray) -> np.ndar
     return rho
 
 
+def _information_update(P: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """``P`` after information ``J`` (6x6) on its pose block: ``(P⁻¹ + EᵀJE)⁻¹`` with E the pose
+    block, in the form that needs no inverse of ``P``; symmetrised."""
+    PE = P[:, :6]
+    P = P - PE @ J @ np.linalg.solve(np.eye(6) + P[:6, :6] @ J, PE.T)
+    return 0.5 * (P + P.T)
+
+
 class Odometry:
     """Faster-LIO-style iterated-ESKF LiDAR-inertial odometry with AdaLIO switching.
 
@@ -368,6 +382,12 @@ class Odometry:
         sigmas with filter.sigmas_discount_normal_noise, and behind the robust kernel's spread
         whatever that flag says (so the flag never changes the trajectory); None until the
         anchor, or when neither needs it."""
+        self._P_blind: np.ndarray | None = None
+        """With filter.sigmas_height_blind: the covariance behind the reported sigmas, the
+        discounted one's twin that takes no height from a height-blind scan
+        (:meth:`_update_report_covariance`); None until the anchor, or without the flag."""
+        self.n_height_blind = 0
+        """Scans whose height the sigmas took from the IMU alone (filter.sigmas_height_blind)."""
         self._t_state_ns = 0
         self._prev_sample: tuple[int, np.ndarray, np.ndarray] | None = None
         self._accel_scale = 1.0
@@ -675,6 +695,8 @@ class Odometry:
             # the discounted covariance (reported sigmas, robust kernel) starts here: no position
             # or yaw error at the anchor (the filter's own P keeps Faster-LIO's initial one)
             self._P_report = anchored_covariance(s.R, self._P)
+            if self._keeps_blind_P:
+                self._P_blind = self._P_report.copy()
         _timer(stage_ms, "map", t0)
         g = self.cfg.adaptive.general
         stats.n_down = stats.n_down_general = int(pts_e.shape[0])
@@ -792,6 +814,8 @@ class Odometry:
         rev._P = self._P * np.outer(flip, flip)
         if self._P_report is not None:
             rev._P_report = self._P_report * np.outer(flip, flip)
+        if self._P_blind is not None:
+            rev._P_blind = self._P_blind * np.outer(flip, flip)
         rev._t_state_ns = mirror_ns - self._t_state_ns
         rev._buf = _ImuBuffer(np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)))
         rev._rest_imu = rev._buf
@@ -1039,13 +1063,15 @@ class Odometry:
         acc = np.vstack([acc_prev[None], b.accel[:n_use]]) * self._accel_scale
         tau_end = max((t_e_ns - t_ref) * 1e-9, 0.0)
         self._find_gap(imu_tau, tau_end, t_ref)
-        P = self._P if self._P_report is None else np.hstack([self._P, self._P_report])
+        P = np.hstack([m for m in (self._P, self._P_report, self._P_blind) if m is not None])
         self._state, P, rec = imu.propagate(self._state, P, imu_tau, gyro, acc, 0.0, tau_end,
                                             self._q_diag, self.cfg.imu.noise_discretization,
                                             self._gap_s, self._q_gap)
         self._P = P[:, :DIM].copy()
         if self._P_report is not None:  # the same propagation, along the same state
-            self._P_report = P[:, DIM:].copy()
+            self._P_report = P[:, DIM:2 * DIM].copy()
+        if self._P_blind is not None:
+            self._P_blind = P[:, 2 * DIM:].copy()
         if n_use:
             self._keep_rest_samples(b.t_ns[:n_use], b.gyro[:n_use],
                                     b.accel[:n_use] * self._accel_scale)
@@ -1090,6 +1116,8 @@ class Odometry:
         self._state = self._state.boxplus(dx)
         if self._P_report is not None:
             self._P_report = rest_velocity_covariance(self._P_report, var_v)
+        if self._P_blind is not None:
+            self._P_blind = rest_velocity_covariance(self._P_blind, var_v)
         self.n_rest_updates += 1
         return True
 
@@ -1148,13 +1176,22 @@ class Odometry:
                 or robust_kernel_name(self.cfg) != "none")
 
     @property
+    def _keeps_blind_P(self) -> bool:
+        """The height-blind twin is kept for the reported sigmas."""
+        f = self.cfg.filter
+        return f.sigmas_height_blind and f.sigmas_discount_normal_noise
+
+    @property
     def _discounted_P(self) -> np.ndarray:
         return self._P if self._P_report is None else self._P_report
 
     @property
     def _sigmas_P(self) -> np.ndarray:
         """The covariance the reported sigmas come from: the discounted covariance once it
-        exists, with ``filter.sigmas_discount_normal_noise``; else the filter's."""
+        exists, with ``filter.sigmas_discount_normal_noise`` (its height-blind twin with
+        ``filter.sigmas_height_blind``); else the filter's."""
+        if self._P_blind is not None:
+            return self._P_blind
         return self._discounted_P if self.cfg.filter.sigmas_discount_normal_noise else self._P
 
     @property
@@ -1172,7 +1209,10 @@ class Odometry:
         normals' noise fakes
         (:func:`normal_noise_information`), kept between nothing and the claim
         (:func:`real_information`), in the information form of the filter's final step (``P⁺ = (P⁻¹ + EᵀJE)⁻¹`` with E the pose
-        block, at the same SO(3) reprojection). The filter itself is unchanged."""
+        block, at the same SO(3) reprojection). The filter itself is unchanged. Its
+        height-blind twin (``filter.sigmas_height_blind``) takes the same information, with
+        the world height marginalised out where :func:`height_blind` says the scan holds
+        none."""
         f = self.cfg.filter
         if not self._keeps_discounted_P:
             return
@@ -1189,8 +1229,15 @@ class Odometry:
                 claimed = projector.T @ claimed @ projector
                 fake = projector.T @ fake @ projector
             J = real_information(claimed, f.laser_point_cov * fake) / f.laser_point_cov
-            PE = P[:, :6]
-            P = P - PE @ J @ np.linalg.solve(np.eye(6) + P[:6, :6] @ J, PE.T)
+            P = _information_update(P, J)
+            if self._P_blind is not None:
+                J_blind = J
+                if height_blind(claimed, f.laser_point_cov * fake):
+                    J_blind = without_direction(J, np.eye(6)[2])
+                    self.n_height_blind += 1
+                self._P_blind = _information_update(Jr @ self._P_blind @ Jr.T, J_blind)
+        elif self._P_blind is not None:
+            self._P_blind = Jr @ self._P_blind @ Jr.T
         self._P_report = 0.5 * (P + P.T)
 
     def _deskew_covariance(self) -> np.ndarray:
