@@ -303,7 +303,7 @@ class FilterConfig:
     sweep of T seconds and a gyro noise density² q_g), which no update sees. It enters the map's
     uncertainty with the lever arm (not the first scan's: that scan defines the world, and its
     map stays exact, as before). Only the reported sigmas change, never the trajectory."""
-    sigmas_height_blind: bool = False
+    sigmas_height_blind: bool = True
     """Report sigmas that take no height from a height-blind scan: one whose claimed height
     information lies mostly (more than half of ``HᵀH``'s world-z diagonal) in the directions
     the normals' discount judges fake (``ieskf.height_blind``). On such a scan the sigmas'
@@ -311,7 +311,8 @@ class FilterConfig:
     left to the IMU's model (in a floor-blind stairwell the rows that remain hold the height
     with a few m⁻² per scan that the discount cannot tell from bias). A covariance of its own,
     propagated with the filter's: the robust kernel's and the trajectory are unchanged.
-    Needs ``sigmas_discount_normal_noise``."""
+    Needs ``sigmas_discount_normal_noise``. On by default since session 46 (README,
+    Benchmarks, *Session 46*)."""
     local_surface_check: bool = False
     """Drop a row whose map plane disagrees with the scan's own surface at the point
     (``lio/local_surface.py``): the plane fitted to the samples around the point on its ring and

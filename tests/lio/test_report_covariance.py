@@ -137,3 +137,85 @@ def test_sigmas_start_at_the_anchor_not_at_the_initial_covariance(tmp_path):
     sig_z = cons.sigma_world_m[:, 2]
     assert cons.within_3sigma[2] >= 0.9, cons.within_3sigma
     assert np.median(sig_z) < 10.0 * max(err_z.max(), 0.005), (np.median(sig_z), err_z.max())
+
+
+def test_height_blind_against_the_generalized_eigenproblem():
+    """``height_blind`` against scipy's generalized eigensolver (``fake v = m claimed v``,
+    ``vᵀ claimed v = 1``, so ``claimed = Σ (claimed v)(claimed v)ᵀ``): the directions with
+    ``m >= 1`` hold more than half of the claim's height entry. And the two cases it is for:
+    a floor in view (height claimed far above its fake) and walls only (their fitted normals'
+    noise fakes more height than they claim)."""
+    from scipy.linalg import eigh
+
+    from adalio.lio.ieskf import height_blind
+
+    rng = np.random.default_rng(11)
+    checked = 0
+    for _ in range(400):
+        X = rng.normal(size=(6, 6)) * rng.uniform(0.1, 3.0, size=6)
+        A = X @ X.T
+        Y = rng.normal(size=(6, 6)) * rng.uniform(0.0, 3.0, size=6)
+        F = Y @ Y.T
+        m, V = eigh(F, A)
+        part = (A @ V)[2] ** 2
+        share = part[m >= 1.0].sum() / part.sum()
+        if abs(share - 0.5) < 1e-6:
+            continue
+        assert height_blind(A, F) == (share > 0.5)
+        checked += 1
+    assert checked > 390
+    floor = np.diag([1e4, 1e4, 1e5, 1e3, 1e3, 1e3])
+    assert not height_blind(floor, np.diag([1e2, 1e2, 4e4, 10.0, 10.0, 10.0]))
+    walls = np.diag([1e4, 1e4, 5e3, 1e3, 1e3, 1e3])
+    assert height_blind(walls, np.diag([1e2, 1e2, 4e4, 10.0, 10.0, 10.0]))
+
+
+def test_without_direction_is_the_marginal_information():
+    """``J`` with the height marginalised out holds nothing along it, and on the other five
+    coordinates it is the marginal information ``((J⁻¹)_rr)⁻¹`` (brute force)."""
+    from adalio.lio.ieskf import without_direction
+
+    rng = np.random.default_rng(12)
+    e = np.eye(6)[2]
+    rest = [0, 1, 3, 4, 5]
+    for _ in range(100):
+        X = rng.normal(size=(6, 8))
+        J = X @ X.T
+        Jm = without_direction(J, e)
+        np.testing.assert_allclose(Jm @ e, 0.0, atol=1e-9 * np.abs(J).max())
+        marginal = np.linalg.inv(np.linalg.inv(J)[np.ix_(rest, rest)])
+        np.testing.assert_allclose(Jm[np.ix_(rest, rest)], marginal, rtol=1e-8,
+                                   atol=1e-9 * np.abs(J).max())
+    np.testing.assert_array_equal(without_direction(np.diag([1.0, 1, 0, 1, 1, 1]), e),
+                                  np.diag([1.0, 1, 0, 1, 1, 1]))
+
+
+def test_height_blind_sigmas_leave_the_trajectory_and_grow_on_the_flights(tmp_path):
+    """20 s of the simulated stairwell (a still start on the landing, then down the flights,
+    the XT-32's ±16° seeing no tread for stretches): with ``filter.sigmas_height_blind`` (on by
+    default) the
+    trajectory is bit-identical, no reported sigma is smaller (the map's term off, so the
+    sigmas are the covariance's own plus the deskew term), and the height sigma at the end
+    is larger, with the height error within 3σ on at least as many scans."""
+    sim = cached_sequence("stairs_garage", seed=1, duration_s=20.0, columns=512)
+    runs = {}
+    for on in (False, True):
+        cfg = load_config(None, sim.config_path)
+        cfg.filter.sigmas_height_blind = on
+        cfg.filter.map_uncertainty = False
+        out = tmp_path / f"blind_{on}"
+        run_bag(sim.bag_path, cfg, out, progress=False)
+        scans = read_scans_csv(out / "scans.csv")
+        runs[on] = (read_tum(out / "trajectory.tum"), scans,
+                    sigma_consistency(out / "trajectory.tum", sim.gt_path, scans))
+    (t_off, T_off), scans_off, cons_off = runs[False]
+    (t_on, T_on), scans_on, cons_on = runs[True]
+    np.testing.assert_array_equal(t_on, t_off)
+    np.testing.assert_array_equal(T_on, T_off)
+    s_off = np.column_stack([scans_off[c] for c in SIGMAS])
+    s_on = np.column_stack([scans_on[c] for c in SIGMAS])
+    assert np.all(s_on >= s_off * (1 - 1e-6) - 1e-12)
+    print(f"sigma_z at the end {s_off[-1, 2]:.3f} -> {s_on[-1, 2]:.3f} m; z within 3 sigma "
+          f"{cons_off.within_3sigma[2]:.3f} -> {cons_on.within_3sigma[2]:.3f}")
+    assert s_on[-1, 2] > 2.0 * s_off[-1, 2]
+    assert cons_on.within_3sigma[2] >= cons_off.within_3sigma[2]
