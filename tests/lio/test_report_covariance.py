@@ -34,6 +34,28 @@ def test_real_information_stays_between_nothing_and_the_claim():
         np.testing.assert_allclose(real_information(A, 2.0 * A), 0.0, atol=1e-9)
 
 
+def _off_on(sim, out_dir, key: str, **settings):
+    """The sequence run with ``filter.<key>`` off, then on (the other ``filter`` ``settings``
+    alike in both); the two trajectories must be bit-identical. Returns the sigma columns off
+    and on, their consistency against the ground truth off and on, and the scans' times."""
+    runs = {}
+    for on in (False, True):
+        cfg = load_config(None, sim.config_path)
+        setattr(cfg.filter, key, on)
+        for name, value in settings.items():
+            setattr(cfg.filter, name, value)
+        out = out_dir / f"{key}_{on}"
+        run_bag(sim.bag_path, cfg, out, progress=False)
+        scans = read_scans_csv(out / "scans.csv")
+        runs[on] = (read_tum(out / "trajectory.tum"), scans,
+                    sigma_consistency(out / "trajectory.tum", sim.gt_path, scans))
+    ((t_off, T_off), scans_off, cons_off), ((t_on, T_on), scans_on, cons_on) = runs[False], runs[True]
+    np.testing.assert_array_equal(t_on, t_off)
+    np.testing.assert_array_equal(T_on, T_off)
+    return (np.column_stack([scans_off[c] for c in SIGMAS]),
+            np.column_stack([scans_on[c] for c in SIGMAS]), cons_off, cons_on, scans_on["t_s"])
+
+
 def test_spiral_sigmas_grow_where_the_walls_fake_height_and_the_trajectory_stays(tmp_path):
     """25 s of the simulated spiral (the shaft from 13 s): with and without the discount the
     trajectory is bit-identical, every reported height sigma from 5 s on is at least the
@@ -48,25 +70,11 @@ def test_spiral_sigmas_grow_where_the_walls_fake_height_and_the_trajectory_stays
     those rows (``filter.errors_in_variables: false``)."""
     sim = cached_sequence("spiral", seed=0, duration_s=25.0, columns=512)
     for with_map in (False, True):
-        runs = {}
-        for on in (False, True):
-            cfg = load_config(None, sim.config_path)
-            cfg.filter.sigmas_discount_normal_noise = on
-            cfg.filter.errors_in_variables = False
-            cfg.filter.map_uncertainty = with_map
-            out = tmp_path / f"map_{with_map}_discount_{on}"
-            run_bag(sim.bag_path, cfg, out, progress=False)
-            scans = read_scans_csv(out / "scans.csv")
-            runs[on] = (read_tum(out / "trajectory.tum"), scans,
-                        sigma_consistency(out / "trajectory.tum", sim.gt_path, scans))
-        (t_off, T_off), scans_off, cons_off = runs[False]
-        (t_on, T_on), scans_on, cons_on = runs[True]
-        np.testing.assert_array_equal(t_on, t_off)
-        np.testing.assert_array_equal(T_on, T_off)
-        s_off = np.column_stack([scans_off[c] for c in SIGMAS])
-        s_on = np.column_stack([scans_on[c] for c in SIGMAS])
-        t0 = scans_on["t_s"][0]
-        walk = scans_on["t_s"] - t0 >= WALK_FROM_S
+        s_off, s_on, cons_off, cons_on, t_s = _off_on(
+            sim, tmp_path / f"map_{with_map}", "sigmas_discount_normal_noise",
+            errors_in_variables=False, map_uncertainty=with_map)
+        t0 = t_s[0]
+        walk = t_s - t0 >= WALK_FROM_S
         assert np.all(s_on[walk, 2] >= s_off[walk, 2] * (1 - 1e-3) - 1e-9)
         within_on, nees_on = _walk_consistency(cons_on, t0)
         within_off, nees_off = _walk_consistency(cons_off, t0)
@@ -193,27 +201,12 @@ def test_without_direction_is_the_marginal_information():
 def test_height_blind_sigmas_leave_the_trajectory_and_grow_on_the_flights(tmp_path):
     """20 s of the simulated stairwell (a still start on the landing, then down the flights,
     the XT-32's ±16° seeing no tread for stretches): with ``filter.sigmas_height_blind`` (on by
-    default) the
-    trajectory is bit-identical, no reported sigma is smaller (the map's term off, so the
-    sigmas are the covariance's own plus the deskew term), and the height sigma at the end
-    is larger, with the height error within 3σ on at least as many scans."""
+    default) the trajectory is bit-identical, no reported sigma is smaller (the map's term off,
+    so the sigmas are the covariance's own plus the deskew term), and the height sigma at the
+    end is larger, with the height error within 3σ on at least as many scans."""
     sim = cached_sequence("stairs_garage", seed=1, duration_s=20.0, columns=512)
-    runs = {}
-    for on in (False, True):
-        cfg = load_config(None, sim.config_path)
-        cfg.filter.sigmas_height_blind = on
-        cfg.filter.map_uncertainty = False
-        out = tmp_path / f"blind_{on}"
-        run_bag(sim.bag_path, cfg, out, progress=False)
-        scans = read_scans_csv(out / "scans.csv")
-        runs[on] = (read_tum(out / "trajectory.tum"), scans,
-                    sigma_consistency(out / "trajectory.tum", sim.gt_path, scans))
-    (t_off, T_off), scans_off, cons_off = runs[False]
-    (t_on, T_on), scans_on, cons_on = runs[True]
-    np.testing.assert_array_equal(t_on, t_off)
-    np.testing.assert_array_equal(T_on, T_off)
-    s_off = np.column_stack([scans_off[c] for c in SIGMAS])
-    s_on = np.column_stack([scans_on[c] for c in SIGMAS])
+    s_off, s_on, cons_off, cons_on, _ = _off_on(sim, tmp_path, "sigmas_height_blind",
+                                                map_uncertainty=False)
     assert np.all(s_on >= s_off * (1 - 1e-6) - 1e-12)
     print(f"sigma_z at the end {s_off[-1, 2]:.3f} -> {s_on[-1, 2]:.3f} m; z within 3 sigma "
           f"{cons_off.within_3sigma[2]:.3f} -> {cons_on.within_3sigma[2]:.3f}")
