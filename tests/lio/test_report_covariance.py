@@ -8,7 +8,7 @@ from adalio.config import load_config
 from adalio.eval.files import read_scans_csv
 from adalio.eval.metrics import sigma_consistency
 from adalio.io.writers import read_tum
-from adalio.lio.odometry import real_information
+from adalio.lio.ieskf import real_information
 from adalio.pipeline import run_bag
 from adalio.sim import cached_sequence
 

@@ -46,9 +46,10 @@ def _reprojection(dx: np.ndarray) -> np.ndarray:
 
 
 def _claim_metric(claimed: np.ndarray, fake: np.ndarray, upper: float | None = None):
-    """``(A^½, M, A^-½)`` on the range of ``A = claimed`` (``A = U Λ Uᵀ``, ``A^½ = U Λ^½``,
-    ``A^-½ = U Λ^-½``) with ``M = clip(I − A^-½ᵀ fake A^-½, 0, upper)``, the share of each
-    whitened direction that is not ``fake``; None when ``claimed`` holds nothing."""
+    """``(A^½, M, A^-½, μ, V)`` on the range of ``A = claimed`` (``A = U Λ Uᵀ``, ``A^½ = U
+    Λ^½``, ``A^-½ = U Λ^-½``) with ``M = clip(I − A^-½ᵀ fake A^-½, 0, upper)``, the share of
+    each whitened direction that is not ``fake``, and ``V diag(μ) Vᵀ`` that matrix before the
+    clip (``μ ≤ 0``: a direction all fake); None when ``claimed`` holds nothing."""
     lam, U = np.linalg.eigh(0.5 * (claimed + claimed.T))
     keep = lam > lam.max(initial=0.0) * 1e-12
     if not np.any(keep):
@@ -57,7 +58,7 @@ def _claim_metric(claimed: np.ndarray, fake: np.ndarray, upper: float | None = N
     W = U / root  # columns: whitened directions
     mu, V = np.linalg.eigh(np.eye(root.size) - W.T @ fake @ W)
     mid = (V * np.clip(mu, 0.0, upper)) @ V.T
-    return U * root, mid, W
+    return U * root, mid, W, mu, V
 
 
 def real_information(claimed: np.ndarray, fake: np.ndarray) -> np.ndarray:
@@ -66,11 +67,7 @@ def real_information(claimed: np.ndarray, fake: np.ndarray) -> np.ndarray:
     ``claimed`` (``A = U Λ Uᵀ``, whitening ``W = Λ^-½ Uᵀ`` on its range),
     ``A^½ max(I − W fake Wᵀ, 0) A^½``. Unlike clipping ``claimed − fake`` itself, this never
     grants information along a direction that ``claimed`` does not hold."""
-    parts = _claim_metric(claimed, fake)
-    if parts is None:
-        return np.zeros_like(claimed)
-    half, mid, _ = parts
-    return half @ mid @ half.T
+    return real_information_and_height_blind(claimed, fake)[0]
 
 
 def height_blind(claimed: np.ndarray, fake: np.ndarray, axis: int = 2) -> bool:
@@ -80,16 +77,21 @@ def height_blind(claimed: np.ndarray, fake: np.ndarray, axis: int = 2) -> bool:
     entry splits as ``claimed_aa = Σ_k (claimed v_k)_a²``; the directions with ``m_k >= 1``
     are those :func:`real_information` drops. True when they hold more than half of it (or
     the claim holds no height at all)."""
+    return real_information_and_height_blind(claimed, fake, axis)[1]
+
+
+def real_information_and_height_blind(claimed: np.ndarray, fake: np.ndarray,
+                                      axis: int = 2) -> tuple[np.ndarray, bool]:
+    """:func:`real_information` and :func:`height_blind` from one decomposition (the whitened
+    directions ``V`` with ``μ = 1 − m``)."""
     parts = _claim_metric(claimed, fake)
     if parts is None:
-        return True
-    half, _, W = parts
-    m, V = np.linalg.eigh(W.T @ fake @ W)
+        return np.zeros_like(claimed), True
+    half, mid, _, mu, V = parts
     share = (half @ V)[axis] ** 2
     total = float(share.sum())
-    if not total > 0.0:
-        return True
-    return bool(share[m >= 1.0].sum() > 0.5 * total)
+    blind = not total > 0.0 or bool(share[mu <= 0.0].sum() > 0.5 * total)
+    return half @ mid @ half.T, blind
 
 
 def without_direction(J: np.ndarray, e: np.ndarray) -> np.ndarray:
@@ -122,7 +124,7 @@ def errors_in_variables(HTH: np.ndarray, HTh: np.ndarray, F: np.ndarray,
     parts = _claim_metric(HTH[:6, :6], 0.5 * (F + F.T), 1.0)
     if parts is None:
         return HTH, HTh
-    half, mid, W = parts
+    half, mid, W, _, _ = parts
     Q = half @ mid @ W.T
     A_real = Q @ (0.5 * (HTH[:6, :6] + HTH[:6, :6].T))
     HTH[:6, :6] = 0.5 * (A_real + A_real.T)

@@ -65,9 +65,8 @@ from adalio.lio.degeneracy import (
 )
 from adalio.lio.ieskf import (
     _reprojection,
-    height_blind,
     iterated_update,
-    real_information,
+    real_information_and_height_blind,
     without_direction,
 )
 from adalio.lio.ivox import IVox, hash_key3
@@ -386,8 +385,6 @@ class Odometry:
         """With filter.sigmas_height_blind: the covariance behind the reported sigmas, the
         discounted one's twin that takes no height from a height-blind scan
         (:meth:`_update_report_covariance`); None until the anchor, or without the flag."""
-        self.n_height_blind = 0
-        """Scans whose height the sigmas took from the IMU alone (filter.sigmas_height_blind)."""
         self._t_state_ns = 0
         self._prev_sample: tuple[int, np.ndarray, np.ndarray] | None = None
         self._accel_scale = 1.0
@@ -1219,6 +1216,7 @@ class Odometry:
         P = self._discounted_P
         Jr = _reprojection(x_post.boxminus(x_pred))
         P = Jr @ P @ Jr.T
+        P_blind = None if self._P_blind is None else Jr @ self._P_blind @ Jr.T
         H = assoc.H[:, :6]
         if H.shape[0]:
             fake = normal_noise_information(assoc.points_lidar, assoc.selected, x_post.R,
@@ -1228,17 +1226,15 @@ class Odometry:
             if projector is not None:
                 claimed = projector.T @ claimed @ projector
                 fake = projector.T @ fake @ projector
-            J = real_information(claimed, f.laser_point_cov * fake) / f.laser_point_cov
+            J, blind = real_information_and_height_blind(claimed, f.laser_point_cov * fake)
+            J /= f.laser_point_cov
             P = _information_update(P, J)
-            if self._P_blind is not None:
-                J_blind = J
-                if height_blind(claimed, f.laser_point_cov * fake):
-                    J_blind = without_direction(J, np.eye(6)[2])
-                    self.n_height_blind += 1
-                self._P_blind = _information_update(Jr @ self._P_blind @ Jr.T, J_blind)
-        elif self._P_blind is not None:
-            self._P_blind = Jr @ self._P_blind @ Jr.T
+            if P_blind is not None:
+                P_blind = _information_update(
+                    P_blind, without_direction(J, np.eye(6)[2]) if blind else J)
         self._P_report = 0.5 * (P + P.T)
+        if P_blind is not None:
+            self._P_blind = P_blind
 
     def _deskew_covariance(self) -> np.ndarray:
         """The latest scan's undistortion rotation noise (``map_uncertainty.deskew_covariance``),
