@@ -448,3 +448,27 @@ def test_summary_flags_a_long_moving_start_wait(tmp_path, method, refused, witho
             f"after the first scan ({refused} moving-start")
     assert (line in text) is flagged
     assert ("3.1 cm RMS" in text) is flagged
+
+
+@pytest.mark.parametrize("n_blind", [0, 37])
+def test_summary_names_the_height_blind_stretches(tmp_path, n_blind):
+    """The run summary names the scans that held no height from the LiDAR (scans.csv
+    height_blind), with their count and time ranges, and says nothing when there are none."""
+    import io
+
+    from rich.console import Console
+
+    from adalio.io.cli import _summary
+    from adalio.pipeline import RunResult
+
+    res = RunResult(out_dir=tmp_path, trajectory_path=tmp_path, scans_csv_path=tmp_path,
+                    map_path=tmp_path, config_path=tmp_path, n_scans=400, n_degenerate=0,
+                    wall_s=1.0, ms_per_scan_median=1.0, stage_ms={}, interrupted=False,
+                    n_scans_in=400, n_height_blind=n_blind,
+                    height_blind_ranges_s=[(3.1, 6.5)] if n_blind else [])
+    buf = io.StringIO()
+    _summary(Console(file=buf, width=400), res, profile=False)
+    text = buf.getvalue()
+    assert ("no height from the LiDAR" in text) is bool(n_blind)
+    if n_blind:
+        assert "37/400 scans at 3.1-6.5 s" in text

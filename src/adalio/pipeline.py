@@ -62,6 +62,10 @@ class RunResult:
     sequencer: SequencerStats | None = None
     n_scans_in: int = 0
     """Scans handed to the estimator (including those consumed by initialization)."""
+    n_height_blind: int = 0
+    """filter.sigmas_height_blind: scans that held no world height (scans.csv height_blind)."""
+    height_blind_ranges_s: list[tuple[float, float]] = field(default_factory=list)
+    """(start, end) seconds of consecutive height-blind scans."""
     sigma_warn_m: float = DEFAULT_SIGMA_WARN_M
     sigma_warn_ranges_s: list[tuple[float, float]] = field(default_factory=list)
     """(start, end) seconds of consecutive scans whose largest position standard deviation
@@ -273,6 +277,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         degen: list[bool] = []
         held: list[bool] = []
         risky: list[bool] = []
+        blind: list[bool] = []
         late = False
         """A backfilled row was written after later ones: the files are sorted at the end."""
 
@@ -291,6 +296,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
             degen.append(bool(stats.degenerate))
             held.append(stats.held_directions > 0)
             risky.append(bool(np.nanmax(stats.sigma_p_world_m) > sigma_warn_m))
+            blind.append(bool(stats.height_blind))
             if on_estimate is not None:
                 on_estimate(e)
 
@@ -351,7 +357,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         helper.stop()
         bag.close()
     order = np.argsort(np.asarray(est_t, dtype=np.int64), kind="stable")
-    est_t, degen, held, risky = ([seq_[i] for i in order] for seq_ in (est_t, degen, held, risky))
+    est_t, degen, held, risky, blind = ([seq_[i] for i in order]
+                                        for seq_ in (est_t, degen, held, risky, blind))
     result = RunResult(
         out_dir=out, trajectory_path=paths["trajectory"], scans_csv_path=paths["scans"],
         map_path=paths["map"], config_path=paths["config"], n_scans=len(est_t),
@@ -364,7 +371,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         time_spec=seq.decoder.time_spec.describe() if seq.decoder.time_spec else "",
         sequencer=seq.stats, n_scans_in=n_in, init_report=odom.init_report,
         sigma_warn_m=sigma_warn_m, sigma_warn_ranges_s=_flag_ranges(est_t, risky),
-        n_sigma_warn=int(sum(risky)), compiled=compiled,
+        n_sigma_warn=int(sum(risky)), n_height_blind=int(sum(blind)),
+        height_blind_ranges_s=_flag_ranges(est_t, blind), compiled=compiled,
         local_surface_rows=tuple(getattr(odom, "local_surface_rows", (0, 0))))
     if not est_t and not interrupted:
         raise InputError(_no_pose_reason(odom, n_in, lidar_topic, imu_topic, out))
