@@ -24,7 +24,6 @@ Prints one row per scene and seed: share of height-blind sweeps, longest stretch
 from __future__ import annotations
 
 import argparse
-import math
 import shlex
 import sys
 
@@ -32,30 +31,11 @@ import numpy as np
 
 from adalio.pipeline import _flag_ranges
 from adalio.sim import SCENES
-from adalio.sim.generate import IMU_RATE_HZ, START_NS, T_IMU_LIDAR_HILTI, build_trajectory
+from adalio.sim.evidence import height_evidence
+from adalio.sim.generate import IMU_RATE_HZ, START_NS
 from adalio.sim.imu import ImuNoise, synthesize_imu
-from adalio.sim.lidar import Occluder, RayCaster, SweepSimulator, lidar_model
-from adalio.sim.scenes import build_scene
 
 MIN_STRETCH_S = 1.0
-
-
-def height_evidence(scene: str, seed: int, step_s: float, min_range_m: float,
-                    lidar: str = "xt32") -> tuple[np.ndarray, np.ndarray, object, float]:
-    """Sweep start times (s from the start) and the number of height-evidence returns of each."""
-    T_il = np.asarray(T_IMU_LIDAR_HILTI, dtype=np.float64)
-    scn = build_scene(scene, seed)
-    traj = build_trajectory(scn, T_il, seed)
-    dur = math.floor(traj.duration_s * 10.0) / 10.0
-    caster = RayCaster(scn.mesh, seed)
-    sim = SweepSimulator(caster, traj, lidar_model(lidar), T_il, START_NS, Occluder())
-    t_s = np.arange(0.0, dur - 0.1, step_s)
-    counts = np.zeros(len(t_s), np.int64)
-    for k, t in enumerate(t_s):
-        sw = sim.sweep(START_NS + round(t * 1e9), np.random.default_rng(0), noise_scale=0.0)
-        ok = sw.valid & (sw.face >= 0) & (sw.range_m > min_range_m)
-        counts[k] = int(np.sum(np.abs(caster.face_normals[sw.face[ok], 2]) > 0.95))
-    return t_s, counts, traj, dur
 
 
 def blind_stretches(t_s: np.ndarray, blind: np.ndarray, step_s: float) -> list[tuple[float, float]]:

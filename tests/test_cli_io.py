@@ -452,7 +452,7 @@ def test_summary_flags_a_long_moving_start_wait(tmp_path, method, refused, witho
 
 @pytest.mark.parametrize("n_blind", [0, 37])
 def test_summary_names_the_height_blind_stretches(tmp_path, n_blind):
-    """The run summary names the scans that held no height from the LiDAR (scans.csv
+    """The run summary names the scans whose height the sigmas leave to the IMU (scans.csv
     height_blind), with their count and time ranges, and says nothing when there are none."""
     import io
 
@@ -469,6 +469,6 @@ def test_summary_names_the_height_blind_stretches(tmp_path, n_blind):
     buf = io.StringIO()
     _summary(Console(file=buf, width=400), res, profile=False)
     text = buf.getvalue()
-    assert ("no height from the LiDAR" in text) is bool(n_blind)
+    assert ("height left to the IMU" in text) is bool(n_blind)
     if n_blind:
         assert "37/400 scans at 3.1-6.5 s" in text

@@ -63,7 +63,8 @@ class RunResult:
     n_scans_in: int = 0
     """Scans handed to the estimator (including those consumed by initialization)."""
     n_height_blind: int = 0
-    """filter.sigmas_height_blind: scans that held no world height (scans.csv height_blind)."""
+    """filter.sigmas_height_blind: scans whose height the sigmas leave to the IMU (scans.csv
+    height_blind)."""
     height_blind_ranges_s: list[tuple[float, float]] = field(default_factory=list)
     """(start, end) seconds of consecutive height-blind scans."""
     sigma_warn_m: float = DEFAULT_SIGMA_WARN_M

@@ -93,9 +93,9 @@ class ScanStats:
     imu_gap_s: float = 0.0
     """Length of an IMU gap bridged by the motion model in this scan (s; 0 = none)."""
     height_blind: bool = False
-    """filter.sigmas_height_blind: the scan held no world height (``ieskf.height_blind``), so
-    its height sigma is the IMU's dead reckoning since the latest scan that held height (README,
-    Outputs, *Uncertainty*)."""
+    """filter.sigmas_height_blind: the scan's height claim is mostly what its fitted normals'
+    noise fakes (``ieskf.height_blind``), so the reported sigmas take no height from it and
+    leave the height to the IMU (README, Outputs, *Uncertainty*)."""
     rest_update: bool = False
     """The IMU rested before the scan end and the filter took a zero velocity there
     (imu.zero_velocity_update)."""

@@ -8,12 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from adalio.lio.map_uncertainty import (
-    MapProvenance,
-    transport,
-    with_axis_variance,
-    world_covariance,
-)
+from adalio.lio.map_uncertainty import MapProvenance, transport, world_covariance
 
 
 def _random_covariance(rng: np.random.Generator, pos_m: float, rot_rad: float) -> np.ndarray:
@@ -130,31 +125,6 @@ def test_world_covariance_inflates_no_axis_without_limit():
         worst_old = max(worst_old, np.max(np.diag(old) / own))
     assert 1.0 <= worst <= 12.0
     assert worst_old > 100.0
-
-
-def test_with_axis_variance_rescales_one_axis_of_sampled_errors():
-    """The height-blind map term (module doc): sampled errors of ``W`` with the height scaled
-    to a given standard deviation have the covariance ``with_axis_variance`` gives (every
-    other entry unchanged, the height's correlations kept, PSD); a map term with no height
-    error gives an uncorrelated height of that variance."""
-    rng = np.random.default_rng(23)
-    for _ in range(20):
-        W = _random_covariance(rng, 10.0 ** rng.uniform(-3, 0), 10.0 ** rng.uniform(-3, -1))
-        var = 10.0 ** rng.uniform(-6, 0)
-        x = rng.multivariate_normal(np.zeros(6), W, size=200_000)
-        x[:, 2] *= np.sqrt(var / W[2, 2])
-        got = with_axis_variance(W, 2, var)
-        sd = np.sqrt(np.diag(got))
-        np.testing.assert_allclose(np.cov(x.T) / np.outer(sd, sd), got / np.outer(sd, sd),
-                                   atol=0.02)
-        assert got[2, 2] == pytest.approx(var, rel=1e-12)
-        keep = np.delete(np.arange(6), 2)
-        np.testing.assert_array_equal(got[np.ix_(keep, keep)], W[np.ix_(keep, keep)])
-        assert np.linalg.eigvalsh(got).min() >= -1e-12 * np.abs(got).max()
-    W = _random_covariance(rng, 0.1, 0.01)
-    W[2, :] = W[:, 2] = 0.0
-    got = with_axis_variance(W, 2, 0.25)
-    assert got[2, 2] == 0.25 and np.all(np.delete(got[2], 2) == 0.0)
 
 
 def test_a_chain_of_map_extensions_adds_standard_deviations_not_variances():

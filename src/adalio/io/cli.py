@@ -318,8 +318,9 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
                   f"sigma_x/y/z_m) in {res.n_sigma_warn}/{res.n_scans} scans at "
                   f"{_ranges_text(res.sigma_warn_ranges_s)}", highlight=False, soft_wrap=True)
     if getattr(res, "n_height_blind", 0):
-        con.print(f"[yellow]at risk:[/] no height from the LiDAR (scans.csv height_blind: the "
-                  f"height is the IMU's dead reckoning, its sigma grows) in "
+        con.print(f"[yellow]at risk:[/] height left to the IMU (scans.csv height_blind: the "
+                  f"scans' height is mostly what their fitted normals' noise fakes; the height "
+                  f"sigma grows) in "
                   f"{res.n_height_blind}/{res.n_scans} scans at "
                   f"{_ranges_text(res.height_blind_ranges_s)}", highlight=False, soft_wrap=True)
     dropped, rows = getattr(res, "local_surface_rows", (0, 0))

@@ -42,15 +42,6 @@ Chosen approximations, conservative or neutral for the 3σ test: the map errors 
 scans are averaged (fully correlated, not independent, which would shrink ``W_map``), and in a
 direction no scan constrains, the IMU growth since then is in both terms, so the sum over-states
 it by up to 2x in variance (4x with the bound).
-A height-blind scan (``filter.sigmas_height_blind``): the reported sigmas' twin takes no height
-from such a scan, so its height variance is the dead reckoning since the latest scan that held
-height, itself relative to the map there. Its absolute height error is that dead reckoning plus
-the map's height error *at that scan*; the map it matches now was placed by the blind stretch's
-own poses, whose height errors hold the same dead reckoning, and counting it again through the
-bound (once per map generation) made the stairwell's height sigmas 4-20x the twin's (27 m for a
-1.4 m error, session 47). So on a height-blind scan the map term's height variance is the one
-of the latest scan that held height (:func:`with_axis_variance`, correlations kept); the
-other axes are unchanged. The anchor holds height (0).
 Provenance is kept per ``cell_m`` cell (first scan to insert a point there), not per point,
 and from regular strides of the inserted and matched points (``MAX_*_SAMPLES``).
 The trajectory is unchanged: this only feeds the reported sigmas.
@@ -95,25 +86,6 @@ def world_covariance(W_rel: np.ndarray, W_map: np.ndarray, correlated: bool) -> 
     if not (ra > 0.0 and rb > 0.0):
         return W_rel + W_map
     return (1.0 + rb / ra) * W_rel + (1.0 + ra / rb) * W_map
-
-
-def with_axis_variance(W: np.ndarray, axis: int, var: float) -> np.ndarray:
-    """``W`` with its ``axis`` variance set to ``var`` and that axis's correlations kept:
-    ``D W D`` with ``D = I`` but ``D_aa = sqrt(var / W_aa)`` (positive semi-definite whenever
-    ``W`` is); if ``W_aa`` is 0, the axis is uncorrelated with the rest at ``var``.
-
-    The height-blind twin's map term (module doc, "A height-blind scan"): a scan that takes no
-    height from the map inherits no height error from it either."""
-    W = np.array(W, dtype=np.float64)
-    var = max(float(var), 0.0)
-    if W[axis, axis] > 0.0:
-        d = np.sqrt(var / W[axis, axis])
-        W[axis, :] *= d
-        W[:, axis] *= d
-    else:
-        W[axis, :] = W[:, axis] = 0.0
-        W[axis, axis] = var
-    return W
 
 
 def deskew_covariance(q_gyro_rad2_s: float, span_s: float) -> np.ndarray:

@@ -71,12 +71,7 @@ from adalio.lio.ieskf import (
 )
 from adalio.lio.ivox import IVox, hash_key3
 from adalio.lio.local_surface import LocalSurface, disagrees
-from adalio.lio.map_uncertainty import (
-    MapProvenance,
-    deskew_covariance,
-    with_axis_variance,
-    world_covariance,
-)
+from adalio.lio.map_uncertainty import MapProvenance, deskew_covariance, world_covariance
 from adalio.lio.measurement import (
     normal_noise_information,
     normal_noise_terms,
@@ -392,10 +387,6 @@ class Odometry:
         (:meth:`_update_report_covariance`); None until the anchor, or without the flag."""
         self._height_blind = False
         """Whether the latest update was height-blind (``ieskf.height_blind``; twin only)."""
-        self._map_var_z_held_m2 = 0.0
-        """With the twin: the map term's world height variance (m²) at the latest scan that held
-        height (the anchor's is 0); a height-blind scan's map term takes it (map_uncertainty
-        module doc)."""
         self._t_state_ns = 0
         self._prev_sample: tuple[int, np.ndarray, np.ndarray] | None = None
         self._accel_scale = 1.0
@@ -633,11 +624,6 @@ class Odometry:
         stats.height_blind = self._height_blind
         if cfg.filter.map_uncertainty and loc is not None:
             self._W_map = self._provenance.map_covariance(s.p, assoc.nearest[assoc.selected])
-            if self._P_blind is not None:
-                if self._height_blind:
-                    self._W_map = with_axis_variance(self._W_map, 2, self._map_var_z_held_m2)
-                else:
-                    self._map_var_z_held_m2 = float(self._W_map[2, 2])
         W_world = self._world_covariance()
         if cfg.filter.map_uncertainty:
             self._provenance.add_scan(s.p, W_world, p_world if inserted else p_world[:0])
@@ -705,7 +691,6 @@ class Odometry:
         self._t_first_map_ns = t_e
         # This pose anchors the map, so it defines the world: no error relative to it.
         self._W_map = np.zeros((6, 6))
-        self._map_var_z_held_m2 = 0.0
         self._provenance.add_scan(s.p, np.zeros((6, 6)), p_world)
         if self._keeps_discounted_P:
             # the discounted covariance (reported sigmas, robust kernel) starts here: no position
