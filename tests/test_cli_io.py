@@ -410,6 +410,19 @@ def test_sigma_warn_default_is_the_pipeline_default():
     assert inspect.signature(run).parameters["sigma_warn_m"].default == DEFAULT_SIGMA_WARN_M
 
 
+def _summary_text(res) -> str:
+    """What the run summary prints for ``res`` (a wide console, no colour)."""
+    import io
+
+    from rich.console import Console
+
+    from adalio.io.cli import _summary
+
+    buf = io.StringIO()
+    _summary(Console(file=buf, width=400), res, profile=False)
+    return buf.getvalue()
+
+
 @pytest.mark.parametrize(("method", "refused", "without", "backfilled", "flagged"), [
     ("moving", 272, 282, 0, True),     # refused fits left 282 of 540 scans without a pose
     ("moving", 272, 282, 230, False),  # the backfill reached all but 52 (< 10 %)
@@ -422,11 +435,6 @@ def test_summary_flags_a_long_moving_start_wait(tmp_path, method, refused, witho
     """The run summary names the scans a refused moving start left without a pose (those the
     backfill did not reach either), with the count, the wait and the last refusal, once they
     pass 10 % of the scans read."""
-    import io
-
-    from rich.console import Console
-
-    from adalio.io.cli import _summary
     from adalio.pipeline import RunResult
     from adalio.types import InitReport
 
@@ -439,9 +447,7 @@ def test_summary_flags_a_long_moving_start_wait(tmp_path, method, refused, witho
                     map_path=tmp_path, config_path=tmp_path, n_scans=540 - without + backfilled,
                     n_degenerate=0, wall_s=1.0, ms_per_scan_median=1.0, stage_ms={},
                     interrupted=False, n_scans_in=540, init_report=rep)
-    buf = io.StringIO()
-    _summary(Console(file=buf, width=400), res, profile=False)
-    text = buf.getvalue()
+    text = _summary_text(res)
     assert (f"first filter pose 28.3 s after the first scan ({without} scans read before it, "
             f"{backfilled} of them given a pose by the backfill)") in text
     line = (f"at risk: {without - backfilled}/540 scans have no pose: the filter started 28.3 s "
@@ -454,11 +460,6 @@ def test_summary_flags_a_long_moving_start_wait(tmp_path, method, refused, witho
 def test_summary_names_the_height_blind_stretches(tmp_path, n_blind):
     """The run summary names the scans whose height the sigmas leave to the IMU (scans.csv
     height_blind), with their count and time ranges, and says nothing when there are none."""
-    import io
-
-    from rich.console import Console
-
-    from adalio.io.cli import _summary
     from adalio.pipeline import RunResult
 
     res = RunResult(out_dir=tmp_path, trajectory_path=tmp_path, scans_csv_path=tmp_path,
@@ -466,9 +467,7 @@ def test_summary_names_the_height_blind_stretches(tmp_path, n_blind):
                     wall_s=1.0, ms_per_scan_median=1.0, stage_ms={}, interrupted=False,
                     n_scans_in=400, n_height_blind=n_blind,
                     height_blind_ranges_s=[(3.1, 6.5)] if n_blind else [])
-    buf = io.StringIO()
-    _summary(Console(file=buf, width=400), res, profile=False)
-    text = buf.getvalue()
+    text = _summary_text(res)
     assert ("height left to the IMU" in text) is bool(n_blind)
     if n_blind:
         assert "37/400 scans at 3.1-6.5 s" in text

@@ -385,8 +385,6 @@ class Odometry:
         """With filter.sigmas_height_blind: the covariance behind the reported sigmas, the
         discounted one's twin that takes no height from a height-blind scan
         (:meth:`_update_report_covariance`); None until the anchor, or without the flag."""
-        self._height_blind = False
-        """Whether the latest update was height-blind (``ieskf.height_blind``; twin only)."""
         self._t_state_ns = 0
         self._prev_sample: tuple[int, np.ndarray, np.ndarray] | None = None
         self._accel_scale = 1.0
@@ -594,7 +592,8 @@ class Odometry:
             result = iterated_update(
                 x_pred, P_pred, assoc.measure, cfg.filter, projector,
                 assoc.noise_terms if cfg.filter.errors_in_variables else None)
-            self._update_report_covariance(x_pred, result.state, assoc, projector)
+            stats.height_blind = self._update_report_covariance(x_pred, result.state, assoc,
+                                                                projector)
             self._state, self._P = result.state, result.P
             stats.iterations = result.iterations
             stats.n_searches = assoc.n_searches
@@ -609,7 +608,6 @@ class Odometry:
             stats.degeneracy_score = loc.score
         else:
             stats.degeneracy_score = 1.0
-            self._height_blind = False
         self._weak_geometry = bool(cfg.adaptive.use_localizability_trigger and loc is not None
                                    and loc.translation_ratio < cfg.adaptive.min_eigen_ratio)
         t0 = _timer(stage_ms, "update", t0)
@@ -621,7 +619,6 @@ class Odometry:
         if inserted:
             self._ivox.add_points(p_world, cell_m)
             self._finest_cell_m = min(self._finest_cell_m, cell_m)
-        stats.height_blind = self._height_blind
         if cfg.filter.map_uncertainty and loc is not None:
             self._W_map = self._provenance.map_covariance(s.p, assoc.nearest[assoc.selected])
         W_world = self._world_covariance()
@@ -1204,7 +1201,7 @@ class Odometry:
         return self._discounted_P[:6, :6]
 
     def _update_report_covariance(self, x_pred: State, x_post: State, assoc: _Association,
-                                  projector: np.ndarray | None) -> None:
+                                  projector: np.ndarray | None) -> bool:
         """While it is kept (:attr:`_keeps_discounted_P`), the discounted covariance (behind the
         reported sigmas and the robust kernel) takes the scan's information less what the
         normals' noise fakes
@@ -1213,16 +1210,16 @@ class Odometry:
         block, at the same SO(3) reprojection). The filter itself is unchanged. Its
         height-blind twin (``filter.sigmas_height_blind``) takes the same information, with
         the world height marginalised out where :func:`height_blind` says the scan holds
-        none."""
+        none. Returns whether the twin took the scan as height-blind."""
         f = self.cfg.filter
         if not self._keeps_discounted_P:
-            return
+            return False
         P = self._discounted_P
         Jr = _reprojection(x_post.boxminus(x_pred))
         P = Jr @ P @ Jr.T
         P_blind = None if self._P_blind is None else Jr @ self._P_blind @ Jr.T
         H = assoc.H[:, :6]
-        self._height_blind = False
+        height_blind = False
         if H.shape[0]:
             fake = normal_noise_information(assoc.points_lidar, assoc.selected, x_post.R,
                                             x_post.R_LI, x_post.t_LI, assoc.normals,
@@ -1233,7 +1230,7 @@ class Odometry:
                 fake = projector.T @ fake @ projector
             J, blind = real_information_and_height_blind(claimed, f.laser_point_cov * fake)
             J /= f.laser_point_cov
-            self._height_blind = bool(blind and P_blind is not None)
+            height_blind = bool(blind and P_blind is not None)
             P = _information_update(P, J)
             if P_blind is not None:
                 P_blind = _information_update(
@@ -1241,6 +1238,7 @@ class Odometry:
         self._P_report = 0.5 * (P + P.T)
         if P_blind is not None:
             self._P_blind = P_blind
+        return height_blind
 
     def _deskew_covariance(self) -> np.ndarray:
         """The latest scan's undistortion rotation noise (``map_uncertainty.deskew_covariance``),
