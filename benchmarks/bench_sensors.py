@@ -22,14 +22,21 @@ stayed within 1 m, the count of the others (over 1 m, or no result), and checks 
 targets: poses >= 95 % of scans (still) / >= 90 % (moving); hall ATE <= 1 cm (still) / <= 2 cm
 (moving); and no run over 1 m ATE in any scene.
 
+With ``--mountings`` the sequences are also simulated with other IMU-LiDAR mountings
+(:data:`MOUNTINGS`; the simulator keeps the LiDAR level and turns the IMU, so a mounting is how
+the IMU sits under the LiDAR), each run with that sequence's own ``config.yaml``, whose
+``sensor.T_imu_lidar`` is the mounting: nothing in the estimator may assume the HILTI rig's.
+
     python benchmarks/bench_sensors.py                      # hall + corridor, 2 seeds, full routes
     python benchmarks/bench_sensors.py --scenes hall --seeds 1 --lidars xt32-512
+    python benchmarks/bench_sensors.py --starts still --mountings upright skewed side
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import json
 import shlex
 import sys
@@ -39,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 from bench_modes import parse_overrides
+from scipy.spatial.transform import Rotation
 
 from adalio.config import load_config
 from adalio.errors import InputError
@@ -49,6 +57,26 @@ from adalio.sim import cached_sequence
 
 LIDARS = {"xt32-512": ("xt32", 512), "xt32-2000": ("xt32", 2000), "os1-64": ("ouster64", None),
           "vlp16": ("vlp16", None)}
+
+
+def _mounting(euler_zyx_deg: tuple[float, float, float], t_m: tuple[float, float, float]) -> list:
+    """``T_imu_lidar`` (4x4, ``p_imu = R p_lidar + t``) from z-y-x Euler angles and a lever arm."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("ZYX", euler_zyx_deg, degrees=True).as_matrix()
+    T[:3, 3] = t_m
+    return T.tolist()
+
+
+MOUNTINGS: dict[str, list | None] = {
+    "hilti": None,
+    "upright": _mounting((0.0, 0.0, 0.0), (0.0, 0.0, 0.06)),
+    "skewed": _mounting((35.0, 8.0, -175.0), (0.10, -0.05, 0.10)),
+    "side": _mounting((0.0, 0.0, 90.0), (0.0, -0.05, 0.03)),
+}
+"""IMU-LiDAR mountings ``T_imu_lidar``: ``hilti`` the HILTI 2022 rig's (the simulator's
+default: the LiDAR upside down over the IMU, 5.5 cm apart); ``upright`` the IMU's axes along the
+LiDAR's, 6 cm under it; ``skewed`` turned 35 / 8 / -175 degrees (z-y-x) with a 15 cm lever arm
+(the README's OS1-64 stairwell walk); ``side`` the IMU rolled 90 degrees onto its side."""
 TARGET_POSES = {"still": 0.95, "moving": 0.90}
 TARGET_HALL_ATE_M = {"still": 0.01, "moving": 0.02}
 MAX_ATE_M = 1.0
@@ -64,6 +92,8 @@ class Cell:
     start: str
     cut_s: float = 0.0
     """Moving start: seconds cut from the bag's start (0 for a still start)."""
+    mounting: str = "hilti"
+    """Key of :data:`MOUNTINGS`."""
     scans: int = 0
     poses: int = 0
     init: str = ""
@@ -100,14 +130,16 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
              overrides: dict[str, str]) -> Cell:
     lidar, columns = LIDARS[cell.lidar]
     sim = cached_sequence(cell.scene, seed=cell.seed, duration_s=duration_s, lidar=lidar,
-                          columns=columns, imu_noise_scale=cell.imu_noise)
+                          columns=columns, imu_noise_scale=cell.imu_noise,
+                          T_imu_lidar=MOUNTINGS[cell.mounting])
     meta = json.loads(sim.meta_path.read_text())
     cfg = load_config(config_file=sim.config_path, overrides=overrides)
     start_s = cell.cut_s
     cell.scans = int(meta["n_scans"] - round(start_s * meta["lidar_rate_hz"]))
     cut = f"{cell.cut_s:g}" if cell.start == "moving" else ""
+    mount = "" if cell.mounting == "hilti" else f"_{cell.mounting}"
     out = out_root / (f"{cell.scene}_s{cell.seed}_imu{cell.imu_noise:g}_{cell.lidar}_"
-                      f"{cell.start}{cut}")
+                      f"{cell.start}{cut}{mount}")
     try:
         res = run_bag(sim.bag_path, cfg, out, progress=False, start_s=start_s)
     except Exception as exc:  # noqa: BLE001 - a failed cell is reported, the matrix goes on
@@ -149,21 +181,27 @@ def cm(x: float) -> str:
     return "–" if not np.isfinite(x) else f"{x * 100:.2f} cm"
 
 
+def _lidar_label(c: Cell) -> str:
+    """The LiDAR, and the mounting when it is not the HILTI rig's."""
+    return c.lidar if c.mounting == "hilti" else f"{c.lidar} ({c.mounting})"
+
+
 def summary_table(cells: list[Cell]) -> str:
     lines = [("| scene | start | IMU noise | LiDARs | runs | poses/scans min | ATE mean | "
               "ATE worst | runs > 1 m or failed | init | init after, median (max) | target | "
               "within 3σ x / y / z |"),
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    keys = sorted({(c.scene, c.start, c.imu_noise) for c in cells},
-                  key=lambda k: (k[0], k[1] != "still", k[2]))
-    for scene, start, noise in keys:
-        cs = [c for c in cells if (c.scene, c.start, c.imu_noise) == (scene, start, noise)]
+    keys = sorted({(c.scene, c.start, c.imu_noise, c.mounting) for c in cells},
+                  key=lambda k: (k[0], k[1] != "still", k[2], k[3] != "hilti", k[3]))
+    for scene, start, noise, mounting in keys:
+        cs = [c for c in cells
+              if (c.scene, c.start, c.imu_noise, c.mounting) == (scene, start, noise, mounting)]
         ates = np.array([c.ate_m for c in cs])
         on_track = ates[ates <= MAX_ATE_M]  # mean and worst of these
         inits = sorted({c.init or "error" for c in cs})
         ok = all(c.passes() for c in cs)
         lines.append(
-            f"| {scene} | {start} | x{noise:g} | {', '.join(sorted({c.lidar for c in cs}))} | "
+            f"| {scene} | {start} | x{noise:g} | {', '.join(sorted({_lidar_label(c) for c in cs}))} | "
             f"{len(cs)} | {100 * min(c.pose_ratio for c in cs):.1f} % | "
             f"{cm(float(on_track.mean())) if on_track.size else '–'} | "
             f"{cm(float(on_track.max())) if on_track.size else '–'} | "
@@ -182,6 +220,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="seeds first-seed .. first-seed + seeds - 1")
     ap.add_argument("--imu-noise", nargs="+", type=float, default=[1.0, 10.0])
     ap.add_argument("--lidars", nargs="+", default=list(LIDARS), choices=list(LIDARS))
+    ap.add_argument("--mountings", nargs="+", default=["hilti"], choices=list(MOUNTINGS),
+                    help="IMU-LiDAR mountings to simulate (MOUNTINGS)")
     ap.add_argument("--starts", nargs="+", default=["still", "moving"],
                     choices=["still", "moving"])
     ap.add_argument("--duration", type=float, default=0.0,
@@ -205,13 +245,13 @@ def main(argv: list[str] | None = None) -> int:
     for scene in args.scenes:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for noise in args.imu_noise:
-                for lidar in args.lidars:
+                for lidar, mounting in itertools.product(args.lidars, args.mountings):
                     for start, cut_s in starts:
-                        c = run_cell(Cell(scene, seed, noise, lidar, start, cut_s), duration,
-                                     args.out, overrides)
+                        c = run_cell(Cell(scene, seed, noise, lidar, start, cut_s, mounting),
+                                     duration, args.out, overrides)
                         cells.append(c)
                         label = f"moving {cut_s:g} s" if start == "moving" else start
-                        print(f"| {scene} | {seed} | x{noise:g} | {lidar} | {label} | "
+                        print(f"| {scene} | {seed} | x{noise:g} | {_lidar_label(c)} | {label} | "
                               f"{c.poses}/{c.scans} ({100 * c.pose_ratio:.0f} %) | "
                               f"{c.init} after {c.init_wait_s:.1f} s | "
                               f"{cm(c.ate_m)} | {c.ms_per_scan:.1f} | "

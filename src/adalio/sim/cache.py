@@ -14,11 +14,14 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
+
 try:
     import fcntl
 except ImportError:  # not POSIX: no cross-process coordination
     fcntl = None
 
+from adalio.config import validate_transform
 from adalio.errors import InputError
 from adalio.sim.bagout import bag_path_for
 from adalio.sim.generate import SimResult, _check_args, check_free_space, simulate
@@ -245,9 +248,11 @@ def _code_version() -> str:
 def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = None,
                     lidar: str = "xt32", fmt: str = "ros1",
                     columns: int | None = None, imu_noise_scale: float = 1.0,
-                    imu_bias_scale: float = 1.0, motion_from: str | Path | None = None) -> SimResult:
+                    imu_bias_scale: float = 1.0, motion_from: str | Path | None = None,
+                    T_imu_lidar: list[list[float]] | np.ndarray | None = None) -> SimResult:
     """Generate once (atomically: temp folder + rename + completion marker) and reuse
-    (the key includes a hash of ``motion_from``'s content). After generating, the cache is
+    (the key includes a hash of ``motion_from``'s content, and of ``T_imu_lidar``, the mounting
+    ``simulate`` takes instead of the HILTI one, when given). After generating, the cache is
     trimmed to ``$ADALIO_SIM_CACHE_GB`` (default 20 GB) by :func:`evict_cache`, least recently
     used first; a sequence larger than the cap on its own is still kept while it is the newest.
     Before generating, older sequences are evicted while the disk lacks the room the new one
@@ -270,7 +275,11 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
             hh = "-hh" + hashlib.sha1(Path(motion_from).read_bytes()).hexdigest()[:8]
         except OSError as exc:
             raise InputError(f"{motion_from}: cannot read the motion file ({exc})") from None
-    key = f"{scene}-s{seed}-d{dur}-{lidar}-{fmt}-c{cols}{imu}{hh}-v{_code_version()}"
+    mount = ""
+    if T_imu_lidar is not None:
+        T = validate_transform(T_imu_lidar, "T_imu_lidar")
+        mount = "-m" + hashlib.sha1(np.round(T, 9).tobytes()).hexdigest()[:8]
+    key = f"{scene}-s{seed}-d{dur}-{lidar}-{fmt}-c{cols}{imu}{hh}{mount}-v{_code_version()}"
     final = cache_root() / key
 
     def result(d: Path) -> SimResult:
@@ -311,7 +320,7 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
             simulate(scene, tmp, seed=seed, duration_s=duration_s, lidar=lidar, fmt=fmt,
                      columns=columns, imu_noise_scale=imu_noise_scale,
                      imu_bias_scale=imu_bias_scale, motion_from=motion_from,
-                     make_room=make_room)
+                     T_imu_lidar=T_imu_lidar, make_room=make_room)
             (tmp / "COMPLETE").write_text("ok\n")
             if final.exists() and not (final / "COMPLETE").is_file():
                 shutil.rmtree(final, ignore_errors=True)
