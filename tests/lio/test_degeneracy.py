@@ -431,6 +431,14 @@ def test_projectors_keep_mostly_horizontal_translations():
         ms = d[:3] @ d[:3] + np.mean(np.sum(np.cross(d[3:], pts) ** 2, axis=1))
         assert (d[0] ** 2 + d[1] ** 2 > 0.5 * ms) == horizontal
         assert mostly_horizontal(W, d) == horizontal
+        # the same with the world's up given: along z, and turned with the scene onto its side
+        assert mostly_horizontal(W, d, np.array([0.0, 0.0, 1.0])) == horizontal
+        Q = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # z -> -y
+        T = np.kron(np.eye(2), Q)
+        side_pts = pts @ Q.T
+        W_side = localizability(pose_jacobian(side_pts, nrm @ Q.T), POINT_COV,
+                                points_body=side_pts).scaling
+        assert mostly_horizontal(W_side, T @ d, Q @ np.array([0.0, 0.0, 1.0])) == horizontal
     never = np.zeros(3)
     held_all = consistent_projector(loc, 0.0, dirs, never, 0.6)
     kept = consistent_projector(loc, 0.0, dirs, never, 0.6, keep_horizontal=True)

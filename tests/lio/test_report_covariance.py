@@ -178,6 +178,44 @@ def test_height_blind_against_the_generalized_eigenproblem():
     assert height_blind(walls, np.diag([1e2, 1e2, 4e4, 10.0, 10.0, 10.0]))
 
 
+def test_height_blind_takes_the_height_along_the_worlds_up():
+    """The world is the IMU frame at the start, so its up is wherever the IMU's mounting puts
+    it: ``height_blind`` with ``up_world`` against scipy's generalized eigensolver with the
+    height entry ``eᵀ claimed e``, ``e = [up, 0]``; and a scene turned with the world (both
+    information matrices as ``T A Tᵀ``, ``T = diag(Q, Q)``) gives the same answer along the turned
+    up, where the world's z would not: walls turned onto their side claim their height along y."""
+    from scipy.linalg import eigh
+    from scipy.spatial.transform import Rotation
+
+    from adalio.lio.ieskf import height_blind
+
+    rng = np.random.default_rng(13)
+    checked = 0
+    for _ in range(300):
+        X = rng.normal(size=(6, 6)) * rng.uniform(0.1, 3.0, size=6)
+        A = X @ X.T
+        Y = rng.normal(size=(6, 6)) * rng.uniform(0.0, 3.0, size=6)
+        F = Y @ Y.T
+        up = rng.normal(size=3)
+        up /= np.linalg.norm(up)
+        e = np.r_[up, np.zeros(3)]
+        m, V = eigh(F, A)
+        part = (e @ A @ V) ** 2
+        share = part[m >= 1.0].sum() / part.sum()
+        if abs(share - 0.5) < 1e-6:
+            continue
+        assert height_blind(A, F, up) == (share > 0.5)
+        checked += 1
+    assert checked > 290
+    walls = np.diag([1e4, 1e4, 5e3, 1e3, 1e3, 1e3])
+    fake = np.diag([1e2, 1e2, 4e4, 10.0, 10.0, 10.0])
+    Q = Rotation.from_euler("x", 90, degrees=True).as_matrix()  # the up, z, turned to -y
+    T = np.kron(np.eye(2), Q)
+    side_walls, side_fake = T @ walls @ T.T, T @ fake @ T.T
+    assert height_blind(side_walls, side_fake, Q @ np.array([0.0, 0.0, 1.0]))
+    assert not height_blind(side_walls, side_fake)  # the world's z is horizontal there
+
+
 def test_without_direction_is_the_marginal_information():
     """``J`` with the height marginalised out holds nothing along it, and on the other five
     coordinates it is the marginal information ``((J⁻¹)_rr)⁻¹`` (brute force)."""

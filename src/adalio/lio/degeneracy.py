@@ -335,14 +335,16 @@ def is_weak(loc: Localizability, cfg: AdaptiveConfig) -> bool:
 
 
 def observable_projector(loc: Localizability, ratio: float,
-                         keep_horizontal: bool = False) -> np.ndarray:
+                         keep_horizontal: bool = False,
+                         up_world: np.ndarray | None = None) -> np.ndarray:
     """(6, 6) projector in error-state order [dp, dtheta] onto the observable directions.
 
     Module docstring §3: with ``W = loc.scaling`` and ``I~ = W I_e W``, keep the eigenvectors
     ``U_k`` of ``I~`` with eigenvalue >= ``ratio`` * lambda_max(I~) and return
     ``P = W U_k U_k^T W^-1``. P is idempotent; ``H P`` and ``P delta`` remove exactly the weak
     directions. With ``keep_horizontal`` a weak direction that is mostly a horizontal
-    translation (:func:`mostly_horizontal`, §5) is kept too. ``ratio <= 0`` gives the identity;
+    translation (:func:`mostly_horizontal`, §5; ``up_world`` the world's up) is kept too.
+    ``ratio <= 0`` gives the identity;
     a scan without residuals gives the zero matrix (nothing is observable).
     """
     if not np.isfinite(ratio) or not 0.0 <= ratio <= 1.0:
@@ -355,16 +357,20 @@ def observable_projector(loc: Localizability, ratio: float,
     W = _scaling(loc)
     strong = lam >= ratio * lam[-1]
     if keep_horizontal:
-        strong |= np.array([mostly_horizontal(W, W @ v) for v in vec.T])
+        strong |= np.array([mostly_horizontal(W, W @ v, up_world) for v in vec.T])
     keep = vec[:, strong]
     return W @ (keep @ keep.T) @ np.linalg.inv(W)
 
 
-def mostly_horizontal(W: np.ndarray, d: np.ndarray) -> bool:
+def mostly_horizontal(W: np.ndarray, d: np.ndarray, up_world: np.ndarray | None = None) -> bool:
     """A pose displacement ``d`` (error order [dp (world), dtheta]) is mostly a horizontal
-    translation when ``|dp_xy|²`` is more than half of its mean square point motion,
-    ``|W^-1 d|²`` (``W`` the scaling of module docstring §3, §5)."""
-    return bool(d[0] ** 2 + d[1] ** 2 > 0.5 * float(np.sum(np.linalg.solve(W, d) ** 2)))
+    translation when the square of ``dp``'s part across ``up_world`` (the world's unit up, against
+    gravity; None: the world's z, for a gravity-aligned world) is more than half of its mean
+    square point motion, ``|W^-1 d|²`` (``W`` the scaling of module docstring §3, §5)."""
+    dp = np.asarray(d[:3], dtype=np.float64)
+    up = np.array([0.0, 0.0, 1.0]) if up_world is None else np.asarray(up_world, np.float64)
+    across = dp - float(dp @ up) * up
+    return bool(across @ across > 0.5 * float(np.sum(np.linalg.solve(W, d) ** 2)))
 
 
 def _scaling(loc: Localizability) -> np.ndarray:
@@ -391,16 +397,17 @@ def weak_directions(loc: Localizability, count: int, step_m: float) -> np.ndarra
 
 def consistent_projector(loc: Localizability, ratio: float, directions: np.ndarray,
                          restoring: np.ndarray, min_restoring: float,
-                         keep_horizontal: bool = False) -> np.ndarray:
+                         keep_horizontal: bool = False,
+                         up_world: np.ndarray | None = None) -> np.ndarray:
     """:func:`observable_projector` that also drops the probed ``directions`` (rows, error order
     [dp (world), dtheta], as from :func:`weak_directions`) whose ``restoring`` ratio is below
     ``min_restoring`` (module docstring §4). With ``keep_horizontal``, neither drops a direction
-    that is mostly a horizontal translation (:func:`mostly_horizontal`, §5). The result is an
-    idempotent (6, 6) projector."""
-    P = observable_projector(loc, ratio, keep_horizontal)
+    that is mostly a horizontal translation (:func:`mostly_horizontal`, §5; ``up_world`` the
+    world's up). The result is an idempotent (6, 6) projector."""
+    P = observable_projector(loc, ratio, keep_horizontal, up_world)
     W = _scaling(loc)
     drop = [d for d, rho in zip(directions, restoring) if not rho >= min_restoring
-            and not (keep_horizontal and mostly_horizontal(W, d))]
+            and not (keep_horizontal and mostly_horizontal(W, d, up_world))]
     if not drop:
         return P
     Winv = np.linalg.inv(W)

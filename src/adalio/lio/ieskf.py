@@ -70,25 +70,36 @@ def real_information(claimed: np.ndarray, fake: np.ndarray) -> np.ndarray:
     return real_information_and_height_blind(claimed, fake)[0]
 
 
-def height_blind(claimed: np.ndarray, fake: np.ndarray, axis: int = 2) -> bool:
+def height_blind(claimed: np.ndarray, fake: np.ndarray,
+                 up_world: np.ndarray | None = None) -> bool:
     """Whether the information ``claimed`` (6x6 pose block, [δp world, δθ]) holds its height
-    (world ``axis``) mostly where ``fake`` says it is fake: in the generalized eigenbasis of
-    ``(fake, claimed)`` (``fake v = m claimed v``, ``vᵀ claimed v = 1``) the claim's diagonal
-    entry splits as ``claimed_aa = Σ_k (claimed v_k)_a²``; the directions with ``m_k >= 1``
-    are those :func:`real_information` drops. True when they hold more than half of it (or
-    the claim holds no height at all)."""
-    return real_information_and_height_blind(claimed, fake, axis)[1]
+    (the position along ``up_world``, the world's unit up, against gravity; None: the world's
+    z) mostly where ``fake`` says it is fake: in the generalized eigenbasis of
+    ``(fake, claimed)`` (``fake v = m claimed v``, ``vᵀ claimed v = 1``) the claim's height
+    entry ``eᵀ claimed e`` (``e = [up, 0]``) splits as ``Σ_k (eᵀ claimed v_k)²``; the directions
+    with ``m_k >= 1`` are those :func:`real_information` drops. True when they hold more than
+    half of it (or the claim holds no height at all)."""
+    return real_information_and_height_blind(claimed, fake, up_world)[1]
+
+
+def height_direction(up_world: np.ndarray | None) -> np.ndarray:
+    """The pose-error direction ``[up, 0, 0, 0]`` (6,) of the height along the unit
+    ``up_world`` (None: the world's z)."""
+    e = np.zeros(6)
+    e[:3] = (0.0, 0.0, 1.0) if up_world is None else up_world
+    return e
 
 
 def real_information_and_height_blind(claimed: np.ndarray, fake: np.ndarray,
-                                      axis: int = 2) -> tuple[np.ndarray, bool]:
+                                      up_world: np.ndarray | None = None
+                                      ) -> tuple[np.ndarray, bool]:
     """:func:`real_information` and :func:`height_blind` from one decomposition (the whitened
     directions ``V`` with ``μ = 1 − m``)."""
     parts = _claim_metric(claimed, fake)
     if parts is None:
         return np.zeros_like(claimed), True
     half, mid, _, mu, V = parts
-    share = (half @ V)[axis] ** 2
+    share = (height_direction(up_world) @ half @ V) ** 2
     total = float(share.sum())
     blind = not total > 0.0 or bool(share[mu <= 0.0].sum() > 0.5 * total)
     return half @ mid @ half.T, blind

@@ -65,6 +65,7 @@ from adalio.lio.degeneracy import (
 )
 from adalio.lio.ieskf import (
     _reprojection,
+    height_direction,
     iterated_update,
     real_information_and_height_blind,
     without_direction,
@@ -1146,9 +1147,11 @@ class Odometry:
             dirs = weak_directions(loc, ada.probe_directions, ada.probe_step_m)
             rho = restoring_ratios(assoc, x, dirs)
             projector = consistent_projector(loc, ada.observable_eigen_ratio, dirs, rho,
-                                             ada.min_restoring_ratio, not ada.hold_horizontal)
+                                             ada.min_restoring_ratio, not ada.hold_horizontal,
+                                             self._up_world(x))
             return down, assoc, leaf_m, projector, float(rho.min())
-        projector = observable_projector(loc, ada.observable_eigen_ratio, not ada.hold_horizontal)
+        projector = observable_projector(loc, ada.observable_eigen_ratio, not ada.hold_horizontal,
+                                         self._up_world(x))
         return down, assoc, leaf_m, projector, float("nan")
 
     def _local_planes(self, surface: LocalSurface | None, down: np.ndarray,
@@ -1200,6 +1203,12 @@ class Odometry:
             return None
         return self._discounted_P[:6, :6]
 
+    @staticmethod
+    def _up_world(x: State) -> np.ndarray:
+        """The world's unit up (against the state's gravity): the world is the IMU frame at
+        the start, so its z is vertical only for an IMU mounted z-up or z-down."""
+        return -x.g / np.linalg.norm(x.g)
+
     def _update_report_covariance(self, x_pred: State, x_post: State, assoc: _Association,
                                   projector: np.ndarray | None) -> bool:
         """While it is kept (:attr:`_keeps_discounted_P`), the discounted covariance (behind the
@@ -1228,13 +1237,14 @@ class Odometry:
             if projector is not None:
                 claimed = projector.T @ claimed @ projector
                 fake = projector.T @ fake @ projector
-            J, blind = real_information_and_height_blind(claimed, f.laser_point_cov * fake)
+            up = self._up_world(x_post)
+            J, blind = real_information_and_height_blind(claimed, f.laser_point_cov * fake, up)
             J /= f.laser_point_cov
             height_blind = bool(blind and P_blind is not None)
             P = _information_update(P, J)
             if P_blind is not None:
                 P_blind = _information_update(
-                    P_blind, without_direction(J, np.eye(6)[2]) if blind else J)
+                    P_blind, without_direction(J, height_direction(up)) if blind else J)
         self._P_report = 0.5 * (P + P.T)
         if P_blind is not None:
             self._P_blind = P_blind
