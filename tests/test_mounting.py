@@ -2,44 +2,42 @@
 the IMU turned on all three axes under the LiDAR and a 15 cm lever arm (``bench_sensors.py``'s
 ``skewed``) tracks the ground truth as the HILTI mounting does, from the sequence's own config."""
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from adalio.config import load_config
-from adalio.io.writers import read_tum
+from adalio.eval.metrics import align_pair
 from adalio.pipeline import run_bag
 from adalio.sim import cached_sequence
 
-SKEWED = np.eye(4)
-SKEWED[:3, :3] = Rotation.from_euler("ZYX", (35.0, 8.0, -175.0), degrees=True).as_matrix()
-SKEWED[:3, 3] = (0.10, -0.05, 0.10)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from bench_sensors import MOUNTINGS
 
 
 def _errors(sim, out_dir) -> tuple[np.ndarray, np.ndarray, int]:
-    """Per estimate: position error (m) and rotation error (deg) against the ground truth,
-    without any alignment (both are in the IMU frame at the start), and the estimates' count."""
+    """Per estimate: position error (m) and rotation error (deg) against the ground truth
+    (interpolated at its stamps), without any alignment (both are in the IMU frame at the
+    start), and the estimates' count."""
     cfg = load_config(config_file=sim.config_path)
     res = run_bag(sim.bag_path, cfg, out_dir, progress=False)
-    t_est, T_est = read_tum(res.trajectory_path)
-    t_gt, T_gt = read_tum(sim.gt_path)
-    t0 = t_gt[0]
-    t_est_s, t_gt_s = (t_est - t0) * 1e-9, (t_gt - t0) * 1e-9
-    p_gt = np.stack([np.interp(t_est_s, t_gt_s, T_gt[:, k]) for k in range(3)], axis=1)
-    i = np.clip(np.searchsorted(t_gt_s, t_est_s), 0, len(t_gt_s) - 1)  # 100 Hz truth
-    R_gt = Rotation.from_quat(T_gt[i, 3:7])
-    R_est = Rotation.from_quat(T_est[:, 3:7])
-    rot_deg = np.degrees((R_gt.inv() * R_est).magnitude())
-    return np.linalg.norm(T_est[:, :3] - p_gt, axis=1), rot_deg, len(t_est)
+    pair = align_pair(res.trajectory_path, sim.gt_path, align="none")
+    R_gt = np.asarray(pair.gt.poses_se3)[:, :3, :3]
+    R_est = np.asarray(pair.est.poses_se3)[:, :3, :3]
+    cos = (np.trace(np.swapaxes(R_gt, 1, 2) @ R_est, axis1=1, axis2=2) - 1.0) / 2.0
+    rot_deg = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return pair.errors_m, rot_deg, len(pair.errors_m)
 
 
 @pytest.mark.parametrize("mounting", ["hilti", "skewed"])
 def test_a_skewed_imu_mounting_tracks_like_the_hilti_rig(tmp_path, mounting):
     sim = cached_sequence("hall", seed=1, duration_s=6.0, columns=500,
-                          T_imu_lidar=None if mounting == "hilti" else SKEWED)
+                          T_imu_lidar=MOUNTINGS[mounting])
     cfg_T = np.asarray(load_config(config_file=sim.config_path).sensor.T_imu_lidar)
     if mounting == "skewed":  # the run reads the mounting from the sequence's own config
-        assert np.allclose(cfg_T, SKEWED)
+        assert np.allclose(cfg_T, MOUNTINGS["skewed"])
     pos_m, rot_deg, n = _errors(sim, tmp_path / mounting)
     assert n >= 55  # 6 s at 10 Hz: every scan posed (the rest's scans backfilled)
     # measured (session 48): HILTI 0.56 cm and 0.056 deg at most, skewed 0.59 cm and 0.068 deg;
@@ -47,10 +45,6 @@ def test_a_skewed_imu_mounting_tracks_like_the_hilti_rig(tmp_path, mounting):
     assert pos_m.max() < 0.02
     assert rot_deg.max() < 0.25
 
-
-SIDE = np.eye(4)  # the IMU rolled onto its side: the world's z (the IMU's at rest) is horizontal
-SIDE[:3, :3] = Rotation.from_euler("x", 90.0, degrees=True).as_matrix()
-SIDE[:3, 3] = (0.0, -0.05, 0.03)
 
 
 @pytest.mark.parametrize("mounting", ["hilti", "side"])
@@ -66,8 +60,8 @@ def test_the_height_blind_stairwell_is_flagged_along_the_vertical_whatever_the_m
     from adalio.eval.files import read_scans_csv
     from adalio.eval.metrics import sigma_consistency
 
-    T = None if mounting == "hilti" else SIDE
-    sim = cached_sequence("stairs_garage", seed=1, duration_s=20.0, columns=512, T_imu_lidar=T)
+    sim = cached_sequence("stairs_garage", seed=1, duration_s=20.0, columns=512,
+                          T_imu_lidar=MOUNTINGS[mounting])
     cfg = load_config(config_file=sim.config_path)
     res = run_bag(sim.bag_path, cfg, tmp_path / mounting, progress=False)
     scans = read_scans_csv(tmp_path / mounting / "scans.csv")
