@@ -339,6 +339,8 @@ def test_run_writes_the_measured_imu_calibration(monkeypatch, capsys, tmp_path, 
     # the rig's IMU is noise-free, at rest with gravity on +z and zero gyro
     assert measured["gyro_noise_rad_s_sqrt_hz"] == 0.0
     np.testing.assert_allclose(measured["gravity_imu_m_s2"], [0, 0, -9.81], atol=1e-6)
+    # a still start's world is the IMU frame: the same gravity, which the report levels by
+    np.testing.assert_allclose(measured["gravity_world_m_s2"], [0, 0, -9.81], atol=1e-6)
     np.testing.assert_allclose(measured["gyro_bias_rad_s"], 0.0, atol=1e-12)
     load_config(config_file=out / "config.yaml")  # the measured block reads back
 

@@ -73,3 +73,12 @@ def test_the_height_blind_stairwell_is_flagged_along_the_vertical_whatever_the_m
     across = [np.median(c.sigma_world_m[:, a]) for a in range(3) if a != up_axis]
     assert vertical_sigma > 10 * max(across)  # the IMU holds the height, the walls the rest
     assert np.median(np.abs(c.errors_world_m[:, up_axis])) < vertical_sigma
+    # config.yaml says where the world's up is, and the report's figures stand on it
+    import yaml
+
+    from adalio.eval.report import make_report
+
+    make_report(tmp_path / mounting)
+    metrics = yaml.safe_load((tmp_path / mounting / "metrics.json").read_text())
+    up_lidar = np.asarray(cfg.sensor.T_imu_lidar)[:3, 2]
+    assert abs(np.dot(metrics["figures_up"], up_lidar)) > np.cos(np.radians(2.0))

@@ -144,6 +144,10 @@ class InitReport:
     """Gravity in the IMU frame at initialization."""
     window_s: float
     """Length of the still window or of the fitted moving window."""
+    gravity_world_m_s2: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    """Gravity in the world frame at initialization (the filter's ``g``): the world is the IMU
+    frame at init (or the moving fit's, or gravity-aligned), so this says where its up is (the
+    report levels its plots by it)."""
     accel_norm_m_s2: float = float("nan")
     """Static: mean accelerometer norm over the window (in the bag's unit, before scaling)."""
     gyro_noise_rad_s_sqrt_hz: float = float("nan")
@@ -209,6 +213,7 @@ class InitReport:
                 "init_window_s": num(self.window_s),
                 "gyro_bias_rad_s": [num(v) for v in self.gyro_bias_rad_s],
                 "gravity_imu_m_s2": [num(v) for v in self.gravity_imu_m_s2],
+                "gravity_world_m_s2": [num(v) for v in self.gravity_world_m_s2],
                 "accel_norm_m_s2": num(self.accel_norm_m_s2),
                 "gyro_noise_rad_s_sqrt_hz": num(self.gyro_noise_rad_s_sqrt_hz),
                 "accel_noise_m_s2_sqrt_hz": num(self.accel_noise_m_s2_sqrt_hz),

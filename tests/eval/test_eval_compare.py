@@ -54,6 +54,14 @@ def test_compare_cli_on_simulated_run(tmp_path):
     for name in ("compare_top.png", "compare_side.png", "compare_error.png"):
         assert_png_image(out / name)
     assert "compare_top.png" in (out / "compare.md").read_text()
+    # the overlay stands on the world's up, in the GT's frame: the simulated LiDAR is level, so
+    # up is along its z, taken into the GT's frame by the GT's first pose (the IMU's)
+    from adalio.config import load_config
+    from adalio.eval.files import read_trajectory
+
+    gt0 = np.asarray(read_trajectory(sim.gt_path, "ground-truth").poses_se3)[0]
+    lidar_z = np.asarray(load_config(config_file=sim.config_path).sensor.T_imu_lidar)[:3, 2]
+    assert abs(np.dot(data["figures_up"], gt0[:3, :3] @ lidar_z)) > np.cos(np.radians(2.0))
     for row in data["rows"]:
         run_dir = Path(row["out_dir"])
         assert row["aborted"] is None, row

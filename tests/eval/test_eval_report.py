@@ -163,3 +163,80 @@ def test_report_states_sigma_consistency_and_how_the_error_drifts(tmp_path):
     r = np.array(sigma["increment_correlation_xyz"])
     assert -0.8 < r.mean() < -0.2, r
     assert "Correlation of consecutive 1 s increments" in text
+
+
+@pytest.mark.parametrize("with_gt", [False, True])
+def test_figures_stand_on_the_worlds_up_whatever_the_imu_mounting(tmp_path, monkeypatch,
+                                                                   with_gt):
+    """The world is the IMU frame at init, so with the IMU on its side its z is horizontal: the
+    figures turn it so that the up of the gravity the filter took (``config.yaml``'s
+    ``measured.gravity_world_m_s2``) is their z. A level helix (_pose: radius 2 m, 0.2 m/s down)
+    written in a world rolled 90 deg (and a GT in a frame of its own) must come out with its
+    descent on the figures' z and its circle in their x-y, the map's floor as well."""
+    from adalio.eval import plots
+
+    out, gt_level = make_run_dir(tmp_path)
+    R_w = Rotation.from_euler("xz", [90, 30], degrees=True).as_matrix()  # level -> world
+    T_w = np.eye(4)
+    T_w[:3, :3] = R_w
+    est = np.loadtxt(out / "trajectory.tum")
+    with TumWriter(out / "trajectory.tum") as tw:
+        for row in est:
+            T = np.eye(4)
+            T[:3, :3] = Rotation.from_quat(row[4:]).as_matrix()
+            T[:3, 3] = row[1:4]
+            tw.write(round(row[0] * 1e9), T_w @ T)
+    floor = np.column_stack([np.random.default_rng(1).uniform(-3, 3, (500, 2)), np.full(500, -2.5)])
+    write_ply(out / "map.ply", floor @ R_w.T)
+    text = Config().to_yaml() + yaml_measured(R_w @ [0.0, 0.0, -9.81])
+    (out / "config.yaml").write_text(text)
+    gt = None
+    if with_gt:  # the GT in a frame whose z points down
+        gt = tmp_path / "gt_down.tum"
+        T_g = np.diag([1.0, -1.0, -1.0, 1.0])
+        g_rows = np.loadtxt(gt_level)
+        with TumWriter(gt) as tw:
+            for row in g_rows:
+                T = np.eye(4)
+                T[:3, :3] = Rotation.from_quat(row[4:]).as_matrix()
+                T[:3, 3] = row[1:4]
+                tw.write(round(row[0] * 1e9), T_g @ T)
+    seen = {}
+    real_traj, real_map = plots.plot_trajectories, plots.plot_map_top
+
+    def traj(est_xyz, gt_xyz, *a, **kw):
+        seen["est"], seen["gt"] = next(iter(est_xyz.values())), gt_xyz
+        return real_traj(est_xyz, gt_xyz, *a, **kw)
+
+    def map_top(points, *a, **kw):
+        seen["map"] = points
+        return real_map(points, *a, **kw)
+
+    monkeypatch.setattr(plots, "plot_trajectories", traj)
+    monkeypatch.setattr(plots, "plot_map_top", map_top)
+    make_report(out, gt)
+    level = est[:, 1:4]  # the estimate as written in the level frame (GT + 3 cm noise)
+    fig = seen["est"]
+    # the descent (2.4 m over the 12 s) on the figures' z, the arc in their x-y (up to a yaw)
+    np.testing.assert_allclose(fig[:, 2] - fig[0, 2], level[:, 2] - level[0, 2], atol=0.08)
+    np.testing.assert_allclose(np.linalg.norm(fig[:, :2] - fig[0, :2], axis=1),
+                               np.linalg.norm(level[:, :2] - level[0, :2], axis=1), atol=0.08)
+    if with_gt:
+        assert np.ptp(seen["gt"][:, 2]) > 2.0 and seen["gt"][-1, 2] < seen["gt"][0, 2]
+    np.testing.assert_allclose(seen["map"][:, 2], -2.5, atol=1e-9)
+    up = json.loads((out / "metrics.json").read_text())["figures_up"]
+    assert up is not None
+    assert_png_image(out / "trajectory_side.png")
+
+
+def yaml_measured(gravity_world_m_s2) -> str:
+    import yaml
+
+    return yaml.safe_dump({"measured": {"gravity_world_m_s2": [float(v) for v in
+                                                               gravity_world_m_s2]}})
+
+
+def test_figures_keep_the_world_frame_when_the_run_does_not_say_where_up_is(run_dir):
+    out, gt = run_dir  # config.yaml without a measured block (a run older than the field)
+    make_report(out, gt)
+    assert json.loads((out / "metrics.json").read_text())["figures_up"] is None

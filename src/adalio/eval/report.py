@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from scipy.spatial.transform import Rotation
 
 from adalio.errors import InputError
 from adalio.eval import plots
@@ -41,6 +42,30 @@ def _read_config(run_dir: Path) -> dict[str, Any]:
     except yaml.YAMLError:
         return {}
     return data if isinstance(data, dict) else {}
+
+
+def world_up(config: dict[str, Any]) -> np.ndarray | None:
+    """The world's up (unit, world frame) from a run's ``config.yaml``: against the gravity the
+    filter took at initialization (``measured.gravity_world_m_s2``). The world is the IMU frame
+    at init, so its z is up only for an IMU mounted z-up. None when the file does not say (a run
+    older than this field, or none that initialized)."""
+    measured = config.get("measured") if config else None
+    g = measured.get("gravity_world_m_s2") if isinstance(measured, dict) else None
+    try:
+        g = np.asarray(g, dtype=np.float64).reshape(3)
+    except (TypeError, ValueError):
+        return None
+    norm = float(np.linalg.norm(g))
+    return -g / norm if np.isfinite(norm) and norm > 0 else None
+
+
+def leveling(up: np.ndarray | None) -> np.ndarray:
+    """The smallest rotation taking ``up`` to +z (identity for None): the figures' frame, so a
+    top view looks down and a side view stands up whatever the IMU's mounting."""
+    if up is None:
+        return np.eye(3)
+    rot, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [up])
+    return rot.as_matrix()
 
 
 def _find_map(run_dir: Path) -> Path | None:
@@ -130,6 +155,16 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
             metrics["ate_first"] = ate_from_pair(pair_first, max_diff_s)
             metrics["rpe"] = rpe(est_path, gt, rpe_deltas_m, max_diff_s)
             aligned_xyz = full_aligned_xyz(est_path, pair.T_gt_est)
+    # the figures stand on the world's up (turned into the GT's frame when aligned to it)
+    up = world_up(config)
+    T_gt_est = pair.T_gt_est if pair is not None else metrics.get("hilti", {}).get("T_gt_est")
+    if up is not None and T_gt_est is not None:
+        up = np.asarray(T_gt_est)[:3, :3] @ up
+    R_fig = leveling(up)
+    metrics["figures_up"] = None if up is None else up.tolist()
+    aligned_xyz = aligned_xyz @ R_fig.T
+    if gt_xyz is not None:
+        gt_xyz = gt_xyz @ R_fig.T
     label = f"adalio ({mode})"
     top, side = plots.plot_trajectories({label: aligned_xyz}, gt_xyz,
                                         run_dir / "trajectory_top.png",
@@ -168,8 +203,10 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
     if map_path is not None:
         pts = read_map_points(map_path)
         metrics["map_points"] = len(pts)
-        figures.append(("Map, top view", plots.plot_map_top(pts, run_dir / "map_top.png",
-                                                             traj_xyz=est_xyz)))
+        R_map = leveling(world_up(config))
+        figures.append(("Map, top view", plots.plot_map_top(pts @ R_map.T,
+                                                             run_dir / "map_top.png",
+                                                             traj_xyz=est_xyz @ R_map.T)))
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
     report = run_dir / REPORT_NAME
     report.write_text(_markdown(metrics, figures, gt))

@@ -898,7 +898,8 @@ class Odometry:
         acc_mean = b.accel[window].mean(axis=0)
         self.init_report = InitReport(
             method="static", t_ns=t_b_ns, gyro_bias_rad_s=init.gyro_bias_rad_s.copy(),
-            gravity_imu_m_s2=init.R_world_imu.T @ g, window_s=test.window_s,
+            gravity_imu_m_s2=init.R_world_imu.T @ g, gravity_world_m_s2=g.copy(),
+            window_s=test.window_s,
             accel_norm_m_s2=float(np.linalg.norm(acc_mean)),
             gyro_noise_rad_s_sqrt_hz=test.gyro_noise_rad_s_sqrt_hz,
             accel_noise_m_s2_sqrt_hz=test.accel_noise_m_s2_sqrt_hz,
@@ -950,7 +951,7 @@ class Odometry:
         self.init_report = InitReport(
             method="moving", t_ns=fit.t_ns, gyro_bias_rad_s=fit.gyro_bias_rad_s.copy(),
             gravity_imu_m_s2=fit.R_world_imu.T @ fit.gravity_world_m_s2,
-            window_s=fit.window_s, noise_used=imu.noise_used(cfg, used),
+            gravity_world_m_s2=g.copy(), window_s=fit.window_s, noise_used=imu.noise_used(cfg, used),
             gyro_noise_rad_s_sqrt_hz=(float("nan") if measured is None
                                       else measured.gyro_noise_rad_s_sqrt_hz),
             accel_noise_m_s2_sqrt_hz=(float("nan") if measured is None
