@@ -179,13 +179,7 @@ def test_figures_stand_on_the_worlds_up_whatever_the_imu_mounting(tmp_path, monk
     R_w = Rotation.from_euler("xz", [90, 30], degrees=True).as_matrix()  # level -> world
     T_w = np.eye(4)
     T_w[:3, :3] = R_w
-    est = np.loadtxt(out / "trajectory.tum")
-    with TumWriter(out / "trajectory.tum") as tw:
-        for row in est:
-            T = np.eye(4)
-            T[:3, :3] = Rotation.from_quat(row[4:]).as_matrix()
-            T[:3, 3] = row[1:4]
-            tw.write(round(row[0] * 1e9), T_w @ T)
+    est = _turn_tum(out / "trajectory.tum", out / "trajectory.tum", T_w)
     floor = np.column_stack([np.random.default_rng(1).uniform(-3, 3, (500, 2)), np.full(500, -2.5)])
     write_ply(out / "map.ply", floor @ R_w.T)
     text = Config().to_yaml() + yaml_measured(R_w @ [0.0, 0.0, -9.81])
@@ -193,14 +187,7 @@ def test_figures_stand_on_the_worlds_up_whatever_the_imu_mounting(tmp_path, monk
     gt = None
     if with_gt:  # the GT in a frame whose z points down
         gt = tmp_path / "gt_down.tum"
-        T_g = np.diag([1.0, -1.0, -1.0, 1.0])
-        g_rows = np.loadtxt(gt_level)
-        with TumWriter(gt) as tw:
-            for row in g_rows:
-                T = np.eye(4)
-                T[:3, :3] = Rotation.from_quat(row[4:]).as_matrix()
-                T[:3, 3] = row[1:4]
-                tw.write(round(row[0] * 1e9), T_g @ T)
+        _turn_tum(gt_level, gt, np.diag([1.0, -1.0, -1.0, 1.0]))
     seen = {}
     real_traj, real_map = plots.plot_trajectories, plots.plot_map_top
 
@@ -227,6 +214,19 @@ def test_figures_stand_on_the_worlds_up_whatever_the_imu_mounting(tmp_path, monk
     up = json.loads((out / "metrics.json").read_text())["figures_up"]
     assert up is not None
     assert_png_image(out / "trajectory_side.png")
+
+
+def _turn_tum(src: Path, dst: Path, T_left: np.ndarray) -> np.ndarray:
+    """Write ``src``'s poses turned by ``T_left`` (``T_left @ T``) to ``dst``; return ``src``'s
+    rows as read."""
+    rows = np.loadtxt(src)
+    with TumWriter(dst) as tw:
+        for row in rows:
+            T = np.eye(4)
+            T[:3, :3] = Rotation.from_quat(row[4:]).as_matrix()
+            T[:3, 3] = row[1:4]
+            tw.write(round(row[0] * 1e9), T_left @ T)
+    return rows
 
 
 def yaml_measured(gravity_world_m_s2) -> str:
