@@ -78,3 +78,23 @@ def test_compare_cli_on_simulated_run(tmp_path):
                     "map_top.png"):
             assert_png_image(run_dir / png)
             assert png in report.read_text()
+
+
+def test_compare_keeps_going_when_the_gt_does_not_cover_the_run(tmp_path):
+    """A ground truth from another recording (no stamp within reach of the run's) cannot align:
+    each mode is reported as aborted, naming why, and the comparison is still written (no
+    traceback, no figure up taken from a report that was never made)."""
+    from adalio.eval.compare import compare_modes
+    from adalio.sim import cached_sequence
+
+    sim = cached_sequence(DEMO_SCENE, seed=0, duration_s=SHORT_DURATION_S,
+                          columns=SHORT_COLUMNS, fmt=DEMO_FORMAT)
+    rows = np.loadtxt(sim.gt_path)
+    rows[:, 0] += 1e5  # a day later
+    gt = tmp_path / "other_day.tum"
+    np.savetxt(gt, rows, fmt="%.9f")
+    res = compare_modes(sim.bag_path, ["fixed"], tmp_path / "cmp", gt=gt,
+                        config_file=sim.config_path, max_scans=20, progress=False)
+    assert [r.aborted is not None for r in res.rows] == [True]
+    data = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert data["figures_up"] is None and data["rows"][0]["aborted"]

@@ -23,7 +23,13 @@ from adalio.errors import AdalioError, BagError, ConfigError, InputError
 from adalio.eval import plots
 from adalio.eval.files import read_trajectory
 from adalio.eval.metrics import DEFAULT_MAX_DIFF_S, align_pair, ate_from_pair
-from adalio.eval.report import full_aligned_xyz, leveling, make_report
+from adalio.eval.report import (
+    figures_up,
+    full_aligned_xyz,
+    leveling,
+    make_report,
+    read_run_config,
+)
 
 DIVERGED_MAX_ERROR_M = 1.0
 """A run whose aligned position error exceeds this anywhere counts as diverged (metres)."""
@@ -89,7 +95,7 @@ def compare_modes(bag_path: str | Path, modes: list[str], out_dir: str | Path, *
     aligned: dict[str, np.ndarray] = {}
     errors: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     t0 = None
-    figures_up = None
+    up = None  # the figures' up: the modes share the initialization, so the first one's
     for mode in modes:
         cfg = load_config(preset=preset, config_file=config_file,
                           overrides={**(overrides or {}), "adaptive.mode": mode})
@@ -134,12 +140,14 @@ def compare_modes(bag_path: str | Path, modes: list[str], out_dir: str | Path, *
                 row.max_error_m = stats["max_m"]
                 aligned[mode] = full_aligned_xyz(traj_path, pair.T_gt_est)
                 errors[mode] = (pair.t_s, pair.errors_m)
+                if up is None:
+                    up = figures_up(read_run_config(run_dir), pair.T_gt_est)
                 row.report = str(make_report(run_dir, gt, max_diff_s=max_diff_s))
         else:
             aligned[mode] = np.asarray(est.positions_xyz, dtype=np.float64)
             row.report = str(make_report(run_dir))
-        if figures_up is None:  # the modes share the initialization, so its up
-            figures_up = json.loads((run_dir / "metrics.json").read_text()).get("figures_up")
+            if up is None:
+                up = figures_up(read_run_config(run_dir))
         row.diverged = bool(row.aborted is not None or (
             row.max_error_m is not None and row.max_error_m > DIVERGED_MAX_ERROR_M))
         rows.append(row)
@@ -149,7 +157,7 @@ def compare_modes(bag_path: str | Path, modes: list[str], out_dir: str | Path, *
     gt_xyz = None
     if gt is not None:
         gt_xyz = np.asarray(read_trajectory(gt, "ground-truth").positions_xyz, dtype=np.float64)
-    R_fig = leveling(None if figures_up is None else np.asarray(figures_up))
+    R_fig = leveling(up)
     aligned = {m: xyz @ R_fig.T for m, xyz in aligned.items()}
     if gt_xyz is not None:
         gt_xyz = gt_xyz @ R_fig.T
@@ -163,7 +171,7 @@ def compare_modes(bag_path: str | Path, modes: list[str], out_dir: str | Path, *
             title="position error after SE(3) alignment"))
     (out_dir / "compare.json").write_text(json.dumps(
         {"bag": str(bag_path), "gt": None if gt is None else str(gt),
-         "figures_up": figures_up, "rows": [_json_row(r) for r in rows]}, indent=2))
+         "figures_up": None if up is None else up.tolist(), "rows": [_json_row(r) for r in rows]}, indent=2))
     (out_dir / "compare.md").write_text(_markdown(result, gt))
     return result
 

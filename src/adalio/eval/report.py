@@ -33,7 +33,7 @@ from adalio.eval.metrics import (
 REPORT_NAME = "report.md"
 
 
-def _read_config(run_dir: Path) -> dict[str, Any]:
+def read_run_config(run_dir: Path) -> dict[str, Any]:
     path = run_dir / "config.yaml"
     if not path.is_file():
         return {}
@@ -57,6 +57,15 @@ def world_up(config: dict[str, Any]) -> np.ndarray | None:
         return None
     norm = float(np.linalg.norm(g))
     return -g / norm if np.isfinite(norm) and norm > 0 else None
+
+
+def figures_up(config: dict[str, Any], T_gt_est: Any = None) -> np.ndarray | None:
+    """The up the figures stand on: :func:`world_up`, turned into the GT's frame by the
+    alignment ``T_gt_est`` (4x4) when the figures are drawn there; None as ``world_up``."""
+    up = world_up(config)
+    if up is not None and T_gt_est is not None:
+        up = np.asarray(T_gt_est)[:3, :3] @ up
+    return up
 
 
 def leveling(up: np.ndarray | None) -> np.ndarray:
@@ -122,7 +131,7 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
     est = read_trajectory(est_path, "estimate")
     est_xyz = np.asarray(est.positions_xyz, dtype=np.float64)
     t0 = float(est.timestamps[0])
-    config = _read_config(run_dir)
+    config = read_run_config(run_dir)
     mode = str(config.get("adaptive", {}).get("mode", "?")) if config else "?"
     scans_path = run_dir / "scans.csv"
     scans = read_scans_csv(scans_path) if scans_path.is_file() else None
@@ -155,11 +164,9 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
             metrics["ate_first"] = ate_from_pair(pair_first, max_diff_s)
             metrics["rpe"] = rpe(est_path, gt, rpe_deltas_m, max_diff_s)
             aligned_xyz = full_aligned_xyz(est_path, pair.T_gt_est)
-    # the figures stand on the world's up (turned into the GT's frame when aligned to it)
-    up = world_up(config)
+    up_world = world_up(config)
     T_gt_est = pair.T_gt_est if pair is not None else metrics.get("hilti", {}).get("T_gt_est")
-    if up is not None and T_gt_est is not None:
-        up = np.asarray(T_gt_est)[:3, :3] @ up
+    up = figures_up(config, T_gt_est)
     R_fig = leveling(up)
     metrics["figures_up"] = None if up is None else up.tolist()
     aligned_xyz = aligned_xyz @ R_fig.T
@@ -203,7 +210,7 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
     if map_path is not None:
         pts = read_map_points(map_path)
         metrics["map_points"] = len(pts)
-        R_map = leveling(world_up(config))
+        R_map = leveling(up_world)
         figures.append(("Map, top view", plots.plot_map_top(pts @ R_map.T,
                                                              run_dir / "map_top.png",
                                                              traj_xyz=est_xyz @ R_map.T)))
