@@ -473,3 +473,29 @@ def test_summary_names_the_height_blind_stretches(tmp_path, n_blind):
     assert ("height left to the IMU" in text) is bool(n_blind)
     if n_blind:
         assert "37/400 scans at 3.1-6.5 s" in text
+
+
+@pytest.mark.slow
+def test_compare_with_a_gt_no_mode_aligns_with_is_an_error(monkeypatch, capsys, tmp_path):
+    """`adalio compare --gt` with the GT of another recording (stamps a day later): the mode runs
+    and is kept (trajectory, table), but a comparison with no usable row is bad input, one
+    'error:' line naming the GT file and exit 2, not a table of aborted rows and exit 0. With
+    the recording's own GT the same command exits 0."""
+    from adalio.eval.demo import DEMO_FORMAT, DEMO_SCENE, SHORT_COLUMNS, SHORT_DURATION_S
+    from adalio.sim import cached_sequence
+
+    sim = cached_sequence(DEMO_SCENE, seed=0, duration_s=SHORT_DURATION_S,
+                          columns=SHORT_COLUMNS, fmt=DEMO_FORMAT)
+    rows = np.loadtxt(sim.gt_path)
+    rows[:, 0] += 1e5
+    other = tmp_path / "other_day.tum"
+    np.savetxt(other, rows, fmt="%.9f")
+    args = ["compare", sim.bag_path, "--modes", "fixed", "--config", sim.config_path,
+            "--max-scans", "40"]
+    code, _, err = run_cli(monkeypatch, capsys, *args, "--gt", other, "--out", tmp_path / "a")
+    assert_one_line_error(code, err, "--gt", "other_day.tum", "could be aligned")
+    assert (tmp_path / "a" / "compare.md").is_file()
+    assert (tmp_path / "a" / "fixed" / "trajectory.tum").is_file()
+    code, out, err = run_cli(monkeypatch, capsys, *args, "--gt", sim.gt_path,
+                             "--out", tmp_path / "b")
+    assert code == 0, out + err

@@ -161,6 +161,9 @@ def compare_command(
                            console=console)
     _print_compare(console, result)
     console.print(f"table and figures: [bold]{out / 'compare.md'}[/]")
+    failure = result.failure()
+    if failure is not None:
+        raise InputError(failure)
 
 
 def demo_command(
@@ -186,6 +189,9 @@ def demo_command(
     console.print(f"where each mode switched parameters: {Path(out) / '<mode>' / 'degeneracy.png'}")
     console.print(f"comparison: [bold]{Path(out) / 'compare.md'}[/]  "
                   f"(total {time.perf_counter() - t0:.0f} s)")
+    failure = res.compare.failure()
+    if failure is not None:
+        raise InputError(f"demo: {failure}")
 
 
 def register(app: typer.Typer) -> None:

@@ -58,6 +58,21 @@ class CompareResult:
     rows: list[ModeResult]
     out_dir: Path
     figures: list[Path] = field(default_factory=list)
+    gt: str | None = None
+
+    def failure(self) -> str | None:
+        """One line saying why the comparison has no result, or None: no mode gave a usable
+        trajectory (with a GT: none could be aligned to it). A comparison in which some modes
+        aborted or diverged is a result; one in which all did is a failure of the input."""
+        if any(r.report is not None for r in self.rows):
+            return None
+        first = next((r for r in self.rows if r.aborted), None)
+        reason = "" if first is None else f" ({first.mode}: {first.aborted})"
+        where = f"the tables and trajectories written so far are in {self.out_dir}"
+        if self.gt is not None and any(r.n_scans > 0 for r in self.rows):
+            return (f"--gt {self.gt}: no mode's trajectory could be aligned with this ground "
+                    f"truth{reason}; {where}")
+        return f"no mode produced a usable trajectory{reason}; {where}"
 
 
 def mode_dir_name(mode: str) -> str:
@@ -153,7 +168,7 @@ def compare_modes(bag_path: str | Path, modes: list[str], out_dir: str | Path, *
         rows.append(row)
         if res.interrupted:
             break
-    result = CompareResult(rows=rows, out_dir=out_dir)
+    result = CompareResult(rows=rows, out_dir=out_dir, gt=None if gt is None else str(gt))
     gt_xyz = None
     if gt is not None:
         gt_xyz = np.asarray(read_trajectory(gt, "ground-truth").positions_xyz, dtype=np.float64)
