@@ -227,3 +227,33 @@ def test_cli_simulate(tmp_path):
     assert r.exit_code == 0, r.output
     assert (out / "spiral_ros2" / "metadata.yaml").is_file()
     assert json.loads((out / "meta.json").read_text())["n_scans"] == 8
+
+
+def test_cli_simulate_mounts_the_imu_as_the_extrinsic_says(tmp_path):
+    """`simulate --extrinsic`: the sequence's config carries the given T_imu_lidar, and the
+    accelerometer at the start's rest reads gravity where that mounting puts it (the LiDAR is
+    level, so the IMU's up is the extrinsic's rotation of the LiDAR's z), not where the HILTI
+    rig's would."""
+    from typer.testing import CliRunner
+
+    from adalio.cli import app
+    from adalio.config import transform_from_xyz_quat
+
+    text = "0.01 0.02 0.05 0.6532815 0.2705981 -0.2705981 0.6532815"  # rolled 90°, turned 45°
+    T = np.asarray(transform_from_xyz_quat(text))
+    out = tmp_path / "mounted"
+    r = CliRunner().invoke(app, ["simulate", "--scene", "hall", "--duration", "1.0",
+                                 "--columns", "36", "--extrinsic", text, "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    cfg = load_config(config_file=out / "config.yaml")
+    assert np.allclose(cfg.sensor.T_imu_lidar, T, atol=1e-9)
+    accel = []
+    with Bag(out / "hall.bag") as bag:
+        for item in Sequencer(bag, cfg.sensor.lidar_topic, cfg.sensor.imu_topic, cfg.sensor):
+            if isinstance(item, ImuBatch):
+                accel.append(item.accel_m_s2)
+    up_imu = np.concatenate(accel).mean(axis=0)
+    up_imu /= np.linalg.norm(up_imu)
+    assert np.degrees(np.arccos(up_imu @ T[:3, 2])) < 1.0
+    hilti = np.asarray(load_config("hilti2022").sensor.T_imu_lidar)
+    assert np.degrees(np.arccos(up_imu @ hilti[:3, 2])) > 45.0

@@ -35,23 +35,30 @@ def register(app: typer.Typer) -> None:
             "--motion-from", help="TUM trajectory (>= 10 Hz) of a real handheld walk: its hand "
             "and gait motion replace the synthetic one (e.g. the HILTI 2022 exp04-06 dense "
             "ground truth).")] = None,
+        extrinsic: Annotated[str | None, typer.Option(
+            "--extrinsic", help="How the IMU sits on the LiDAR: T_imu_lidar as 'tx ty tz qx qy "
+            "qz qw' (maps LiDAR points into the IMU frame, as `run --extrinsic`; default: the "
+            "HILTI 2022 rig's). The LiDAR stays level; the IMU turns.")] = None,
     ) -> None:
         """Simulate a handheld LiDAR + IMU walk through an indoor scene into a ROS bag."""
         import json
         import time
 
+        from adalio.config import transform_from_xyz_quat
         from adalio.errors import writing_to
         from adalio.io.cli import check_out_dir
         from adalio.sim import simulate as run_simulation
         from adalio.term import console
 
+        T_imu_lidar = None if extrinsic is None else transform_from_xyz_quat(extrinsic)
         check_out_dir(out)
         t0 = time.perf_counter()
         with writing_to(out):
             res = run_simulation(scene, out, seed=seed, duration_s=duration, lidar=lidar,
                                  fmt=fmt, columns=columns, noise_scale=noise_scale,
                                  progress=True, imu_noise_scale=imu_noise_scale,
-                                 imu_bias_scale=imu_bias_scale, motion_from=motion_from)
+                                 imu_bias_scale=imu_bias_scale, motion_from=motion_from,
+                                 T_imu_lidar=T_imu_lidar)
         meta = json.loads(res.meta_path.read_text())
         console().print(
             f"[green]wrote[/] {res.bag_path} ({meta['n_scans']} sweeps, {meta['n_imu']} IMU, "
