@@ -62,8 +62,9 @@ class CompareResult:
 
     def failure(self) -> str | None:
         """One line saying why the comparison has no result, or None: no mode gave a usable
-        trajectory (with a GT: none could be aligned to it). A comparison in which some modes
-        aborted or diverged is a result; one in which all did is a failure of the input."""
+        trajectory (with a GT: none could be aligned to it). Diverged modes, and some modes
+        aborted, are a result of a comparison; no usable mode at all is a failure of the input
+        (a run that produces no pose, a GT of another recording)."""
         if any(r.report is not None for r in self.rows):
             return None
         first = next((r for r in self.rows if r.aborted), None)
