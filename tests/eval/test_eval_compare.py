@@ -99,4 +99,3 @@ def test_compare_keeps_going_when_the_gt_does_not_cover_the_run(tmp_path):
     data = json.loads((tmp_path / "cmp" / "compare.json").read_text())
     assert data["figures_up"] is None and data["rows"][0]["aborted"]
     assert "--gt" in res.failure() and str(gt) in res.failure()
-
