@@ -497,3 +497,24 @@ def test_compare_with_a_gt_no_mode_aligns_with_is_an_error(monkeypatch, capsys, 
     assert_one_line_error(code, err, "--gt", "other_day.tum", "could be aligned")
     assert (tmp_path / "a" / "compare.md").is_file()
     assert (tmp_path / "a" / "fixed" / "trajectory.tum").is_file()
+
+
+def test_compare_in_which_no_mode_poses_is_an_error(monkeypatch, capsys, tmp_path):
+    """`adalio compare` whose every mode produces no pose (3 scans: the estimator never
+    initializes) is one 'error:' line saying so, exit 2, as `run` would; the table is kept, and
+    its empty overlay plot warns of nothing (matplotlib's 'no artists' legend warning)."""
+    import warnings
+
+    from adalio.eval.demo import DEMO_FORMAT, DEMO_SCENE, SHORT_COLUMNS, SHORT_DURATION_S
+    from adalio.sim import cached_sequence
+
+    sim = cached_sequence(DEMO_SCENE, seed=0, duration_s=SHORT_DURATION_S,
+                          columns=SHORT_COLUMNS, fmt=DEMO_FORMAT)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        code, _, err = run_cli(monkeypatch, capsys, "compare", sim.bag_path, "--modes",
+                               "fixed,adaptive", "--config", sim.config_path, "--max-scans",
+                               "3", "--out", tmp_path / "c")
+    assert_one_line_error(code, err, "no mode produced a usable trajectory", "no pose from 3")
+    assert not [w for w in caught if "legend" in str(w.message)], [str(w.message) for w in caught]
+    assert (tmp_path / "c" / "compare.md").is_file()

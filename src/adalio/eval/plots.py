@@ -60,7 +60,8 @@ def plot_trajectories(est_xyz: dict[str, np.ndarray], gt_xyz: np.ndarray | None,
         ax.set_ylabel(f"{'xyz'[j]} [m]")
         ax.set_aspect("equal", adjustable="datalim")
         ax.grid(True, alpha=0.3)
-        ax.legend(loc="best", fontsize=8)
+        if ax.get_legend_handles_labels()[0]:  # nothing drawn (every compare mode aborted): no key
+            ax.legend(loc="best", fontsize=8)
         ax.set_title(f"{title} {view}".strip())
         paths.append(_save(fig, path))
     return paths[0], paths[1]
