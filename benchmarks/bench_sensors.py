@@ -26,10 +26,13 @@ With ``--mountings`` the sequences are also simulated with other IMU-LiDAR mount
 (:data:`MOUNTINGS`; the simulator keeps the LiDAR level and turns the IMU, so a mounting is how
 the IMU sits under the LiDAR), each run with that sequence's own ``config.yaml``, whose
 ``sensor.T_imu_lidar`` is the mounting: nothing in the estimator may assume the HILTI rig's.
+With ``--imu-rates`` the IMU samples at other rates than the BMI085's 400 Hz (an Ouster's
+internal IMU: 100 Hz), with the same noise densities.
 
     python benchmarks/bench_sensors.py                      # hall + corridor, 2 seeds, full routes
     python benchmarks/bench_sensors.py --scenes hall --seeds 1 --lidars xt32-512
     python benchmarks/bench_sensors.py --starts still --mountings upright skewed side
+    python benchmarks/bench_sensors.py --starts still --imu-rates 400 200 100
 """
 
 from __future__ import annotations
@@ -54,6 +57,7 @@ from adalio.eval.files import read_scans_csv
 from adalio.eval.metrics import ate, sigma_consistency
 from adalio.pipeline import run_bag
 from adalio.sim import cached_sequence
+from adalio.sim.generate import IMU_RATE_HZ
 
 LIDARS = {"xt32-512": ("xt32", 512), "xt32-2000": ("xt32", 2000), "os1-64": ("ouster64", None),
           "vlp16": ("vlp16", None)}
@@ -94,6 +98,8 @@ class Cell:
     """Moving start: seconds cut from the bag's start (0 for a still start)."""
     mounting: str = "hilti"
     """Key of :data:`MOUNTINGS`."""
+    imu_rate_hz: float = IMU_RATE_HZ
+    """The simulated IMU's sample rate (``simulate(imu_rate_hz=...)``)."""
     scans: int = 0
     poses: int = 0
     init: str = ""
@@ -131,13 +137,14 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     lidar, columns = LIDARS[cell.lidar]
     sim = cached_sequence(cell.scene, seed=cell.seed, duration_s=duration_s, lidar=lidar,
                           columns=columns, imu_noise_scale=cell.imu_noise,
-                          T_imu_lidar=MOUNTINGS[cell.mounting])
+                          T_imu_lidar=MOUNTINGS[cell.mounting], imu_rate_hz=cell.imu_rate_hz)
     meta = json.loads(sim.meta_path.read_text())
     cfg = load_config(config_file=sim.config_path, overrides=overrides)
     start_s = cell.cut_s
     cell.scans = int(meta["n_scans"] - round(start_s * meta["lidar_rate_hz"]))
     cut = f"{cell.cut_s:g}" if cell.start == "moving" else ""
     mount = "" if cell.mounting == "hilti" else f"_{cell.mounting}"
+    mount += "" if cell.imu_rate_hz == IMU_RATE_HZ else f"_{cell.imu_rate_hz:g}hz"
     out = out_root / (f"{cell.scene}_s{cell.seed}_imu{cell.imu_noise:g}_{cell.lidar}_"
                       f"{cell.start}{cut}{mount}")
     try:
@@ -182,8 +189,10 @@ def cm(x: float) -> str:
 
 
 def _lidar_label(c: Cell) -> str:
-    """The LiDAR, and the mounting when it is not the HILTI rig's."""
-    return c.lidar if c.mounting == "hilti" else f"{c.lidar} ({c.mounting})"
+    """The LiDAR, and the mounting and the IMU's rate when they are not the HILTI rig's."""
+    other = [] if c.mounting == "hilti" else [c.mounting]
+    other += [] if c.imu_rate_hz == IMU_RATE_HZ else [f"{c.imu_rate_hz:g} Hz IMU"]
+    return f"{c.lidar} ({', '.join(other)})" if other else c.lidar
 
 
 def summary_table(cells: list[Cell]) -> str:
@@ -191,11 +200,12 @@ def summary_table(cells: list[Cell]) -> str:
               "ATE worst | runs > 1 m or failed | init | init after, median (max) | target | "
               "within 3σ x / y / z |"),
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    keys = sorted({(c.scene, c.start, c.imu_noise, c.mounting) for c in cells},
-                  key=lambda k: (k[0], k[1] != "still", k[2], k[3] != "hilti", k[3]))
-    for scene, start, noise, mounting in keys:
+    keys = sorted({(c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz) for c in cells},
+                  key=lambda k: (k[0], k[1] != "still", k[2], k[3] != "hilti", k[3], -k[4]))
+    for key in keys:
+        scene, start, noise = key[:3]
         cs = [c for c in cells
-              if (c.scene, c.start, c.imu_noise, c.mounting) == (scene, start, noise, mounting)]
+              if (c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz) == key]
         ates = np.array([c.ate_m for c in cs])
         on_track = ates[ates <= MAX_ATE_M]  # mean and worst of these
         inits = sorted({c.init or "error" for c in cs})
@@ -222,6 +232,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lidars", nargs="+", default=list(LIDARS), choices=list(LIDARS))
     ap.add_argument("--mountings", nargs="+", default=["hilti"], choices=list(MOUNTINGS),
                     help="IMU-LiDAR mountings to simulate (MOUNTINGS)")
+    ap.add_argument("--imu-rates", nargs="+", type=float, default=[IMU_RATE_HZ],
+                    help="IMU sample rates to simulate, Hz (default: the BMI085's 400)")
     ap.add_argument("--starts", nargs="+", default=["still", "moving"],
                     choices=["still", "moving"])
     ap.add_argument("--duration", type=float, default=0.0,
@@ -245,10 +257,11 @@ def main(argv: list[str] | None = None) -> int:
     for scene in args.scenes:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for noise in args.imu_noise:
-                for lidar, mounting in itertools.product(args.lidars, args.mountings):
+                for lidar, mounting, rate in itertools.product(args.lidars, args.mountings,
+                                                               args.imu_rates):
                     for start, cut_s in starts:
-                        c = run_cell(Cell(scene, seed, noise, lidar, start, cut_s, mounting),
-                                     duration, args.out, overrides)
+                        c = run_cell(Cell(scene, seed, noise, lidar, start, cut_s, mounting,
+                                          rate), duration, args.out, overrides)
                         cells.append(c)
                         label = f"moving {cut_s:g} s" if start == "moving" else start
                         print(f"| {scene} | {seed} | x{noise:g} | {_lidar_label(c)} | {label} | "

@@ -189,16 +189,22 @@ def test_points_lie_on_the_mesh_only_with_per_point_poses(tmp_path):
     assert np.mean(one > 4 * sigma) > 0.15
 
 
-def test_imu_noise_matches_the_bmi085_densities(tmp_path):
-    res = simulate("hall", tmp_path, duration_s=2.4, columns=36, seed=8)
+@pytest.mark.parametrize("fs", [400.0, 100.0])
+def test_imu_noise_matches_the_bmi085_densities(tmp_path, fs):
+    """At the BMI085's 400 Hz and at an Ouster IMU's 100 Hz (``imu_rate_hz``): the samples are
+    ``1/fs`` apart and their white noise is the densities times ``sqrt(fs)`` (the bound widens
+    as ``sqrt(400/fs)``: a quarter of the samples in the same 2.4 s rest)."""
+    res = simulate("hall", tmp_path, duration_s=2.4, columns=36, seed=8, imu_rate_hz=fs)
     meta = json.loads(res.meta_path.read_text())
-    _, gyro, acc, _ = _read_bag(res.bag_path)
+    assert meta["imu_rate_hz"] == fs
+    t_imu, gyro, acc, _ = _read_bag(res.bag_path)
+    assert np.all(np.diff(t_imu) == round(1e9 / fs))
+    rtol = 0.08 * np.sqrt(400.0 / fs)
     noise = meta["imu_noise"]
-    fs = 400.0
     for x, density, bias0 in ((gyro, noise["gyro_noise_rad_s_sqrt_hz"], meta["gyro_bias0_rad_s"]),
                               (acc, noise["accel_noise_m_s2_sqrt_hz"], None)):
         sigma = np.std(np.diff(x, axis=0), axis=0) / np.sqrt(2.0)
-        np.testing.assert_allclose(sigma, density * np.sqrt(fs), rtol=0.08)
+        np.testing.assert_allclose(sigma, density * np.sqrt(fs), rtol=rtol)
         if bias0 is not None:
             err = np.abs(x.mean(axis=0) - np.asarray(bias0))
             assert np.all(err < 4 * density * np.sqrt(fs) / np.sqrt(len(x)) + 8e-4)

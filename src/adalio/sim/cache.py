@@ -24,7 +24,13 @@ except ImportError:  # not POSIX: no cross-process coordination
 from adalio.config import validate_transform
 from adalio.errors import InputError
 from adalio.sim.bagout import bag_path_for
-from adalio.sim.generate import SimResult, _check_args, check_free_space, simulate
+from adalio.sim.generate import (
+    IMU_RATE_HZ,
+    SimResult,
+    _check_args,
+    check_free_space,
+    simulate,
+)
 from adalio.sim.lidar import lidar_model
 
 
@@ -250,9 +256,11 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
                     lidar: str = "xt32", fmt: str = "ros1",
                     columns: int | None = None, imu_noise_scale: float = 1.0,
                     imu_bias_scale: float = 1.0, motion_from: str | Path | None = None,
-                    T_imu_lidar: list[list[float]] | np.ndarray | None = None) -> SimResult:
+                    T_imu_lidar: list[list[float]] | np.ndarray | None = None,
+                    imu_rate_hz: float = IMU_RATE_HZ) -> SimResult:
     """Generate once (atomically: temp folder + rename + completion marker) and reuse
-    (the key includes a hash of ``motion_from``'s content, and of ``T_imu_lidar``, the mounting
+    (the key includes the IMU rate when it is not the default 400 Hz, a hash of
+    ``motion_from``'s content, and of ``T_imu_lidar``, the mounting
     ``simulate`` takes instead of the HILTI one, when given). After generating, the cache is
     trimmed to ``$ADALIO_SIM_CACHE_GB`` (default 20 GB) by :func:`evict_cache`, least recently
     used first; a sequence larger than the cap on its own is still kept while it is the newest.
@@ -264,12 +272,14 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     coordinate through lock files in ``.locks``: one generates a key while the others wait for it
     and reuse it, and the check and reservation of room happen one process at a time. The
     sequence returned stays held (no process evicts it) until this process asks for another."""
-    _check_args(scene, duration_s, lidar, fmt, 1.0)
+    _check_args(scene, duration_s, lidar, fmt, 1.0, imu_rate_hz)
     cols = lidar_model(lidar, columns).columns
     dur = "full" if duration_s is None else f"{float(duration_s):g}"
     imu = "" if imu_noise_scale == 1.0 else f"-imu{imu_noise_scale:g}"
     if imu_bias_scale != 1.0:
         imu += f"-bias{imu_bias_scale:g}"
+    if imu_rate_hz != IMU_RATE_HZ:
+        imu += f"-{imu_rate_hz:g}hz"
     hh = ""
     if motion_from is not None:
         try:
@@ -321,7 +331,7 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
             simulate(scene, tmp, seed=seed, duration_s=duration_s, lidar=lidar, fmt=fmt,
                      columns=columns, imu_noise_scale=imu_noise_scale,
                      imu_bias_scale=imu_bias_scale, motion_from=motion_from,
-                     T_imu_lidar=T_imu_lidar, make_room=make_room)
+                     T_imu_lidar=T_imu_lidar, make_room=make_room, imu_rate_hz=imu_rate_hz)
             (tmp / "COMPLETE").write_text("ok\n")
             if final.exists() and not (final / "COMPLETE").is_file():
                 shutil.rmtree(final, ignore_errors=True)

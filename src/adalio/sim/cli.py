@@ -39,6 +39,9 @@ def register(app: typer.Typer) -> None:
             "--extrinsic", help="How the IMU sits on the LiDAR: T_imu_lidar as 'tx ty tz qx qy "
             "qz qw' (maps LiDAR points into the IMU frame, as `run --extrinsic`; default: the "
             "HILTI 2022 rig's). The LiDAR stays level; the IMU turns.")] = None,
+        imu_rate: Annotated[float, typer.Option(
+            "--imu-rate", help="IMU samples per second (default: the HILTI BMI085's 400; an "
+            "Ouster's internal IMU gives 100). The noise densities stay the same.")] = 400.0,
     ) -> None:
         """Simulate a handheld LiDAR + IMU walk through an indoor scene into a ROS bag."""
         import json
@@ -58,7 +61,7 @@ def register(app: typer.Typer) -> None:
                                  fmt=fmt, columns=columns, noise_scale=noise_scale,
                                  progress=True, imu_noise_scale=imu_noise_scale,
                                  imu_bias_scale=imu_bias_scale, motion_from=motion_from,
-                                 T_imu_lidar=T_imu_lidar)
+                                 T_imu_lidar=T_imu_lidar, imu_rate_hz=imu_rate)
         meta = json.loads(res.meta_path.read_text())
         console().print(
             f"[green]wrote[/] {res.bag_path} ({meta['n_scans']} sweeps, {meta['n_imu']} IMU, "

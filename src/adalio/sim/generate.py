@@ -34,6 +34,11 @@ SCENES = ("hall", "corridor", "spiral", "stairs_garage")
 START_NS = 1_646_304_541_527_137_000
 """Sequence start (epoch ns), the first HILTI 2022 exp04 sweep."""
 IMU_RATE_HZ = 400.0
+"""The IMU's sample rate by default: the HILTI 2022 rig's BMI085."""
+MIN_IMU_RATE_HZ = 20.0
+MAX_IMU_RATE_HZ = 4000.0
+"""The IMU rates ``simulate`` accepts: at least two samples per 10 Hz sweep, and at most the
+fastest MEMS IMUs' output rates (a sample every 250 us)."""
 GT_RATE_HZ = 100.0
 T_IMU_LIDAR_HILTI = [[0.0, -1.0, 0.0, -0.001], [-1.0, 0.0, 0.0, -0.00855],
                      [0.0, 0.0, -1.0, 0.055], [0.0, 0.0, 0.0, 1.0]]
@@ -87,7 +92,7 @@ def _ns_to_s_str(t_ns: int) -> str:
 
 
 def _check_args(scene: str, duration_s: float | None, lidar: str, fmt: str,
-                noise_scale: float) -> None:
+                noise_scale: float, imu_rate_hz: float = IMU_RATE_HZ) -> None:
     if scene not in SCENES:
         raise InputError(f"unknown scene '{scene}': choose one of {', '.join(SCENES)}")
     if lidar not in LIDAR_MODELS:
@@ -98,6 +103,9 @@ def _check_args(scene: str, duration_s: float | None, lidar: str, fmt: str,
         raise InputError(f"--duration must be > 0.5 s (got {duration_s})")
     if not noise_scale >= 0:
         raise InputError(f"--noise-scale must be >= 0 (got {noise_scale})")
+    if not MIN_IMU_RATE_HZ <= imu_rate_hz <= MAX_IMU_RATE_HZ:
+        raise InputError(f"--imu-rate must be {MIN_IMU_RATE_HZ:g}-{MAX_IMU_RATE_HZ:g} Hz "
+                         f"(got {imu_rate_hz})")
 
 
 def build_trajectory(scene_obj, T_imu_lidar: np.ndarray, seed: int,
@@ -136,7 +144,8 @@ def mesh_distance_m(caster: RayCaster, points: np.ndarray, n_dirs: int = 256) ->
     return out
 
 
-def _config_dict(model_name: str, model, T_imu_lidar: np.ndarray) -> dict:
+def _config_dict(model_name: str, model, T_imu_lidar: np.ndarray,
+                 imu_rate_hz: float = IMU_RATE_HZ) -> dict:
     """The sequence's ``config.yaml``: the LiDAR's preset with the rig's topics, extrinsic and
     point time. Every model is simulated with the same IMU, the HILTI BMI085, so every config
     describes it as ``hilti2022`` does (its ``imu`` section): the generic presets' IMU values are
@@ -144,7 +153,7 @@ def _config_dict(model_name: str, model, T_imu_lidar: np.ndarray) -> dict:
     changes between the models' sequences."""
     sensor = {"lidar_topic": model.lidar_topic, "imu_topic": model.imu_topic,
               "T_imu_lidar": np.asarray(T_imu_lidar).tolist(), "extrinsic_source": "config",
-              "imu_rate_hz": IMU_RATE_HZ, "lidar_rate_hz": model.rate_hz}
+              "imu_rate_hz": float(imu_rate_hz), "lidar_rate_hz": model.rate_hz}
     imu = preset_dict("hilti2022")["imu"]
     if model_name == "ouster64":
         sensor.update(point_time_field="t", point_time_unit="ns", point_time_reference="relative")
@@ -164,7 +173,8 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
              occluder: bool = True, scene_params: dict | None = None,
              imu_noise_scale: float = 1.0, imu_bias_scale: float = 1.0,
              motion_from: str | Path | None = None,
-             make_room: Callable[[int], object] | None = None) -> SimResult:
+             make_room: Callable[[int], object] | None = None,
+             imu_rate_hz: float = IMU_RATE_HZ) -> SimResult:
     """Generate one sequence of ``scene`` into ``out_dir`` (created; the bag must not exist).
 
     ``duration_s`` None walks the whole route; shorter values truncate it (static start kept).
@@ -175,6 +185,9 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     noisier IMU than the HILTI BMI085, whose bias walks and initial biases stay as they are).
     ``imu_bias_scale`` further multiplies the IMU's initial biases and bias random walks only
     (0: an IMU without bias, to separate what its bias costs from what the LiDAR costs).
+    ``imu_rate_hz``: the IMU's sample rate (the HILTI BMI085's 400 Hz by default; an Ouster's
+    internal IMU gives 100 Hz): the densities stay the same, so each sample's white noise is
+    ``density * sqrt(rate)``, and the samples are the true motion's, at their stamps.
     ``motion_from``: a TUM trajectory (>= 10 Hz) whose handheld motion replaces the synthetic
     one (:class:`adalio.sim.trajectory.HandheldMotion`; the seed picks where in it to start).
     Before writing, the disk must have room for the whole sequence (:func:`sequence_bytes`),
@@ -185,7 +198,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
         raise InputError(f"--imu-noise-scale must be >= 0 (got {imu_noise_scale})")
     if not imu_bias_scale >= 0:
         raise InputError(f"--imu-bias-scale must be >= 0 (got {imu_bias_scale})")
-    _check_args(scene, duration_s, lidar, fmt, noise_scale)
+    _check_args(scene, duration_s, lidar, fmt, noise_scale, imu_rate_hz)
     T_il = validate_transform(T_IMU_LIDAR_HILTI if T_imu_lidar is None else T_imu_lidar,
                               "T_imu_lidar")
     model = lidar_model(lidar, columns)
@@ -208,11 +221,11 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
         raise InputError(f"scene {scene} seed {seed}: route passes {clearance:.2f} m from the "
                          "geometry; try another --seed")
 
-    imu_dt_ns = round(1e9 / IMU_RATE_HZ)
+    imu_dt_ns = round(1e9 / imu_rate_hz)
     t_imu = t0 + np.arange(dur_ns // imu_dt_ns + 1, dtype=np.int64) * imu_dt_ns
     imu_noise = ImuNoise()
     imu = synthesize_imu(traj, t_imu, t0, np.random.default_rng([seed, 200]), imu_noise,
-                         noise_scale, IMU_RATE_HZ, white_scale=imu_noise_scale,
+                         noise_scale, 1e9 / imu_dt_ns, white_scale=imu_noise_scale,
                          bias_scale=imu_bias_scale)
     period = model.period_ns
     n_scans = dur_ns // period
@@ -285,7 +298,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
         "frame_ids": {"lidar": model.lidar_frame, "imu": model.imu_frame},
         "T_imu_lidar": T_il.tolist(), "T_scene_world": T_scene_world.tolist(),
         "start_time_ns": t0, "start_time_s": _ns_to_s_str(t0), "static_s": traj.static_s,
-        "imu_rate_hz": IMU_RATE_HZ, "lidar_rate_hz": model.rate_hz, "gt_rate_hz": GT_RATE_HZ,
+        "imu_rate_hz": 1e9 / imu_dt_ns, "lidar_rate_hz": model.rate_hz, "gt_rate_hz": GT_RATE_HZ,
         "gravity_m_s2": GRAVITY_M_S2, "n_scans": int(n_scans), "n_imu": len(t_imu),
         "n_points": int(n_points), "route_length_m": traj.route_length_m,
         "min_clearance_m": round(clearance, 4),
@@ -298,7 +311,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     meta_path = out_dir / "meta.json"
     meta_path.write_text(json.dumps(meta, indent=2) + "\n")
     config_path = out_dir / "config.yaml"
-    config_path.write_text(yaml.safe_dump(_config_dict(model.name, model, T_il), sort_keys=False,
-                                          default_flow_style=None))
+    config = _config_dict(model.name, model, T_il, 1e9 / imu_dt_ns)
+    config_path.write_text(yaml.safe_dump(config, sort_keys=False, default_flow_style=None))
     return SimResult(bag_path=bag_path, gt_path=gt_path, meta_path=meta_path,
                      config_path=config_path)
