@@ -37,8 +37,8 @@ IMU_RATE_HZ = 400.0
 """The IMU's sample rate by default: the HILTI 2022 rig's BMI085."""
 MIN_IMU_RATE_HZ = 20.0
 MAX_IMU_RATE_HZ = 4000.0
-"""The IMU rates ``simulate`` accepts: at least two samples per 10 Hz sweep, and at most the
-fastest MEMS IMUs' output rates (a sample every 250 us)."""
+"""The IMU rates ``simulate`` accepts: at least two samples per 10 Hz sweep, and well above the
+100-1000 Hz that LiDAR-inertial rigs record (a sequence's IMU samples are held in memory whole)."""
 GT_RATE_HZ = 100.0
 T_IMU_LIDAR_HILTI = [[0.0, -1.0, 0.0, -0.001], [-1.0, 0.0, 0.0, -0.00855],
                      [0.0, 0.0, -1.0, 0.055], [0.0, 0.0, 0.0, 1.0]]
