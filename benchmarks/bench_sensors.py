@@ -143,10 +143,10 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     start_s = cell.cut_s
     cell.scans = int(meta["n_scans"] - round(start_s * meta["lidar_rate_hz"]))
     cut = f"{cell.cut_s:g}" if cell.start == "moving" else ""
-    mount = "" if cell.mounting == "hilti" else f"_{cell.mounting}"
-    mount += "" if cell.imu_rate_hz == IMU_RATE_HZ else f"_{cell.imu_rate_hz:g}hz"
+    other = "" if cell.mounting == "hilti" else f"_{cell.mounting}"
+    other += "" if cell.imu_rate_hz == IMU_RATE_HZ else f"_{cell.imu_rate_hz:g}hz"
     out = out_root / (f"{cell.scene}_s{cell.seed}_imu{cell.imu_noise:g}_{cell.lidar}_"
-                      f"{cell.start}{cut}{mount}")
+                      f"{cell.start}{cut}{other}")
     try:
         res = run_bag(sim.bag_path, cfg, out, progress=False, start_s=start_s)
     except Exception as exc:  # noqa: BLE001 - a failed cell is reported, the matrix goes on

@@ -50,7 +50,6 @@ def test_a_skewed_imu_mounting_tracks_like_the_hilti_rig(tmp_path, mounting):
     assert rot_deg.max() < 0.25
 
 
-
 def test_a_100_hz_imu_initializes_and_tracks_like_the_400_hz_one(tmp_path):
     """The walk of the test above (HILTI mounting) with the IMU at 100 Hz, the densities the
     same (the samples' spacing and noise: ``tests/sim/test_sim_physics.py``)."""

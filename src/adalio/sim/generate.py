@@ -144,8 +144,7 @@ def mesh_distance_m(caster: RayCaster, points: np.ndarray, n_dirs: int = 256) ->
     return out
 
 
-def _config_dict(model_name: str, model, T_imu_lidar: np.ndarray,
-                 imu_rate_hz: float = IMU_RATE_HZ) -> dict:
+def _config_dict(model_name: str, model, T_imu_lidar: np.ndarray, imu_rate_hz: float) -> dict:
     """The sequence's ``config.yaml``: the LiDAR's preset with the rig's topics, extrinsic and
     point time. Every model is simulated with the same IMU, the HILTI BMI085, so every config
     describes it as ``hilti2022`` does (its ``imu`` section): the generic presets' IMU values are
@@ -222,10 +221,11 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
                          "geometry; try another --seed")
 
     imu_dt_ns = round(1e9 / imu_rate_hz)
+    rate_hz = 1e9 / imu_dt_ns  # the rate the integer-ns stamps hold
     t_imu = t0 + np.arange(dur_ns // imu_dt_ns + 1, dtype=np.int64) * imu_dt_ns
     imu_noise = ImuNoise()
     imu = synthesize_imu(traj, t_imu, t0, np.random.default_rng([seed, 200]), imu_noise,
-                         noise_scale, 1e9 / imu_dt_ns, white_scale=imu_noise_scale,
+                         noise_scale, rate_hz, white_scale=imu_noise_scale,
                          bias_scale=imu_bias_scale)
     period = model.period_ns
     n_scans = dur_ns // period
@@ -298,7 +298,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
         "frame_ids": {"lidar": model.lidar_frame, "imu": model.imu_frame},
         "T_imu_lidar": T_il.tolist(), "T_scene_world": T_scene_world.tolist(),
         "start_time_ns": t0, "start_time_s": _ns_to_s_str(t0), "static_s": traj.static_s,
-        "imu_rate_hz": 1e9 / imu_dt_ns, "lidar_rate_hz": model.rate_hz, "gt_rate_hz": GT_RATE_HZ,
+        "imu_rate_hz": rate_hz, "lidar_rate_hz": model.rate_hz, "gt_rate_hz": GT_RATE_HZ,
         "gravity_m_s2": GRAVITY_M_S2, "n_scans": int(n_scans), "n_imu": len(t_imu),
         "n_points": int(n_points), "route_length_m": traj.route_length_m,
         "min_clearance_m": round(clearance, 4),
@@ -311,7 +311,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     meta_path = out_dir / "meta.json"
     meta_path.write_text(json.dumps(meta, indent=2) + "\n")
     config_path = out_dir / "config.yaml"
-    config = _config_dict(model.name, model, T_il, 1e9 / imu_dt_ns)
+    config = _config_dict(model.name, model, T_il, rate_hz)
     config_path.write_text(yaml.safe_dump(config, sort_keys=False, default_flow_style=None))
     return SimResult(bag_path=bag_path, gt_path=gt_path, meta_path=meta_path,
                      config_path=config_path)
