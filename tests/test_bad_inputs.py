@@ -241,8 +241,9 @@ def imu_swapped_pairs(k: int, msg: Any) -> Any:
     return None
 
 
-def imu_gap(first: int, last: int) -> Callable[[int, Any], Any]:
-    """Drop IMU messages first..last-1 (400 Hz: 200 messages = 0.5 s)."""
+def dropped(first: int, last: int) -> Callable[[int, Any], Any]:
+    """Drop the topic's messages first..last-1 (the IMU's at 400 Hz: 200 messages = 0.5 s; the
+    clouds at 10 Hz: 20 = 2 s)."""
     return lambda k, msg: [] if first <= k < last else None
 
 
@@ -468,6 +469,9 @@ CASES: list[Case] = [
     Case("clouds_some_empty", bag_case(with_points(every_fourth_empty)), "bridged",
          (f"empty scan on {LIDAR}",), 2 * CLEAN_ATE_M),  # a quarter of the scans missing
     Case("clouds_zero_placeholders", bag_case(zero_xyz(0.2)), "bridged", (), CLEAN_ATE_M),
+    Case("clouds_missing_two_seconds", bag_case(clouds(dropped(25, 45))), "bridged",
+         ("no scan for 2.00 s after t =", "(a LiDAR gap): the IMU alone carried the pose"),
+         CLEAN_ATE_M),
     # per-point times
     Case("time_ms_config_s", bag_case(times_scaled(1e3)), "error",
          ("time field 'timestamp' read as s, absolute", "look like ms, absolute")),
@@ -494,10 +498,10 @@ CASES: list[Case] = [
     Case("imu_duplicated", bag_case(imus(duplicated_imu)), "ok", ("done:",), CLEAN_ATE_M),
     Case("imu_not_covering", bag_case(imus(imu_shifted)), "error",
          (f"IMU on {IMU}", "does not cover any scan")),
-    Case("imu_gap_half_second", bag_case(imus(imu_gap(1500, 1700))), "bridged",
+    Case("imu_gap_half_second", bag_case(imus(dropped(1500, 1700))), "bridged",
          ("IMU gap of 0.50 s after t =", "bridged with a constant-velocity motion model"),
          CLEAN_ATE_M),
-    Case("imu_gap_beyond_max_gap_s", bag_case(imus(imu_gap(1200, 1800)),
+    Case("imu_gap_beyond_max_gap_s", bag_case(imus(dropped(1200, 1800)),
                                               config={"imu.max_gap_s": 1.0}), "error",
          ("IMU gap of", "longer than imu.max_gap_s (1 s)")),
     Case("gyro_in_deg_s", bag_case(imus(gyro_in_deg_s)), "error",

@@ -266,6 +266,14 @@ class FilterConfig:
     robust_scale: float = 0.0
     """robust_kernel: the kernel width in units of a row's spread; 0: the kernel's usual width
     (Huber 1.345, Geman-McClure 3; ``measurement.KERNEL_WIDTH``)."""
+    gate_sigmas: float = 3.0
+    """Accept a row whose residual lies within this many standard deviations of what the
+    predicted pose's covariance (the discounted one, as the robust kernel's) lets it be, even
+    where FAST-LIO2's range gate (``|p_L| > 81 r²``: 11 cm at 1 m, 33 cm at 9 m) rejects it. After
+    seconds without a scan (a LiDAR gap) the prediction can be decimetres off; the range gate
+    then keeps only the rows that cannot correct that error, and the scan locks onto the map
+    where it is and enters the map there (README, "LiDAR gaps"). While scans arrive the
+    covariance allows millimetres and the range gate decides alone. 0: the range gate only."""
     refit_every_iteration: bool = False
     """Re-search and refit planes at every iteration (FAST-LIO2) instead of on convergence only."""
     research_min_shift_m: float = 0.005
@@ -564,6 +572,7 @@ RANGES: dict[str, Range] = {
     "filter.min_neighbors": Range(3),
     "filter.laser_point_cov": POSITIVE,
     "filter.robust_scale": NON_NEGATIVE,
+    "filter.gate_sigmas": NON_NEGATIVE,
     "filter.convergence_eps": POSITIVE,
     "filter.knn_max_range_m": POSITIVE,
     "filter.plane_min_extent_fraction": NON_NEGATIVE,

@@ -72,6 +72,10 @@ class RunResult:
     """(start, end) seconds of consecutive scans whose largest position standard deviation
     (scans.csv sigma_x/y/z_m) exceeds ``sigma_warn_m``."""
     n_sigma_warn: int = 0
+    lidar_gaps: list[tuple[float, float, float]] = field(default_factory=list)
+    """(start s since the first estimated scan, missing time s, the predicted position's largest
+    sigma m at the scan after it) of each LiDAR gap (``Odometry.lidar_gaps``; scans.csv
+    lidar_gap)."""
     init_report: Any = None
     """:class:`adalio.types.InitReport` of the estimator (None if it never initialized)."""
     local_surface_rows: tuple[int, int] = (0, 0)
@@ -374,6 +378,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         sigma_warn_m=sigma_warn_m, sigma_warn_ranges_s=_flag_ranges(est_t, risky),
         n_sigma_warn=int(sum(risky)), n_height_blind=int(sum(blind)),
         height_blind_ranges_s=_flag_ranges(est_t, blind), compiled=compiled,
+        lidar_gaps=[((t - est_t[0]) * 1e-9, gap_s, sigma_m)
+                    for t, gap_s, sigma_m in odom.lidar_gaps] if est_t else [],
         local_surface_rows=tuple(getattr(odom, "local_surface_rows", (0, 0))))
     if not est_t and not interrupted:
         raise InputError(_no_pose_reason(odom, n_in, lidar_topic, imu_topic, out))

@@ -92,6 +92,9 @@ class ScanStats:
     real information, ~0 = the residuals follow the pose; NaN = not probed)."""
     imu_gap_s: float = 0.0
     """Length of an IMU gap bridged by the motion model in this scan (s; 0 = none)."""
+    lidar_gap_s: float = 0.0
+    """LiDAR time missing before this scan (s; 0 = none): the scans of at least one sweep
+    period did not arrive, and the IMU alone carried the pose across (``Odometry.lidar_gaps``)."""
     height_blind: bool = False
     """filter.sigmas_height_blind: the scan's height claim is mostly what its fitted normals'
     noise fakes (``ieskf.height_blind``), so the reported sigmas take no height from it and

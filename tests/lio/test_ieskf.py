@@ -33,7 +33,8 @@ def _measure_fn(pts_lidar, normals, ds, cfg, log):
         log.append(research)
         sel = np.ones(pts_lidar.shape[0], bool)
         H, r, _ = measurement.point_to_plane(pts_lidar, x.R, x.p, x.R_LI, x.t_LI, normals, ds,
-                                             sel, cfg.estimate_extrinsic)
+                                             sel, cfg.estimate_extrinsic, np.zeros((6, 6)),
+                                             0.0)
         return H, r
     return measure
 
@@ -252,7 +253,8 @@ def _strip_update(seed: int, eiv: bool, sigma: float = 0.005,
         n = np.linalg.svd(nb - mu[:, None, :])[2][:, 2, :]
         d = -np.einsum("ij,ij->i", n, mu)
         sel = np.abs(np.einsum("ikj,ij->ik", nb - mu[:, None, :], n)).max(axis=1) < 0.05
-        H, r, acc = measurement.point_to_plane(pts, x.R, x.p, x.R_LI, x.t_LI, n, d, sel, False)
+        H, r, acc = measurement.point_to_plane(pts, x.R, x.p, x.R_LI, x.t_LI, n, d, sel, False,
+                                                np.zeros((6, 6)), 0.0)
         state.update(n=n, mu=mu, nb=nb, acc=acc, m=H.shape[0])
         return H, r
 

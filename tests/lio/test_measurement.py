@@ -5,6 +5,8 @@ from adalio.lio import measurement, so3
 from adalio.lio.state import State
 
 rng = np.random.default_rng(3)
+NO_GATE = (np.zeros((6, 6)), 0.0)
+"""point_to_plane's covariance gate off: FAST-LIO2's range gate alone."""
 
 
 def _residuals(x: State, pts, normals, d) -> np.ndarray:
@@ -24,7 +26,7 @@ def test_H_rows_match_finite_differences(estimate_extrinsic):
     assert np.allclose(p_world, (pts @ x.R_LI.T + x.t_LI) @ x.R.T + x.p)
     d = -np.einsum("ij,ij->i", p_world, normals) + rng.uniform(-0.05, 0.05, n)
     H, r, acc = measurement.point_to_plane(pts, x.R, x.p, x.R_LI, x.t_LI, normals, d,
-                                           np.ones(n, bool), estimate_extrinsic)
+                                           np.ones(n, bool), estimate_extrinsic, *NO_GATE)
     assert acc.all() and H.shape == (n, 12)
     assert np.allclose(r, _residuals(x, pts, normals, d), atol=1e-12)
     eps = 1e-6
@@ -52,10 +54,47 @@ def test_range_adaptive_gate_and_selection():
     d = -ranges + residual
     selected = np.array([True, True, True, True, False])
     H, r, acc = measurement.point_to_plane(pts, x.R, x.p, x.R_LI, x.t_LI, normals, d,
-                                           selected, False)
+                                           selected, False, *NO_GATE)
     assert acc.tolist() == [True, False, True, False, False]
     assert np.allclose(r, residual[[0, 2]])
     assert H.shape == (2, 12)
+
+
+def test_the_covariance_gate_admits_the_residuals_the_predicted_pose_allows():
+    """Rows the range gate rejects (near points, decimetre residuals) are accepted iff
+    ``r² <= k² h P hᵀ``, with h the row's pose columns taken by finite differences of the
+    residual (independent of the kernel's own row) and P a random pose covariance."""
+    x = State(p=rng.normal(size=3), R=so3.exp(rng.normal(size=3)),
+              R_LI=so3.exp(rng.normal(size=3) * 0.5), t_LI=rng.normal(size=3) * 0.3)
+    n = 60
+    pts = rng.normal(size=(n, 3))
+    pts *= (rng.uniform(1.0, 4.0, n) / np.linalg.norm(pts, axis=1))[:, None]  # 1-4 m away
+    normals = rng.normal(size=(n, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    A = rng.normal(size=(6, 6)) * 0.1
+    P = A @ A.T + np.diag([0.04, 0.04, 0.04, 1e-4, 1e-4, 1e-4])  # ~0.3 m, ~1 deg
+    eps = 1e-6
+    h = np.empty((n, 6))
+    zero = np.zeros(n)
+    for c in range(6):
+        e = np.zeros(23)
+        e[c] = eps
+        h[:, c] = (_residuals(x.boxplus(e), pts, normals, zero)
+                   - _residuals(x.boxplus(-e), pts, normals, zero)) / (2 * eps)
+    k = 3.0
+    allowed = k * np.sqrt(np.einsum("ij,jk,ik->i", h, P, h))
+    residual = allowed * np.where(np.arange(n) % 2 == 0, 0.98, 1.02)
+    range_gate = np.sqrt(np.linalg.norm(pts, axis=1)) / 9.0
+    assert np.all(np.abs(residual) > range_gate)  # every row beyond FAST-LIO2's gate
+    d = -_residuals(x, pts, normals, zero) + residual
+    sel = np.ones(n, bool)
+    _, r, acc = measurement.point_to_plane(pts, x.R, x.p, x.R_LI, x.t_LI, normals, d, sel,
+                                           False, P, k)
+    assert acc.tolist() == (np.arange(n) % 2 == 0).tolist()
+    assert np.allclose(r, residual[acc])
+    _, _, acc_off = measurement.point_to_plane(pts, x.R, x.p, x.R_LI, x.t_LI, normals, d, sel,
+                                               False, P, 0.0)
+    assert not acc_off.any()
 
 
 @pytest.mark.parametrize("plane_variance,share", [(True, True), (True, False), (False, True)])
@@ -98,7 +137,7 @@ def _pose_rows(x: State, pts_lidar: np.ndarray, normals: np.ndarray) -> np.ndarr
     d = -np.einsum("ij,ij->i", measurement.points_to_world(pts_lidar, x.R, x.p, x.R_LI, x.t_LI),
                    normals)
     H, _, acc = measurement.point_to_plane(pts_lidar, x.R, x.p, x.R_LI, x.t_LI, normals, d,
-                                           np.ones(len(pts_lidar), bool), False)
+                                           np.ones(len(pts_lidar), bool), False, *NO_GATE)
     assert acc.all()
     return H[:, :6]
 

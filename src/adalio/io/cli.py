@@ -317,6 +317,13 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
         con.print(f"[yellow]at risk:[/] position sigma above {res.sigma_warn_m:g} m (scans.csv "
                   f"sigma_x/y/z_m) in {res.n_sigma_warn}/{res.n_scans} scans at "
                   f"{_ranges_text(res.sigma_warn_ranges_s)}", highlight=False, soft_wrap=True)
+    gaps = getattr(res, "lidar_gaps", [])
+    if gaps:
+        t_s, gap_s, sigma_m = max(gaps, key=lambda g: g[1])
+        con.print(f"[yellow]at risk:[/] {len(gaps)} LiDAR gap{'s' if len(gaps) > 1 else ''} "
+                  f"(scans.csv lidar_gap), the longest {gap_s:.2f} s at {t_s:.1f} s: the IMU "
+                  f"alone carried the pose, its position sigma grew to {sigma_m:.2f} m",
+                  highlight=False, soft_wrap=True)
     if getattr(res, "n_height_blind", 0):
         con.print(f"[yellow]at risk:[/] height left to the IMU (scans.csv height_blind: the "
                   f"scans' height is mostly what their fitted normals' noise fakes; the height "

@@ -76,11 +76,44 @@ def points_to_world(points_lidar, R, p, R_LI, t_LI):
     return out
 
 
+@kernel(inline="always")
+def _body_and_normal(points_lidar, i, R, R_LI, t_LI, normals):
+    """``p_I = R_LI p_L + t_LI`` and ``c = Rᵀ n`` of row i (the body-frame point and normal)."""
+    nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+    lx, ly, lz = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
+    return (R_LI[0, 0] * lx + R_LI[0, 1] * ly + R_LI[0, 2] * lz + t_LI[0],
+            R_LI[1, 0] * lx + R_LI[1, 1] * ly + R_LI[1, 2] * lz + t_LI[1],
+            R_LI[2, 0] * lx + R_LI[2, 1] * ly + R_LI[2, 2] * lz + t_LI[2],
+            R[0, 0] * nx + R[1, 0] * ny + R[2, 0] * nz,
+            R[0, 1] * nx + R[1, 1] * ny + R[2, 1] * nz,
+            R[0, 2] * nx + R[1, 2] * ny + R[2, 2] * nz)
+
+
+@kernel(inline="always")
+def _pose_row_variance(points_lidar, i, R, R_LI, t_LI, normals, P_pose):
+    """``h P_pose hᵀ``: the variance the pose covariance ``P_pose`` ([δp, δθ]) gives row i's
+    residual, with ``h = [nᵀ, ([p_I]× c)ᵀ]`` its pose columns."""
+    ix, iy, iz, cx, cy, cz = _body_and_normal(points_lidar, i, R, R_LI, t_LI, normals)
+    h = (normals[i, 0], normals[i, 1], normals[i, 2],
+         iy * cz - iz * cy, iz * cx - ix * cz, ix * cy - iy * cx)
+    v = 0.0
+    for a in range(6):
+        for b in range(6):
+            v += h[a] * P_pose[a, b] * h[b]
+    return v
+
+
 @kernel()
-def point_to_plane(points_lidar, R, p, R_LI, t_LI, normals, d, selected, estimate_extrinsic):
+def point_to_plane(points_lidar, R, p, R_LI, t_LI, normals, d, selected, estimate_extrinsic,
+                   P_pose, gate_sigmas):
     """Residuals and Jacobian rows of the accepted points (§6.3), all points in one call.
 
-    For each point with ``selected[i]``: ``r = nᵀ p_W + d``; accepted iff ``|p_L| > 81 r²``.
+    For each point with ``selected[i]``: ``r = nᵀ p_W + d``; accepted iff ``|p_L| > 81 r²``
+    (FAST-LIO2's range gate) or ``r² ≤ gate_sigmas² h P_pose hᵀ`` (the residual lies within
+    ``gate_sigmas`` standard deviations of what the predicted pose's covariance ``P_pose``
+    (6×6, [δp, δθ]) allows: after seconds without a scan the prediction may be decimetres off,
+    beyond the range gate, and the rows that would correct it must not be the ones rejected;
+    ``gate_sigmas`` 0: the range gate alone).
     Row (12 columns, error order p, θ, θ_LI, t_LI) with ``p_I = R_LI p_L + t_LI``, ``c = Rᵀ n``:
     ``[nᵀ, ([p_I]× c)ᵀ, ([p_L]× R_LIᵀ c)ᵀ, cᵀ]`` (extrinsic columns zero unless estimated).
     Returns ``(H (m,12), r (m,), accepted (n,) bool)``, rows in point order.
@@ -100,7 +133,11 @@ def point_to_plane(points_lidar, R, p, R_LI, t_LI, normals, d, selected, estimat
         r += normals[i, 0] * wx
         r += normals[i, 1] * wy
         r += normals[i, 2] * wz
-        if np.sqrt(x * x + y * y + z * z) > GATE_FACTOR * r * r:
+        ok = np.sqrt(x * x + y * y + z * z) > GATE_FACTOR * r * r
+        if not ok and gate_sigmas > 0.0:
+            ok = r * r <= gate_sigmas * gate_sigmas * _pose_row_variance(
+                points_lidar, i, R, R_LI, t_LI, normals, P_pose)
+        if ok:
             accepted[i] = True
             res[i] = r
             m += 1
@@ -110,21 +147,15 @@ def point_to_plane(points_lidar, R, p, R_LI, t_LI, normals, d, selected, estimat
     for i in range(n):
         if not accepted[i]:
             continue
-        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
-        cx = R[0, 0] * nx + R[1, 0] * ny + R[2, 0] * nz
-        cy = R[0, 1] * nx + R[1, 1] * ny + R[2, 1] * nz
-        cz = R[0, 2] * nx + R[1, 2] * ny + R[2, 2] * nz
-        lx, ly, lz = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
-        ix = R_LI[0, 0] * lx + R_LI[0, 1] * ly + R_LI[0, 2] * lz + t_LI[0]
-        iy = R_LI[1, 0] * lx + R_LI[1, 1] * ly + R_LI[1, 2] * lz + t_LI[1]
-        iz = R_LI[2, 0] * lx + R_LI[2, 1] * ly + R_LI[2, 2] * lz + t_LI[2]
-        H[j, 0] = nx
-        H[j, 1] = ny
-        H[j, 2] = nz
+        ix, iy, iz, cx, cy, cz = _body_and_normal(points_lidar, i, R, R_LI, t_LI, normals)
+        H[j, 0] = normals[i, 0]
+        H[j, 1] = normals[i, 1]
+        H[j, 2] = normals[i, 2]
         H[j, 3] = iy * cz - iz * cy
         H[j, 4] = iz * cx - ix * cz
         H[j, 5] = ix * cy - iy * cx
         if estimate_extrinsic:
+            lx, ly, lz = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
             ex = R_LI[0, 0] * cx + R_LI[1, 0] * cy + R_LI[2, 0] * cz
             ey = R_LI[0, 1] * cx + R_LI[1, 1] * cy + R_LI[2, 1] * cz
             ez = R_LI[0, 2] * cx + R_LI[1, 2] * cy + R_LI[2, 2] * cz

@@ -111,6 +111,11 @@ UNITS_CHECK_ANGLE_RAD = 0.05
 the gyro's unit is judged against it (registration noise, ~0.002 rad per pair, adds little)."""
 UNITS_CHECK_S = 10.0
 """After a still start, the unit check registers scans LiDAR-only for at most this long."""
+LIDAR_GAP_PERIODS = 1.5
+"""An interval between scans longer than this many nominal periods is a LiDAR gap: at least
+one sweep is missing (jitter of half a period passes)."""
+SCAN_PERIOD_WINDOW = 20
+"""The nominal scan period is the median of this many latest intervals without a gap."""
 
 
 @kernel()
@@ -192,7 +197,11 @@ class _Association:
         self.prior_pose_cov = prior_pose_cov
         """(6,6) the predicted discounted pose covariance [δp, δθ] (which does not count the
         information noisy plane normals fake): with it (the filter's update), the rows take
-        ``filter.robust_kernel``'s weights (:func:`robust_row_factors`); None: not."""
+        ``filter.robust_kernel``'s weights (:func:`robust_row_factors`) and the gate admits the
+        residuals it allows (``filter.gate_sigmas``); None: neither."""
+        self._gate_cov = (np.zeros((6, 6)) if prior_pose_cov is None
+                          else np.ascontiguousarray(prior_pose_cov))
+        self._gate_sigmas = 0.0 if prior_pose_cov is None else float(cfg.filter.gate_sigmas)
         self.kernel = robust_kernel_name(cfg)
         self.local = local
         """(normals (n,3) LiDAR frame, judged (n,)) of the scan's own surface at each point
@@ -257,7 +266,8 @@ class _Association:
             self._valid_after_search = self.selected.copy()
             self._searched_at = (x.R.copy(), x.p.copy(), x.R_LI.copy(), x.t_LI.copy())
         H, r, accepted = point_to_plane(self.points_lidar, x.R, x.p, x.R_LI, x.t_LI, self.normals,
-                                        self.d, self.selected, f.estimate_extrinsic)
+                                        self.d, self.selected, f.estimate_extrinsic,
+                                        self._gate_cov, self._gate_sigmas)
         self.selected = accepted
         if (f.plane_uncertainty_weighting or f.share_weighting) and H.shape[0]:
             w = residual_weights(self.points_lidar, accepted, x.R, x.p, x.R_LI, x.t_LI,
@@ -413,6 +423,11 @@ class Odometry:
         self._last_gap: tuple[int, float] | None = None
         """(start ns, length s) of the IMU gap bridged in the latest scan."""
         self._warned_gap_ns: int | None = None
+        self._scan_intervals_ns: list[int] = []
+        """The latest intervals between tracked scans' ends that were not LiDAR gaps."""
+        self.lidar_gaps: list[tuple[int, float, float]] = []
+        """(end of the scan before the gap ns, missing time s, the predicted position's largest
+        standard deviation m at the scan after it) of every LiDAR gap (:meth:`_lidar_gap`)."""
         self._units_check: MovingInit | None = None
         """After a still start: LiDAR-only registrations to compare the gyro's rotation with."""
         self._provenance = MapProvenance(config.filter.map_provenance_cell_m)
@@ -543,6 +558,7 @@ class Odometry:
             return self._first_map(pts_e, t_e, stats, stage_ms, t_start, t0)
 
         # 3-4. propagate with pose records, undistort to the scan end (§5)
+        t_prev = self._t_state_ns
         surface = None
         if full is None:
             pts_e = self._propagate_and_undistort(pts, t_pts, t_e)
@@ -557,6 +573,8 @@ class Odometry:
         t0 = _timer(stage_ms, "undistort", t0)
         if self._last_gap is not None:
             stats.imu_gap_s = self._last_gap[1]
+        if self._t_first_map_ns is not None:
+            stats.lidar_gap_s = self._lidar_gap(t_prev, t_e)
 
         # 5. first scan after init: whole scan into the map, no update (§4)
         if self._t_first_map_ns is None:
@@ -579,7 +597,7 @@ class Odometry:
         assoc = _Association(down, self._ivox, cfg, params.search_radius_m, params.plane_margin_m,
                              min(cell_m, self._finest_cell_m),
                              self._local_planes(surface, down, voxel_of_point),
-                             self._kernel_pose_cov)
+                             self._prior_pose_cov)
         projector = None
         if cfg.adaptive.mode == "adaptive+" and decision.degenerate:
             down, assoc, leaf_m, projector, stats.min_restoring = self._refine(
@@ -822,6 +840,7 @@ class Odometry:
         rev._held_scans, rev._held_imu, rev._backfilled = [], [], []
         rev._backfill_map = np.zeros((0, 3))
         rev._last_gap = rev._warned_gap_ns = rev._units_check = None
+        rev._scan_intervals_ns, rev.lidar_gaps = [], []
         rev.stage_ms_total = dict.fromkeys(STAGES, 0.0)
         return rev
 
@@ -1030,6 +1049,33 @@ class Odometry:
                           "bridged with a constant-velocity motion model, the LiDAR carries "
                           "the pose (scans.csv column imu_gap)", stacklevel=3)
 
+    def _lidar_gap(self, t_prev_ns: int, t_e_ns: int) -> float:
+        """The LiDAR time missing before this scan (s; 0 = none), recorded and warned about
+        (the first gap; the others are counted in ``lidar_gaps``).
+
+        A gap is an interval between two tracked scans' ends longer than 1.5 nominal periods
+        (at least one sweep missing), the nominal period being the median of the last
+        :data:`SCAN_PERIOD_WINDOW` intervals that were not gaps (before three of them, the scan's
+        own span). The missing time is the interval less one period. Across it the IMU alone
+        carried the state, so the prediction the scan corrects may be decimetres off
+        (``filter.gate_sigmas`` lets the update see it)."""
+        interval = t_e_ns - t_prev_ns
+        seen = self._scan_intervals_ns
+        period = float(np.median(seen)) if len(seen) >= 3 else self._span_s * 1e9
+        if not period > 0 or interval <= LIDAR_GAP_PERIODS * period:
+            seen.append(interval)
+            del seen[:-SCAN_PERIOD_WINDOW]
+            return 0.0
+        missing_s = (interval - period) * 1e-9
+        sigma_m = float(np.sqrt(np.linalg.eigvalsh(self._P[:3, :3])[-1]))
+        self.lidar_gaps.append((t_prev_ns, missing_s, sigma_m))
+        if len(self.lidar_gaps) == 1:
+            warnings.warn(f"no scan for {missing_s:.2f} s after t = {t_prev_ns * 1e-9:.3f} s (a "
+                          "LiDAR gap): the IMU alone carried the pose across it, the position "
+                          f"sigma grew to {sigma_m:.2f} m (scans.csv column lidar_gap; further "
+                          "gaps are counted)", stacklevel=4)
+        return missing_s
+
     def init_failure(self) -> str:
         """Why the filter has not initialized yet (for the error of a run with no pose)."""
         cfg = self.cfg.imu
@@ -1142,7 +1188,7 @@ class Odometry:
             assoc = _Association(down, self._ivox, self.cfg, params.search_radius_m,
                                  params.plane_margin_m, assoc_cell,
                                  self._local_planes(surface, down, voxel_of_point),
-                                 self._kernel_pose_cov)
+                                 self._prior_pose_cov)
             loc = probe(assoc)
         if ada.probe_directions > 0 and assoc.H.shape[0]:
             dirs = weak_directions(loc, ada.probe_directions, ada.probe_step_m)
@@ -1197,11 +1243,9 @@ class Odometry:
         return self._discounted_P if self.cfg.filter.sigmas_discount_normal_noise else self._P
 
     @property
-    def _kernel_pose_cov(self) -> np.ndarray | None:
-        """(6,6) the robust kernel's predicted pose covariance: the discounted one's pose block
-        (the filter's before the anchor); None without a kernel."""
-        if robust_kernel_name(self.cfg) == "none":
-            return None
+    def _prior_pose_cov(self) -> np.ndarray:
+        """(6,6) the predicted pose covariance of the robust kernel and the gate: the discounted
+        one's pose block (the filter's before the anchor)."""
         return self._discounted_P[:6, :6]
 
     @staticmethod
