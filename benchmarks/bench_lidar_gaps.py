@@ -16,6 +16,7 @@ without a gap, over the same stretch.
 
     python benchmarks/bench_lidar_gaps.py                    # hall, corridor, spiral; 2 seeds
     python benchmarks/bench_lidar_gaps.py --scenes hall --seeds 1 --gaps 5 --gate-sigmas 0 3
+    python benchmarks/bench_lidar_gaps.py --imu-rate 100 --gate-sigmas 3     # an Ouster's IMU
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from adalio import Bag, ImuBatch, Odometry, Sequencer, load_config
 from adalio.eval.files import read_trajectory
 from adalio.sim import cached_sequence
-from adalio.sim.generate import SimResult
+from adalio.sim.generate import IMU_RATE_HZ, SimResult
 
 
 @dataclass
@@ -107,12 +108,15 @@ def main() -> None:
     ap.add_argument("--after-s", type=float, default=8.0, help="seconds run after the gap")
     ap.add_argument("--gate-sigmas", nargs="+", type=float, default=[0.0, 3.0])
     ap.add_argument("--columns", type=int, default=512)
+    ap.add_argument("--imu-rate", type=float, default=IMU_RATE_HZ,
+                    help="the simulated IMU's rate, Hz (default: the BMI085's 400)")
     args = ap.parse_args()
     rows: dict[tuple[str, float, float], list[dict]] = {}
     t0 = time.time()
     for scene, seed, noise, gap in itertools.product(args.scenes, range(args.seeds),
                                                      args.imu_noise, args.gaps):
-        sim = cached_sequence(scene, seed=seed, imu_noise_scale=noise, columns=args.columns)
+        sim = cached_sequence(scene, seed=seed, imu_noise_scale=noise, columns=args.columns,
+                              imu_rate_hz=args.imu_rate)
         window = (args.start_s, args.start_s + gap) if gap > 0 else None
         for gate in args.gate_sigmas:
             run = run_with_gap(sim, window, args.start_s + gap + args.after_s, gate)

@@ -73,8 +73,8 @@ class RunResult:
     (scans.csv sigma_x/y/z_m) exceeds ``sigma_warn_m``."""
     n_sigma_warn: int = 0
     lidar_gaps: list[tuple[float, float, float]] = field(default_factory=list)
-    """(start s since the first estimated scan, missing time s, the predicted position's largest
-    sigma m at the scan after it) of each LiDAR gap (``Odometry.lidar_gaps``; scans.csv
+    """(start s since the first estimated scan, missing time s, the largest position sigma
+    predicted at the scan after it, m) of each LiDAR gap (``Odometry.lidar_gaps``; scans.csv
     lidar_gap)."""
     init_report: Any = None
     """:class:`adalio.types.InitReport` of the estimator (None if it never initialized)."""

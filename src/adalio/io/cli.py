@@ -322,7 +322,7 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
         t_s, gap_s, sigma_m = max(gaps, key=lambda g: g[1])
         con.print(f"[yellow]at risk:[/] {len(gaps)} LiDAR gap{'s' if len(gaps) > 1 else ''} "
                   f"(scans.csv lidar_gap), the longest {gap_s:.2f} s at {t_s:.1f} s: the IMU "
-                  f"alone carried the pose, its position sigma grew to {sigma_m:.2f} m",
+                  f"alone carried the pose, its position sigma grew to {sigma_m:.2g} m",
                   highlight=False, soft_wrap=True)
     if getattr(res, "n_height_blind", 0):
         con.print(f"[yellow]at risk:[/] height left to the IMU (scans.csv height_blind: the "

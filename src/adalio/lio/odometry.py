@@ -426,8 +426,9 @@ class Odometry:
         self._scan_intervals_ns: list[int] = []
         """The latest intervals between tracked scans' ends that were not LiDAR gaps."""
         self.lidar_gaps: list[tuple[int, float, float]] = []
-        """(end of the scan before the gap ns, missing time s, the predicted position's largest
-        standard deviation m at the scan after it) of every LiDAR gap (:meth:`_lidar_gap`)."""
+        """(end of the scan before the gap ns, missing time s, the largest position standard
+        deviation of the reported sigmas (scans.csv sigma_*) predicted at the scan after it, m)
+        of every LiDAR gap (:meth:`_lidar_gap`)."""
         self._units_check: MovingInit | None = None
         """After a still start: LiDAR-only registrations to compare the gyro's rotation with."""
         self._provenance = MapProvenance(config.filter.map_provenance_cell_m)
@@ -1067,12 +1068,12 @@ class Odometry:
             del seen[:-SCAN_PERIOD_WINDOW]
             return 0.0
         missing_s = (interval - period) * 1e-9
-        sigma_m = float(np.sqrt(np.linalg.eigvalsh(self._P[:3, :3])[-1]))
+        sigma_m = float(np.sqrt(np.linalg.eigvalsh(self._world_covariance()[:3, :3])[-1]))
         self.lidar_gaps.append((t_prev_ns, missing_s, sigma_m))
         if len(self.lidar_gaps) == 1:
             warnings.warn(f"no scan for {missing_s:.2f} s after t = {t_prev_ns * 1e-9:.3f} s (a "
                           "LiDAR gap): the IMU alone carried the pose across it, the position "
-                          f"sigma grew to {sigma_m:.2f} m (scans.csv column lidar_gap; further "
+                          f"sigma grew to {sigma_m:.2g} m (scans.csv column lidar_gap; further "
                           "gaps are counted)", stacklevel=4)
         return missing_s
 
