@@ -19,10 +19,20 @@ class StickyInterrupt:
 
     def __init__(self) -> None:
         self.received = False
+        self._report = sys.unraisablehook
 
     def __call__(self, signum: int, frame: object) -> None:
         self.received = True
         raise KeyboardInterrupt
+
+    def unraisable(self, report: object) -> None:
+        """``sys.unraisablehook``: a KeyboardInterrupt raised where Python cannot raise (inside a
+        weakref callback, such as importlib's module-lock cleanup, or a ``__del__``) is dropped
+        after this handler remembered it; Python would print 'Exception ignored in ...' and a
+        traceback beside the 'interrupted' line. Anything else is reported as before."""
+        if self.received and isinstance(getattr(report, "exc_value", None), KeyboardInterrupt):
+            return
+        self._report(report)
 
 
 def main() -> None:
@@ -30,6 +40,7 @@ def main() -> None:
     handler = StickyInterrupt()
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, handler)
+        sys.unraisablehook = handler.unraisable
     try:
         from adalio.cli import main as cli_main
     except KeyboardInterrupt:

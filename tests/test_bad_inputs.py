@@ -665,7 +665,7 @@ def test_ctrl_c_swallowed_by_an_import_still_stops_with_130(base: Base, tmp_path
 
 _CTRL_C_AS_IMPORT_ERROR = """
 import os, signal, sys
-sys.path.insert(0, sys.argv[1])  # a package 'adalio' whose import is hit by Ctrl-C
+sys.path.insert(0, sys.argv[1])  # a stand-in package 'adalio' whose import is hit by Ctrl-C
 import _adalio_entry
 sys.argv = ["adalio", "version"]
 _adalio_entry.main()
@@ -698,6 +698,31 @@ def test_ctrl_c_that_an_import_turns_into_another_error_is_still_130(tmp_path: P
     proc = subprocess.run([sys.executable, "-c", _CTRL_C_AS_IMPORT_ERROR, str(fake.parent)],
                           check=False, cwd=tmp_path, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 1 and "broken install" in proc.stderr, proc.stderr
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="needs POSIX signals")
+def test_ctrl_c_inside_a_weakref_callback_is_one_line(tmp_path: Path) -> None:
+    """Seen in CI (test_ctrl_c_during_simulate[0.3]): the interrupt landed in importlib's
+    module-lock cleanup, a weakref callback, where Python cannot raise; it printed 'Exception
+    ignored in ...' and a traceback above 'interrupted'. Here a stand-in package receives SIGINT
+    inside a weakref callback during its import."""
+    fake = tmp_path / "fake" / "adalio"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text(
+        "import os, signal, weakref\n"
+        "class Lock:\n"
+        "    pass\n"
+        "def cb(ref):\n"
+        "    os.kill(os.getpid(), signal.SIGINT)\n"
+        "    sum(range(10))\n"
+        "lock = Lock()\n"
+        "ref = weakref.ref(lock, cb)\n"
+        "del lock\n")
+    proc = subprocess.run([sys.executable, "-c", _CTRL_C_AS_IMPORT_ERROR, str(fake.parent)],
+                          check=False, cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    text = proc.stdout + proc.stderr
+    assert proc.returncode == 130, text
+    assert "Traceback" not in text and text.strip() == "interrupted", text
 
 
 @pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs Linux /proc")
