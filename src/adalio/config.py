@@ -273,7 +273,9 @@ class FilterConfig:
     seconds without a scan (a LiDAR gap) the prediction can be decimetres off; the range gate
     then keeps only the rows that cannot correct that error, and the scan locks onto the map
     where it is and enters the map there (README, "LiDAR gaps"). While scans arrive the
-    covariance allows millimetres and the range gate decides alone. 0: the range gate only."""
+    covariance allows millimetres and the range gate decides (over whole routes of the four
+    scenes this gate admitted no row in three and 16 of 10 million in the stairwell). 0: the
+    range gate only."""
     refit_every_iteration: bool = False
     """Re-search and refit planes at every iteration (FAST-LIO2) instead of on convergence only."""
     research_min_shift_m: float = 0.005
