@@ -192,16 +192,17 @@ class _Association:
     def __init__(self, points_lidar: np.ndarray, ivox: IVox, cfg: Config, radius_m: float,
                  margin_m: float, cell_m: float,
                  local: tuple[np.ndarray, np.ndarray] | None = None,
-                 prior_pose_cov: np.ndarray | None = None) -> None:
+                 prior_pose_cov: np.ndarray | None = None, after_gap: bool = False) -> None:
         self.points_lidar = points_lidar
         self.prior_pose_cov = prior_pose_cov
         """(6,6) the predicted discounted pose covariance [δp, δθ] (which does not count the
         information noisy plane normals fake): with it (the filter's update), the rows take
-        ``filter.robust_kernel``'s weights (:func:`robust_row_factors`) and the gate admits the
-        residuals it allows (``filter.gate_sigmas``); None: neither."""
-        self._gate_cov = (np.zeros((6, 6)) if prior_pose_cov is None
-                          else np.ascontiguousarray(prior_pose_cov))
-        self._gate_sigmas = 0.0 if prior_pose_cov is None else float(cfg.filter.gate_sigmas)
+        ``filter.robust_kernel``'s weights (:func:`robust_row_factors`) and, on the scan after
+        a LiDAR or IMU gap (``after_gap``), the gate admits the residuals it allows
+        (``filter.gate_sigmas``); None: neither."""
+        gate = prior_pose_cov is not None and after_gap
+        self._gate_cov = np.ascontiguousarray(prior_pose_cov) if gate else np.zeros((6, 6))
+        self._gate_sigmas = float(cfg.filter.gate_sigmas) if gate else 0.0
         self.kernel = robust_kernel_name(cfg)
         self.local = local
         """(normals (n,3) LiDAR frame, judged (n,)) of the scan's own surface at each point
@@ -598,11 +599,11 @@ class Odometry:
         assoc = _Association(down, self._ivox, cfg, params.search_radius_m, params.plane_margin_m,
                              min(cell_m, self._finest_cell_m),
                              self._local_planes(surface, down, voxel_of_point),
-                             self._prior_pose_cov)
+                             self._prior_pose_cov, self._after_gap(stats))
         projector = None
         if cfg.adaptive.mode == "adaptive+" and decision.degenerate:
             down, assoc, leaf_m, projector, stats.min_restoring = self._refine(
-                pts_e, down, assoc, leaf_m, params, surface)
+                pts_e, down, assoc, leaf_m, params, surface, self._after_gap(stats))
             stats.held_directions = 6 - int(np.linalg.matrix_rank(projector, tol=1e-6))
         t0 = _timer(stage_ms, "degeneracy", t0)
 
@@ -1168,7 +1169,7 @@ class Odometry:
         self.n_rest_updates += 1
         return True
 
-    def _refine(self, pts_e, down, assoc, leaf_m, params, surface):
+    def _refine(self, pts_e, down, assoc, leaf_m, params, surface, after_gap):
         """AdaLIO+ (degeneracy.py §3-4): halve the leaf while the translation information is weak
         and within the point budget, then restrict the update to observable pose directions.
         Returns (down, assoc, leaf_m, projector, smallest restoring ratio or NaN)."""
@@ -1189,7 +1190,7 @@ class Odometry:
             assoc = _Association(down, self._ivox, self.cfg, params.search_radius_m,
                                  params.plane_margin_m, assoc_cell,
                                  self._local_planes(surface, down, voxel_of_point),
-                                 self._prior_pose_cov)
+                                 self._prior_pose_cov, after_gap)
             loc = probe(assoc)
         if ada.probe_directions > 0 and assoc.H.shape[0]:
             dirs = weak_directions(loc, ada.probe_directions, ada.probe_step_m)
@@ -1242,6 +1243,12 @@ class Odometry:
         if self._P_blind is not None:
             return self._P_blind
         return self._discounted_P if self.cfg.filter.sigmas_discount_normal_noise else self._P
+
+    @staticmethod
+    def _after_gap(stats: ScanStats) -> bool:
+        """The scan follows a LiDAR gap or bridges an IMU gap: its prediction was carried without
+        the LiDAR (or without the IMU) and may be decimetres off (``filter.gate_sigmas``)."""
+        return stats.lidar_gap_s > 0.0 or stats.imu_gap_s > 0.0
 
     @property
     def _prior_pose_cov(self) -> np.ndarray:
