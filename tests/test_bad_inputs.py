@@ -663,7 +663,7 @@ def test_ctrl_c_swallowed_by_an_import_still_stops_with_130(base: Base, tmp_path
         assert not tum.is_file() or tum.read_text().strip() == "", text
 
 
-_CTRL_C_AS_IMPORT_ERROR = """
+_STAND_IN_ENTRY = """
 import os, signal, sys
 sys.path.insert(0, sys.argv[1])  # a stand-in package 'adalio' whose import is hit by Ctrl-C
 import _adalio_entry
@@ -672,31 +672,40 @@ _adalio_entry.main()
 """
 
 
+def _entry_with_stand_in(tmp_path: Path, init_source: str) -> subprocess.CompletedProcess:
+    """Run the console entry point with a stand-in package ``adalio`` whose ``__init__`` is
+    ``init_source``."""
+    fake = tmp_path / "fake" / "adalio"
+    fake.mkdir(parents=True, exist_ok=True)
+    (fake / "__init__.py").write_text(init_source)
+    return subprocess.run([sys.executable, "-c", _STAND_IN_ENTRY, str(fake.parent)],
+                          check=False, cwd=tmp_path, capture_output=True, text=True, timeout=60)
+
+
+_SIGINT_HERE = "os.kill(os.getpid(), signal.SIGINT); sum(range(10))"
+"""A stand-in's line that receives Ctrl-C where it stands (the handler runs at the next
+bytecode)."""
+
+
+def _assert_interrupted(proc: subprocess.CompletedProcess) -> None:
+    text = proc.stdout + proc.stderr
+    assert proc.returncode == 130, text
+    assert "Traceback" not in text and text.strip() == "interrupted", text
+
+
 @pytest.mark.skipif(sys.platform == "win32", reason="needs POSIX signals")
 def test_ctrl_c_that_an_import_turns_into_another_error_is_still_130(tmp_path: Path) -> None:
     """Seen in CI: Ctrl-C while numpy imports its C core surfaces as an ImportError
     ('PyCapsule_Import could not import module "datetime"') and printed a traceback (exit 1).
     Here a stand-in package receives SIGINT during its import and re-raises it as ImportError,
     as the extension did."""
-    fake = tmp_path / "fake" / "adalio"
-    fake.mkdir(parents=True)
-    (fake / "__init__.py").write_text(
-        "import os, signal\n"
-        "try:\n"
-        "    os.kill(os.getpid(), signal.SIGINT)\n"
-        "    sum(range(10))\n"
-        "except KeyboardInterrupt as exc:\n"
+    _assert_interrupted(_entry_with_stand_in(
+        tmp_path,
+        f"import os, signal\ntry:\n    {_SIGINT_HERE}\nexcept KeyboardInterrupt as exc:\n"
         "    raise ImportError('PyCapsule_Import could not import module \"datetime\"') "
-        "from exc\n")
-    proc = subprocess.run([sys.executable, "-c", _CTRL_C_AS_IMPORT_ERROR, str(fake.parent)],
-                          check=False, cwd=tmp_path, capture_output=True, text=True, timeout=60)
-    text = proc.stdout + proc.stderr
-    assert proc.returncode == 130, text
-    assert "Traceback" not in text and text.strip() == "interrupted", text
+        "from exc\n"))
     # an import error without a Ctrl-C is still the error it is
-    (fake / "__init__.py").write_text("raise ImportError('broken install')\n")
-    proc = subprocess.run([sys.executable, "-c", _CTRL_C_AS_IMPORT_ERROR, str(fake.parent)],
-                          check=False, cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    proc = _entry_with_stand_in(tmp_path, "raise ImportError('broken install')\n")
     assert proc.returncode == 1 and "broken install" in proc.stderr, proc.stderr
 
 
@@ -706,23 +715,10 @@ def test_ctrl_c_inside_a_weakref_callback_is_one_line(tmp_path: Path) -> None:
     module-lock cleanup, a weakref callback, where Python cannot raise; it printed 'Exception
     ignored in ...' and a traceback above 'interrupted'. Here a stand-in package receives SIGINT
     inside a weakref callback during its import."""
-    fake = tmp_path / "fake" / "adalio"
-    fake.mkdir(parents=True)
-    (fake / "__init__.py").write_text(
-        "import os, signal, weakref\n"
-        "class Lock:\n"
-        "    pass\n"
-        "def cb(ref):\n"
-        "    os.kill(os.getpid(), signal.SIGINT)\n"
-        "    sum(range(10))\n"
-        "lock = Lock()\n"
-        "ref = weakref.ref(lock, cb)\n"
-        "del lock\n")
-    proc = subprocess.run([sys.executable, "-c", _CTRL_C_AS_IMPORT_ERROR, str(fake.parent)],
-                          check=False, cwd=tmp_path, capture_output=True, text=True, timeout=60)
-    text = proc.stdout + proc.stderr
-    assert proc.returncode == 130, text
-    assert "Traceback" not in text and text.strip() == "interrupted", text
+    _assert_interrupted(_entry_with_stand_in(
+        tmp_path,
+        f"import os, signal, weakref\nclass Lock:\n    pass\ndef cb(ref):\n    {_SIGINT_HERE}\n"
+        "lock = Lock()\nref = weakref.ref(lock, cb)\ndel lock\n"))
 
 
 @pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs Linux /proc")
