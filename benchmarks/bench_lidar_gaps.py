@@ -29,10 +29,10 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+from evo.core.trajectory import PoseTrajectory3D
 
 from adalio import Bag, ImuBatch, Odometry, Sequencer, load_config
-from adalio.eval.files import read_trajectory
+from adalio.eval.metrics import align_pair
 from adalio.sim import cached_sequence
 from adalio.sim.generate import IMU_RATE_HZ, SimResult
 
@@ -70,7 +70,7 @@ def run_with_gap(sim: SimResult, gap_s: tuple[float, float] | None, stop_s: floa
             if isinstance(item, ImuBatch):
                 odom.add_imu(item.t_ns, item.gyro_rad_s, item.accel_m_s2)
                 continue
-            rel_s = (item.t_end_ns - bag.start_ns) * 1e-9
+            rel_s = (item.t_end_ns - start_ns) * 1e-9
             if rel_s > stop_s:
                 break
             if gap_s is not None and gap_s[0] < rel_s < gap_s[1]:
@@ -81,13 +81,12 @@ def run_with_gap(sim: SimResult, gap_s: tuple[float, float] | None, stop_s: floa
                 T.append(est.T_world_imu)
                 sigma.append(est.stats.sigma_p_world_m)
                 gap.append(est.stats.lidar_gap_s)
-    gt = read_trajectory(sim.gt_path, "ground truth")
-    t_gt, t_s = np.asarray(gt.timestamps), np.asarray(t_ns) * 1e-9
-    p_gt = np.column_stack([np.interp(t_s, t_gt, gt.positions_xyz[:, k]) for k in range(3)])
-    R_gt = Slerp(t_gt, Rotation.from_quat(gt.orientations_quat_wxyz[:, [1, 2, 3, 0]]))(t_s[:1])
-    T = np.asarray(T)
-    R0 = T[0, :3, :3] @ R_gt[0].as_matrix().T  # the estimate's world from the ground truth's
-    err = T[:, :3, 3] - (p_gt @ R0.T + T[0, :3, 3] - R0 @ p_gt[0])
+    est = PoseTrajectory3D(poses_se3=T, timestamps=np.asarray(t_ns) * 1e-9)
+    pair = align_pair(est, sim.gt_path, align="first")  # the GT interpolated at the stamps
+    if pair.est.num_poses != len(t_ns):
+        raise RuntimeError(f"{len(t_ns) - pair.est.num_poses} estimates without a GT pose")
+    # errors in the estimate's world, the frame of its sigmas
+    err = (pair.est.positions_xyz - pair.gt.positions_xyz) @ pair.T_gt_est[:3, :3]
     msgs = [str(w.message) for w in caught if "LiDAR gap" in str(w.message)]
     return GapRun((np.asarray(t_ns) - start_ns) * 1e-9, err, np.asarray(sigma), np.asarray(gap),
                   odom, msgs)
