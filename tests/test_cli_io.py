@@ -499,6 +499,14 @@ def test_compare_with_a_gt_no_mode_aligns_with_is_an_error(monkeypatch, capsys, 
     assert (tmp_path / "a" / "fixed" / "trajectory.tum").is_file()
 
 
+def test_demo_without_a_seed_is_an_error(monkeypatch, capsys, tmp_path):
+    """`adalio demo --seeds 0` compares on nothing: one 'error:' line naming the flag, exit 2,
+    and nothing simulated."""
+    code, _, err = run_cli(monkeypatch, capsys, "demo", "--seeds", "0", "--out", tmp_path / "d")
+    assert_one_line_error(code, err, "--seeds must be >= 1 (got 0)")
+    assert not (tmp_path / "d" / "seed0").exists()
+
+
 def test_compare_in_which_no_mode_poses_is_an_error(monkeypatch, capsys, tmp_path):
     """`adalio compare` whose every mode produces no pose (3 scans: the estimator never
     initializes) is one 'error:' line saying so, exit 2, as `run` would; the table is kept, and

@@ -170,26 +170,40 @@ def demo_command(
     out: Annotated[Path | None, typer.Option(
         help="Output folder [default: runs/demo]")] = None,
     short: Annotated[bool, typer.Option("--short", help="Much shorter sequence (CI).")] = False,
+    seeds: Annotated[int | None, typer.Option(
+        help="Sequences to compare on, seeds 0..N-1 [default: 3, or 1 with --short].")] = None,
 ) -> None:
     """Simulate a spiral staircase descent and compare fixed vs adaptive (no data needed)."""
-    from adalio.eval.demo import DEFAULT_OUT, run_demo
+    from adalio.eval.demo import DEFAULT_OUT, run_demo, summary_header, summary_rows, wins_line
     from adalio.io.cli import check_out_dir
 
     out = DEFAULT_OUT if out is None else out
     check_out_dir(out)
     console = term_console()
     t0 = time.perf_counter()
-    res = run_demo(out, short=short, console=console)
-    _print_compare(console, res.compare)
-    console.print(f"simulated bag: {res.bag_path}  (ground truth {res.gt_path}; cached "
-                  f"sequence {res.cache_bytes / 1e6:.0f} MB, reused next time)", highlight=False)
-    for row in res.compare.rows:
-        if row.report:
-            console.print(f"report ({row.mode}): [bold]{row.report}[/]")
-    console.print(f"where each mode switched parameters: {Path(out) / '<mode>' / 'degeneracy.png'}")
-    console.print(f"comparison: [bold]{Path(out) / 'compare.md'}[/]  "
+    res = run_demo(out, short=short, seeds=seeds, console=console)
+    for s in res.seeds:
+        console.print(f"[bold]seed {s.seed}[/]")
+        _print_compare(console, s.compare)
+    table = Table(title="adalio demo: SE(3) ATE over the seeds")
+    for col in summary_header(res):
+        table.add_column(col, justify="left" if col == "mode" else "right")
+    for cells in summary_rows(res):
+        table.add_row(*cells)
+    console.print(table)
+    console.print(wins_line(res))
+    console.print(f"cached sequences: {res.cache_bytes / 1e6:.0f} MB in "
+                  f"{Path(res.seeds[0].bag_path).parent.parent if res.seeds else '-'} "
+                  "(reused next time)", highlight=False)
+    for s in res.seeds:
+        for row in s.compare.rows:
+            if row.report:
+                console.print(f"report (seed {s.seed}, {row.mode}): [bold]{row.report}[/]")
+    console.print(f"where each mode switched parameters: "
+                  f"{Path(out) / 'seed<k>' / '<mode>' / 'degeneracy.png'}")
+    console.print(f"comparison: [bold]{Path(out) / 'demo.md'}[/]  "
                   f"(total {time.perf_counter() - t0:.0f} s)")
-    failure = res.compare.failure()
+    failure = res.failure()
     if failure is not None:
         raise InputError(f"demo: {failure}")
 
