@@ -80,7 +80,7 @@ def _trajectory_from_matrix(mat: np.ndarray, path: Path, what: str) -> PoseTraje
         raise InputError(f"{what} file {path}: pose {row + 1} has a zero quaternion")
     quat_wxyz = np.roll(quat_xyzw / norms[:, None], 1, axis=1)
     return PoseTrajectory3D(positions_xyz=mat[:, 1:4].copy(), orientations_quat_wxyz=quat_wxyz,
-                            timestamps=stamps.copy(), name=path.name)
+                            timestamps=stamps.copy())
 
 
 def read_scans_csv(path: str | Path) -> dict[str, np.ndarray]:
