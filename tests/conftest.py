@@ -5,10 +5,16 @@ reuse sequences between sessions on purpose), it points at ``adalio-cache`` in t
 ``tmp_path_factory`` base (``/tmp/pytest-of-$USER/pytest-N``), which is deleted at the end of
 the session; the terminal summary says how much it held. A test run leaves nothing in the
 repository.
+
+A suite started with Ctrl-C ignored (a background job of a shell without job control, as some
+CI scripts start it) would pass that on to every command the tests start, and the Ctrl-C tests
+would see their interrupt ignored: the session gives SIGINT back its default, so the commands
+start as they do from a terminal.
 """
 
 import os
 import shutil
+import signal
 from pathlib import Path
 
 import matplotlib
@@ -18,6 +24,9 @@ matplotlib.use("Agg")
 
 REPO = Path(__file__).resolve().parents[1]
 _SESSION_CACHE: list[Path] = []
+
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.hookimpl(trylast=True)
