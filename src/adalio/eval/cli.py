@@ -121,15 +121,20 @@ def report_command(
     term_console().print(f"report written to [bold]{path}[/]")
 
 
+def _print_table(console: Console, title: str, header, rows) -> None:
+    """One table whose first column (``mode``) is text and the rest figures."""
+    table = Table(title=title)
+    for col in header:
+        table.add_column(col, justify="left" if col == "mode" else "right")
+    for cells in rows:
+        table.add_row(*cells)
+    console.print(table)
+
+
 def _print_compare(console: Console, result) -> None:
     from adalio.eval.compare import TABLE_HEADER, table_rows
 
-    table = Table(title="adalio mode comparison")
-    for col in TABLE_HEADER:
-        table.add_column(col, justify="left" if col == "mode" else "right")
-    for cells in table_rows(result.rows):
-        table.add_row(*cells)
-    console.print(table)
+    _print_table(console, "adalio mode comparison", TABLE_HEADER, table_rows(result.rows))
     for row in result.rows:
         if row.aborted:
             console.print(f"[yellow]{row.mode}[/] aborted: {row.aborted}")
@@ -176,6 +181,7 @@ def demo_command(
     """Simulate a spiral staircase descent and compare fixed vs adaptive (no data needed)."""
     from adalio.eval.demo import DEFAULT_OUT, run_demo, summary_header, summary_rows, wins_line
     from adalio.io.cli import check_out_dir
+    from adalio.sim.cache import cache_root
 
     out = DEFAULT_OUT if out is None else out
     check_out_dir(out)
@@ -185,15 +191,10 @@ def demo_command(
     for s in res.seeds:
         console.print(f"[bold]seed {s.seed}[/]")
         _print_compare(console, s.compare)
-    table = Table(title="adalio demo: SE(3) ATE over the seeds")
-    for col in summary_header(res):
-        table.add_column(col, justify="left" if col == "mode" else "right")
-    for cells in summary_rows(res):
-        table.add_row(*cells)
-    console.print(table)
+    _print_table(console, "adalio demo: SE(3) ATE over the seeds", summary_header(res),
+                 summary_rows(res))
     console.print(wins_line(res))
-    console.print(f"cached sequences: {res.cache_bytes / 1e6:.0f} MB in "
-                  f"{Path(res.seeds[0].bag_path).parent.parent if res.seeds else '-'} "
+    console.print(f"cached sequences: {res.cache_bytes / 1e6:.0f} MB in {cache_root()} "
                   "(reused next time)", highlight=False)
     for s in res.seeds:
         for row in s.compare.rows:

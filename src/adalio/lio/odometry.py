@@ -596,14 +596,15 @@ class Odometry:
         t0 = _timer(stage_ms, "downsample", t0)
         x_pred, P_pred = self._state, self._P
         cell_m = self._map_cell(params.voxel_size_m)
+        after_gap = self._after_gap(stats)
         assoc = _Association(down, self._ivox, cfg, params.search_radius_m, params.plane_margin_m,
                              min(cell_m, self._finest_cell_m),
                              self._local_planes(surface, down, voxel_of_point),
-                             self._prior_pose_cov, self._after_gap(stats))
+                             self._prior_pose_cov, after_gap)
         projector = None
         if cfg.adaptive.mode == "adaptive+" and decision.degenerate:
             down, assoc, leaf_m, projector, stats.min_restoring = self._refine(
-                pts_e, down, assoc, leaf_m, params, surface, self._after_gap(stats))
+                pts_e, down, assoc, leaf_m, params, surface, after_gap)
             stats.held_directions = 6 - int(np.linalg.matrix_rank(projector, tol=1e-6))
         t0 = _timer(stage_ms, "degeneracy", t0)
 
