@@ -7,7 +7,13 @@ import pytest
 from adalio.config import Config
 from adalio.lio.ieskf import iterated_update
 from adalio.lio.ivox import IVox
-from adalio.lio.measurement import KERNEL_WIDTH, MAD_TO_SIGMA, robust_row_factors
+from adalio.lio.measurement import (
+    KERNEL_WIDTH,
+    MAD_TO_SIGMA,
+    normal_noise_terms,
+    pose_quadratic,
+    robust_row_factors,
+)
 from adalio.lio.odometry import _Association, robust_kernel_name
 from adalio.lio.state import DIM, State
 
@@ -36,6 +42,51 @@ def test_factors_follow_the_kernels_formulas() -> None:
     c = robust_row_factors(r, H, None, "geman_mcclure", 3.0)
     k2 = 9 * sigma**2
     np.testing.assert_allclose(c, k2 / (k2 + r**2), rtol=1e-12)
+
+
+def test_the_rows_spread_is_numpys_einsum_bit_for_bit() -> None:
+    """``pose_quadratic`` replaced ``einsum("ij,jk,ik->i")`` in the robust kernel's spread: it
+    must round exactly as einsum did, or every trajectory would move in its last digits (and
+    the shaft's chaos grows those to centimetres). Rows as the filter passes them: the pose
+    columns of an (m, 12) array, a (6, 6) slice of a larger covariance; scales over six decades."""
+    rng = np.random.default_rng(7)
+    for trial in range(50):
+        m = int(rng.integers(1, 2000))
+        H = rng.normal(size=(m, 12)) * 10.0 ** rng.uniform(-3, 1, size=(1, 12))
+        A = rng.normal(size=(23, 23))
+        P = (A @ A.T) * 10.0 ** rng.uniform(-7, -1)
+        expected = np.einsum("ij,jk,ik->i", H[:, :6], P[:6, :6], H[:, :6])
+        got = pose_quadratic(H[:, :6], P[:6, :6])
+        np.testing.assert_array_equal(got, expected)
+        # and it is h P hᵀ
+        i = int(rng.integers(m))
+        assert got[i] == pytest.approx(H[i, :6] @ P[:6, :6] @ H[i, :6], rel=1e-10)
+    assert pose_quadratic(np.zeros((0, 6)), np.eye(6)).shape == (0,)
+
+
+def test_the_update_reuses_the_normals_noise_only_while_its_search_holds() -> None:
+    """The errors-in-variables terms reuse each search's normal covariances over the update's
+    iterations: at every evaluation they equal :func:`normal_noise_terms` computed afresh from
+    the rows as they are then (accepted rows, weights, pose), also after a new search."""
+    cfg = Config()
+    ivox, scan, _ = _room(cfg, np.random.default_rng(13), 300)
+    cfg.filter.robust_kernel = "huber"
+    P_pose = np.diag([0.05**2] * 3 + [np.radians(0.5) ** 2] * 3)
+    a = _Association(scan, ivox, cfg, 5.0, 0.1, cfg.map.map_leaf_m, None, P_pose)
+    poses = [np.array([0.0, 0.0, 0.04]), np.array([0.0, 0.0, 0.03]), np.array([0.01, 0.0, 0.0])]
+    searches = []
+    for k, p in enumerate(poses):
+        x = State(p=p, R_LI=np.eye(3), t_LI=np.zeros(3))
+        a.measure(x, k != 1)  # search, reuse the search at another pose, search again
+        searches.append(a.n_searches)
+        F, b = a.noise_terms(x)
+        F0, b0 = normal_noise_terms(a.points_lidar, a.selected, x.R, x.p, x.R_LI, x.t_LI,
+                                    a.normals, a.mu, a.neighbours, a.counts, a.row_weights,
+                                    cfg.filter.laser_point_cov, True)
+        np.testing.assert_array_equal(F, F0)
+        np.testing.assert_array_equal(b, b0)
+        assert np.any(F != 0.0)
+    assert searches == [1, 1, 2]
 
 
 def _room(cfg: Config, rng: np.random.Generator, n_per_face: int):

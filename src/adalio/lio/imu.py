@@ -8,6 +8,7 @@ rad/s, accel in m/s² after the init scale ``|g|/|ā_init|``.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -180,6 +181,15 @@ def moving_noise(t_ns: np.ndarray, gyro_rad_s: np.ndarray,
     return NoiseMeasurement(float(np.sqrt(g_var / rate)), float(np.sqrt(a_var / rate)), rate, dof)
 
 
+@functools.lru_cache(maxsize=64)
+def _chi2_quantile(q: float, dof: int) -> float:
+    """``scipy.stats.chi2.ppf(q, dof)``, remembered: the stillness test runs on every scan with
+    the same few window sizes, and scipy's call costs more than the test's arithmetic."""
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(q, dof))
+
+
 def stillness_test(t_ns: np.ndarray, gyro_rad_s: np.ndarray, accel: np.ndarray,
                    cfg: ImuConfig) -> StillnessTest:
     """Is the IMU at rest over this window? A test that adapts to the sensor's own noise (§4).
@@ -195,8 +205,6 @@ def stillness_test(t_ns: np.ndarray, gyro_rad_s: np.ndarray, accel: np.ndarray,
     Limit: motion at constant velocity and rate (a smoothly driven robot) is indistinguishable
     from rest for any IMU.
     """
-    from scipy.stats import chi2
-
     n = int(gyro_rad_s.shape[0])
     span_s = float(t_ns[-1] - t_ns[0]) * 1e-9 if n > 1 else 0.0
     rate = (n - 1) / span_s if span_s > 0 else 0.0
@@ -210,7 +218,7 @@ def stillness_test(t_ns: np.ndarray, gyro_rad_s: np.ndarray, accel: np.ndarray,
     acc = accel * (cfg.gravity_m_s2 / acc_norm)
     g_stat, dof = _block_statistic(gyro_rad_s, n_block, cfg.still_gyro_floor_rad_s)
     a_stat, _ = _block_statistic(acc, n_block, cfg.still_accel_floor_m_s2)
-    limit = float(chi2.ppf(1.0 - cfg.still_false_alarm, dof))
+    limit = _chi2_quantile(1.0 - cfg.still_false_alarm, dof)
     g_ratio, a_ratio = g_stat / limit, a_stat / limit
     g_var, noise_dof = white_noise_variance(gyro_rad_s)
     a_var, _ = white_noise_variance(acc)

@@ -45,7 +45,7 @@ def robust_row_factors(r: np.ndarray, H_pose: np.ndarray, P_pose: np.ndarray | N
     sigma = MAD_TO_SIGMA * float(np.median(np.abs(r)))
     k2 = np.full(m, sigma * sigma)
     if P_pose is not None:
-        k2 += np.einsum("ij,jk,ik->i", H_pose, P_pose, H_pose)
+        k2 += pose_quadratic(H_pose, P_pose)
     k2 = scale * scale * np.maximum(k2, 1e-18)
     r2 = r * r
     if kernel_name == "geman_mcclure":
@@ -53,6 +53,22 @@ def robust_row_factors(r: np.ndarray, H_pose: np.ndarray, P_pose: np.ndarray | N
     if kernel_name == "huber":
         return np.sqrt(np.minimum(1.0, np.sqrt(k2 / np.maximum(r2, 1e-36))))
     raise ValueError(f"unknown robust kernel {kernel_name!r}")
+
+
+@kernel()
+def pose_quadratic(H_pose, P_pose):
+    """``h_i P h_iᵀ`` of every row ``h_i`` of ``H_pose`` (m,6): numpy's
+    ``einsum("ij,jk,ik->i", H, P, H)`` bit for bit (one running sum, j outer, k inner), without
+    its generic three-operand loop."""
+    m = H_pose.shape[0]
+    out = np.empty(m)
+    for i in range(m):
+        s = 0.0
+        for j in range(6):
+            for k in range(6):
+                s += (H_pose[i, j] * P_pose[j, k]) * H_pose[i, k]
+        out[i] = s
+    return out
 
 
 @kernel(inline="always")
@@ -253,25 +269,26 @@ def normal_noise_terms(points_lidar, accepted, R, p, R_LI, t_LI, normals, mu, ne
     plane adds its whole ``w² h hᵀ`` to ``F`` (times ``sigma2`` unless ``empirical``) and nothing
     to ``b``.
     """
-    # With q = R p_I (the lever arm in world axes), [p_I]× Rᵀ = Rᵀ [q]×, so B N Bᵀ is
-    # [[N, −N [q]× R], [Rᵀ [q]× N, −Rᵀ [q]× N [q]× R]]: the world-frame sums
-    # X = Σ w² N, Y = Σ w² N [q]×, Z = Σ w² [q]× N [q]× are rotated once at the end; so is
-    # the bias, B v = [v; Rᵀ (q × v)] with v = N ℓ.
-    X = np.zeros((3, 3))
-    bp = np.zeros(3)
-    bq = np.zeros(3)
-    with_bias = mu.shape[0] > 0
-    Y = np.zeros((3, 3))
-    Z = np.zeros((3, 3))
-    N = np.zeros((3, 3))
+    N, plane = normal_noise_matrices(accepted, normals, neighbours, counts, sigma2, empirical)
+    return normal_noise_sums(points_lidar, accepted, R, p, R_LI, t_LI, mu, N, plane, w)
+
+
+@kernel()
+def normal_noise_matrices(rows, normals, neighbours, counts, sigma2, empirical):
+    """``(N, plane)`` of :func:`normal_noise_terms` for each scan point with ``rows[i]``: ``N[i]``
+    the covariance of its fitted normal times ``σ_i²`` (3×3, world axes; ``n nᵀ σ_i²`` where the
+    neighbours span no plane) and ``plane[i]`` whether they span one. They depend only on the
+    search's neighbours and normals, not on the pose: the filter's iterations between two
+    searches reuse them (:func:`normal_noise_sums`). Points without ``rows[i]``: zeros."""
+    n_pts = normals.shape[0]
+    out = np.zeros((n_pts, 3, 3))
+    plane = np.zeros(n_pts, np.bool_)
     S = np.zeros((3, 3))
     A = np.zeros((3, 3))
-    NQ = np.zeros((3, 3))
-    n_pts = points_lidar.shape[0]
-    j = 0
     for i in range(n_pts):
-        if not accepted[i]:
+        if not rows[i]:
             continue
+        N = out[i]
         c = counts[i]
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
         nv = (nx, ny, nz)
@@ -306,13 +323,37 @@ def normal_noise_terms(points_lidar, accepted, R, p, R_LI, t_LI, normals, mu, ne
             for a in range(3):
                 for b in range(3):
                     N[a, b] = (N[a, b] - nv[a] * nv[b]) / c * s2
-            plane = True
+            plane[i] = True
         else:  # no plane: the whole row's information is fake (B n nᵀ Bᵀ = h hᵀ)
             s2 = 1.0 if empirical else sigma2
             for a in range(3):
                 for b in range(3):
                     N[a, b] = nv[a] * nv[b] * s2
-            plane = False
+    return out, plane
+
+
+@kernel()
+def normal_noise_sums(points_lidar, accepted, R, p, R_LI, t_LI, mu, N_rows, plane, w):
+    """``(F, b)`` of :func:`normal_noise_terms` at the pose ``(R, p)`` from the rows' normal
+    covariances ``N_rows`` and ``plane`` (:func:`normal_noise_matrices`, computed for at least
+    the ``accepted`` points); ``w`` the accepted rows' weights in point order."""
+    # With q = R p_I (the lever arm in world axes), [p_I]× Rᵀ = Rᵀ [q]×, so B N Bᵀ is
+    # [[N, −N [q]× R], [Rᵀ [q]× N, −Rᵀ [q]× N [q]× R]]: the world-frame sums
+    # X = Σ w² N, Y = Σ w² N [q]×, Z = Σ w² [q]× N [q]× are rotated once at the end; so is
+    # the bias, B v = [v; Rᵀ (q × v)] with v = N ℓ.
+    X = np.zeros((3, 3))
+    bp = np.zeros(3)
+    bq = np.zeros(3)
+    with_bias = mu.shape[0] > 0
+    Y = np.zeros((3, 3))
+    Z = np.zeros((3, 3))
+    NQ = np.zeros((3, 3))
+    n_pts = points_lidar.shape[0]
+    j = 0
+    for i in range(n_pts):
+        if not accepted[i]:
+            continue
+        N = N_rows[i]
         # q = R (R_LI l + t_LI)
         lx, ly, lz = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
         ix = R_LI[0, 0] * lx + R_LI[0, 1] * ly + R_LI[0, 2] * lz + t_LI[0]
@@ -323,7 +364,7 @@ def normal_noise_terms(points_lidar, accepted, R, p, R_LI, t_LI, normals, mu, ne
         qz = R[2, 0] * ix + R[2, 1] * iy + R[2, 2] * iz
         ww = w[j] * w[j]
         j += 1
-        if with_bias and plane:  # v = N ℓ, ℓ = q + p − μ (the lever arm from the centroid)
+        if with_bias and plane[i]:  # v = N ℓ, ℓ = q + p − μ (the lever arm from the centroid)
             arm_x = qx + p[0] - mu[i, 0]
             arm_y = qy + p[1] - mu[i, 1]
             arm_z = qz + p[2] - mu[i, 2]

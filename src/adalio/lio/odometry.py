@@ -75,7 +75,8 @@ from adalio.lio.local_surface import LocalSurface, disagrees
 from adalio.lio.map_uncertainty import MapProvenance, deskew_covariance, world_covariance
 from adalio.lio.measurement import (
     normal_noise_information,
-    normal_noise_terms,
+    normal_noise_matrices,
+    normal_noise_sums,
     point_to_plane,
     points_to_world,
     residual_weights,
@@ -224,6 +225,8 @@ class _Association:
         # the last search (its queries and neighbours); the map does not change meanwhile
         self._last: Correspondences | None = None
         self.n_searches = 0
+        self._noise: tuple[np.ndarray, np.ndarray] | None = None
+        self._noise_of: Correspondences | None = None  # the search _noise was computed for
 
     def _same_pose(self, x: State) -> bool:
         last = self._searched_at
@@ -296,9 +299,13 @@ class _Association:
         ``filter.errors_in_variables``."""
         if self.H.shape[0] == 0:
             return np.zeros((6, 6)), np.zeros(6)
-        return normal_noise_terms(self.points_lidar, self.selected, x.R, x.p, x.R_LI, x.t_LI,
-                                  self.normals, self.mu, self._last.neighbours, self.counts,
-                                  self.row_weights, self.cfg.laser_point_cov, True)
+        if self._noise_of is not self._last:  # the normals' covariances, once per search
+            self._noise = normal_noise_matrices(self._valid_after_search, self.normals,
+                                                self._last.neighbours, self.counts,
+                                                self.cfg.laser_point_cov, True)
+            self._noise_of = self._last
+        return normal_noise_sums(self.points_lidar, self.selected, x.R, x.p, x.R_LI, x.t_LI,
+                                 self.mu, *self._noise, self.row_weights)
 
     @property
     def neighbours(self) -> np.ndarray:

@@ -64,7 +64,12 @@ def compile_update_stage() -> None:
     from adalio.lio.ieskf import iterated_update
     from adalio.lio.ivox import IVox
     from adalio.lio.map_uncertainty import MapProvenance
-    from adalio.lio.measurement import normal_noise_information, normal_noise_terms
+    from adalio.lio.measurement import (
+        normal_noise_information,
+        normal_noise_matrices,
+        normal_noise_sums,
+        pose_quadratic,
+    )
     from adalio.lio.motion_init import preintegrate
     from adalio.lio.odometry import _Association, _group_ids
     from adalio.lio.state import State, initial_covariance, pose_covariance_world
@@ -100,8 +105,11 @@ def compile_update_stage() -> None:
     normal_noise_information(pts, assoc.selected, x.R, x.R_LI, x.t_LI, assoc.normals,
                              neighbours, assoc.counts, np.ones(assoc.H.shape[0]))
     # the update's errors in variables (filter.errors_in_variables), as _Association.noise_terms
-    normal_noise_terms(pts, assoc.selected, x.R, x.p, x.R_LI, x.t_LI, assoc.normals, assoc.mu,
-                       neighbours, assoc.counts, assoc.row_weights, f.laser_point_cov, True)
+    N, plane = normal_noise_matrices(assoc.selected, assoc.normals, neighbours, assoc.counts,
+                                     f.laser_point_cov, True)
+    normal_noise_sums(pts, assoc.selected, x.R, x.p, x.R_LI, x.t_LI, assoc.mu, N, plane,
+                      assoc.row_weights)
+    pose_quadratic(assoc.H[:, :6], P[:6, :6])  # the robust kernel's spread of the rows
     provenance = MapProvenance(f.map_provenance_cell_m)
     provenance.add_scan(x.p, pose_covariance_world(x.R, P), pts)
     provenance.map_covariance(result.state.p, pts[::2].copy())
