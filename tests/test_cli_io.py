@@ -200,6 +200,8 @@ def test_config_show_roundtrips(monkeypatch, capsys):
     assert cfg.to_dict() == load_config("hilti2022").to_dict()
     code, _, err = run_cli(monkeypatch, capsys, "config", "show", "hilt2022")
     assert_one_line_error(code, err, "unknown preset 'hilt2022'", "hilti2022")
+    code, _, err = run_cli(monkeypatch, capsys, "config", "show", "my_rig.yaml")
+    assert_one_line_error(code, err, "'my_rig.yaml' is a file, not a preset name", "--config")
 
 
 # ------------------------------------------------------------------ runs

@@ -26,6 +26,20 @@ def test_unknown_key_suggests_nearest():
         load_config(overrides={"adaptive.general.voxel_sze_m": 0.3})
 
 
+def test_a_config_file_given_as_the_preset_names_config_file(tmp_path):
+    """``load_config(path)`` (the file in the preset's place) and ``--preset file.yaml``: a
+    ConfigError that says where the file goes, never a TypeError from the name matching."""
+    f = tmp_path / "c.yaml"
+    f.write_text("preset: hilti2022\n")
+    for given in (f, str(f), "mine.yml"):
+        with pytest.raises(ConfigError, match=r"is a file, not a preset name: pass it with "
+                                              r"--config \(Python: load_config\(config_file="):
+            load_config(given)
+    with pytest.raises(ConfigError, match="a preset is named by a string, got int"):
+        load_config(3)
+    assert load_config(config_file=f).sensor.lidar_topic == "/hesai/pandar"
+
+
 def test_overrides_win_over_preset(tmp_path):
     f = tmp_path / "c.yaml"
     f.write_text("preset: hilti2022\nadaptive: {mode: fixed}\n")

@@ -764,6 +764,13 @@ def _read_yaml(text: str, where: str) -> dict[str, Any]:
 def preset_dict(name: str) -> dict[str, Any]:
     """The raw override mapping of a shipped preset."""
     names = available_presets()
+    if isinstance(name, Path) or (isinstance(name, str) and name.endswith((".yaml", ".yml"))):
+        raise ConfigError(f"'{name}' is a file, not a preset name: pass it with --config "
+                          f"(Python: load_config(config_file=...)); presets: "
+                          f"{', '.join(names)}")
+    if not isinstance(name, str):
+        raise ConfigError(f"a preset is named by a string, got {type(name).__name__} {name!r}; "
+                          f"available: {', '.join(names)}")
     if name not in names:
         close = difflib.get_close_matches(name, names, n=1)
         hint = f"did you mean '{close[0]}'? " if close else ""
