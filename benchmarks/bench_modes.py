@@ -304,7 +304,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--motion-from", type=Path, default=None, metavar="TUM",
                     help="walk with the handheld motion of this real trajectory (e.g. "
                     "tests/data/real/hilti2022_gt/exp_04_..._imu.txt) instead of the "
-                    "simulator's synthetic one")
+                    "simulator's synthetic one; 'none': no hand motion (a robot's walk)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for every run, e.g. --set adaptive.tau_n=1500")
     ap.add_argument("--resume", action="store_true",

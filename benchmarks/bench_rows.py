@@ -220,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg = load_config(overrides=parse_overrides(args.set))
     try:
         handheld = (None if args.motion_from is None
-                    else HandheldMotion.from_tum(args.motion_from))
+                    else HandheldMotion.load(args.motion_from))
     except (OSError, ValueError, InputError) as exc:
         raise SystemExit(f"error: --motion-from: {exc}") from None
     print(f"Command: `python benchmarks/bench_rows.py {' '.join(argv or sys.argv[1:])}`"

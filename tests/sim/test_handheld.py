@@ -12,7 +12,7 @@ from adalio.errors import InputError
 from adalio.sim.generate import T_IMU_LIDAR_HILTI, build_trajectory, mesh_distance_m
 from adalio.sim.lidar import RayCaster
 from adalio.sim.scenes import build_scene
-from adalio.sim.trajectory import HandheldMotion
+from adalio.sim.trajectory import NO_HAND, HandheldMotion
 
 REAL = Path(__file__).parents[1] / "data" / "real" / "hilti2022_gt"
 EXP04 = REAL / "exp_04_construction_upper_level_easy_2_2022-03-03-11-48-59_imu.txt"
@@ -82,6 +82,53 @@ def test_a_scene_walk_carries_the_recorded_hand_motion(tmp_path):
     assert _amplitude(plain.euler_zyx(t)[:, 2], 100.0, F_HZ) < 0.3 * ROLL_RAD
     p_walk, p_plain = walk.sample(t).p_world_imu_m, plain.sample(t).p_world_imu_m
     assert np.abs(p_walk - p_plain).max() < 0.15
+
+
+def test_no_hand_is_a_recording_that_never_moves_off_its_path(tmp_path):
+    """``--motion-from none`` (a robot's walk): the same walk as the hand extracted from a
+    recording of a rig standing still (whose smoothed path is itself), and on a straight the
+    rig keeps its height and attitude: no roll at all, pitch only where the route descends."""
+    still = tmp_path / "still.txt"
+    t = np.arange(0.0, 30.0, 0.01)
+    np.savetxt(still, np.column_stack([1.6e9 + t, np.zeros((t.size, 3)),
+                                       np.tile([0.0, 0.0, 0.0, 1.0], (t.size, 1))]))
+    recorded = HandheldMotion.from_tum(still)
+    assert np.abs(recorded.offset_path_m).max() < 1e-9
+    assert np.abs(recorded.attitude_rad).max() < 1e-9
+    scn = build_scene("corridor", 1)
+    T = np.asarray(T_IMU_LIDAR_HILTI)
+    robot = build_trajectory(scn, T, 1, HandheldMotion.load(NO_HAND))
+    from_file = build_trajectory(scn, T, 1, recorded)
+    ts = np.arange(0.0, robot.duration_s, 0.01)
+    assert np.abs(robot.sample(ts).p_world_imu_m - from_file.sample(ts).p_world_imu_m).max() \
+        < 1e-6
+    eul = robot.euler_zyx(ts)
+    assert np.abs(eul[:, 2]).max() < 1e-9  # roll
+    hand = build_trajectory(scn, T, 1)  # the synthetic hand rolls by degrees
+    assert np.abs(hand.euler_zyx(ts)[:, 2]).max() > np.deg2rad(1.0)
+    p = robot.sample(ts).p_world_imu_m
+    assert np.ptp(p[:, 2]) < 1e-6  # the corridor is level: the robot keeps its height
+
+
+def test_a_robots_sequence_is_cached_under_its_own_key():
+    """``cached_sequence(motion_from="none")``: its own cache key, the sequence's meta says so,
+    and its ground truth never rolls (the synthetic hand's does)."""
+    import json
+
+    from adalio.sim import cached_sequence
+
+    robot = cached_sequence("hall", seed=0, duration_s=4.0, motion_from=NO_HAND)
+    hand = cached_sequence("hall", seed=0, duration_s=4.0)
+    assert "-hhnone-" in robot.bag_path.parent.name
+    assert robot.bag_path.parent != hand.bag_path.parent
+    assert json.loads((robot.bag_path.parent / "meta.json").read_text())["motion_from"] == NO_HAND
+    q = np.loadtxt(robot.gt_path)[:, 4:8]
+    roll_pitch = Rotation.from_quat(q).as_euler("ZYX")[:, 1:]
+    q0 = Rotation.from_quat(q[0]).as_euler("ZYX")[1:]
+    assert np.abs(roll_pitch - q0).max() < 1e-6  # the start's rest, then a level walk
+    q_hand = np.loadtxt(hand.gt_path)[:, 4:8]
+    tilt = Rotation.from_quat(q_hand).as_euler("ZYX")[:, 1:] - q0
+    assert np.abs(tilt).max() > np.deg2rad(1.0)  # the synthetic hand tilts the rig by degrees
 
 
 def test_the_real_exp04_walk_runs_through_every_scene_with_its_rates():

@@ -32,6 +32,7 @@ from adalio.sim.generate import (
     simulate,
 )
 from adalio.sim.lidar import lidar_model
+from adalio.sim.trajectory import NO_HAND, is_no_hand
 
 
 def cache_root() -> Path:
@@ -260,7 +261,8 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
                     imu_rate_hz: float = IMU_RATE_HZ) -> SimResult:
     """Generate once (atomically: temp folder + rename + completion marker) and reuse
     (the key includes the IMU rate when it is not the default 400 Hz, a hash of
-    ``motion_from``'s content, and of ``T_imu_lidar``, the mounting
+    ``motion_from``'s content (``-hhnone`` for ``"none"``, no hand motion), and of
+    ``T_imu_lidar``, the mounting
     ``simulate`` takes instead of the HILTI one, when given). After generating, the cache is
     trimmed to ``$ADALIO_SIM_CACHE_GB`` (default 20 GB) by :func:`evict_cache`, least recently
     used first; a sequence larger than the cap on its own is still kept while it is the newest.
@@ -281,7 +283,9 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     if imu_rate_hz != IMU_RATE_HZ:
         imu += f"-{imu_rate_hz:g}hz"
     hh = ""
-    if motion_from is not None:
+    if is_no_hand(motion_from):
+        hh = "-hh" + NO_HAND
+    elif motion_from is not None:
         try:
             hh = "-hh" + hashlib.sha1(Path(motion_from).read_bytes()).hexdigest()[:8]
         except OSError as exc:

@@ -34,7 +34,7 @@ def register(app: typer.Typer) -> None:
         motion_from: Annotated[Path | None, typer.Option(
             "--motion-from", help="TUM trajectory (>= 10 Hz) of a real handheld walk: its hand "
             "and gait motion replace the synthetic one (e.g. the HILTI 2022 exp04-06 dense "
-            "ground truth).")] = None,
+            "ground truth); 'none': no hand motion, the route's own attitude (a robot).")] = None,
         extrinsic: Annotated[str | None, typer.Option(
             "--extrinsic", help="How the IMU sits on the LiDAR: T_imu_lidar as 'tx ty tz qx qy "
             "qz qw' (maps LiDAR points into the IMU frame, as `run --extrinsic`; default: the "

@@ -188,7 +188,8 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     internal IMU gives 100 Hz): the densities stay the same, so each sample's white noise is
     ``density * sqrt(rate)``, and the samples are the true motion's, at their stamps.
     ``motion_from``: a TUM trajectory (>= 10 Hz) whose handheld motion replaces the synthetic
-    one (:class:`adalio.sim.trajectory.HandheldMotion`; the seed picks where in it to start).
+    one (:class:`adalio.sim.trajectory.HandheldMotion`; the seed picks where in it to start);
+    ``"none"``: no hand motion at all, the route's own path and attitude (a robot's walk).
     Before writing, the disk must have room for the whole sequence (:func:`sequence_bytes`),
     else an ``OSError`` (ENOSPC) names ``out_dir``; ``make_room(bytes)`` is called first with
     that size (the sequence cache evicts to make room).
@@ -206,7 +207,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     bag_path = bag_path_for(out_dir, scene, fmt)
     if bag_path.exists():
         raise InputError(f"{bag_path} already exists: delete it or choose another --out")
-    handheld = None if motion_from is None else HandheldMotion.from_tum(motion_from)
+    handheld = None if motion_from is None else HandheldMotion.load(motion_from)
     scn = build_scene(scene, seed, **(scene_params or {}))
     traj = build_trajectory(scn, T_il, seed, handheld)
     dur = math.floor(traj.duration_s * 10.0) / 10.0 if duration_s is None else float(duration_s)

@@ -94,6 +94,15 @@ def _wander(rng: np.random.Generator, tau: np.ndarray, amplitude: float) -> np.n
     return amplitude * w / 1.8
 
 
+NO_HAND = "none"
+"""``--motion-from none``: the walk without any hand motion (:meth:`HandheldMotion.none`)."""
+
+
+def is_no_hand(source) -> bool:
+    """Whether a ``motion_from`` names :data:`NO_HAND` (and no file of that name exists)."""
+    return source is not None and str(source) == NO_HAND and not Path(str(source)).is_file()
+
+
 @dataclass
 class HandheldMotion:
     """The handheld part of a recorded walk, at ``SAMPLE_HZ`` (see the module docstring).
@@ -146,6 +155,17 @@ class HandheldMotion:
         att = np.column_stack([delta_world[:, 2], np.sum(delta_world * left, 1),
                                np.sum(delta_world * fwd, 1)])
         return cls(offset, att, float(smooth_s), path.name)
+
+    @classmethod
+    def none(cls) -> HandheldMotion:
+        """No hand: the rig keeps the route's smoothed path and attitude exactly, as a wheeled
+        robot does (constant height and attitude on a straight, no gait, no wobble)."""
+        return cls(np.zeros((2, 3)), np.zeros((2, 3)), 0.0, NO_HAND)
+
+    @classmethod
+    def load(cls, source) -> HandheldMotion:
+        """:meth:`none` for the name ``none`` (:data:`NO_HAND`), else :meth:`from_tum`."""
+        return cls.none() if is_no_hand(source) else cls.from_tum(source)
 
     def window(self, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """``n`` consecutive samples from a seed-dependent start, the recording played back
