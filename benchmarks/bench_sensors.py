@@ -27,12 +27,15 @@ With ``--mountings`` the sequences are also simulated with other IMU-LiDAR mount
 the IMU sits under the LiDAR), each run with that sequence's own ``config.yaml``, whose
 ``sensor.T_imu_lidar`` is the mounting: nothing in the estimator may assume the HILTI rig's.
 With ``--imu-rates`` the IMU samples at other rates than the BMI085's 400 Hz (an Ouster's
-internal IMU: 100 Hz), with the same noise densities.
+internal IMU: 100 Hz), with the same noise densities. With ``--motion-from`` every walk takes a
+recording's hand motion instead of the synthetic one, or none at all (``none``: a robot's
+walk, at the route's own height and attitude).
 
     python benchmarks/bench_sensors.py                      # hall + corridor, 2 seeds, full routes
     python benchmarks/bench_sensors.py --scenes hall --seeds 1 --lidars xt32-512
     python benchmarks/bench_sensors.py --starts still --mountings upright skewed side
     python benchmarks/bench_sensors.py --starts still --imu-rates 400 200 100
+    python benchmarks/bench_sensors.py --scenes corridor --starts still --motion-from none
 """
 
 from __future__ import annotations
@@ -133,11 +136,12 @@ class Cell:
 
 
 def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
-             overrides: dict[str, str]) -> Cell:
+             overrides: dict[str, str], motion_from: str | None = None) -> Cell:
     lidar, columns = LIDARS[cell.lidar]
     sim = cached_sequence(cell.scene, seed=cell.seed, duration_s=duration_s, lidar=lidar,
                           columns=columns, imu_noise_scale=cell.imu_noise,
-                          T_imu_lidar=MOUNTINGS[cell.mounting], imu_rate_hz=cell.imu_rate_hz)
+                          T_imu_lidar=MOUNTINGS[cell.mounting], imu_rate_hz=cell.imu_rate_hz,
+                          motion_from=motion_from)
     meta = json.loads(sim.meta_path.read_text())
     cfg = load_config(config_file=sim.config_path, overrides=overrides)
     start_s = cell.cut_s
@@ -145,6 +149,7 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     cut = f"{cell.cut_s:g}" if cell.start == "moving" else ""
     other = "" if cell.mounting == "hilti" else f"_{cell.mounting}"
     other += "" if cell.imu_rate_hz == IMU_RATE_HZ else f"_{cell.imu_rate_hz:g}hz"
+    other += "" if motion_from is None else f"_hand-{Path(motion_from).stem}"
     out = out_root / (f"{cell.scene}_s{cell.seed}_imu{cell.imu_noise:g}_{cell.lidar}_"
                       f"{cell.start}{cut}{other}")
     try:
@@ -242,6 +247,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="moving start: seconds cut from the bag (one run per value)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for every run (e.g. imu.noise_source=measured)")
+    ap.add_argument("--motion-from", default=None, metavar="TUM",
+                    help="walk with this recording's hand motion instead of the synthetic one "
+                    "(as bench_modes.py); 'none': no hand motion (a robot's walk)")
     ap.add_argument("--out", type=Path, default=Path("runs/bench_sensors"))
     args = ap.parse_args(argv)
     overrides = parse_overrides(args.set)
@@ -261,7 +269,8 @@ def main(argv: list[str] | None = None) -> int:
                                                                args.imu_rates):
                     for start, cut_s in starts:
                         c = run_cell(Cell(scene, seed, noise, lidar, start, cut_s, mounting,
-                                          rate), duration, args.out, overrides)
+                                          rate), duration, args.out, overrides,
+                                     args.motion_from)
                         cells.append(c)
                         label = f"moving {cut_s:g} s" if start == "moving" else start
                         print(f"| {scene} | {seed} | x{noise:g} | {_lidar_label(c)} | {label} | "
