@@ -182,9 +182,10 @@ def moving_noise(t_ns: np.ndarray, gyro_rad_s: np.ndarray,
 
 
 @functools.lru_cache(maxsize=64)
-def _chi2_quantile(q: float, dof: int) -> float:
+def chi2_quantile(q: float, dof: int) -> float:
     """``scipy.stats.chi2.ppf(q, dof)``, remembered: the stillness test runs on every scan with
-    the same few window sizes, and scipy's call costs more than the test's arithmetic."""
+    the same few window sizes, and scipy's call costs more than the test's arithmetic
+    (scipy.stats is imported on the first call, not at start-up)."""
     from scipy.stats import chi2
 
     return float(chi2.ppf(q, dof))
@@ -218,7 +219,7 @@ def stillness_test(t_ns: np.ndarray, gyro_rad_s: np.ndarray, accel: np.ndarray,
     acc = accel * (cfg.gravity_m_s2 / acc_norm)
     g_stat, dof = _block_statistic(gyro_rad_s, n_block, cfg.still_gyro_floor_rad_s)
     a_stat, _ = _block_statistic(acc, n_block, cfg.still_accel_floor_m_s2)
-    limit = _chi2_quantile(1.0 - cfg.still_false_alarm, dof)
+    limit = chi2_quantile(1.0 - cfg.still_false_alarm, dof)
     g_ratio, a_ratio = g_stat / limit, a_stat / limit
     g_var, noise_dof = white_noise_variance(gyro_rad_s)
     a_var, _ = white_noise_variance(acc)
@@ -285,14 +286,12 @@ def measured_noise_config(cfg: ImuConfig, test: StillnessTest | NoiseMeasurement
     as a floor (they may include vibration and model error the window does not show)."""
     from dataclasses import replace
 
-    from scipy.stats import chi2
-
     scale = 1.0 if cfg.noise_discretization == "dt" else test.rate_hz
     gyro = test.gyro_noise_rad_s_sqrt_hz**2 * scale
     accel = test.accel_noise_m_s2_sqrt_hz**2 * scale
     if only_if_noisier:
         dof = max(test.noise_dof, 1)
-        limit = float(chi2.ppf(1.0 - cfg.still_false_alarm, dof)) / dof
+        limit = chi2_quantile(1.0 - cfg.still_false_alarm, dof) / dof
         gyro = gyro if gyro > cfg.gyro_cov * limit else cfg.gyro_cov
         accel = accel if accel > cfg.accel_cov * limit else cfg.accel_cov
     return replace(cfg, gyro_cov=gyro, accel_cov=accel)

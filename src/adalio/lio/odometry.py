@@ -384,9 +384,7 @@ class Odometry:
         state's time, for the zero-velocity update's stillness test."""
         self.n_rest_updates = 0
         """Scans whose velocity was held at zero (imu.zero_velocity_update)."""
-        from scipy.stats import chi2  # scipy.stats only once a filter is built (start-up)
-
-        self._rest_gate = float(chi2.ppf(1.0 - config.imu.still_false_alarm, 3))
+        self._rest_gate = imu.chi2_quantile(1.0 - config.imu.still_false_alarm, 3)
         """The zero-velocity update's chi-square gate (3 dof at imu.still_false_alarm)."""
         self._ivox = IVox.from_config(config.map)
         self._detector = DegeneracyDetector(config.adaptive)
