@@ -103,6 +103,9 @@ class Cell:
     """Key of :data:`MOUNTINGS`."""
     imu_rate_hz: float = IMU_RATE_HZ
     """The simulated IMU's sample rate (``simulate(imu_rate_hz=...)``)."""
+    motion_from: str | None = None
+    """The walk's hand motion (``simulate(motion_from=...)``): None the synthetic hand, a TUM
+    recording's, or ``none`` (a robot's walk)."""
     scans: int = 0
     poses: int = 0
     init: str = ""
@@ -136,12 +139,12 @@ class Cell:
 
 
 def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
-             overrides: dict[str, str], motion_from: str | None = None) -> Cell:
+             overrides: dict[str, str]) -> Cell:
     lidar, columns = LIDARS[cell.lidar]
     sim = cached_sequence(cell.scene, seed=cell.seed, duration_s=duration_s, lidar=lidar,
                           columns=columns, imu_noise_scale=cell.imu_noise,
                           T_imu_lidar=MOUNTINGS[cell.mounting], imu_rate_hz=cell.imu_rate_hz,
-                          motion_from=motion_from)
+                          motion_from=cell.motion_from)
     meta = json.loads(sim.meta_path.read_text())
     cfg = load_config(config_file=sim.config_path, overrides=overrides)
     start_s = cell.cut_s
@@ -149,7 +152,7 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     cut = f"{cell.cut_s:g}" if cell.start == "moving" else ""
     other = "" if cell.mounting == "hilti" else f"_{cell.mounting}"
     other += "" if cell.imu_rate_hz == IMU_RATE_HZ else f"_{cell.imu_rate_hz:g}hz"
-    other += "" if motion_from is None else f"_hand-{Path(motion_from).stem}"
+    other += "" if cell.motion_from is None else f"_hand-{Path(cell.motion_from).stem}"
     out = out_root / (f"{cell.scene}_s{cell.seed}_imu{cell.imu_noise:g}_{cell.lidar}_"
                       f"{cell.start}{cut}{other}")
     try:
@@ -269,8 +272,8 @@ def main(argv: list[str] | None = None) -> int:
                                                                args.imu_rates):
                     for start, cut_s in starts:
                         c = run_cell(Cell(scene, seed, noise, lidar, start, cut_s, mounting,
-                                          rate), duration, args.out, overrides,
-                                     args.motion_from)
+                                          rate, args.motion_from), duration, args.out,
+                                     overrides)
                         cells.append(c)
                         label = f"moving {cut_s:g} s" if start == "moving" else start
                         print(f"| {scene} | {seed} | x{noise:g} | {_lidar_label(c)} | {label} | "
