@@ -10,7 +10,7 @@ from adalio.config import Config
 from adalio.errors import InputError
 from adalio.lio import Odometry, so3
 from adalio.lio.odometry import STAGES, _group_ids
-from adalio.lio.state import G, V
+from adalio.lio.state import DIM, P_, TH, G, State, V
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 ROOM_LO = np.array([-9.0, -6.0, -1.6])
@@ -589,6 +589,42 @@ def test_backfill_gives_the_scans_before_a_moving_start_their_poses():
     assert back_off == [] and odom_off.init_report.backfilled == 0
     assert [e.t_ns for e in est_off] == [e.t_ns for e in est]
     assert all(np.array_equal(a.T_world_imu, b.T_world_imu) for a, b in zip(est, est_off))
+
+
+def test_the_reversed_pass_is_held_to_the_anchor_as_a_constrained_least_squares_would():
+    """``_hold_to_anchor`` conditions the reversed pass's state on the anchor's position (moved
+    by its velocity over the time between them) and yaw. Checked against the independent
+    constrained least squares ``min δᵀP⁻¹δ  s.t.  Hδ = r`` solved as its KKT system, and the
+    conditional covariance in null-space form ``N (Nᵀ P⁻¹ N)⁻¹ Nᵀ``; the corrected pose then
+    has the anchor's position exactly, and its yaw to second order in the 2° it was off."""
+    rng = np.random.default_rng(7)
+    odom = Odometry(_config())
+    A = rng.normal(size=(DIM, DIM))
+    P = A @ A.T / DIM + 1e-3 * np.eye(DIM)
+    R = so3.exp(rng.normal(scale=0.3, size=3))
+    x = State(p=rng.normal(size=3), R=R, v=rng.normal(size=3), b_g=rng.normal(scale=1e-3, size=3),
+              R_LI=odom._R_LI.copy(), t_LI=odom._t_LI.copy())
+    yaw_off = so3.exp(np.array([0.0, 0.0, np.radians(2.0)]))
+    anchor = State(p=x.p + np.array([0.10, -0.04, 0.02]), R=yaw_off @ R, v=np.array([0.5, 0.2, 0.0]),
+                   R_LI=x.R_LI, t_LI=x.t_LI)
+    odom._state, odom._P, odom._P_report = x.copy(), P.copy(), None
+    odom._t_state_ns = 1_000_000_000
+    odom._hold_to_anchor(anchor, 1_000_000_000 + 200_000)  # 0.2 ms later in mirrored time
+    dt_s = -2e-4
+    H = np.zeros((4, DIM))
+    H[0:3, P_] = np.eye(3)
+    H[3, TH] = R[2, :]
+    r = np.r_[anchor.p - anchor.v * dt_s - x.p, so3.log(anchor.R @ R.T)[2]]
+    kkt = np.block([[np.linalg.inv(P), H.T], [H, np.zeros((4, 4))]])
+    delta = np.linalg.solve(kkt, np.r_[np.zeros(DIM), r])[:DIM]
+    got = odom._state.boxminus(x)
+    assert np.allclose(got, delta, rtol=1e-6, atol=1e-9)
+    N = np.linalg.svd(H)[2][4:].T  # a basis of H's null space
+    P_cond = N @ np.linalg.solve(N.T @ np.linalg.solve(P, N), N.T)
+    assert np.allclose(odom._P, P_cond, atol=1e-9)
+    assert np.allclose(odom._state.p, anchor.p - anchor.v * dt_s, atol=1e-9)
+    yaw_left = so3.log(anchor.R @ odom._state.R.T)[2]
+    assert abs(yaw_left) < np.radians(2.0) ** 2  # second order in what it was off
 
 
 def test_backfill_keeps_the_latest_backfill_s_and_runs_at_the_end_if_it_must():

@@ -86,11 +86,14 @@ from adalio.lio.motion_init import MovingInit, handover_covariance
 from adalio.lio.state import (
     BG,
     DIM,
+    P_,
+    TH,
     State,
     V,
     anchored_covariance,
     condition_on_rest,
     initial_covariance,
+    joseph_update,
     pose_covariance_world,
     rest_velocity_covariance,
     rest_velocity_update,
@@ -99,6 +102,10 @@ from adalio.lio.state import (
 from adalio.lio.voxel import voxel_downsample, voxel_downsample_with_index
 from adalio.types import Estimate, InitReport, ScanStats
 
+ANCHOR_VARIANCE = 1e-12
+"""The backfill's hold to the anchor (:meth:`Odometry._hold_to_anchor`): the variance, m² and
+rad², of a position and yaw the world's definition makes exact; not zero only so the update's
+innovation matrix stays invertible."""
 STAGES = ("preprocess", "undistort", "downsample", "degeneracy", "update", "map")
 MAX_SCAN_SPAN_NS = 1_000_000_000
 """Per-point times of one sweep spanning more than this are rejected as malformed (units?)."""
@@ -406,6 +413,9 @@ class Odometry:
         self._prev_sample: tuple[int, np.ndarray, np.ndarray] | None = None
         self._accel_scale = 1.0
         self._t_first_map_ns: int | None = None
+        self._anchor_state: State | None = None
+        """The state at ``_t_first_map_ns``: the pose that anchors the map and defines the world
+        (the backfill's reversed pass is held to it, :meth:`_hold_to_anchor`)."""
         self._finest_cell_m = config.map.map_leaf_m
         """Finest cell any scan has used for insertion: the plane-extent test scales with it,
         since a map densified by degenerate scans holds neighbours that close everywhere."""
@@ -713,6 +723,7 @@ class Odometry:
         p_world = points_to_world(pts_e, s.R, s.p, s.R_LI, s.t_LI)
         self._ivox.add_points(p_world)
         self._t_first_map_ns = t_e
+        self._anchor_state = s.copy()
         # This pose anchors the map, so it defines the world: no error relative to it.
         self._W_map = np.zeros((6, 6))
         self._provenance.add_scan(s.p, np.zeros((6, 6)), p_world)
@@ -794,7 +805,11 @@ class Odometry:
         stopped = ""
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # an IMU gap's time would be a mirrored one
+            anchored = False
             for pts, t_pts in reversed(scans):
+                if not anchored and int(t_pts.max()) <= self._t_first_map_ns:
+                    anchored = True
+                    rev._hold_to_anchor(self._anchor_state, mirror - self._t_first_map_ns)
                 try:
                     est = rev.add_scan(pts, mirror - t_pts)
                 except InputError as exc:
@@ -820,6 +835,34 @@ class Odometry:
                 np.vstack([e.points_world for e in out]), self.cfg.map.map_leaf_m)
         self._accumulate(rev.stage_ms_total)
         self.init_report.backfilled = len(out)
+
+    def _hold_to_anchor(self, anchor: State, t_anchor_ns: int) -> None:
+        """The reversed pass, on reaching the anchor's time (mirrored ``t_anchor_ns``), told
+        the anchor's position and yaw: they define the world, so they are known exactly there
+        (:func:`adalio.lio.state.anchored_covariance`). Without this the reversed pass carries
+        whatever it drifted re-registering the scans since the initialization into the held
+        scans, a jump at the seam (9-14 cm along a robot's corridor, README, Initialization,
+        *Backfill*). A Kalman update with ``H = [I on p; (Rᵀe_z)ᵀ on θ]`` and a vanishing
+        noise, so the correction reaches the velocity and biases through their correlations;
+        the anchor's velocity carries its position over the gap between the two times (one
+        point period between scans). Roll and pitch are left to the reversed pass: gravity
+        defines them, and its estimate there has had the whole tracked stretch."""
+        x = self._state
+        dt_s = (self._t_state_ns - t_anchor_ns) * 1e-9  # mirrored time runs backwards
+        p_anchor = anchor.p - anchor.v * dt_s
+        up_body = x.R[2, :]  # Rᵀ e_z: a small world yaw is up_body · δθ
+        H = np.zeros((4, DIM))
+        H[0:3, P_] = np.eye(3)
+        H[3, TH] = up_body
+        r = np.empty(4)
+        r[0:3] = p_anchor - x.p
+        r[3] = so3.log(anchor.R @ x.R.T)[2]
+        K, self._P = joseph_update(self._P, H, ANCHOR_VARIANCE)
+        self._state = x.boxplus(K @ r)
+        for name in ("_P_report", "_P_blind"):
+            P = getattr(self, name)
+            if P is not None:
+                setattr(self, name, joseph_update(P, H, ANCHOR_VARIANCE)[1])
 
     def _reversed_copy(self, mirror_ns: int) -> Odometry:
         """This filter (state, covariance, map) in mirrored time ``mirror_ns - t``, without IMU
