@@ -358,7 +358,10 @@ def test_sigma_consistency_aligns_on_the_filter_s_first_scan_not_the_backfill(tm
     np.testing.assert_allclose(c.errors_world_m, drift, atol=1e-6)
     np.testing.assert_allclose(c.sigma_world_m, sigma, atol=1e-12)
     assert np.all(c.within_3sigma == 1.0)
-    # without the backfill column the first pose is the anchor, as before
+    # the backfill's worst error is the drift at its first pose, the farthest from the anchor
+    assert c.backfill_max_error_m == pytest.approx(np.linalg.norm(drift[0]), abs=1e-6)
+    # without the backfill column the first pose is the anchor, as before, and no backfill
     del scans["backfill"]
     c0 = sigma_consistency(est, gt, scans)
+    assert np.isnan(c0.backfill_max_error_m)
     np.testing.assert_allclose(c0.errors_world_m, drift - drift[0], atol=1e-6)

@@ -255,6 +255,10 @@ class SigmaConsistency:
     (0.674) for honest Gaussian sigmas, far below it for sigmas much larger than the errors
     (which the within-3σ share and the mean NEES alone do not show), above it for sigmas
     too small."""
+    backfill_max_error_m: float = float("nan")
+    """The largest position error (m, the same alignment) of the poses the backfill gave
+    (``scans.csv`` ``backfill`` 1): how far the scans read before the filter's start lie from
+    where the truth, seen from the first forward pose, puts them. NaN without such poses."""
 
 
 MEDIAN_ABS_Z = 0.6744897501960817
@@ -282,13 +286,18 @@ def sigma_consistency(est_tum: TrajectoryLike, gt_tum: TrajectoryLike,
     idx = order[pos]
     ok = np.abs(t_csv[idx] - t_est) <= 1e-6
     anchor = 0
+    backfilled = np.zeros(len(t_est), dtype=bool)
     if "backfill" in scans:
-        forward = ok & (np.asarray(scans["backfill"], dtype=np.float64)[idx] == 0)
+        flags = np.asarray(scans["backfill"], dtype=np.float64)[idx]
+        forward = ok & (flags == 0)
+        backfilled = ok & (flags == 1)
         if forward.any():
             anchor = int(np.argmax(forward))
     T = est_s.poses_se3[anchor] @ np.linalg.inv(gt_s.poses_se3[anchor])
     p_gt = gt_s.positions_xyz @ T[:3, :3].T + T[:3, 3]
     err = est_s.positions_xyz - p_gt
+    bf_max = (float(np.max(np.linalg.norm(err[backfilled], axis=1))) if backfilled.any()
+              else float("nan"))
     sig = np.column_stack([np.asarray(scans[c], dtype=np.float64)[idx] for c in SIGMA_COLUMNS])
     ok &= np.all(np.isfinite(sig) & (sig > 0), axis=1)
     if not np.any(ok):
@@ -300,7 +309,8 @@ def sigma_consistency(est_tum: TrajectoryLike, gt_tum: TrajectoryLike,
                             within_3sigma=np.mean(np.abs(z) <= 3.0, axis=0),
                             mean_nees=float(np.mean(np.sum(z * z, axis=1))),
                             increment_correlation=increment_correlation(t_est[ok], err),
-                            median_abs_z=np.median(np.abs(z), axis=0))
+                            median_abs_z=np.median(np.abs(z), axis=0),
+                            backfill_max_error_m=bf_max)
 
 
 INCREMENT_S = 1.0
