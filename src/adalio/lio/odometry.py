@@ -807,7 +807,8 @@ class Odometry:
             warnings.simplefilter("ignore")  # an IMU gap's time would be a mirrored one
             anchored = False
             for pts, t_pts in reversed(scans):
-                if not anchored and int(t_pts.max()) <= self._t_first_map_ns:
+                if (not anchored and self._anchor_state is not None
+                        and int(t_pts.max()) <= self._t_first_map_ns):
                     anchored = True
                     rev._hold_to_anchor(self._anchor_state, mirror - self._t_first_map_ns)
                 try:
