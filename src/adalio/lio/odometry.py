@@ -843,11 +843,12 @@ class Odometry:
         (:func:`adalio.lio.state.anchored_covariance`). Without this the reversed pass carries
         whatever it drifted re-registering the scans since the initialization into the held
         scans, a jump at the seam (14-35 cm along a robot's corridor on the XT-32 at 512
-        columns, README, Initialization, *Backfill*). A Kalman update with ``H = [I on p; (Rᵀe_z)ᵀ on θ]`` and a vanishing
-        noise, so the correction reaches the velocity and biases through their correlations;
-        the anchor's velocity carries its position over the gap between the two times (one
-        point period between scans). Roll and pitch are left to the reversed pass: gravity
-        defines them, and its estimate there has had the whole tracked stretch."""
+        columns, README, Initialization, *Backfill*). A Kalman update with
+        ``H = [I on p; (Rᵀe_z)ᵀ on θ]`` and a vanishing noise, so the correction reaches the
+        velocity and biases through their correlations; the anchor's velocity carries its
+        position over the gap between the two times (one point period between scans). Roll
+        and pitch are left to the reversed pass: gravity defines them, and its estimate there
+        has had the whole tracked stretch."""
         x = self._state
         dt_s = (self._t_state_ns - t_anchor_ns) * 1e-9  # mirrored time runs backwards
         p_anchor = anchor.p - anchor.v * dt_s
