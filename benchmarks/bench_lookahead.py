@@ -138,6 +138,7 @@ class Run:
     seed: int
     imu_noise: float
     lidar: str
+    imu_bias_scale: float = 1.0
     ate_m: list[float] = field(default_factory=list)
     max_first_m: list[float] = field(default_factory=list)
     ms_per_scan: list[float] = field(default_factory=list)
@@ -148,9 +149,10 @@ def run_passes(run: Run, passes: int, look_ahead_s: float, out_root: Path,
                overrides: dict[str, str]) -> Run:
     lidar, columns = LIDARS[run.lidar]
     sim = cached_sequence(run.scene, seed=run.seed, lidar=lidar, columns=columns,
-                          imu_noise_scale=run.imu_noise)
+                          imu_noise_scale=run.imu_noise, imu_bias_scale=run.imu_bias_scale)
     cfg = load_config(config_file=sim.config_path, overrides=overrides)
     name = f"{run.scene}_s{run.seed}_imu{run.imu_noise:g}_{run.lidar}"
+    name += "" if run.imu_bias_scale == 1.0 else f"_bias{run.imu_bias_scale:g}"
     earlier: PassRecord | None = None
     for n in range(1, passes + 1):
         record = PassRecord()
@@ -186,6 +188,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="passes in all (2: the default run, then one that looks ahead)")
     ap.add_argument("--look-ahead-s", type=float, default=0.5,
                     help="seconds of the earlier pass's scans each update also searches")
+    ap.add_argument("--imu-bias-scale", type=float, default=1.0,
+                    help="the simulated IMU's initial biases and bias walks x this (0: none)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for every pass")
     ap.add_argument("--out", type=Path, default=Path("runs/bench_lookahead"))
@@ -195,6 +199,10 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     if not (np.isfinite(args.look_ahead_s) and args.look_ahead_s > 0):
         print(f"error: --look-ahead-s must be > 0 seconds (got {args.look_ahead_s})",
+              file=sys.stderr)
+        return 1
+    if not (np.isfinite(args.imu_bias_scale) and args.imu_bias_scale >= 0):
+        print(f"error: --imu-bias-scale must be >= 0 (got {args.imu_bias_scale})",
               file=sys.stderr)
         return 1
     overrides = parse_overrides(args.set)
@@ -207,7 +215,8 @@ def main(argv: list[str] | None = None) -> int:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for noise in args.imu_noise:
                 for lidar in args.lidars:
-                    r = run_passes(Run(scene, seed, noise, lidar), args.passes,
+                    r = run_passes(Run(scene, seed, noise, lidar, args.imu_bias_scale),
+                                   args.passes,
                                    args.look_ahead_s, args.out, overrides)
                     runs.append(r)
                     ms = (f"{r.ms_per_scan[0]:.1f} / {r.ms_per_scan[-1]:.1f}"

@@ -69,6 +69,7 @@ def test_pass_record_gives_the_scans_ahead_and_skips_the_backfill() -> None:
 @pytest.mark.parametrize(("args", "flag"), [(["--passes", "0"], "--passes"),
                                             (["--look-ahead-s", "0"], "--look-ahead-s"),
                                             (["--look-ahead-s", "nan"], "--look-ahead-s"),
+                                            (["--imu-bias-scale", "-1"], "--imu-bias-scale"),
                                             (["--set", "filter.no_such_key=1"],
                                              "filter.no_such_key")])
 def test_bad_arguments_are_one_error_line(args: list[str], flag: str, tmp_path: Path) -> None:
