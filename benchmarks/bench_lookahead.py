@@ -5,18 +5,18 @@ space it has not mapped, every map neighbourhood lies on the side it came from, 
 pull the pose back up the helix (README, *Where adalio stands*; benchmark log, Session 41).
 This benchmark measures what a map on both sides would give, without a smoother: pass 1 is the
 default run; pass ``n`` runs the estimator again on the same bag, and each scan's update
-searches, besides its own map, the points pass ``n - 1`` inserted over the next
-``--look-ahead-s`` seconds, placed by pass ``n - 1``'s motion from the previous scan
-(:func:`place_future`), so anchored at this pass's previous pose: anchoring them at the
-current scan's prediction would confirm any velocity error (Session 41). The future points only
-fill map cells that hold no point yet (the map's own insertion rule), they never enter the map
-kept for later scans, and the backfill's reversed pass does not look ahead.
+searches, besides its own map, the points pass ``n - 1`` inserted from the next scan on, over
+``--look-ahead-s`` seconds (never the scan's own points), placed by pass ``n - 1``'s motion from
+the previous scan (:func:`place_future`), so anchored at this pass's previous pose: anchoring
+them at the current scan's prediction would confirm any velocity error (Session 41). The future
+points only fill map cells that hold no point yet (the map's own insertion rule), they never
+enter the map kept for later scans, and the backfill's reversed pass does not look ahead.
 
 Per run: SE(3)-aligned ATE RMSE and the largest error after aligning the first pose, of every
 pass, and the median time per scan (the estimator's, as ``adalio run`` reports it) of the first
-and the last pass: the last one's includes the map copy a look-ahead makes per scan. The summary gives, per scene and IMU noise,
-each pass's mean (worst). A measurement, not a mode: on the four scenes it wins the shaft back
-in part and costs 2.5-3 times the filter's time (benchmark log, Session 57).
+and the last pass: the last one's includes the map copy a look-ahead makes per scan. The
+summary gives, per scene and IMU noise, each pass's mean (worst). A measurement, not a mode
+(benchmark log, Session 57).
 
     python benchmarks/bench_lookahead.py --scenes spiral --seeds 4 --lidars xt32-512
     python benchmarks/bench_lookahead.py --scenes corridor stairs_garage --passes 2
@@ -48,7 +48,8 @@ from adalio.types import Estimate
 
 MATCH_NS = 20_000_000
 """A scan of the earlier pass is 'the same scan' within 20 ms (both passes read the same clouds,
-so their scan ends are equal; the margin covers nothing but rounding)."""
+so their scan ends are equal but for the preprocessing's dropped points; a sweep lasts 50-100
+ms)."""
 
 
 def place_future(T_prev_now: np.ndarray, T_prev_then: np.ndarray,
@@ -80,8 +81,9 @@ class PassRecord:
         return self.poses.get(int(t_ns))
 
     def ahead(self, t_from_ns: int, t_to_ns: int) -> list[np.ndarray]:
-        """Points of the scans ending in ``(t_from_ns - MATCH_NS, t_to_ns]``, in time order."""
-        return [self.points[t] for t in sorted(self.points) if t_from_ns - MATCH_NS < t <= t_to_ns]
+        """Points of the scans after the one ending at ``t_from_ns`` (not that scan: its own
+        points would be matched to themselves) up to ``t_to_ns``, in time order."""
+        return [self.points[t] for t in sorted(self.points) if t_from_ns + MATCH_NS < t <= t_to_ns]
 
 
 def look_ahead_odometry(earlier: PassRecord, look_ahead_s: float) -> type[Odometry]:

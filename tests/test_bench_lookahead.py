@@ -62,8 +62,9 @@ def test_pass_record_gives_the_scans_ahead_and_skips_the_backfill() -> None:
         rec.add(_estimate(t))
     rec.add(_estimate(50_000_000, backfill=True))
     assert rec.pose_at(50_000_000) is None and rec.pose_at(200_000_000) is not None
-    ahead = rec.ahead(200_000_000, 350_000_000)  # the scan itself (same end) and the next one
-    assert [a[0, 0] for a in ahead] == [2e8, 3e8]
+    # after the scan ending at 0.2 s (its own points excluded, also 10 ms off) up to 0.35 s
+    assert [a[0, 0] for a in rec.ahead(200_000_000, 350_000_000)] == [3e8]
+    assert [a[0, 0] for a in rec.ahead(190_000_000, 400_000_000)] == [3e8, 4e8]
 
 
 @pytest.mark.parametrize(("args", "flag"), [(["--passes", "0"], "--passes"),
