@@ -42,6 +42,7 @@ import adalio.lio
 from adalio.config import load_config
 from adalio.eval.metrics import ate
 from adalio.lio import Odometry
+from adalio.lio.odometry import MIN_POINTS_FOR_UPDATE
 from adalio.pipeline import run_bag
 from adalio.sim import cached_sequence
 from adalio.types import Estimate
@@ -116,7 +117,9 @@ def look_ahead_odometry(earlier: PassRecord, look_ahead_s: float) -> type[Odomet
                 est = super()._add_scan(points_lidar, t_ns, ring)
             finally:
                 self._ivox = mine
-            if est is not None and est.points_world is not None and len(est.points_world):
+            # the map kept gets what Odometry inserts: the scan's points, if it updated
+            if (est is not None and est.points_world is not None
+                    and len(est.points_world) >= MIN_POINTS_FOR_UPDATE):
                 mine.add_points(est.points_world, self._map_cell(est.stats.voxel_size_m))
             return est
 
