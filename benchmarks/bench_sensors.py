@@ -27,7 +27,9 @@ With ``--mountings`` the sequences are also simulated with other IMU-LiDAR mount
 the IMU sits under the LiDAR), each run with that sequence's own ``config.yaml``, whose
 ``sensor.T_imu_lidar`` is the mounting: nothing in the estimator may assume the HILTI rig's.
 With ``--imu-rates`` the IMU samples at other rates than the BMI085's 400 Hz (an Ouster's
-internal IMU: 100 Hz), with the same noise densities. With ``--motion-from`` every walk takes a
+internal IMU: 100 Hz), with the same noise densities. With ``--lidar-rates`` the LiDAR sweeps
+at other rates than 10 Hz (``simulate(lidar_rate_hz=...)``; the columns per sweep stay the
+LiDAR's, so ``xt32-1000`` at 20 Hz is the XT-32's 2000 columns at its 20 Hz setting). With ``--motion-from`` every walk takes a
 recording's hand motion instead of the synthetic one, or none at all (``none``: a robot's
 walk, at the route's own height and attitude).
 
@@ -35,6 +37,7 @@ walk, at the route's own height and attitude).
     python benchmarks/bench_sensors.py --scenes hall --seeds 1 --lidars xt32-512
     python benchmarks/bench_sensors.py --starts still --mountings upright skewed side
     python benchmarks/bench_sensors.py --starts still --imu-rates 400 200 100
+    python benchmarks/bench_sensors.py --starts still --lidars xt32-1000 --lidar-rates 20
     python benchmarks/bench_sensors.py --scenes corridor --starts still --motion-from none
 """
 
@@ -63,7 +66,12 @@ from adalio.sim import cached_sequence
 from adalio.sim.generate import IMU_RATE_HZ
 
 LIDARS = {"xt32-512": ("xt32", 512), "xt32-2000": ("xt32", 2000), "os1-64": ("ouster64", None),
-          "vlp16": ("vlp16", None)}
+          "vlp16": ("vlp16", None), "xt32-1000": ("xt32", 1000)}
+"""Name -> (simulator model, columns per sweep; None the model's). ``xt32-1000`` is the XT-32's
+2000 columns at its 20 Hz setting (``--lidar-rates 20``); not in the default matrix."""
+DEFAULT_LIDARS = ["xt32-512", "xt32-2000", "os1-64", "vlp16"]
+LIDAR_RATE_HZ = 10.0
+"""Every simulated model sweeps at 10 Hz unless ``--lidar-rates`` says otherwise."""
 
 
 def _mounting(euler_zyx_deg: tuple[float, float, float], t_m: tuple[float, float, float]) -> list:
@@ -103,6 +111,8 @@ class Cell:
     """Key of :data:`MOUNTINGS`."""
     imu_rate_hz: float = IMU_RATE_HZ
     """The simulated IMU's sample rate (``simulate(imu_rate_hz=...)``)."""
+    lidar_rate_hz: float = LIDAR_RATE_HZ
+    """The simulated LiDAR's sweep rate (``simulate(lidar_rate_hz=...)``)."""
     motion_from: str | None = None
     """The walk's hand motion (``simulate(motion_from=...)``): None the synthetic hand, a TUM
     recording's, or ``none`` (a robot's walk)."""
@@ -150,7 +160,9 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     sim = cached_sequence(cell.scene, seed=cell.seed, duration_s=duration_s, lidar=lidar,
                           columns=columns, imu_noise_scale=cell.imu_noise,
                           T_imu_lidar=MOUNTINGS[cell.mounting], imu_rate_hz=cell.imu_rate_hz,
-                          motion_from=cell.motion_from)
+                          motion_from=cell.motion_from,
+                          lidar_rate_hz=(None if cell.lidar_rate_hz == LIDAR_RATE_HZ
+                                         else cell.lidar_rate_hz))
     meta = json.loads(sim.meta_path.read_text())
     cfg = load_config(config_file=sim.config_path, overrides=overrides)
     start_s = cell.cut_s
@@ -158,6 +170,7 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     cut = f"{cell.cut_s:g}" if cell.start == "moving" else ""
     other = "" if cell.mounting == "hilti" else f"_{cell.mounting}"
     other += "" if cell.imu_rate_hz == IMU_RATE_HZ else f"_{cell.imu_rate_hz:g}hz"
+    other += "" if cell.lidar_rate_hz == LIDAR_RATE_HZ else f"_lidar{cell.lidar_rate_hz:g}hz"
     other += "" if cell.motion_from is None else f"_hand-{Path(cell.motion_from).stem}"
     out = out_root / (f"{cell.scene}_s{cell.seed}_imu{cell.imu_noise:g}_{cell.lidar}_"
                       f"{cell.start}{cut}{other}")
@@ -205,9 +218,11 @@ def cm(x: float) -> str:
 
 
 def _lidar_label(c: Cell) -> str:
-    """The LiDAR, and the mounting and the IMU's rate when they are not the HILTI rig's."""
+    """The LiDAR, and the mounting, the IMU's rate and the LiDAR's when they are not the HILTI
+    rig's."""
     other = [] if c.mounting == "hilti" else [c.mounting]
     other += [] if c.imu_rate_hz == IMU_RATE_HZ else [f"{c.imu_rate_hz:g} Hz IMU"]
+    other += [] if c.lidar_rate_hz == LIDAR_RATE_HZ else [f"{c.lidar_rate_hz:g} Hz"]
     return f"{c.lidar} ({', '.join(other)})" if other else c.lidar
 
 
@@ -216,12 +231,15 @@ def summary_table(cells: list[Cell]) -> str:
               "ATE worst | runs > 1 m or failed | init | init after, median (max) | target | "
               "within 3σ x / y / z |"),
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    keys = sorted({(c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz) for c in cells},
-                  key=lambda k: (k[0], k[1] != "still", k[2], k[3] != "hilti", k[3], -k[4]))
+    keys = sorted({(c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz, c.lidar_rate_hz)
+                   for c in cells},
+                  key=lambda k: (k[0], k[1] != "still", k[2], k[3] != "hilti", k[3], -k[4],
+                                 k[5]))
     for key in keys:
         scene, start, noise = key[:3]
         cs = [c for c in cells
-              if (c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz) == key]
+              if (c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz,
+                  c.lidar_rate_hz) == key]
         ates = np.array([c.ate_m for c in cs])
         on_track = ates[ates <= MAX_ATE_M]  # mean and worst of these
         inits = sorted({c.init or "error" for c in cs})
@@ -245,11 +263,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--first-seed", type=int, default=0,
                     help="seeds first-seed .. first-seed + seeds - 1")
     ap.add_argument("--imu-noise", nargs="+", type=float, default=[1.0, 10.0])
-    ap.add_argument("--lidars", nargs="+", default=list(LIDARS), choices=list(LIDARS))
+    ap.add_argument("--lidars", nargs="+", default=DEFAULT_LIDARS, choices=list(LIDARS))
     ap.add_argument("--mountings", nargs="+", default=["hilti"], choices=list(MOUNTINGS),
                     help="IMU-LiDAR mountings to simulate (MOUNTINGS)")
     ap.add_argument("--imu-rates", nargs="+", type=float, default=[IMU_RATE_HZ],
                     help="IMU sample rates to simulate, Hz (default: the BMI085's 400)")
+    ap.add_argument("--lidar-rates", nargs="+", type=float, default=[LIDAR_RATE_HZ],
+                    help="LiDAR sweep rates to simulate, Hz (default 10; the columns per "
+                    "sweep stay the LiDAR's)")
     ap.add_argument("--starts", nargs="+", default=["still", "moving"],
                     choices=["still", "moving"])
     ap.add_argument("--duration", type=float, default=0.0,
@@ -277,12 +298,12 @@ def main(argv: list[str] | None = None) -> int:
     for scene in args.scenes:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for noise in args.imu_noise:
-                for lidar, mounting, rate in itertools.product(args.lidars, args.mountings,
-                                                               args.imu_rates):
+                for lidar, mounting, rate, lidar_rate in itertools.product(
+                        args.lidars, args.mountings, args.imu_rates, args.lidar_rates):
                     for start, cut_s in starts:
                         c = run_cell(Cell(scene, seed, noise, lidar, start, cut_s, mounting,
-                                          rate, args.motion_from), duration, args.out,
-                                     overrides)
+                                          rate, lidar_rate, args.motion_from), duration,
+                                     args.out, overrides)
                         cells.append(c)
                         label = f"moving {cut_s:g} s" if start == "moving" else start
                         print(f"| {scene} | {seed} | x{noise:g} | {_lidar_label(c)} | {label} | "

@@ -99,6 +99,24 @@ def test_bag_reads_back_with_the_right_counts(tmp_path, fmt, lidar):
     assert abs(np.linalg.norm(acc[:400].mean(axis=0)) - 9.81) < 0.1
 
 
+def test_a_20_hz_lidar_sweeps_every_50_ms_and_its_config_says_so(tmp_path):
+    """``lidar_rate_hz``: one sweep per period with the columns given, its points spanning the
+    period, and ``config.yaml``'s ``sensor.lidar_rate_hz`` the rate (the reader's point-time
+    checks and azimuth times use it)."""
+    res = simulate("hall", tmp_path, duration_s=1.0, columns=45, lidar_rate_hz=20.0, seed=1)
+    meta, cfg, counts, scans, imus = _read_all(res)
+    assert meta["lidar_rate_hz"] == 20.0 and cfg.sensor.lidar_rate_hz == 20.0
+    assert meta["n_scans"] == len(scans) == counts[meta["topics"]["lidar"]] == 20
+    assert sum(len(b) for b in imus) == meta["n_imu"] == 401  # the IMU keeps its 400 Hz
+    for k, s in enumerate(scans):
+        stamp = meta["start_time_ns"] + k * 50_000_000
+        assert s.stamp_ns == stamp
+        # the HILTI layout's absolute float64 seconds hold a stamp to about 0.2 us
+        assert s.t_ns.min() >= stamp - 1000 and s.t_ns.max() < stamp + 50_000_000
+        assert np.ptp(s.t_ns) > 0.045e9
+    assert 0.7 * 45 * 32 < np.mean([len(s) for s in scans]) <= 45 * 32
+
+
 def test_same_seed_same_bytes_other_seed_other_bytes(tmp_path):
     kw = {"duration_s": 1.2, "columns": 60}
     a = simulate("hall", tmp_path / "a", seed=4, **kw)

@@ -51,6 +51,14 @@ MAX_SPAN_SWEEPS = 5.0
 MAX_STAMP_OFFSET_S = 3600.0
 """A configured time unit/reference putting points further than this from the header stamp is
 refused (a clock offset that large is a unit or reference mismatch)."""
+TURN_RATE_INTERVALS = 10
+"""Clouds without time field: after this many header-stamp intervals their rate is compared
+with ``sensor.lidar_rate_hz`` once (:meth:`CloudDecoder._check_turn_rate`)."""
+TURN_RATE_MISMATCH = 0.25
+"""A cloud rate this far (relative) from the configured turn rate is a mismatch."""
+FULL_TURN = 0.75
+"""Clouds whose points sweep at least this fraction of a turn (median) are whole turns; split
+sweeps (several clouds per turn) are left alone."""
 INTENSITY_FIELDS: tuple[str, ...] = ("intensity", "reflectivity", "i")
 RING_FIELDS: tuple[str, ...] = ("ring", "channel", "line", "laser_id")
 
@@ -410,6 +418,11 @@ class CloudDecoder:
         self.topic = topic
         self.time_spec: TimeSpec | None = None
         self._warned_azimuth = False
+        self._turn_hz = float(self.sensor.lidar_rate_hz)
+        """The turn rate the azimuth times use (``sensor.lidar_rate_hz``, or the measured one)."""
+        self._turn_stamps: list[int] = []
+        self._turn_covers: list[float] = []
+        self._turn_checked = False
         self._constant_fields: set[str] = set()
         self._spec_checked = False
         self.stats = DecodeStats()
@@ -489,7 +502,8 @@ class CloudDecoder:
         self.stats.add(n_total, n_nonfinite, n_zero, n_xyz_ok - int(pts.shape[0]),
                        int(pts.shape[0]))
         if t_ns is None:
-            t_ns = azimuth_times_ns(pts, stamp_ns, self.sensor.lidar_rate_hz)
+            t_ns = azimuth_times_ns(pts, stamp_ns, self._turn_hz)
+            self._check_turn_rate(t_ns, int(stamp_ns))
         else:
             t_ns = t_ns[ok]
         intensity = cols[extras["intensity"]][ok].astype(np.float32) if "intensity" in extras \
@@ -500,6 +514,45 @@ class CloudDecoder:
             ring = np.clip(r, 0, 65535).astype(np.uint16) if r.dtype.kind in "iu" else None
         return Scan(points_lidar=pts, t_ns=t_ns, stamp_ns=int(stamp_ns), intensity=intensity,
                     ring=ring)
+
+
+    def _check_turn_rate(self, t_ns: np.ndarray, stamp_ns: int) -> None:
+        """Azimuth times assume one turn per ``1 / sensor.lidar_rate_hz``. Once, after
+        :data:`TURN_RATE_INTERVALS` clouds: if each cloud is a whole turn (its points sweep at
+        least :data:`FULL_TURN` of it) and they come at a rate more than
+        :data:`TURN_RATE_MISMATCH` off the configured one, warn. Clouds coming faster than the
+        head turns cannot each be a whole turn, so then the measured rate (the median of the
+        header-stamp intervals) is used from here on; clouds coming slower may be a recording
+        throttled to fewer clouds, so the configured rate stays."""
+        if self._turn_checked:
+            return
+        if t_ns.size:
+            sweep_ns = 1e9 / max(self._turn_hz, 1e-3)
+            self._turn_covers.append(float(t_ns.max() - stamp_ns) / sweep_ns)
+        if not self._turn_stamps or stamp_ns > self._turn_stamps[-1]:
+            self._turn_stamps.append(stamp_ns)
+        if len(self._turn_stamps) <= TURN_RATE_INTERVALS or not self._turn_covers:
+            return
+        self._turn_checked = True
+        cloud_hz = 1e9 / float(np.median(np.diff(self._turn_stamps)))
+        cfg_hz = float(self.sensor.lidar_rate_hz)
+        if (float(np.median(self._turn_covers)) < FULL_TURN
+                or abs(cloud_hz / cfg_hz - 1.0) <= TURN_RATE_MISMATCH):
+            return
+        where = f"PointCloud2 on {self.topic or '?'}"
+        if cloud_hz > cfg_hz:
+            self._turn_hz = cloud_hz
+            warnings.warn(f"{where}: its clouds come at {cloud_hz:.1f} Hz, each a whole turn, "
+                          f"but sensor.lidar_rate_hz is {cfg_hz:g}: times reconstructed from "
+                          f"azimuth at {cloud_hz:.1f} Hz from here on (set "
+                          f"sensor.lidar_rate_hz: {cloud_hz:.3g})", stacklevel=3)
+        else:
+            warnings.warn(f"{where}: its clouds come at {cloud_hz:.1f} Hz, each a whole turn, "
+                          f"but sensor.lidar_rate_hz is {cfg_hz:g}: the times reconstructed "
+                          f"from azimuth take a turn as {1e3 / cfg_hz:.0f} ms; set "
+                          f"sensor.lidar_rate_hz: {cloud_hz:.3g} if the head turns at that "
+                          "rate (keep it for a recording throttled to fewer clouds)",
+                          stacklevel=3)
 
 
 def decode_pointcloud2(msg: Any, sensor: SensorConfig | None = None, topic: str = "") -> Scan:

@@ -258,9 +258,11 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
                     columns: int | None = None, imu_noise_scale: float = 1.0,
                     imu_bias_scale: float = 1.0, motion_from: str | Path | None = None,
                     T_imu_lidar: list[list[float]] | np.ndarray | None = None,
-                    imu_rate_hz: float = IMU_RATE_HZ) -> SimResult:
+                    imu_rate_hz: float = IMU_RATE_HZ,
+                    lidar_rate_hz: float | None = None) -> SimResult:
     """Generate once (atomically: temp folder + rename + completion marker) and reuse
-    (the key includes the IMU rate when it is not the default 400 Hz, a hash of
+    (the key includes the IMU rate when it is not the default 400 Hz, the LiDAR's sweep rate
+    when it is not the model's, a hash of
     ``motion_from``'s content (``-hhnone`` for ``"none"``, no hand motion), and of
     ``T_imu_lidar``, the mounting
     ``simulate`` takes instead of the HILTI one, when given). After generating, the cache is
@@ -275,13 +277,16 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     and reuse it, and the check and reservation of room happen one process at a time. The
     sequence returned stays held (no process evicts it) until this process asks for another."""
     _check_args(scene, duration_s, lidar, fmt, 1.0, imu_rate_hz)
-    cols = lidar_model(lidar, columns).columns
+    model = lidar_model(lidar, columns, lidar_rate_hz)
+    cols = model.columns
     dur = "full" if duration_s is None else f"{float(duration_s):g}"
     imu = "" if imu_noise_scale == 1.0 else f"-imu{imu_noise_scale:g}"
     if imu_bias_scale != 1.0:
         imu += f"-bias{imu_bias_scale:g}"
     if imu_rate_hz != IMU_RATE_HZ:
         imu += f"-{imu_rate_hz:g}hz"
+    if model.rate_hz != lidar_model(lidar).rate_hz:
+        imu += f"-l{model.rate_hz:g}hz"
     hh = ""
     if is_no_hand(motion_from):
         hh = "-hh" + NO_HAND
@@ -335,7 +340,8 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
             simulate(scene, tmp, seed=seed, duration_s=duration_s, lidar=lidar, fmt=fmt,
                      columns=columns, imu_noise_scale=imu_noise_scale,
                      imu_bias_scale=imu_bias_scale, motion_from=motion_from,
-                     T_imu_lidar=T_imu_lidar, make_room=make_room, imu_rate_hz=imu_rate_hz)
+                     T_imu_lidar=T_imu_lidar, make_room=make_room, imu_rate_hz=imu_rate_hz,
+                     lidar_rate_hz=lidar_rate_hz)
             (tmp / "COMPLETE").write_text("ok\n")
             if final.exists() and not (final / "COMPLETE").is_file():
                 shutil.rmtree(final, ignore_errors=True)

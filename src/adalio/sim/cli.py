@@ -42,6 +42,10 @@ def register(app: typer.Typer) -> None:
         imu_rate: Annotated[float, typer.Option(
             "--imu-rate", help="IMU samples per second (default: the HILTI BMI085's 400; an "
             "Ouster's internal IMU gives 100). The noise densities stay the same.")] = 400.0,
+        lidar_rate: Annotated[float | None, typer.Option(
+            "--lidar-rate", help="LiDAR sweeps per second, 2-50 (default: the model's 10). "
+            "--columns stays per sweep: a head turning at 20 Hz with the same firing rate has "
+            "half the columns.")] = None,
     ) -> None:
         """Simulate a handheld LiDAR + IMU walk through an indoor scene into a ROS bag."""
         import json
@@ -61,7 +65,8 @@ def register(app: typer.Typer) -> None:
                                  fmt=fmt, columns=columns, noise_scale=noise_scale,
                                  progress=True, imu_noise_scale=imu_noise_scale,
                                  imu_bias_scale=imu_bias_scale, motion_from=motion_from,
-                                 T_imu_lidar=T_imu_lidar, imu_rate_hz=imu_rate)
+                                 T_imu_lidar=T_imu_lidar, imu_rate_hz=imu_rate,
+                                 lidar_rate_hz=lidar_rate)
         meta = json.loads(res.meta_path.read_text())
         console().print(
             f"[green]wrote[/] {res.bag_path} ({meta['n_scans']} sweeps, {meta['n_imu']} IMU, "

@@ -173,7 +173,8 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
              imu_noise_scale: float = 1.0, imu_bias_scale: float = 1.0,
              motion_from: str | Path | None = None,
              make_room: Callable[[int], object] | None = None,
-             imu_rate_hz: float = IMU_RATE_HZ) -> SimResult:
+             imu_rate_hz: float = IMU_RATE_HZ,
+             lidar_rate_hz: float | None = None) -> SimResult:
     """Generate one sequence of ``scene`` into ``out_dir`` (created; the bag must not exist).
 
     ``duration_s`` None walks the whole route; shorter values truncate it (static start kept).
@@ -187,6 +188,8 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     ``imu_rate_hz``: the IMU's sample rate (the HILTI BMI085's 400 Hz by default; an Ouster's
     internal IMU gives 100 Hz): the densities stay the same, so each sample's white noise is
     ``density * sqrt(rate)``, and the samples are the true motion's, at their stamps.
+    ``lidar_rate_hz``: the sweeps per second (default the model's 10 Hz): each sweep lasts
+    ``1 / lidar_rate_hz`` with ``columns`` columns, and ``config.yaml`` says the rate.
     ``motion_from``: a TUM trajectory (>= 10 Hz) whose handheld motion replaces the synthetic
     one (:class:`adalio.sim.trajectory.HandheldMotion`; the seed picks where in it to start);
     ``"none"``: no hand motion at all, the route's own path and attitude (a robot's walk).
@@ -201,7 +204,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     _check_args(scene, duration_s, lidar, fmt, noise_scale, imu_rate_hz)
     T_il = validate_transform(T_IMU_LIDAR_HILTI if T_imu_lidar is None else T_imu_lidar,
                               "T_imu_lidar")
-    model = lidar_model(lidar, columns)
+    model = lidar_model(lidar, columns, lidar_rate_hz)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     bag_path = bag_path_for(out_dir, scene, fmt)

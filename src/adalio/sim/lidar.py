@@ -68,8 +68,16 @@ accuracy +-3 cm (2σ). A handheld rig adds its own IMU (here the same BMI085 mod
 LIDAR_MODELS = {"xt32": XT32, "ouster64": OUSTER64, "vlp16": VLP16}
 
 
-def lidar_model(name: str, columns: int | None = None) -> LidarModel:
-    """The named model, optionally with another number of columns per sweep."""
+MIN_LIDAR_RATE_HZ = 2.0
+MAX_LIDAR_RATE_HZ = 50.0
+"""The sweep rates ``lidar_model`` accepts (spinning LiDARs turn at 5-20 Hz)."""
+
+
+def lidar_model(name: str, columns: int | None = None,
+                rate_hz: float | None = None) -> LidarModel:
+    """The named model, optionally with another number of columns per sweep or another sweep
+    rate (Hz; the columns per sweep stay as given: a real head that turns twice as fast at the
+    same firing rate has half the columns, ``columns`` says which)."""
     if name not in LIDAR_MODELS:
         raise InputError(f"unknown lidar model '{name}': choose one of {', '.join(LIDAR_MODELS)}")
     model = LIDAR_MODELS[name]
@@ -77,6 +85,11 @@ def lidar_model(name: str, columns: int | None = None) -> LidarModel:
         if int(columns) < 8:
             raise InputError(f"--columns must be >= 8 (got {columns})")
         model = replace(model, columns=int(columns))
+    if rate_hz is not None:
+        if not MIN_LIDAR_RATE_HZ <= float(rate_hz) <= MAX_LIDAR_RATE_HZ:
+            raise InputError(f"--lidar-rate must be {MIN_LIDAR_RATE_HZ:g}-{MAX_LIDAR_RATE_HZ:g} "
+                             f"Hz (got {rate_hz})")
+        model = replace(model, rate_hz=float(rate_hz))
     return model
 
 
