@@ -24,6 +24,7 @@ moves into new space, and the pull left is what the rows owe to anything else.
     python benchmarks/bench_rows.py --scenes hall corridor spiral stairs_garage   # README, S. 35
     python benchmarks/bench_rows.py --scenes spiral --seeds 4 --pull [--set KEY=VALUE]  # S. 40
     python benchmarks/bench_rows.py --pull --warmup-s 3 --future-s 0.5                # S. 41
+    python benchmarks/bench_rows.py --pull --warmup-s 3 --lidar-rate 20 --columns 1000  # S. 58
 """
 
 from __future__ import annotations
@@ -51,7 +52,6 @@ from adalio.sim.trajectory import HandheldMotion
 WINDOWS_S = {"hall": (6.0, 12.0), "corridor": (6.0, 12.0), "spiral": (24.0, 30.0),
              "stairs_garage": (8.0, 14.0)}
 """Default census windows (seconds after the start): the corridor, the shaft, a flight."""
-SCAN_PERIOD_S = 0.1
 NOMINAL_POSE_SIGMA = (0.01, float(np.radians(0.1)))
 """(position m, rotation rad) standard deviations of the prior of :func:`pull`: a prediction as
 well known as the filter's over one sweep in a well-observed place (1 cm, 0.1°)."""
@@ -95,20 +95,22 @@ def map_sweeps(times_s: np.ndarray, k: int, future_s: float) -> np.ndarray:
 def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: float,
            max_angle_deg: float, cfg: Config | None = None, with_pull: bool = False,
            warmup_s: float = 0.0, handheld: HandheldMotion | None = None,
-           future_s: float = 0.0) -> dict:
+           future_s: float = 0.0, lidar_rate_hz: float | None = None) -> dict:
     """Rows of every sweep in [t0_s, t1_s): true face normal, fitted normal (world frame); with
     ``with_pull`` also each sweep's :func:`pull` at the true pose. The map starts with the
     sweeps of the ``warmup_s`` before ``t0_s`` (0: empty at ``t0_s``); ``handheld``: a recorded
     walk's motion instead of the synthetic one. ``future_s > 0``: each sweep's map also holds
     the sweeps of the next ``future_s`` seconds, at their true poses (:func:`map_sweeps`), as a
-    smoother's would: what is left of the pull when the map has no leading edge."""
+    smoother's would: what is left of the pull when the map has no leading edge.
+    ``lidar_rate_hz``: the sweeps' rate (None: the model's 10 Hz); the pull stays per sweep."""
     cfg = cfg or Config()
     deg = cfg.adaptive.degenerate
     T_il = np.asarray(T_IMU_LIDAR_HILTI, dtype=np.float64)
     scn = build_scene(scene, seed)
     traj = build_trajectory(scn, T_il, seed, handheld)
-    sim = SweepSimulator(RayCaster(scn.mesh, seed), traj, lidar_model(lidar, columns), T_il,
-                         START_NS)
+    model = lidar_model(lidar, columns, lidar_rate_hz)
+    sim = SweepSimulator(RayCaster(scn.mesh, seed), traj, model, T_il, START_NS)
+    period_s = model.period_ns * 1e-9
 
     def lidar_pose(t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         s = traj.sample((np.asarray(t_ns, dtype=np.int64) - START_NS) * 1e-9)
@@ -117,8 +119,8 @@ def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: f
     ivox = IVox.from_config(cfg.map)
     cell_m = min(cfg.map.map_leaf_m, deg.voxel_size_m)
     start_s = max(t0_s - warmup_s, 0.0)
-    n_sweeps = len(np.arange(start_s, t1_s, SCAN_PERIOD_S))
-    times_s = np.arange(start_s, t1_s + future_s, SCAN_PERIOD_S)
+    n_sweeps = len(np.arange(start_s, t1_s, period_s))
+    times_s = np.arange(start_s, t1_s + future_s, period_s)
     sweeps: dict[int, tuple] = {}
 
     def sweep_at(j: int) -> tuple:
@@ -198,6 +200,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=2, help="number of seeds (0 .. N-1)")
     ap.add_argument("--lidar", default="xt32", choices=sorted(LIDAR_MODELS))
     ap.add_argument("--columns", type=int, default=512)
+    ap.add_argument("--lidar-rate", type=float, default=None, metavar="HZ",
+                    help="sweeps per second (default the model's 10; the pull stays per sweep)")
     ap.add_argument("--window-s", type=float, nargs=2, default=None, metavar=("T0", "T1"),
                     help="census window in seconds after the start (default: per scene)")
     ap.add_argument("--max-angle-deg", type=float, default=30.0)
@@ -219,12 +223,17 @@ def main(argv: list[str] | None = None) -> int:
                          "--future-s finite and >= 0")
     cfg = load_config(overrides=parse_overrides(args.set))
     try:
+        model = lidar_model(args.lidar, args.columns, args.lidar_rate)
+    except InputError as exc:
+        raise SystemExit(f"error: {exc}") from None
+    try:
         handheld = (None if args.motion_from is None
                     else HandheldMotion.load(args.motion_from))
     except (OSError, ValueError, InputError) as exc:
         raise SystemExit(f"error: --motion-from: {exc}") from None
     print(f"Command: `python benchmarks/bench_rows.py {' '.join(argv or sys.argv[1:])}`"
-          f"  ({args.lidar} at {args.columns} columns, map from true poses"
+          f"  ({args.lidar} at {args.columns} columns and {model.rate_hz:g} Hz, map from true "
+          f"poses"
           f"{f' (and the next {args.future_s:g} s of sweeps)' if args.future_s else ''}, "
           f"a row is wrong "
           f"beyond {args.max_angle_deg:g} deg)\n")
@@ -238,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
         t0, t1 = args.window_s or WINDOWS_S[scene]
         for seed in range(args.seeds):
             c = census(scene, seed, args.lidar, args.columns, t0, t1, args.max_angle_deg, cfg,
-                       args.pull, args.warmup_s, handheld, args.future_s)
+                       args.pull, args.warmup_s, handheld, args.future_s, args.lidar_rate)
             cols = " | ".join(
                 f"{c[f'{n}_rows'] * 100:.0f} / {c[f'{n}_wrong'] * 100:.1f} / "
                 f"{c[f'{n}_wrong_height_info'] * 100:.0f} %"

@@ -105,3 +105,15 @@ def test_later_sweeps_join_the_map_at_their_true_poses():
         assert abs(c["pull_z_mm"]) < 0.5
         assert abs(c["pull_along_mm"]) < 0.5
         assert c["rows"] > 10_000
+
+
+def test_a_20_hz_census_holds_twice_the_sweeps_and_pulls_nowhere_in_the_hall():
+    """``lidar_rate_hz``: the window holds the sweeps of the given rate (twice the 10 Hz ones,
+    each with the same columns, so about twice the rows), each undistorted at its own true
+    poses: in the hall the rows still pull nowhere at the truth."""
+    c10 = census("hall", 0, "xt32", 256, 6.0, 7.0, 30.0, with_pull=True, warmup_s=1.0)
+    c20 = census("hall", 0, "xt32", 256, 6.0, 7.0, 30.0, with_pull=True, warmup_s=1.0,
+                 lidar_rate_hz=20.0)
+    assert 1.7 < c20["rows"] / c10["rows"] < 2.3
+    assert abs(c20["pull_z_mm"]) < 0.5
+    assert abs(c20["pull_along_mm"]) < 0.5
