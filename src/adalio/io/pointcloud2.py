@@ -515,15 +515,15 @@ class CloudDecoder:
         return Scan(points_lidar=pts, t_ns=t_ns, stamp_ns=int(stamp_ns), intensity=intensity,
                     ring=ring)
 
-
     def _check_turn_rate(self, t_ns: np.ndarray, stamp_ns: int) -> None:
         """Azimuth times assume one turn per ``1 / sensor.lidar_rate_hz``. Once, after
         :data:`TURN_RATE_INTERVALS` clouds: if each cloud is a whole turn (its points sweep at
         least :data:`FULL_TURN` of it) and they come at a rate more than
         :data:`TURN_RATE_MISMATCH` off the configured one, warn. Clouds coming faster than the
         head turns cannot each be a whole turn, so then the measured rate (the median of the
-        header-stamp intervals) is used from here on; clouds coming slower may be a recording
-        throttled to fewer clouds, so the configured rate stays."""
+        header-stamp intervals) is used from here on (the clouds before keep the configured
+        one); clouds coming slower may be a recording throttled to fewer clouds, so the
+        configured rate stays."""
         if self._turn_checked:
             return
         if t_ns.size:
