@@ -29,7 +29,8 @@ the IMU sits under the LiDAR), each run with that sequence's own ``config.yaml``
 With ``--imu-rates`` the IMU samples at other rates than the BMI085's 400 Hz (an Ouster's
 internal IMU: 100 Hz), with the same noise densities. With ``--lidar-rates`` the LiDAR sweeps
 at other rates than 10 Hz (``simulate(lidar_rate_hz=...)``; the columns per sweep stay the
-LiDAR's, so ``xt32-1000`` at 20 Hz is the XT-32's 2000 columns at its 20 Hz setting). With ``--motion-from`` every walk takes a
+LiDAR's: ``xt32-1000`` at 20 Hz is the XT-32's 20 Hz setting, the firing rate of its 2000
+columns at 10 Hz). With ``--motion-from`` every walk takes a
 recording's hand motion instead of the synthetic one, or none at all (``none``: a robot's
 walk, at the route's own height and attitude).
 
@@ -63,12 +64,14 @@ from adalio.eval.files import read_scans_csv
 from adalio.eval.metrics import ate, sigma_consistency
 from adalio.pipeline import run_bag
 from adalio.sim import cached_sequence
-from adalio.sim.generate import IMU_RATE_HZ
+from adalio.sim.generate import IMU_RATE_HZ, MAX_IMU_RATE_HZ, MIN_IMU_RATE_HZ
+from adalio.sim.lidar import lidar_model
 
 LIDARS = {"xt32-512": ("xt32", 512), "xt32-2000": ("xt32", 2000), "os1-64": ("ouster64", None),
           "vlp16": ("vlp16", None), "xt32-1000": ("xt32", 1000)}
-"""Name -> (simulator model, columns per sweep; None the model's). ``xt32-1000`` is the XT-32's
-2000 columns at its 20 Hz setting (``--lidar-rates 20``); not in the default matrix."""
+"""Name -> (simulator model, columns per sweep; None the model's). ``xt32-1000`` is the XT-32 at
+its 20 Hz setting (``--lidar-rates 20``: 1000 columns a sweep, the firing rate of its 2000 at
+10 Hz); not in the default matrix."""
 DEFAULT_LIDARS = ["xt32-512", "xt32-2000", "os1-64", "vlp16"]
 LIDAR_RATE_HZ = 10.0
 """Every simulated model sweeps at 10 Hz unless ``--lidar-rates`` says otherwise."""
@@ -285,6 +288,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("runs/bench_sensors"))
     args = ap.parse_args(argv)
     overrides = parse_overrides(args.set)
+    try:  # before any run: a rate the simulator refuses is one error line
+        for rate in args.lidar_rates:
+            lidar_model("xt32", None, rate)
+    except InputError as exc:
+        raise SystemExit(f"error: {exc}") from None
+    for rate in args.imu_rates:
+        if not MIN_IMU_RATE_HZ <= rate <= MAX_IMU_RATE_HZ:
+            raise SystemExit(f"error: --imu-rates: the simulator's --imu-rate must be "
+                             f"{MIN_IMU_RATE_HZ:g}-{MAX_IMU_RATE_HZ:g} Hz (got {rate:g})")
     duration = args.duration or None
     cells = []
     t0 = time.perf_counter()

@@ -41,3 +41,21 @@ def test_bench_rows_bad_window_is_one_error_line(args: list[str], tmp_path: Path
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error:") and args[0] in lines[0]
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(("script", "args", "names"), [
+    ("bench_sensors.py", ["--lidar-rates", "100"], "--lidar-rate"),
+    ("bench_sensors.py", ["--imu-rates", "5"], "--imu-rate"),
+    ("bench_rows.py", ["--lidar-rate", "1"], "--lidar-rate"),
+])
+def test_a_rate_the_simulator_refuses_is_one_error_line(script: str, args: list[str],
+                                                        names: str, tmp_path: Path) -> None:
+    cmd = [sys.executable, str(BENCHMARKS / script), *args]
+    if script == "bench_sensors.py":
+        cmd += ["--out", str(tmp_path / "out")]
+    proc = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=120,
+                          cwd=tmp_path)
+    assert proc.returncode == 1, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:") and names in lines[0], proc.stderr
+    assert not any(tmp_path.iterdir())  # no run started
