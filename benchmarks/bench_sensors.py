@@ -163,9 +163,7 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     sim = cached_sequence(cell.scene, seed=cell.seed, duration_s=duration_s, lidar=lidar,
                           columns=columns, imu_noise_scale=cell.imu_noise,
                           T_imu_lidar=MOUNTINGS[cell.mounting], imu_rate_hz=cell.imu_rate_hz,
-                          motion_from=cell.motion_from,
-                          lidar_rate_hz=(None if cell.lidar_rate_hz == LIDAR_RATE_HZ
-                                         else cell.lidar_rate_hz))
+                          motion_from=cell.motion_from, lidar_rate_hz=cell.lidar_rate_hz)
     meta = json.loads(sim.meta_path.read_text())
     cfg = load_config(config_file=sim.config_path, overrides=overrides)
     start_s = cell.cut_s

@@ -2,7 +2,7 @@
 walk simulated with the IMU turned on all three axes under the LiDAR and a 15 cm lever arm
 (``bench_sensors.py``'s ``skewed``), or with the IMU sampling at 100 Hz (an Ouster's internal
 IMU) instead of the BMI085's 400, tracks the ground truth as the HILTI rig does, from the
-sequence's own config; so does the walk with the LiDAR sweeping at 20 Hz."""
+sequence's own config; so does the walk with the LiDAR sweeping at 20 or 5 Hz."""
 
 import sys
 from pathlib import Path

@@ -539,20 +539,17 @@ class CloudDecoder:
         if (float(np.median(self._turn_covers)) < FULL_TURN
                 or abs(cloud_hz / cfg_hz - 1.0) <= TURN_RATE_MISMATCH):
             return
-        where = f"PointCloud2 on {self.topic or '?'}"
+        seen = (f"PointCloud2 on {self.topic or '?'}: its clouds come at {cloud_hz:.1f} Hz, "
+                f"each a whole turn, but sensor.lidar_rate_hz is {cfg_hz:g}: ")
         if cloud_hz > cfg_hz:
             self._turn_hz = cloud_hz
-            warnings.warn(f"{where}: its clouds come at {cloud_hz:.1f} Hz, each a whole turn, "
-                          f"but sensor.lidar_rate_hz is {cfg_hz:g}: times reconstructed from "
-                          f"azimuth at {cloud_hz:.1f} Hz from here on (set "
-                          f"sensor.lidar_rate_hz: {cloud_hz:.3g})", stacklevel=3)
+            warnings.warn(f"{seen}times reconstructed from azimuth at {cloud_hz:.1f} Hz from "
+                          f"here on (set sensor.lidar_rate_hz: {cloud_hz:.3g})", stacklevel=3)
         else:
-            warnings.warn(f"{where}: its clouds come at {cloud_hz:.1f} Hz, each a whole turn, "
-                          f"but sensor.lidar_rate_hz is {cfg_hz:g}: the times reconstructed "
-                          f"from azimuth take a turn as {1e3 / cfg_hz:.0f} ms; set "
-                          f"sensor.lidar_rate_hz: {cloud_hz:.3g} if the head turns at that "
-                          "rate (keep it for a recording throttled to fewer clouds)",
-                          stacklevel=3)
+            warnings.warn(f"{seen}the times reconstructed from azimuth take a turn as "
+                          f"{1e3 / cfg_hz:.0f} ms; set sensor.lidar_rate_hz: {cloud_hz:.3g} if "
+                          "the head turns at that rate (keep it for a recording throttled to "
+                          "fewer clouds)", stacklevel=3)
 
 
 def decode_pointcloud2(msg: Any, sensor: SensorConfig | None = None, topic: str = "") -> Scan:
