@@ -168,18 +168,31 @@ def test_a_run_on_a_cold_kernel_cache_says_it_compiles(tmp_path, corridor, monke
         assert before == [] and after == [], lines
 
 
-def test_a_bad_bag_on_a_cold_kernel_cache_is_still_one_error_line(tmp_path, monkeypatch,
-                                                                   capsys):
-    """The compile notice comes once the bag is open and its topics found, never before an
-    input error."""
+@pytest.mark.parametrize("fault", ["not_a_bag", "cloud_time_field_absent"])
+def test_a_bad_input_on_a_cold_kernel_cache_is_still_one_error_line(tmp_path, monkeypatch,
+                                                                    capsys, corridor, fault):
+    """The compile notice comes once the first cloud is decoded, never before an input error:
+    neither a file that is no bag nor a config naming a time field the clouds lack."""
     from adalio.cli import main
     from adalio.lio import warmup
 
     monkeypatch.setattr(warmup, "cache_is_cold", lambda: True)
     monkeypatch.setattr(warmup, "start", lambda: warmup.Warmup(None))
-    bad = tmp_path / "not_a_bag.bag"
-    bad.write_bytes(b"no bag here")
-    monkeypatch.setattr(sys, "argv", ["adalio", "run", str(bad), "--out", str(tmp_path / "o")])
+    if fault == "not_a_bag":
+        bag = tmp_path / "not_a_bag.bag"
+        bag.write_bytes(b"no bag here")
+        extra: list[str] = []
+    else:
+        bag = corridor.bag_path
+        from adalio.config import load_config
+
+        config = load_config(config_file=corridor.config_path)
+        config.sensor.point_time_field = "t"
+        cfg = tmp_path / "t.yaml"
+        cfg.write_text(config.to_yaml())
+        extra = ["--config", str(cfg)]
+    monkeypatch.setattr(sys, "argv", ["adalio", "run", str(bag), "--out", str(tmp_path / "o"),
+                                      *extra])
     with pytest.raises(SystemExit) as stop:
         main()
     assert stop.value.code == 2

@@ -235,8 +235,9 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
     against a ground truth is separate: :func:`adalio.eval.report.make_report` on ``out_dir``.
     ``parallel_compile``: on a cold numba cache, compile the update's kernels in a helper process
     meanwhile (:mod:`adalio.lio.warmup`; off for runs that already share the cores).
-    ``on_compile()`` is called once the bag is open and its topics found, if the kernels will
-    compile during this run (a cold numba cache; ``RunResult.compiled``).
+    ``on_compile()`` is called once the first scan is decoded, before it is handed to the
+    estimator, if the kernels will compile during this run (a cold numba cache;
+    ``RunResult.compiled``): an input error in the bag or its first cloud comes before it.
     """
     cfg = copy.deepcopy(config)
     if map_format is not None:
@@ -271,8 +272,6 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                      "map": out / f"map.{cfg.output.map_format}", "config": out / "config.yaml"}
         paths["config"].write_text(cfg.to_yaml())
         odom = Odometry(cfg)
-        if compiled and on_compile is not None:
-            on_compile()
         seq = Sequencer(bag, lidar_topic, imu_topic, cfg.sensor,
                         start_ns=bag.start_ns + round(start_s * 1e9) if start_s else None)
         tum = TumWriter(paths["trajectory"])
@@ -319,6 +318,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                     if isinstance(item, ImuBatch):
                         odom.add_imu(item.t_ns, item.gyro_rad_s, item.accel_m_s2)
                         continue
+                    if n_in == 0 and compiled and on_compile is not None:
+                        on_compile()  # after the first cloud decoded: its input errors come first
                     t0 = time.perf_counter()
                     est = odom.add_scan(item.points_lidar, item.t_ns, item.ring)
                     ms = (time.perf_counter() - t0) * 1e3
