@@ -66,6 +66,14 @@ class SensorConfig:
     """'auto', 's', 'ms', 'us' or 'ns'."""
     point_time_reference: str = "auto"
     """'auto', 'absolute' (epoch time) or 'relative' (offset from the header stamp)."""
+    imu_time_offset_s: float = 0.0
+    """The IMU's stamps minus the LiDAR's for the same instant (seconds; FAST-LIO's
+    ``time_offset_lidar_to_imu``): subtracted from every IMU stamp on reading. Positive when the
+    IMU's stamps run late (e.g. stamped on arrival after a USB or driver latency)."""
+    imu_time_offset_check: bool = True
+    """Check the gyro's timing against the rotation the LiDAR alone registers over the first
+    10-60 s of updates (:mod:`adalio.lio.time_offset`); ``adalio run`` then finds the offset
+    left after ``imu_time_offset_s`` and restarts with it when it matters."""
 
 
 @dataclass
@@ -539,6 +547,7 @@ CHOICES: dict[str, tuple] = {
 RANGES: dict[str, Range] = {
     "sensor.imu_rate_hz": POSITIVE,
     "sensor.lidar_rate_hz": POSITIVE,
+    "sensor.imu_time_offset_s": Range(-1.0, 1.0),
     "preprocess.blind_m": NON_NEGATIVE,
     "preprocess.max_range_m": POSITIVE,
     "preprocess.point_filter_num": AT_LEAST_ONE,

@@ -287,8 +287,11 @@ class Sequencer:
             self.sensor.accel_unit)
 
     def _raw(self) -> Iterator[ImuBatch | Scan]:
+        """Decoded scans and IMU batches in receive order; IMU stamps moved onto the LiDAR's
+        clock by ``sensor.imu_time_offset_s``."""
         imu_msgs: list[Any] = []
         held: list[ImuBatch | Scan] = []
+        offset_ns = round(self.sensor.imu_time_offset_s * 1e9)
 
         def flush_imu() -> ImuBatch | None:
             if not imu_msgs:
@@ -298,6 +301,8 @@ class Sequencer:
             except (AttributeError, TypeError, ValueError):
                 raise BagError(f"messages on {self.imu_topic} are not sensor_msgs/Imu") from None
             imu_msgs.clear()
+            if offset_ns:
+                batch.t_ns = batch.t_ns - offset_ns
             return batch
 
         gyro_scale = np.pi / 180.0 if self.sensor.gyro_unit == "deg_s" else 1.0
