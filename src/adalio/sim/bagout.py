@@ -95,14 +95,17 @@ class SimBagWriter:
             return self._Header(seq=seq, stamp=stamp, frame_id=frame_id)
         return self._Header(stamp=stamp, frame_id=frame_id)
 
-    def write_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
-        """Write IMU samples (absolute int64 ns stamps, IMU frame)."""
+    def write_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
+                  stamp_offset_ns: int = 0) -> None:
+        """Write IMU samples (absolute int64 ns sample times, IMU frame), recorded at their
+        time and stamped ``stamp_offset_ns`` later (an IMU clock running ahead of the LiDAR's)."""
         ocov = np.zeros(9)
         ocov[0] = -1.0
         zero9 = np.zeros(9)
         quat = self._Quat(x=0.0, y=0.0, z=0.0, w=1.0)
         for t, w, a in zip(t_ns.tolist(), gyro.tolist(), accel.tolist(), strict=True):
-            msg = self._Imu(header=self._header("imu", t, self.model.imu_frame), orientation=quat,
+            msg = self._Imu(header=self._header("imu", t + stamp_offset_ns, self.model.imu_frame),
+                            orientation=quat,
                             orientation_covariance=ocov,
                             angular_velocity=self._Vec(x=w[0], y=w[1], z=w[2]),
                             angular_velocity_covariance=zero9,

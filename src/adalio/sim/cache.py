@@ -259,10 +259,11 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
                     imu_bias_scale: float = 1.0, motion_from: str | Path | None = None,
                     T_imu_lidar: list[list[float]] | np.ndarray | None = None,
                     imu_rate_hz: float = IMU_RATE_HZ,
-                    lidar_rate_hz: float | None = None) -> SimResult:
+                    lidar_rate_hz: float | None = None,
+                    imu_time_offset_s: float = 0.0) -> SimResult:
     """Generate once (atomically: temp folder + rename + completion marker) and reuse
     (the key includes the IMU rate when it is not the default 400 Hz, the LiDAR's sweep rate
-    when it is not the model's, a hash of
+    when it is not the model's, the IMU's stamp offset when it is not 0, a hash of
     ``motion_from``'s content (``-hhnone`` for ``"none"``, no hand motion), and of
     ``T_imu_lidar``, the mounting
     ``simulate`` takes instead of the HILTI one, when given). After generating, the cache is
@@ -287,6 +288,8 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
         imu += f"-{imu_rate_hz:g}hz"
     if model.rate_hz != lidar_model(lidar).rate_hz:
         imu += f"-l{model.rate_hz:g}hz"
+    if imu_time_offset_s:
+        imu += f"-toff{imu_time_offset_s * 1e3:g}ms"
     hh = ""
     if is_no_hand(motion_from):
         hh = "-hh" + NO_HAND
@@ -341,7 +344,7 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
                      columns=columns, imu_noise_scale=imu_noise_scale,
                      imu_bias_scale=imu_bias_scale, motion_from=motion_from,
                      T_imu_lidar=T_imu_lidar, make_room=make_room, imu_rate_hz=imu_rate_hz,
-                     lidar_rate_hz=lidar_rate_hz)
+                     lidar_rate_hz=lidar_rate_hz, imu_time_offset_s=imu_time_offset_s)
             (tmp / "COMPLETE").write_text("ok\n")
             if final.exists() and not (final / "COMPLETE").is_file():
                 shutil.rmtree(final, ignore_errors=True)

@@ -46,6 +46,10 @@ def register(app: typer.Typer) -> None:
             "--lidar-rate", help="LiDAR sweeps per second, 2-50 (default: the model's 10). "
             "--columns stays per sweep: a head turning at 20 Hz with the same firing rate has "
             "half the columns.")] = None,
+        imu_time_offset_ms: Annotated[float, typer.Option(
+            "--imu-time-offset-ms", help="The IMU's stamps run this many ms late against the "
+            "LiDAR's (negative: early), as an IMU stamped on arrival; within +-1000. config.yaml "
+            "does not say it (meta.json does).")] = 0.0,
     ) -> None:
         """Simulate a handheld LiDAR + IMU walk through an indoor scene into a ROS bag."""
         import json
@@ -66,7 +70,8 @@ def register(app: typer.Typer) -> None:
                                  progress=True, imu_noise_scale=imu_noise_scale,
                                  imu_bias_scale=imu_bias_scale, motion_from=motion_from,
                                  T_imu_lidar=T_imu_lidar, imu_rate_hz=imu_rate,
-                                 lidar_rate_hz=lidar_rate)
+                                 lidar_rate_hz=lidar_rate,
+                                 imu_time_offset_s=imu_time_offset_ms * 1e-3)
         meta = json.loads(res.meta_path.read_text())
         console().print(
             f"[green]wrote[/] {res.bag_path} ({meta['n_scans']} sweeps, {meta['n_imu']} IMU, "

@@ -39,6 +39,8 @@ MIN_IMU_RATE_HZ = 20.0
 MAX_IMU_RATE_HZ = 4000.0
 """The IMU rates ``simulate`` accepts: at least two samples per 10 Hz sweep, and well above the
 100-1000 Hz that LiDAR-inertial rigs record (a sequence's IMU samples are held in memory whole)."""
+MAX_IMU_TIME_OFFSET_S = 1.0
+"""The IMU stamp offsets ``simulate`` writes (as ``sensor.imu_time_offset_s`` accepts)."""
 GT_RATE_HZ = 100.0
 T_IMU_LIDAR_HILTI = [[0.0, -1.0, 0.0, -0.001], [-1.0, 0.0, 0.0, -0.00855],
                      [0.0, 0.0, -1.0, 0.055], [0.0, 0.0, 0.0, 1.0]]
@@ -174,7 +176,8 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
              motion_from: str | Path | None = None,
              make_room: Callable[[int], object] | None = None,
              imu_rate_hz: float = IMU_RATE_HZ,
-             lidar_rate_hz: float | None = None) -> SimResult:
+             lidar_rate_hz: float | None = None,
+             imu_time_offset_s: float = 0.0) -> SimResult:
     """Generate one sequence of ``scene`` into ``out_dir`` (created; the bag must not exist).
 
     ``duration_s`` None walks the whole route; shorter values truncate it (static start kept).
@@ -190,6 +193,9 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     ``density * sqrt(rate)``, and the samples are the true motion's, at their stamps.
     ``lidar_rate_hz``: the sweeps per second (default the model's 10 Hz): each sweep lasts
     ``1 / lidar_rate_hz`` with ``columns`` columns, and ``config.yaml`` says the rate.
+    ``imu_time_offset_s``: the IMU's stamps run this much late against the LiDAR's (each sample
+    is the motion at its time, stamped later; negative: early), as an IMU stamped on arrival;
+    ``config.yaml`` does not say it (``meta.json`` does), as a user would not know it.
     ``motion_from``: a TUM trajectory (>= 10 Hz) whose handheld motion replaces the synthetic
     one (:class:`adalio.sim.trajectory.HandheldMotion`; the seed picks where in it to start);
     ``"none"``: no hand motion at all, the route's own path and attitude (a robot's walk).
@@ -202,6 +208,10 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     if not imu_bias_scale >= 0:
         raise InputError(f"--imu-bias-scale must be >= 0 (got {imu_bias_scale})")
     _check_args(scene, duration_s, lidar, fmt, noise_scale, imu_rate_hz)
+    if not abs(imu_time_offset_s) <= MAX_IMU_TIME_OFFSET_S:
+        raise InputError(f"--imu-time-offset-ms must be within +-{MAX_IMU_TIME_OFFSET_S * 1e3:g} "
+                         f"ms (got {imu_time_offset_s * 1e3:g})")
+    offset_ns = round(imu_time_offset_s * 1e9)
     T_il = validate_transform(T_IMU_LIDAR_HILTI if T_imu_lidar is None else T_imu_lidar,
                               "T_imu_lidar")
     model = lidar_model(lidar, columns, lidar_rate_hz)
@@ -256,14 +266,15 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
                 j = int(np.searchsorted(t_imu, record, side="right"))
                 if j > i_imu:
                     writer.write_imu(t_imu[i_imu:j], imu.gyro_rad_s[i_imu:j],
-                                     imu.accel_m_s2[i_imu:j])
+                                     imu.accel_m_s2[i_imu:j], offset_ns)
                     i_imu = j
                 sweep = sim.sweep(stamp, np.random.default_rng([seed, 100, k]), noise_scale)
                 n_points += writer.write_sweep(sweep, stamp, record)
                 if bar is not None:
                     bar.advance(task)
             if i_imu < len(t_imu):
-                writer.write_imu(t_imu[i_imu:], imu.gyro_rad_s[i_imu:], imu.accel_m_s2[i_imu:])
+                writer.write_imu(t_imu[i_imu:], imu.gyro_rad_s[i_imu:], imu.accel_m_s2[i_imu:],
+                                 offset_ns)
     except BaseException:
         if bag_path.is_dir():
             shutil.rmtree(bag_path, ignore_errors=True)
@@ -303,6 +314,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
         "T_imu_lidar": T_il.tolist(), "T_scene_world": T_scene_world.tolist(),
         "start_time_ns": t0, "start_time_s": _ns_to_s_str(t0), "static_s": traj.static_s,
         "imu_rate_hz": rate_hz, "lidar_rate_hz": model.rate_hz, "gt_rate_hz": GT_RATE_HZ,
+        "imu_time_offset_s": offset_ns * 1e-9,
         "gravity_m_s2": GRAVITY_M_S2, "n_scans": int(n_scans), "n_imu": len(t_imu),
         "n_points": int(n_points), "route_length_m": traj.route_length_m,
         "min_clearance_m": round(clearance, 4),
