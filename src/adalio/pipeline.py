@@ -16,7 +16,8 @@ import signal
 import statistics
 import threading
 import time
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Self
@@ -32,6 +33,24 @@ from adalio.types import Estimate, ImuBatch
 
 DEFAULT_SIGMA_WARN_M = 0.10
 """``run --sigma-warn-m``: a position standard deviation above this (m) is named in the summary."""
+
+
+@dataclass
+class TimeOffsetCalibration:
+    """How ``run_bag`` found the IMU time offset before restarting (``RunResult``)."""
+
+    offset_s: float
+    """The ``sensor.imu_time_offset_s`` the run restarted with."""
+    configured_s: float
+    """The one the configuration gave."""
+    detected_s: float
+    """The first run's estimate of the offset left (it sees about half of an offset)."""
+    residual_s: float
+    """The last pass's estimate of the offset left at ``offset_s`` (about zero)."""
+    passes: list[tuple[float, float]]
+    """(offset tried s, offset left s) of each pass over the first scans."""
+    n_scans: int
+    """Scans each pass read (the first run's, up to the check's conclusion)."""
 
 
 @dataclass
@@ -80,6 +99,15 @@ class RunResult:
     """:class:`adalio.types.InitReport` of the estimator (None if it never initialized)."""
     local_surface_rows: tuple[int, int] = (0, 0)
     """filter.local_surface_check: (rows dropped, rows matched or dropped) over the run."""
+    time_offset: Any = None
+    """:class:`adalio.lio.time_offset.TimeOffsetEstimate` the IMU time offset check concluded
+    on in this run (left after ``sensor.imu_time_offset_s``), or None."""
+    stopped_for_time_offset: bool = False
+    """The run stopped where the IMU time offset check concluded, for :func:`run_bag` to
+    restart it (never in what ``run_bag`` returns, unless a Ctrl-C came meanwhile)."""
+    time_offset_found: TimeOffsetCalibration | None = None
+    """When the check found the IMU's stamps off and the run restarted: how the offset was
+    found (the run's ``config.yaml`` holds it as ``sensor.imu_time_offset_s``)."""
     compiled: bool = False
     """The run began on a cold numba cache (the first after an install or an update of adalio):
     its wall time and stage times include the one-time compilation of the kernels."""
@@ -250,12 +278,161 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
     if not sigma_warn_m > 0:
         raise ConfigError(f"--sigma-warn-m must be > 0 metres (got {sigma_warn_m})")
     try:
-        from adalio.lio import Odometry, warmup
+        import adalio.lio  # noqa: F401
     except ImportError:
         raise AdalioError("the estimator (adalio.lio.Odometry) is not available in this "
                           "install; update adalio") from None
 
-    out = Path(out_dir)
+    if not cfg.sensor.imu_time_offset_check:
+        return _run_once(bag_path, cfg, Path(out_dir), progress=progress, max_scans=max_scans,
+                         on_scan=on_scan, on_estimate=on_estimate, start_s=start_s,
+                         sigma_warn_m=sigma_warn_m, parallel_compile=parallel_compile,
+                         on_compile=on_compile, restart_on_offset=False)
+    seen: set[str] = set()
+    with _remember_warnings(seen):
+        first = _run_once(bag_path, cfg, Path(out_dir), progress=progress, max_scans=max_scans,
+                          on_scan=on_scan, on_estimate=on_estimate, start_s=start_s,
+                          sigma_warn_m=sigma_warn_m, parallel_compile=parallel_compile,
+                          on_compile=on_compile, restart_on_offset=True)
+    est = first.time_offset
+    if first.interrupted or est is None or not est.significant:
+        return first
+    try:
+        found = _find_time_offset(bag_path, cfg, first.n_scans_in, start_s, est.offset_s,
+                                  progress)
+    except KeyboardInterrupt:  # the first run's outputs stand
+        first.interrupted = True
+        return first
+    if found is None:
+        late = "late" if est.offset_s > 0 else "early"
+        warnings.warn(f"the gyro's timing disagrees with the LiDAR's: the IMU's stamps run at "
+                      f"least {abs(est.offset_s) * 1e3:.1f} ms {late} against the rotation the "
+                      "LiDAR alone registers, but re-running the first scans found no value; "
+                      "set sensor.imu_time_offset_s if you know the offset", stacklevel=2)
+        if not first.stopped_for_time_offset:
+            return first
+    else:
+        cfg.sensor.imu_time_offset_s = found.offset_s
+        late = "late" if found.offset_s > found.configured_s else "early"
+        warnings.warn(f"the gyro's timing disagrees with the LiDAR's: the IMU's stamps run "
+                      f"{abs(found.offset_s - found.configured_s) * 1e3:.1f} ms {late} against "
+                      f"the rotation the LiDAR alone registers (found over the first "
+                      f"{found.n_scans} scans in {len(found.passes)} passes); the run restarted "
+                      f"with sensor.imu_time_offset_s: {found.offset_s:.4f} (set it in your "
+                      "config to start with it)", stacklevel=2)
+    with _skip_warnings(seen):
+        res = _run_once(bag_path, cfg, Path(out_dir), progress=progress, max_scans=max_scans,
+                        on_scan=on_scan, on_estimate=on_estimate, start_s=start_s,
+                        sigma_warn_m=sigma_warn_m, parallel_compile=False, on_compile=None,
+                        restart_on_offset=False)
+    res.time_offset_found = found
+    res.compiled = first.compiled
+    return res
+
+
+def _offset_found(odom: Any) -> bool:
+    est = getattr(odom, "time_offset", None)
+    return est is not None and est.significant
+
+
+@contextlib.contextmanager
+def _remember_warnings(seen: set[str]) -> Iterator[None]:
+    """Note the text of every warning shown meanwhile (the restarted run skips them)."""
+    shown = warnings.showwarning
+
+    def show(message: Any, *args: Any, **kwargs: Any) -> None:
+        seen.add(str(message))
+        shown(message, *args, **kwargs)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = shown
+
+
+@contextlib.contextmanager
+def _skip_warnings(seen: set[str]) -> Iterator[None]:
+    """Show only the warnings whose text is not in ``seen`` (said once is enough)."""
+    shown = warnings.showwarning
+
+    def show(message: Any, *args: Any, **kwargs: Any) -> None:
+        if str(message) not in seen:
+            shown(message, *args, **kwargs)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = shown
+
+
+def _find_time_offset(bag_path: str | Path, cfg: Config, n_scans: int, start_s: float,
+                      detected_s: float, progress: bool) -> TimeOffsetCalibration | None:
+    """Re-run the first ``n_scans`` scans with corrected IMU stamps until the check finds no
+    offset left (:func:`adalio.lio.time_offset.next_offset`); None if no pass estimated one.
+    The pass with the least offset left gives the value."""
+    from adalio.lio.time_offset import MAX_PASSES, next_offset
+
+    base = cfg.sensor.imu_time_offset_s
+    tried: list[tuple[float, float]] = [(0.0, detected_s)]
+    passes: list[tuple[float, float]] = []
+    with progress_bar(progress, "timing the IMU", "offset") as bar:
+        task = bar.add_task("passes", total=MAX_PASSES, offset="")
+        for _ in range(MAX_PASSES):
+            trial = float(np.clip(base + next_offset(tried), -1.0, 1.0))
+            left = _offset_pass(bag_path, cfg, trial, n_scans, start_s)
+            bar.update(task, advance=1, offset=f"{trial * 1e3:+.1f} ms")
+            if left is None:
+                break
+            tried.append((trial - base, left.offset_s))
+            passes.append((trial, left.offset_s))
+            if not left.significant:
+                break
+    if not passes:
+        return None
+    best, residual = min(passes, key=lambda p: abs(p[1]))
+    return TimeOffsetCalibration(offset_s=round(best, 5), configured_s=base, detected_s=detected_s,
+                                 residual_s=residual, passes=passes, n_scans=n_scans)
+
+
+def _offset_pass(bag_path: str | Path, cfg: Config, offset_s: float, n_scans: int,
+                 start_s: float) -> Any:
+    """The IMU time offset left after ``offset_s`` over the first ``n_scans`` scans, or None."""
+    from adalio.lio import Odometry
+
+    c = copy.deepcopy(cfg)
+    c.sensor.imu_time_offset_s = offset_s
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with Bag(bag_path) as bag:
+            lidar_topic, imu_topic = bag.select_topics(c.sensor)
+            odom = Odometry(c)
+            odom.warn_time_offset = False
+            seq = Sequencer(bag, lidar_topic, imu_topic, c.sensor,
+                            start_ns=bag.start_ns + round(start_s * 1e9) if start_s else None)
+            n = 0
+            for item in seq:
+                if isinstance(item, ImuBatch):
+                    odom.add_imu(item.t_ns, item.gyro_rad_s, item.accel_m_s2)
+                    continue
+                odom.add_scan(item.points_lidar, item.t_ns, item.ring)
+                n += 1
+                if n >= n_scans or odom.time_offset is not None:
+                    break
+    return odom.time_offset_estimate()
+
+
+def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
+              max_scans: int | None, on_scan: Callable[[int], None] | None,
+              on_estimate: Callable[[Estimate], None] | None, start_s: float,
+              sigma_warn_m: float, parallel_compile: bool,
+              on_compile: Callable[[], None] | None, restart_on_offset: bool) -> RunResult:
+    """One pass of :func:`run_bag` (``cfg`` validated). ``restart_on_offset``: stop once the
+    IMU time offset check concludes on a significant offset (``RunResult.time_offset``); the
+    caller restarts with the offset found."""
+    from adalio.lio import Odometry, warmup
+
     bag = Bag(bag_path).open()
     # a cold numba cache (first run after an install): the update's kernels compile meanwhile in
     # a second process (adalio.lio.warmup); stopped when the run ends, whatever it has done
@@ -272,6 +449,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                      "map": out / f"map.{cfg.output.map_format}", "config": out / "config.yaml"}
         paths["config"].write_text(cfg.to_yaml())
         odom = Odometry(cfg)
+        odom.warn_time_offset = not restart_on_offset
         seq = Sequencer(bag, lidar_topic, imu_topic, cfg.sensor,
                         start_ns=bag.start_ns + round(start_s * 1e9) if start_s else None)
         tum = TumWriter(paths["trajectory"])
@@ -306,6 +484,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
 
         n_in = 0
         interrupted = False
+        restart = False
         t_start = time.perf_counter()
         stop = _GracefulStop()
         try:
@@ -334,8 +513,11 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                         on_scan(n_in)
                     if max_scans is not None and n_in >= max_scans:
                         break
-                if not interrupted:  # a pending backfill runs now (a Ctrl-C lets it finish)
-                    odom.finish()
+                    if restart_on_offset and _offset_found(odom):
+                        restart = True
+                        break
+                if not interrupted and not restart:  # a pending backfill runs now (a Ctrl-C
+                    odom.finish()                      # lets it finish)
                     for e in odom.take_backfill():
                         write(e, 0.0)
         except KeyboardInterrupt:
@@ -381,7 +563,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         height_blind_ranges_s=_flag_ranges(est_t, blind), compiled=compiled,
         lidar_gaps=[((t - est_t[0]) * 1e-9, gap_s, sigma_m)
                     for t, gap_s, sigma_m in odom.lidar_gaps] if est_t else [],
-        local_surface_rows=tuple(getattr(odom, "local_surface_rows", (0, 0))))
-    if not est_t and not interrupted:
+        local_surface_rows=tuple(getattr(odom, "local_surface_rows", (0, 0))),
+        time_offset=getattr(odom, "time_offset", None), stopped_for_time_offset=restart)
+    if not est_t and not interrupted and not (restart_on_offset and _offset_found(odom)):
         raise InputError(_no_pose_reason(odom, n_in, lidar_topic, imu_topic, out))
     return result

@@ -35,6 +35,11 @@ class UpdateResult:
     H: np.ndarray
     """(m,12) rows accepted at the last evaluation (after any pose projection)."""
     converged: bool
+    lidar_step: np.ndarray | None = None
+    """(6,) [δp, δθ]: the LiDAR-only Gauss-Newton step from the last evaluated iterate, ``(HᵀH)⁺
+    Hᵀr`` of the pose block (no prior); None without rows."""
+    lidar_from: State | None = None
+    """The iterate the last evaluation was made at (``lidar_step`` starts there)."""
 
 
 def _reprojection(dx: np.ndarray) -> np.ndarray:
@@ -175,6 +180,8 @@ def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: 
     iterations = 0
     P_out = P_prior
     H = np.zeros((0, 12))
+    lidar_step = None
+    lidar_from = x
     M = None
     if pose_projector is not None:
         M = np.eye(DIM)
@@ -202,6 +209,7 @@ def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: 
                     F = pose_projector.T @ F @ pose_projector
                     b = pose_projector.T @ b
                 HTH, HTh = errors_in_variables(HTH, HTh, F, b)
+            lidar_step, lidar_from = _lidar_only_step(HTH[:6, :6], HTh[:6]), x
             S = np.linalg.inv(P_j)
             S[:12, :12] += HTH * inv_r
             S_inv = np.linalg.inv(S)
@@ -231,4 +239,12 @@ def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: 
                 P_out = A @ P_j @ A.T + M @ KRK @ M.T
             break
     P_out = 0.5 * (P_out + P_out.T)
-    return UpdateResult(state=x, P=P_out, iterations=iterations, H=H, converged=t_conv > 0)
+    return UpdateResult(state=x, P=P_out, iterations=iterations, H=H, converged=t_conv > 0,
+                        lidar_step=lidar_step, lidar_from=lidar_from)
+
+
+def _lidar_only_step(A: np.ndarray, g: np.ndarray, rcond: float = 1e-6) -> np.ndarray:
+    """``A⁺ g`` on the well-conditioned eigen-directions of ``A`` (relative ``rcond``)."""
+    w, V = np.linalg.eigh(0.5 * (A + A.T))
+    keep = w > rcond * max(float(w[-1]), 1e-300)
+    return V[:, keep] @ ((V[:, keep].T @ g) / w[keep])

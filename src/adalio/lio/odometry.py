@@ -99,6 +99,14 @@ from adalio.lio.state import (
     rest_velocity_update,
     sigmas_from_world_covariance,
 )
+from adalio.lio.time_offset import (
+    END_MIN_SPAN_S,
+    MAX_SPAN_S,
+    MIN_SPAN_S,
+    SIGMA_DONE_S,
+    TimeOffsetCheck,
+    TimeOffsetEstimate,
+)
 from adalio.lio.voxel import voxel_downsample, voxel_downsample_with_index
 from adalio.types import Estimate, InitReport, ScanStats
 
@@ -118,6 +126,8 @@ UNITS_CHECK_ANGLE_RAD = 0.05
 """LiDAR-registered rotation, sqrt of the sum of squared increments between scans, needed before
 the gyro's unit is judged against it (registration noise, ~0.002 rad per pair, adds little)."""
 UNITS_CHECK_S = 10.0
+TIME_OFFSET_JUDGE_NS = 2_000_000_000
+"""The IMU time offset check estimates every 2 s of updates (about 20 ms each time)."""
 """After a still start, the unit check registers scans LiDAR-only for at most this long."""
 LIDAR_GAP_PERIODS = 1.5
 """An interval between scans longer than this many nominal periods is a LiDAR gap: at least
@@ -447,6 +457,16 @@ class Odometry:
         of every LiDAR gap (:meth:`_lidar_gap`)."""
         self._units_check: MovingInit | None = None
         """After a still start: LiDAR-only registrations to compare the gyro's rotation with."""
+        self._offset_check: TimeOffsetCheck | None = (
+            TimeOffsetCheck() if config.sensor.imu_time_offset_check else None)
+        """The gyro against the updates' LiDAR-only rotations, until it concludes
+        (sensor.imu_time_offset_check, :mod:`adalio.lio.time_offset`)."""
+        self._offset_judged_ns = 0
+        self.warn_time_offset = True
+        """Warn when the check concludes on a significant offset (``run_bag`` acts instead)."""
+        self.time_offset: TimeOffsetEstimate | None = None
+        """The IMU time offset the check concluded on, left after sensor.imu_time_offset_s
+        (None: not concluded, or the check is off); warned about when significant."""
         self._provenance = MapProvenance(config.filter.map_provenance_cell_m)
         self._W_map = np.zeros((6, 6))
         """World covariance the latest scan inherited from the map (filter.map_uncertainty)."""
@@ -501,6 +521,8 @@ class Odometry:
                              "samples must be added in time order")
         self._last_imu_t_ns = int(t[-1])
         self._pending.append((t, gyro.copy(), acc.copy()))
+        if self._offset_check is not None:
+            self._offset_check.add_imu(t, gyro)
 
     def map_points(self) -> np.ndarray:
         """All map points (M,3) float64, world frame (the backfill's included)."""
@@ -632,6 +654,8 @@ class Odometry:
             stats.height_blind = self._update_report_covariance(x_pred, result.state, assoc,
                                                                 projector)
             self._state, self._P = result.state, result.P
+            if self._offset_check is not None and result.lidar_step is not None:
+                self._check_time_offset(t_e, result)
             stats.iterations = result.iterations
             stats.n_searches = assoc.n_searches
             stats.n_matched = int(assoc.H.shape[0])
@@ -750,9 +774,20 @@ class Odometry:
         return bool(self._held_scans)
 
     def finish(self) -> None:
-        """End of the data: run a pending backfill now, from the latest state."""
+        """End of the data: run a pending backfill now, from the latest state; the IMU time
+        offset check concludes if it has seen ``END_MIN_SPAN_S`` of updates."""
         if self._held_scans and self.initialized:
             self._backfill()
+        chk = self._offset_check
+        if chk is not None and chk.span_s >= END_MIN_SPAN_S:
+            self._conclude_time_offset(chk.estimate())
+
+    def time_offset_estimate(self) -> TimeOffsetEstimate | None:
+        """The IMU time offset check's conclusion, or its estimate so far (None: too few
+        updates, or the check is off)."""
+        if self.time_offset is not None or self._offset_check is None:
+            return self.time_offset
+        return self._offset_check.estimate()
 
     def _hold(self, pts: np.ndarray, t_pts: np.ndarray) -> None:
         """Keep a scan for the backfill: before the initialization the latest
@@ -892,7 +927,7 @@ class Odometry:
         rev._pending, rev._last_imu_t_ns = [], None
         rev._held_scans, rev._held_imu, rev._backfilled = [], [], []
         rev._backfill_map = np.zeros((0, 3))
-        rev._last_gap = rev._warned_gap_ns = rev._units_check = None
+        rev._last_gap = rev._warned_gap_ns = rev._units_check = rev._offset_check = None
         rev._scan_intervals_ns, rev.lidar_gaps = [], []
         rev.stage_ms_total = dict.fromkeys(STAGES, 0.0)
         return rev
@@ -1066,6 +1101,40 @@ class Odometry:
                              "rotation over the first scans: it reports deg/s; set "
                              "sensor.gyro_unit: deg_s")
         return False  # undecided: more rotation needed
+
+    def _check_time_offset(self, t_e_ns: int, result) -> None:
+        """Feed the update's LiDAR-only orientation to the IMU time offset check; every
+        ``TIME_OFFSET_JUDGE_S`` from ``MIN_SPAN_S`` on, conclude once its estimate is precise
+        (``SIGMA_DONE_S``), or stop after ``MAX_SPAN_S``."""
+        chk = self._offset_check
+        assert chk is not None
+        step = result.lidar_step
+        chk.add_scan(t_e_ns, result.lidar_from.R @ so3.exp(step[3:6].copy()))
+        span = chk.span_s
+        if span < MIN_SPAN_S or t_e_ns - self._offset_judged_ns < TIME_OFFSET_JUDGE_NS:
+            return
+        self._offset_judged_ns = t_e_ns
+        est = chk.estimate()
+        if est is not None and est.sigma_s <= SIGMA_DONE_S:
+            self._conclude_time_offset(est)
+        elif span >= MAX_SPAN_S:
+            self._offset_check = None  # too little rotation change to time the gyro
+
+    def _conclude_time_offset(self, est: TimeOffsetEstimate | None) -> None:
+        self._offset_check = None
+        if est is None or est.sigma_s > SIGMA_DONE_S:
+            return
+        self.time_offset = est
+        if est.significant and self.warn_time_offset:
+            late = "late" if est.offset_s > 0 else "early"
+            warnings.warn(f"the gyro's timing disagrees with the LiDAR's: against the rotation "
+                          f"the LiDAR alone registers over {est.span_s:.0f} s, the IMU's stamps "
+                          f"run at least {abs(est.offset_s) * 1e3:.1f} ms "
+                          f"(+-{est.sigma_s * 1e3:.1f}) {late} beyond sensor.imu_time_offset_s "
+                          f"({self.cfg.sensor.imu_time_offset_s:g} s) (this estimate sees about "
+                          "half of an offset): move sensor.imu_time_offset_s by it and run "
+                          "again until this warning stops (adalio run does so itself)",
+                          stacklevel=3)
 
     def _set_gap_model(self, t_ns: np.ndarray) -> None:
         """Nominal IMU period from the initialization samples, and the gap threshold."""
