@@ -32,7 +32,9 @@ at other rates than 10 Hz (``simulate(lidar_rate_hz=...)``; the columns per swee
 LiDAR's: ``xt32-1000`` at 20 Hz is the XT-32's 20 Hz setting, the firing rate of its 2000
 columns at 10 Hz). With ``--motion-from`` every walk takes a
 recording's hand motion instead of the synthetic one, or none at all (``none``: a robot's
-walk, at the route's own height and attitude).
+walk, at the route's own height and attitude). With ``--imu-time-offsets-ms`` the IMU's stamps
+run late (or early) against the LiDAR's, which the runs' configs do not say: the last column
+gives the offset ``run_bag`` found and restarted with, and what the final run's check left.
 
     python benchmarks/bench_sensors.py                      # hall + corridor, 2 seeds, full routes
     python benchmarks/bench_sensors.py --scenes hall --seeds 1 --lidars xt32-512
@@ -40,6 +42,7 @@ walk, at the route's own height and attitude).
     python benchmarks/bench_sensors.py --starts still --imu-rates 400 200 100
     python benchmarks/bench_sensors.py --starts still --lidars xt32-1000 --lidar-rates 20
     python benchmarks/bench_sensors.py --scenes corridor --starts still --motion-from none
+    python benchmarks/bench_sensors.py --starts still --imu-time-offsets-ms 0 20 -20 50
 """
 
 from __future__ import annotations
@@ -64,7 +67,12 @@ from adalio.eval.files import read_scans_csv
 from adalio.eval.metrics import ate, sigma_consistency
 from adalio.pipeline import run_bag
 from adalio.sim import cached_sequence
-from adalio.sim.generate import IMU_RATE_HZ, MAX_IMU_RATE_HZ, MIN_IMU_RATE_HZ
+from adalio.sim.generate import (
+    IMU_RATE_HZ,
+    MAX_IMU_RATE_HZ,
+    MAX_IMU_TIME_OFFSET_S,
+    MIN_IMU_RATE_HZ,
+)
 from adalio.sim.lidar import lidar_model
 
 LIDARS = {"xt32-512": ("xt32", 512), "xt32-2000": ("xt32", 2000), "os1-64": ("ouster64", None),
@@ -119,6 +127,9 @@ class Cell:
     motion_from: str | None = None
     """The walk's hand motion (``simulate(motion_from=...)``): None the synthetic hand, a TUM
     recording's, or ``none`` (a robot's walk)."""
+    imu_time_offset_ms: float = 0.0
+    """The simulated IMU's stamps run this late against the LiDAR's
+    (``simulate(imu_time_offset_s=...)``); the run's config does not say it."""
     scans: int = 0
     poses: int = 0
     init: str = ""
@@ -143,6 +154,11 @@ class Cell:
     (``SigmaConsistency.backfill_max_error_m``): the seam between the backfill and the forward
     run."""
     filter_noise: str = ""
+    offset_found_ms: float = float("nan")
+    """The IMU time offset ``run_bag`` found and restarted with (NaN: no restart)."""
+    offset_left_ms: float = float("nan")
+    """The offset the final run's check concluded was left (NaN: it did not conclude)."""
+    offset_passes: int = 0
     """Which IMU white-noise densities the filter used (``InitReport.noise_used``)."""
 
     @property
@@ -163,7 +179,8 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     sim = cached_sequence(cell.scene, seed=cell.seed, duration_s=duration_s, lidar=lidar,
                           columns=columns, imu_noise_scale=cell.imu_noise,
                           T_imu_lidar=MOUNTINGS[cell.mounting], imu_rate_hz=cell.imu_rate_hz,
-                          motion_from=cell.motion_from, lidar_rate_hz=cell.lidar_rate_hz)
+                          motion_from=cell.motion_from, lidar_rate_hz=cell.lidar_rate_hz,
+                          imu_time_offset_s=cell.imu_time_offset_ms * 1e-3)
     meta = json.loads(sim.meta_path.read_text())
     cfg = load_config(config_file=sim.config_path, overrides=overrides)
     start_s = cell.cut_s
@@ -173,6 +190,7 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     other += "" if cell.imu_rate_hz == IMU_RATE_HZ else f"_{cell.imu_rate_hz:g}hz"
     other += "" if cell.lidar_rate_hz == LIDAR_RATE_HZ else f"_lidar{cell.lidar_rate_hz:g}hz"
     other += "" if cell.motion_from is None else f"_hand-{Path(cell.motion_from).stem}"
+    other += "" if not cell.imu_time_offset_ms else f"_imu{cell.imu_time_offset_ms:+g}ms"
     out = out_root / (f"{cell.scene}_s{cell.seed}_imu{cell.imu_noise:g}_{cell.lidar}_"
                       f"{cell.start}{cut}{other}")
     try:
@@ -188,6 +206,11 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
         cell.backfilled = int(res.init_report.backfilled)
         cell.filter_noise = res.init_report.noise_used
     cell.ms_per_scan = res.ms_per_scan_median
+    if res.time_offset_found is not None:
+        cell.offset_found_ms = res.time_offset_found.offset_s * 1e3
+        cell.offset_passes = len(res.time_offset_found.passes)
+    if res.time_offset is not None:
+        cell.offset_left_ms = res.time_offset.offset_s * 1e3
     cell.ate_m = float(ate(res.trajectory_path, sim.gt_path, align="se3")["rmse_m"])
     with contextlib.suppress(InputError):
         cons = sigma_consistency(res.trajectory_path, sim.gt_path,
@@ -224,7 +247,17 @@ def _lidar_label(c: Cell) -> str:
     other = [] if c.mounting == "hilti" else [c.mounting]
     other += [] if c.imu_rate_hz == IMU_RATE_HZ else [f"{c.imu_rate_hz:g} Hz IMU"]
     other += [] if c.lidar_rate_hz == LIDAR_RATE_HZ else [f"{c.lidar_rate_hz:g} Hz"]
+    other += [] if not c.imu_time_offset_ms else [f"IMU {c.imu_time_offset_ms:+g} ms"]
     return f"{c.lidar} ({', '.join(other)})" if other else c.lidar
+
+
+def _offset_cell(c: Cell) -> str:
+    """'+21.0 ms (2), +0.3 ms': the offset run_bag restarted with (passes), and what the final
+    run's check left ('–' where none)."""
+    found = "–" if not np.isfinite(c.offset_found_ms) else \
+        f"{c.offset_found_ms:+.1f} ms ({c.offset_passes})"
+    left = "–" if not np.isfinite(c.offset_left_ms) else f"{c.offset_left_ms:+.1f} ms"
+    return f"{found}, {left}"
 
 
 def summary_table(cells: list[Cell]) -> str:
@@ -232,15 +265,15 @@ def summary_table(cells: list[Cell]) -> str:
               "ATE worst | runs > 1 m or failed | init | init after, median (max) | target | "
               "within 3σ x / y / z |"),
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    keys = sorted({(c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz, c.lidar_rate_hz)
-                   for c in cells},
+    keys = sorted({(c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz, c.lidar_rate_hz,
+                    c.imu_time_offset_ms) for c in cells},
                   key=lambda k: (k[0], k[1] != "still", k[2], k[3] != "hilti", k[3], -k[4],
-                                 k[5]))
+                                 k[5], k[6]))
     for key in keys:
         scene, start, noise = key[:3]
         cs = [c for c in cells
               if (c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz,
-                  c.lidar_rate_hz) == key]
+                  c.lidar_rate_hz, c.imu_time_offset_ms) == key]
         ates = np.array([c.ate_m for c in cs])
         on_track = ates[ates <= MAX_ATE_M]  # mean and worst of these
         inits = sorted({c.init or "error" for c in cs})
@@ -272,6 +305,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lidar-rates", nargs="+", type=float, default=[LIDAR_RATE_HZ],
                     help="LiDAR sweep rates to simulate, Hz (default 10; the columns per "
                     "sweep stay the LiDAR's)")
+    ap.add_argument("--imu-time-offsets-ms", nargs="+", type=float, default=[0.0],
+                    help="the simulated IMU's stamps run this many ms late against the "
+                    "LiDAR's (default 0); the runs' configs do not say it")
     ap.add_argument("--starts", nargs="+", default=["still", "moving"],
                     choices=["still", "moving"])
     ap.add_argument("--duration", type=float, default=0.0,
@@ -295,24 +331,29 @@ def main(argv: list[str] | None = None) -> int:
         if not MIN_IMU_RATE_HZ <= rate <= MAX_IMU_RATE_HZ:
             raise SystemExit(f"error: --imu-rates: the simulator's --imu-rate must be "
                              f"{MIN_IMU_RATE_HZ:g}-{MAX_IMU_RATE_HZ:g} Hz (got {rate:g})")
+    for offset in args.imu_time_offsets_ms:
+        if not abs(offset) <= MAX_IMU_TIME_OFFSET_S * 1e3:
+            raise SystemExit(f"error: --imu-time-offsets-ms must be within "
+                             f"+-{MAX_IMU_TIME_OFFSET_S * 1e3:g} (got {offset:g})")
     duration = args.duration or None
     cells = []
     t0 = time.perf_counter()
     print("| scene | seed | IMU noise | LiDAR | start | poses/scans | init | ATE SE(3) | "
           "ms/scan | within 3σ x / y / z | median abs(error) / σ | backfilled, worst error | "
-          "error |\n"
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+          "IMU time offset found (passes), left | error |\n"
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
           flush=True)
     starts = [("still", 0.0)] if "still" in args.starts else []
     starts += [("moving", c) for c in args.cut_s] if "moving" in args.starts else []
     for scene in args.scenes:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for noise in args.imu_noise:
-                for lidar, mounting, rate, lidar_rate in itertools.product(
-                        args.lidars, args.mountings, args.imu_rates, args.lidar_rates):
+                for lidar, mounting, rate, lidar_rate, offset in itertools.product(
+                        args.lidars, args.mountings, args.imu_rates, args.lidar_rates,
+                        args.imu_time_offsets_ms):
                     for start, cut_s in starts:
                         c = run_cell(Cell(scene, seed, noise, lidar, start, cut_s, mounting,
-                                          rate, lidar_rate, args.motion_from), duration,
+                                          rate, lidar_rate, args.motion_from, offset), duration,
                                      args.out, overrides)
                         cells.append(c)
                         label = f"moving {cut_s:g} s" if start == "moving" else start
@@ -322,7 +363,8 @@ def main(argv: list[str] | None = None) -> int:
                               f"{cm(c.ate_m)} | {c.ms_per_scan:.1f} | "
                               f"{sigma_cells(np.array([c.within_3sigma]))} | "
                               f"{' / '.join(f'{v:.2f}' for v in c.median_abs_z)} | "
-                              f"{c.backfilled} ({cm(c.backfill_err_m)}) | {c.error} |",
+                              f"{c.backfilled} ({cm(c.backfill_err_m)}) | "
+                              f"{_offset_cell(c)} | {c.error} |",
                               flush=True)
     print()
     print(summary_table(cells))
