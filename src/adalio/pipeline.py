@@ -46,7 +46,8 @@ class TimeOffsetCalibration:
     detected_s: float
     """The first run's estimate of the offset left (it sees about half of an offset)."""
     residual_s: float
-    """The last pass's estimate of the offset left at ``offset_s`` (about zero)."""
+    """The least offset a pass left (about zero); ``offset_s`` is one more step of the search
+    from there."""
     passes: list[tuple[float, float]]
     """(offset tried s, offset left s) of each pass over the first scans."""
     n_scans: int
@@ -224,10 +225,15 @@ def _config_text(cfg: Config, odom: Any) -> str:
     information only)."""
     text = cfg.to_yaml()
     report = getattr(odom, "init_report", None)
-    if report is not None:
+    offset = getattr(odom, "time_offset", None)
+    measured = report.to_dict() if report is not None else {}
+    if offset is not None:  # what the IMU time offset check left after imu_time_offset_s
+        measured["imu_time_offset_left_s"] = round(float(offset.offset_s), 6)
+        measured["imu_time_offset_left_sigma_s"] = round(float(offset.sigma_s), 6)
+    if measured:
         import yaml
 
-        text += yaml.safe_dump({"measured": report.to_dict()}, sort_keys=False,
+        text += yaml.safe_dump({"measured": measured}, sort_keys=False,
                                default_flow_style=None)
     return text
 
@@ -371,7 +377,9 @@ def _find_time_offset(bag_path: str | Path, cfg: Config, n_scans: int, start_s: 
                       detected_s: float, progress: bool) -> TimeOffsetCalibration | None:
     """Re-run the first ``n_scans`` scans with corrected IMU stamps until the check finds no
     offset left (:func:`adalio.lio.time_offset.next_offset`); None if no pass estimated one.
-    The pass with the least offset left gives the value."""
+    The value: one more step of the search from every pass (the last pass's offset left is
+    below significance but not zero; between two passes of opposite signs the step
+    interpolates), or, if an earlier pass left less, that pass's offset."""
     from adalio.lio.time_offset import MAX_PASSES, next_offset
 
     base = cfg.sensor.imu_time_offset_s
@@ -392,6 +400,8 @@ def _find_time_offset(bag_path: str | Path, cfg: Config, n_scans: int, start_s: 
     if not passes:
         return None
     best, residual = min(passes, key=lambda p: abs(p[1]))
+    if best == passes[-1][0]:  # the last pass left the least: one more step from all passes
+        best = float(np.clip(base + next_offset(tried), -1.0, 1.0))
     return TimeOffsetCalibration(offset_s=round(best, 5), configured_s=base, detected_s=detected_s,
                                  residual_s=residual, passes=passes, n_scans=n_scans)
 

@@ -288,6 +288,21 @@ read without a pose (issue #12's target for a moving start is a pose for 90 % of
 scans of a still start's window are not flagged: the sensor rests there, at the first pose."""
 
 
+def _timing_text(res: Any) -> str:
+    """What the IMU time offset check concluded ('' if it did not conclude, or is off)."""
+    found, left = getattr(res, "time_offset_found", None), getattr(res, "time_offset", None)
+    text = ""
+    if found is not None:
+        text = (f"sensor.imu_time_offset_s {found.offset_s:.4f} found over the first "
+                f"{found.n_scans} scans in {len(found.passes)} passes (the first run saw "
+                f"{found.detected_s * 1e3:+.1f} ms), the run restarted with it; ")
+    if left is not None:
+        text += (f"{left.offset_s * 1e3:+.1f} ms (+-{left.sigma_s * 1e3:.1f}) left against the "
+                 f"LiDAR-registered rotation over {left.span_s:.0f} s"
+                 + (" (see the warning)" if left.significant else ""))
+    return text
+
+
 def _summary(con: Console, res: Any, profile: bool) -> None:
     status = "[yellow]interrupted[/]" if res.interrupted else "[green]done[/]"
     con.print(f"{status}: {res.n_scans} poses from {res.n_scans_in} scans in {res.wall_s:.1f} s "
@@ -310,6 +325,9 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
                       "sensor at rest (imu.init_window_s) initializes at once (README, "
                       "Initialization)",
                       highlight=False, soft_wrap=True)
+    timing = _timing_text(res)
+    if timing:
+        con.print(f"IMU timing: {timing}", highlight=False, soft_wrap=True)
     ranges = _ranges_text(res.degenerate_ranges_s)
     con.print(f"degenerate scans: {res.n_degenerate}/{res.n_scans}"
               + (f" at {ranges}" if ranges else ""), highlight=False, soft_wrap=True)
