@@ -7,6 +7,7 @@ from __future__ import annotations
 import copy
 
 import pytest
+import yaml
 from typer.testing import CliRunner
 
 from adalio.cli import app
@@ -17,7 +18,7 @@ from adalio.pipeline import run_bag
 from adalio.sim import cached_sequence
 
 LATE_S = 0.03
-WALK = dict(seed=0, duration_s=14.0, columns=512)
+WALK = {"seed": 0, "duration_s": 14.0, "columns": 512}
 
 
 @pytest.fixture(scope="module")
@@ -80,6 +81,8 @@ def test_run_bag_finds_the_offset_and_restarts_with_it(tmp_path, late, on_time_a
     assert not res.stopped_for_time_offset and res.n_scans >= 135
     saved = load_config(config_file=res.config_path)  # a re-run from config.yaml starts right
     assert saved.sensor.imu_time_offset_s == pytest.approx(found.offset_s)
+    measured = yaml.safe_load(res.config_path.read_text())["measured"]  # and what was left
+    assert abs(measured["imu_time_offset_left_s"]) < 2e-3, measured
     assert found_ate < on_time_ate + 0.001, (found_ate, on_time_ate)
 
 
@@ -87,8 +90,11 @@ def test_the_restart_is_one_warning_line_on_the_command_line(tmp_path, late):
     res = CliRunner().invoke(app, ["run", str(late.bag_path), "--config", str(late.config_path),
                                    "--out", str(tmp_path / "o"), "--no-progress"])
     assert res.exit_code == 0, res.output
-    warned = [ln for ln in res.output.splitlines() if ln.startswith("warning:")]
+    lines = res.output.splitlines()
+    warned = [ln for ln in lines if ln.startswith("warning:")]
     assert len(warned) == 1 and "sensor.imu_time_offset_s: 0.0" in warned[0], warned
+    timing = [ln for ln in lines if ln.startswith("IMU timing: ")]
+    assert len(timing) == 1 and "the run restarted with it" in timing[0], lines
 
 
 def test_an_offset_beyond_the_configs_range_is_refused(late):
