@@ -418,17 +418,17 @@ def _offset_pass(bag_path: str | Path, cfg: Config, offset_s: float, n_scans: in
         with Bag(bag_path) as bag:
             lidar_topic, imu_topic = bag.select_topics(c.sensor)
             odom = Odometry(c)
-            odom.warn_time_offset = False
+            odom.warn_time_offset = odom.conclude_time_offset = False
             seq = Sequencer(bag, lidar_topic, imu_topic, c.sensor,
                             start_ns=bag.start_ns + round(start_s * 1e9) if start_s else None)
             n = 0
-            for item in seq:
+            for item in seq:  # the first run's scans: every pass estimates over the same span
                 if isinstance(item, ImuBatch):
                     odom.add_imu(item.t_ns, item.gyro_rad_s, item.accel_m_s2)
                     continue
                 odom.add_scan(item.points_lidar, item.t_ns, item.ring)
                 n += 1
-                if n >= n_scans or odom.time_offset is not None:
+                if n >= n_scans:
                     break
     return odom.time_offset_estimate()
 

@@ -103,7 +103,6 @@ from adalio.lio.time_offset import (
     END_MIN_SPAN_S,
     MAX_SPAN_S,
     MIN_SPAN_S,
-    SIGMA_DONE_S,
     TimeOffsetCheck,
     TimeOffsetEstimate,
 )
@@ -464,6 +463,9 @@ class Odometry:
         self._offset_judged_ns = 0
         self.warn_time_offset = True
         """Warn when the check concludes on a significant offset (``run_bag`` acts instead)."""
+        self.conclude_time_offset = True
+        """False: the check only collects (``run_bag``'s passes read its estimate over the
+        scans they run, :meth:`time_offset_estimate`)."""
         self.time_offset: TimeOffsetEstimate | None = None
         """The IMU time offset the check concluded on, left after sensor.imu_time_offset_s
         (None: not concluded, or the check is off); warned about when significant."""
@@ -1105,7 +1107,8 @@ class Odometry:
     def _check_time_offset(self, t_e_ns: int, result) -> None:
         """Feed the update's LiDAR-only orientation to the IMU time offset check; every
         ``TIME_OFFSET_JUDGE_S`` from ``MIN_SPAN_S`` on, conclude once its estimate is precise
-        (``SIGMA_DONE_S``), or stop after ``MAX_SPAN_S``."""
+        (``SIGMA_DONE_S``) or significant at ``SIGMA_SIGNIFICANT_S``, or stop after
+        ``MAX_SPAN_S``; never with ``conclude_time_offset`` off."""
         chk = self._offset_check
         assert chk is not None
         step = result.lidar_step
@@ -1113,16 +1116,18 @@ class Odometry:
         span = chk.span_s
         if span < MIN_SPAN_S or t_e_ns - self._offset_judged_ns < TIME_OFFSET_JUDGE_NS:
             return
+        if not self.conclude_time_offset:
+            return
         self._offset_judged_ns = t_e_ns
         est = chk.estimate()
-        if est is not None and est.sigma_s <= SIGMA_DONE_S:
+        if est is not None and est.conclusive:
             self._conclude_time_offset(est)
         elif span >= MAX_SPAN_S:
             self._offset_check = None  # too little rotation change to time the gyro
 
     def _conclude_time_offset(self, est: TimeOffsetEstimate | None) -> None:
         self._offset_check = None
-        if est is None or est.sigma_s > SIGMA_DONE_S:
+        if est is None or not est.conclusive:
             return
         self.time_offset = est
         if est.significant and self.warn_time_offset:
