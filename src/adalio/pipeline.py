@@ -330,7 +330,17 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         res = _run_once(bag_path, cfg, Path(out_dir), progress=progress, max_scans=max_scans,
                         on_scan=on_scan, on_estimate=on_estimate, start_s=start_s,
                         sigma_warn_m=sigma_warn_m, parallel_compile=False, on_compile=None,
-                        restart_on_offset=False)
+                        restart_on_offset=False, warn_time_offset=False)
+    left = res.time_offset
+    if left is not None and left.significant:  # one restart only: say what is left
+        late = "late" if left.offset_s > 0 else "early"
+        warnings.warn(f"after the restart with sensor.imu_time_offset_s: "
+                      f"{cfg.sensor.imu_time_offset_s:.4f}, the IMU's stamps still run at least "
+                      f"{abs(left.offset_s) * 1e3:.1f} ms (+-{left.sigma_s * 1e3:.1f}) {late} "
+                      f"against the LiDAR-registered rotation over {left.span_s:.0f} s (too "
+                      "little rotation change to settle it, or the offset drifts): move "
+                      "sensor.imu_time_offset_s by at least that and run again",
+                      stacklevel=2)
     res.time_offset_found = found
     res.compiled = first.compiled
     return res
@@ -437,10 +447,12 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
               max_scans: int | None, on_scan: Callable[[int], None] | None,
               on_estimate: Callable[[Estimate], None] | None, start_s: float,
               sigma_warn_m: float, parallel_compile: bool,
-              on_compile: Callable[[], None] | None, restart_on_offset: bool) -> RunResult:
+              on_compile: Callable[[], None] | None, restart_on_offset: bool,
+              warn_time_offset: bool = True) -> RunResult:
     """One pass of :func:`run_bag` (``cfg`` validated). ``restart_on_offset``: stop once the
     IMU time offset check concludes on a significant offset (``RunResult.time_offset``); the
-    caller restarts with the offset found."""
+    caller restarts with the offset found. ``warn_time_offset``: the estimator's own warning
+    about a significant offset (the caller words its own otherwise)."""
     from adalio.lio import Odometry, warmup
 
     bag = Bag(bag_path).open()
@@ -459,7 +471,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
                      "map": out / f"map.{cfg.output.map_format}", "config": out / "config.yaml"}
         paths["config"].write_text(cfg.to_yaml())
         odom = Odometry(cfg)
-        odom.warn_time_offset = not restart_on_offset
+        odom.warn_time_offset = warn_time_offset and not restart_on_offset
         seq = Sequencer(bag, lidar_topic, imu_topic, cfg.sensor,
                         start_ns=bag.start_ns + round(start_s * 1e9) if start_s else None)
         tum = TumWriter(paths["trajectory"])
