@@ -332,7 +332,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                         sigma_warn_m=sigma_warn_m, parallel_compile=False, on_compile=None,
                         restart_on_offset=False, warn_time_offset=False)
     left = res.time_offset
-    if left is not None and left.significant:  # one restart only: say what is left
+    if found is not None and left is not None and left.significant:  # one restart only
         late = "late" if left.offset_s > 0 else "early"
         warnings.warn(f"after the restart with sensor.imu_time_offset_s: "
                       f"{cfg.sensor.imu_time_offset_s:.4f}, the IMU's stamps still run at least "

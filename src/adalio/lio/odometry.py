@@ -64,6 +64,7 @@ from adalio.lio.degeneracy import (
     weak_directions,
 )
 from adalio.lio.ieskf import (
+    UpdateResult,
     _reprojection,
     height_direction,
     iterated_update,
@@ -125,9 +126,9 @@ UNITS_CHECK_ANGLE_RAD = 0.05
 """LiDAR-registered rotation, sqrt of the sum of squared increments between scans, needed before
 the gyro's unit is judged against it (registration noise, ~0.002 rad per pair, adds little)."""
 UNITS_CHECK_S = 10.0
-TIME_OFFSET_JUDGE_NS = 2_000_000_000
-"""The IMU time offset check estimates every 2 s of updates (about 20 ms each time)."""
 """After a still start, the unit check registers scans LiDAR-only for at most this long."""
+TIME_OFFSET_JUDGE_NS = 2_000_000_000
+"""The IMU time offset check estimates every 2 s of updates (20-45 ms each time)."""
 LIDAR_GAP_PERIODS = 1.5
 """An interval between scans longer than this many nominal periods is a LiDAR gap: at least
 one sweep is missing (jitter of half a period passes)."""
@@ -1104,9 +1105,9 @@ class Odometry:
                              "sensor.gyro_unit: deg_s")
         return False  # undecided: more rotation needed
 
-    def _check_time_offset(self, t_e_ns: int, result) -> None:
+    def _check_time_offset(self, t_e_ns: int, result: UpdateResult) -> None:
         """Feed the update's LiDAR-only orientation to the IMU time offset check; every
-        ``TIME_OFFSET_JUDGE_S`` from ``MIN_SPAN_S`` on, conclude once its estimate is precise
+        ``TIME_OFFSET_JUDGE_NS`` from ``MIN_SPAN_S`` on, conclude once its estimate is precise
         (``SIGMA_DONE_S``) or significant at ``SIGMA_SIGNIFICANT_S``, or stop after
         ``MAX_SPAN_S``; never with ``conclude_time_offset`` off."""
         chk = self._offset_check
