@@ -295,7 +295,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                          sigma_warn_m=sigma_warn_m, parallel_compile=parallel_compile,
                          on_compile=on_compile, restart_on_offset=False)
     seen: set[str] = set()
-    with _remember_warnings(seen):
+    with _said_once(seen, again=False):
         first = _run_once(bag_path, cfg, Path(out_dir), progress=progress, max_scans=max_scans,
                           on_scan=on_scan, on_estimate=on_estimate, start_s=start_s,
                           sigma_warn_m=sigma_warn_m, parallel_compile=parallel_compile,
@@ -326,7 +326,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                       f"{found.n_scans} scans in {len(found.passes)} passes); the run restarted "
                       f"with sensor.imu_time_offset_s: {found.offset_s:.4f} (set it in your "
                       "config to start with it)", stacklevel=2)
-    with _skip_warnings(seen):
+    with _said_once(seen, again=True):
         res = _run_once(bag_path, cfg, Path(out_dir), progress=progress, max_scans=max_scans,
                         on_scan=on_scan, on_estimate=on_estimate, start_s=start_s,
                         sigma_warn_m=sigma_warn_m, parallel_compile=False, on_compile=None,
@@ -352,29 +352,16 @@ def _offset_found(odom: Any) -> bool:
 
 
 @contextlib.contextmanager
-def _remember_warnings(seen: set[str]) -> Iterator[None]:
-    """Note the text of every warning shown meanwhile (the restarted run skips them)."""
+def _said_once(seen: set[str], *, again: bool) -> Iterator[None]:
+    """Warnings shown meanwhile: their texts noted in ``seen`` (the first run), or, with
+    ``again`` (the restarted run), only those not in ``seen`` shown (said once is enough)."""
     shown = warnings.showwarning
 
     def show(message: Any, *args: Any, **kwargs: Any) -> None:
+        if again and str(message) in seen:
+            return
         seen.add(str(message))
         shown(message, *args, **kwargs)
-
-    warnings.showwarning = show
-    try:
-        yield
-    finally:
-        warnings.showwarning = shown
-
-
-@contextlib.contextmanager
-def _skip_warnings(seen: set[str]) -> Iterator[None]:
-    """Show only the warnings whose text is not in ``seen`` (said once is enough)."""
-    shown = warnings.showwarning
-
-    def show(message: Any, *args: Any, **kwargs: Any) -> None:
-        if str(message) not in seen:
-            shown(message, *args, **kwargs)
 
     warnings.showwarning = show
     try:
