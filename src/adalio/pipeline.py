@@ -403,6 +403,13 @@ def _find_time_offset(bag_path: str | Path, cfg: Config, n_scans: int, start_s: 
                                  residual_s=residual, passes=passes, n_scans=n_scans)
 
 
+def _sequencer(bag: Bag, lidar_topic: str, imu_topic: str, cfg: Config,
+               start_s: float) -> Sequencer:
+    """The bag's scans and IMU in processing order, from ``start_s`` seconds into it."""
+    return Sequencer(bag, lidar_topic, imu_topic, cfg.sensor,
+                     start_ns=bag.start_ns + round(start_s * 1e9) if start_s else None)
+
+
 def _offset_pass(bag_path: str | Path, cfg: Config, offset_s: float, n_scans: int,
                  start_s: float) -> Any:
     """The IMU time offset left after ``offset_s`` over the first ``n_scans`` scans, or None."""
@@ -416,8 +423,7 @@ def _offset_pass(bag_path: str | Path, cfg: Config, offset_s: float, n_scans: in
             lidar_topic, imu_topic = bag.select_topics(c.sensor)
             odom = Odometry(c)
             odom.warn_time_offset = odom.conclude_time_offset = False
-            seq = Sequencer(bag, lidar_topic, imu_topic, c.sensor,
-                            start_ns=bag.start_ns + round(start_s * 1e9) if start_s else None)
+            seq = _sequencer(bag, lidar_topic, imu_topic, c, start_s)
             n = 0
             for item in seq:  # the first run's scans: every pass estimates over the same span
                 if isinstance(item, ImuBatch):
@@ -459,8 +465,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         paths["config"].write_text(cfg.to_yaml())
         odom = Odometry(cfg)
         odom.warn_time_offset = warn_time_offset and not restart_on_offset
-        seq = Sequencer(bag, lidar_topic, imu_topic, cfg.sensor,
-                        start_ns=bag.start_ns + round(start_s * 1e9) if start_s else None)
+        seq = _sequencer(bag, lidar_topic, imu_topic, cfg, start_s)
         tum = TumWriter(paths["trajectory"])
         csvw = ScansCsvWriter(paths["scans"])
         wall_ms: list[float] = []

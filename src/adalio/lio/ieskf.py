@@ -35,11 +35,22 @@ class UpdateResult:
     H: np.ndarray
     """(m,12) rows accepted at the last evaluation (after any pose projection)."""
     converged: bool
-    lidar_step: np.ndarray | None = None
-    """(6,) [δp, δθ]: the LiDAR-only Gauss-Newton step from the last evaluated iterate, ``(HᵀH)⁺
-    Hᵀr`` of the pose block (no prior); None without rows."""
+    lidar_normal: tuple[np.ndarray, np.ndarray] | None = None
+    """(HᵀH, −Hᵀr) of the pose block at the last evaluation (6x6, 6), or None without rows."""
     lidar_from: State | None = None
-    """The iterate the last evaluation was made at (``lidar_step`` starts there)."""
+    """The iterate the last evaluation was made at (:attr:`lidar_step` starts there)."""
+
+    @property
+    def lidar_step(self) -> np.ndarray | None:
+        """(6,) [δp, δθ]: the LiDAR-only Gauss-Newton step from ``lidar_from``, ``(HᵀH)⁺ Hᵀr``
+        of the pose block (no prior), on its well-conditioned eigen-directions; None without
+        rows. Solved only when asked (the IMU time offset check)."""
+        if self.lidar_normal is None:
+            return None
+        A, g = self.lidar_normal
+        w, V = np.linalg.eigh(0.5 * (A + A.T))
+        keep = w > 1e-6 * max(float(w[-1]), 1e-300)
+        return V[:, keep] @ ((V[:, keep].T @ g) / w[keep])
 
 
 def _reprojection(dx: np.ndarray) -> np.ndarray:
@@ -180,7 +191,7 @@ def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: 
     iterations = 0
     P_out = P_prior
     H = np.zeros((0, 12))
-    lidar_step = None
+    lidar_normal = None
     lidar_from = x
     M = None
     if pose_projector is not None:
@@ -209,7 +220,7 @@ def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: 
                     F = pose_projector.T @ F @ pose_projector
                     b = pose_projector.T @ b
                 HTH, HTh = errors_in_variables(HTH, HTh, F, b)
-            lidar_step, lidar_from = _lidar_only_step(HTH[:6, :6], HTh[:6]), x
+            lidar_normal, lidar_from = (HTH[:6, :6], HTh[:6]), x
             S = np.linalg.inv(P_j)
             S[:12, :12] += HTH * inv_r
             S_inv = np.linalg.inv(S)
@@ -240,11 +251,4 @@ def iterated_update(x_prior: State, P_prior: np.ndarray, measure: Measure, cfg: 
             break
     P_out = 0.5 * (P_out + P_out.T)
     return UpdateResult(state=x, P=P_out, iterations=iterations, H=H, converged=t_conv > 0,
-                        lidar_step=lidar_step, lidar_from=lidar_from)
-
-
-def _lidar_only_step(A: np.ndarray, g: np.ndarray, rcond: float = 1e-6) -> np.ndarray:
-    """``A⁺ g`` on the well-conditioned eigen-directions of ``A`` (relative ``rcond``)."""
-    w, V = np.linalg.eigh(0.5 * (A + A.T))
-    keep = w > rcond * max(float(w[-1]), 1e-300)
-    return V[:, keep] @ ((V[:, keep].T @ g) / w[keep])
+                        lidar_normal=lidar_normal, lidar_from=lidar_from)

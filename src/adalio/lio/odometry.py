@@ -657,7 +657,7 @@ class Odometry:
             stats.height_blind = self._update_report_covariance(x_pred, result.state, assoc,
                                                                 projector)
             self._state, self._P = result.state, result.P
-            if self._offset_check is not None and result.lidar_step is not None:
+            if self._offset_check is not None and result.lidar_normal is not None:
                 self._check_time_offset(t_e, result)
             stats.iterations = result.iterations
             stats.n_searches = assoc.n_searches
@@ -1113,6 +1113,7 @@ class Odometry:
         chk = self._offset_check
         assert chk is not None
         step = result.lidar_step
+        assert step is not None
         chk.add_scan(t_e_ns, result.lidar_from.R @ so3.exp(step[3:6].copy()))
         span = chk.span_s
         if span < MIN_SPAN_S or t_e_ns - self._offset_judged_ns < TIME_OFFSET_JUDGE_NS:

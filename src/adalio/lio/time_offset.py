@@ -17,11 +17,13 @@ minimise the difference: a grid over ±``GRID_HALF_WIDTH_S``, then Gauss-Newton 
 weights; its standard deviation comes from the residual scale and the angular acceleration's
 leverage (no rotation changes, no information).
 
-The estimate sees only part of the offset (0.4-0.65 of it, measured): the map was built from
+The estimate sees only part of the offset (0.2-0.65 of it, measured): the map was built from
 poses that followed the late gyro and moves with them. It is unbiased at zero (0.1 ± 0.1 ms in
 the hall and the corridor on time), so it tells an offset from none; ``pipeline.run_bag`` finds
 the value by re-running the first scans with corrected stamps until the estimate is zero
-(:func:`next_offset`, a secant on the estimate as a function of the correction).
+(:func:`next_offset`: a secant, then false position, on the estimate as a function of the
+correction). Its standard deviation also allows for the residuals' autocorrelation
+(:func:`_long_run_variance`).
 """
 
 from __future__ import annotations
