@@ -177,6 +177,7 @@ def test_errors_in_variables_keeps_the_lidar_step_and_only_the_real_information(
 
     rng_e = np.random.default_rng(5)
     H = rng_e.normal(size=(200, 12))
+    H[:, 6:] = 0.0  # the extrinsic not estimated (its columns: test below)
     r = rng_e.normal(size=200)
     HTH, HTh = H.T @ H, -(H.T @ r)
     same_H, same_h = errors_in_variables(HTH, HTh, np.zeros((6, 6)), np.zeros(6))
@@ -207,6 +208,42 @@ def test_errors_in_variables_keeps_the_lidar_step_and_only_the_real_information(
     none_H, none_h = errors_in_variables(HTH, HTh, 2.0 * A, b)
     np.testing.assert_allclose(none_H[:6, :6], 0.0, atol=1e-9 * np.abs(A).max())
     np.testing.assert_allclose(none_h[:6], 0.0, atol=1e-9 * np.linalg.norm(HTh[:6] + b))
+
+
+def test_errors_in_variables_with_the_extrinsic_estimated_corrects_its_columns_alike():
+    """With the extrinsic estimated, a row's extrinsic entries are a fixed linear map of its pose
+    entries (``h_e = L h_p``, ``L`` from R, R_LI, t_LI alone), so the corrected 12x12 equations
+    are ``[I; L] A' [I, Lᵀ]`` and ``[I; L] g'``: positive semi-definite, and the same LiDAR-only
+    pose step. Correcting the pose block alone (before) left an indefinite matrix."""
+    from adalio.lio.ieskf import errors_in_variables
+
+    rng_e = np.random.default_rng(6)
+    X, normals, ds = _box_room(100)
+    x = State(p=np.array([0.3, -0.2, 0.1]), R=so3.exp(np.array([0.1, -0.05, 0.7])),
+              R_LI=so3.exp(np.array([0.02, -0.01, np.pi / 2])), t_LI=np.array([0.1, -0.03, 0.05]))
+    pts = _scan(x, X) + rng_e.normal(scale=0.01, size=X.shape)
+    H, r, _ = measurement.point_to_plane(pts, x.R, x.p, x.R_LI, x.t_LI, normals, ds,
+                                         np.ones(len(pts), bool), True, np.zeros((6, 6)), 0.0)
+    L = np.zeros((6, 6))  # rows (θ_LI, t_LI), columns (p, θ)
+    L[:3, :3] = -x.R_LI.T @ so3.hat(x.t_LI) @ x.R.T
+    L[:3, 3:] = x.R_LI.T
+    L[3:, :3] = x.R.T
+    np.testing.assert_allclose(H[:, 6:], H[:, :6] @ L.T, atol=1e-9)
+    HTH, HTh = H.T @ H, -(H.T @ r)
+    A = HTH[:6, :6]
+    G = rng_e.normal(size=(6, 6))
+    F = 0.05 * G @ np.diag([0.1, 0.5, 1.0, 2.0, 5.0, 10.0]) @ G.T * np.abs(A).max() / 10.0
+    b = rng_e.normal(size=6) * 0.1
+    got_H, got_h = errors_in_variables(HTH, HTh, F, b)
+    pose_H, pose_h = errors_in_variables(HTH[:6, :6], HTh[:6], F, b)
+    lift = np.vstack([np.eye(6), L])
+    scale = np.abs(HTH).max()
+    np.testing.assert_allclose(got_H, lift @ pose_H @ lift.T, atol=1e-9 * scale)
+    np.testing.assert_allclose(got_h, lift @ pose_h, atol=1e-9 * np.abs(HTh).max())
+    assert np.linalg.eigvalsh(got_H).min() > -1e-9 * scale
+    old = HTH.copy()
+    old[:6, :6] = pose_H
+    assert np.linalg.eigvalsh(old).min() < -1e-3 * scale  # the pose block alone: indefinite
 
 def _strip_room(rng_s, sigma, half_width_m):
     """Map: the walls x = ±2, y = ±2 only as one thin horizontal strip each (a ring line at

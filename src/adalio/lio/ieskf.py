@@ -145,17 +145,36 @@ def errors_in_variables(HTH: np.ndarray, HTh: np.ndarray, F: np.ndarray,
     same ``Q = A^½ M A^-½`` in every direction, so the LiDAR-only step of the corrected
     gradient, ``A⁻¹ (Hᵀr − b)``, is kept where any information is left and only its weight
     against the prior drops. Directions where ``F`` is all of ``A`` contribute nothing.
+
+    With the extrinsic estimated (12 columns), the same correction reaches its columns: a
+    row's extrinsic entries are a linear map of its pose entries, ``h_e = L h_p`` with
+    ``L = [[−R_LIᵀ[t_LI]×Rᵀ, R_LIᵀ], [Rᵀ, 0]]`` (``measurement.point_to_plane``), so
+    ``HᵀH = [I; L] A [I, Lᵀ]`` and ``Hᵀr = [I; L] Hᵀr_p``, and the corrected equations are
+    ``[I; L] A' [I, Lᵀ]`` and ``[I; L] Q (Hᵀr_p − b)``. ``L`` is read from the equations
+    themselves (``Lᵀ = A⁺ (HᵀH)_pe``). Correcting the pose block alone would leave the
+    cross terms at their full size against a smaller pose block: an indefinite ``HᵀH``, whose
+    update diverged by hundreds of metres.
     """
     HTH = HTH.copy()
     HTh = HTh.copy()
-    parts = _claim_metric(HTH[:6, :6], 0.5 * (F + F.T), 1.0)
+    A = 0.5 * (HTH[:6, :6] + HTH[:6, :6].T)
+    parts = _claim_metric(A, 0.5 * (F + F.T), 1.0)
     if parts is None:
         return HTH, HTh
     half, mid, W, _, _ = parts
     Q = half @ mid @ W.T
-    A_real = Q @ (0.5 * (HTH[:6, :6] + HTH[:6, :6].T))
-    HTH[:6, :6] = 0.5 * (A_real + A_real.T)
-    HTh[:6] = Q @ (HTh[:6] + b)  # HTh = −Hᵀr
+    A_real = Q @ A
+    A_real = 0.5 * (A_real + A_real.T)
+    g_real = Q @ (HTh[:6] + b)  # HTh = −Hᵀr
+    if HTH.shape[0] > 6 and np.any(HTH[:6, 6:]):
+        Lt = np.linalg.pinv(A, rcond=1e-12, hermitian=True) @ HTH[:6, 6:]
+        dA, dg = A_real - A, g_real - HTh[:6]
+        HTH[:6, 6:] += dA @ Lt
+        HTH[6:, :6] = HTH[:6, 6:].T
+        HTH[6:, 6:] += Lt.T @ dA @ Lt
+        HTh[6:] += Lt.T @ dg
+    HTH[:6, :6] = A_real
+    HTh[:6] = g_real
     return HTH, HTh
 
 
