@@ -33,6 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from adalio.lio.extrinsic_check import RotationEstimate, estimate_rotation
+
 MIN_SPAN_S = 10.0
 """Scans (LiDAR-updated) the check looks at before it may conclude (seconds)."""
 MAX_SPAN_S = 60.0
@@ -118,6 +120,20 @@ class TimeOffsetCheck:
 
     def estimate(self) -> TimeOffsetEstimate | None:
         """The offset and its standard deviation, or None (too few scans or IMU samples)."""
+        data = self._samples()
+        return None if data is None else estimate_offset(*data, self.span_s)
+
+    def rotation(self, offset_s: float) -> RotationEstimate | None:
+        """The LiDAR-IMU rotation left over the same scans, the gyro's stamps taken as running
+        ``offset_s`` late (:func:`adalio.lio.extrinsic_check.estimate_rotation`)."""
+        data = self._samples()
+        if data is None:
+            return None
+        return estimate_rotation(*data, offset_s, self.span_s, MIN_PAIR_S, MAX_PAIR_S)
+
+    def _samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """(scan ends s, orientations, IMU stamps s, gyro), times from the first scan end;
+        None with fewer than 10 scans or no IMU sample."""
         if len(self._scan_t) < 10 or not self._imu_t:
             return None
         t_ref = self._scan_t[0]
@@ -128,8 +144,7 @@ class TimeOffsetCheck:
         order = np.argsort(t_imu, kind="stable")
         t_imu, w_imu = t_imu[order], w_imu[order]
         keep = np.r_[True, np.diff(t_imu) > 0]
-        return estimate_offset(t_scan, R, (t_imu[keep] - t_ref) * 1e-9, w_imu[keep],
-                               self.span_s)
+        return t_scan, R, (t_imu[keep] - t_ref) * 1e-9, w_imu[keep]
 
 
 def estimate_offset(t_scan_s: np.ndarray, R_scan: np.ndarray, t_imu_s: np.ndarray,
