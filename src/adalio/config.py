@@ -74,6 +74,11 @@ class SensorConfig:
     """Check the gyro's timing against the rotation the LiDAR alone registers over the first
     10-60 s of updates (:mod:`adalio.lio.time_offset`); ``adalio run`` then finds the offset
     left after ``imu_time_offset_s`` and restarts with it when it matters."""
+    extrinsic_rotation_check: bool = True
+    """Check the rotation of ``T_imu_lidar`` against the data over the same updates: the axes
+    the gyro turns about against those the LiDAR alone registers (:mod:`adalio.lio.
+    extrinsic_check`); ``adalio run`` then finds the rotation left and restarts with the
+    corrected extrinsic when it matters."""
 
 
 @dataclass

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any, Self
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from adalio.config import Config, validate_transform
 from adalio.errors import AdalioError, BagError, ConfigError, InputError
@@ -52,6 +53,30 @@ class TimeOffsetCalibration:
     """(offset tried s, offset left s) of each pass over the first scans."""
     n_scans: int
     """Scans each pass read (the first run's, up to the check's conclusion)."""
+
+
+@dataclass
+class RotationCalibration:
+    """How ``run_bag`` found the LiDAR-IMU rotation before restarting (``RunResult``)."""
+
+    correction_rad: np.ndarray
+    """(3,) the rotation vector ``θ`` applied on the left of the configured rotation
+    (``R ← Exp(θ) R``, IMU frame)."""
+    T_imu_lidar: np.ndarray
+    """(4,4) the extrinsic the run restarted with."""
+    detected_rad: np.ndarray
+    """The first run's estimate of the rotation left (it sees about two thirds of it)."""
+    residual_rad: float
+    """The least rotation a pass left (rad); ``correction_rad`` is one more step of the search
+    from there."""
+    passes: list[tuple[np.ndarray, np.ndarray]]
+    """(correction tried, rotation left) rotation vectors (rad) of each pass."""
+    n_scans: int
+    """Scans each pass read (the first run's, up to the check's conclusion)."""
+
+    @property
+    def angle_deg(self) -> float:
+        return float(np.degrees(np.linalg.norm(self.correction_rad)))
 
 
 @dataclass
@@ -109,6 +134,14 @@ class RunResult:
     time_offset_found: TimeOffsetCalibration | None = None
     """When the check found the IMU's stamps off and the run restarted: how the offset was
     found (the run's ``config.yaml`` holds it as ``sensor.imu_time_offset_s``)."""
+    extrinsic_rotation: Any = None
+    """:class:`adalio.lio.extrinsic_check.RotationEstimate` the LiDAR-IMU rotation check
+    concluded on in this run (left after ``sensor.T_imu_lidar``'s rotation), or None."""
+    stopped_for_extrinsic_rotation: bool = False
+    """The run stopped where the rotation check concluded, for :func:`run_bag` to restart it."""
+    extrinsic_rotation_found: RotationCalibration | None = None
+    """When the check found the extrinsic's rotation off and the run restarted: how it was
+    found (the run's ``config.yaml`` holds the corrected ``sensor.T_imu_lidar``)."""
     compiled: bool = False
     """The run began on a cold numba cache (the first after an install or an update of adalio):
     its wall time and stage times include the one-time compilation of the kernels."""
@@ -230,6 +263,12 @@ def _config_text(cfg: Config, odom: Any) -> str:
     if offset is not None:  # what the IMU time offset check left after imu_time_offset_s
         measured["imu_time_offset_left_s"] = round(float(offset.offset_s), 6)
         measured["imu_time_offset_left_sigma_s"] = round(float(offset.sigma_s), 6)
+    rotation = getattr(odom, "extrinsic_rotation", None)
+    if rotation is not None:  # what the rotation check left after T_imu_lidar's rotation
+        measured["extrinsic_rotation_left_deg"] = [
+            round(float(v), 4) for v in np.degrees(rotation.rotvec_rad)]
+        measured["extrinsic_rotation_left_sigma_deg"] = round(
+            float(np.degrees(rotation.sigma_rad)), 4)
     if measured:
         import yaml
 
@@ -289,7 +328,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         raise AdalioError("the estimator (adalio.lio.Odometry) is not available in this "
                           "install; update adalio") from None
 
-    if not cfg.sensor.imu_time_offset_check:
+    if not (cfg.sensor.imu_time_offset_check or cfg.sensor.extrinsic_rotation_check):
         return _run_once(bag_path, cfg, Path(out_dir), progress=progress, max_scans=max_scans,
                          on_scan=on_scan, on_estimate=on_estimate, start_s=start_s,
                          sigma_warn_m=sigma_warn_m, parallel_compile=parallel_compile,
@@ -300,25 +339,31 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                           on_scan=on_scan, on_estimate=on_estimate, start_s=start_s,
                           sigma_warn_m=sigma_warn_m, parallel_compile=parallel_compile,
                           on_compile=on_compile, restart_on_offset=True)
-    est = first.time_offset
-    if first.interrupted or est is None or not est.significant:
+    est, rot = first.time_offset, first.extrinsic_rotation
+    offset_off = est is not None and est.significant
+    if first.interrupted or not (offset_off or (rot is not None and rot.significant)):
         return first
+    found: TimeOffsetCalibration | None = None
+    found_rot: RotationCalibration | None = None
     try:
-        found = _find_time_offset(bag_path, cfg, first.n_scans_in, start_s, est.offset_s,
-                                  progress)
+        if offset_off:
+            found, rot_after = _find_time_offset(bag_path, cfg, first.n_scans_in, start_s,
+                                                 est.offset_s, progress)
+            if found is not None:
+                cfg.sensor.imu_time_offset_s = found.offset_s
+                rot = rot_after  # the rotation with the gyro's stamps corrected
+        if rot is not None and rot.significant:
+            found_rot = _find_rotation(bag_path, cfg, first.n_scans_in, start_s, rot, progress)
     except KeyboardInterrupt:  # the first run's outputs stand
         first.interrupted = True
         return first
-    if found is None:
+    if offset_off and found is None:
         late = "late" if est.offset_s > 0 else "early"
         warnings.warn(f"the gyro's timing disagrees with the LiDAR's: the IMU's stamps run at "
                       f"least {abs(est.offset_s) * 1e3:.1f} ms {late} against the rotation the "
                       "LiDAR alone registers, but re-running the first scans found no value; "
                       "set sensor.imu_time_offset_s if you know the offset", stacklevel=2)
-        if not first.stopped_for_time_offset:
-            return first
-    else:
-        cfg.sensor.imu_time_offset_s = found.offset_s
+    if found is not None:
         late = "late" if found.offset_s > found.configured_s else "early"
         warnings.warn(f"the gyro's timing disagrees with the LiDAR's: the IMU's stamps run "
                       f"{abs(found.offset_s - found.configured_s) * 1e3:.1f} ms {late} against "
@@ -326,11 +371,23 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                       f"{found.n_scans} scans in {len(found.passes)} passes); the run restarted "
                       f"with sensor.imu_time_offset_s: {found.offset_s:.4f} (set it in your "
                       "config to start with it)", stacklevel=2)
+    if found_rot is not None:
+        cfg.sensor.T_imu_lidar = found_rot.T_imu_lidar.tolist()
+        cfg.sensor.extrinsic_source = "config"
+        warnings.warn(f"the LiDAR-IMU rotation disagrees with the data: the gyro turns about "
+                      f"axes {found_rot.angle_deg:.2f} deg away from those the LiDAR alone "
+                      f"registers (found over the first {found_rot.n_scans} scans in "
+                      f"{len(found_rot.passes)} passes); the run restarted with the corrected "
+                      f"sensor.T_imu_lidar (in its config.yaml; set it in your config to start "
+                      "with it)", stacklevel=2)
+    if found is None and found_rot is None and not (first.stopped_for_time_offset
+                                                    or first.stopped_for_extrinsic_rotation):
+        return first
     with _said_once(seen, again=True):
         res = _run_once(bag_path, cfg, Path(out_dir), progress=progress, max_scans=max_scans,
                         on_scan=on_scan, on_estimate=on_estimate, start_s=start_s,
                         sigma_warn_m=sigma_warn_m, parallel_compile=False, on_compile=None,
-                        restart_on_offset=False, warn_time_offset=False)
+                        restart_on_offset=False, warn_checks=False)
     left = res.time_offset
     if found is not None and left is not None and left.significant:  # one restart only
         late = "late" if left.offset_s > 0 else "early"
@@ -341,13 +398,27 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                       "little rotation change to settle it, or the offset drifts): move "
                       "sensor.imu_time_offset_s by at least that and run again",
                       stacklevel=2)
+    rot_left = res.extrinsic_rotation
+    if rot_left is not None and rot_left.significant:
+        warnings.warn(f"after the restart, the gyro's axes are still turned at least "
+                      f"{np.degrees(rot_left.angle_rad):.2f} deg (+-"
+                      f"{np.degrees(rot_left.sigma_rad):.2f}) about {rot_left.axis_text()} "
+                      f"against the rotation the LiDAR alone registers over "
+                      f"{rot_left.span_s:.0f} s: check sensor.T_imu_lidar's rotation",
+                      stacklevel=2)
     res.time_offset_found = found
+    res.extrinsic_rotation_found = found_rot
     res.compiled = first.compiled
     return res
 
 
 def _offset_found(odom: Any) -> bool:
     est = getattr(odom, "time_offset", None)
+    return est is not None and est.significant
+
+
+def _rotation_found(odom: Any) -> bool:
+    est = getattr(odom, "extrinsic_rotation", None)
     return est is not None and est.significant
 
 
@@ -371,22 +442,27 @@ def _said_once(seen: set[str], *, again: bool) -> Iterator[None]:
 
 
 def _find_time_offset(bag_path: str | Path, cfg: Config, n_scans: int, start_s: float,
-                      detected_s: float, progress: bool) -> TimeOffsetCalibration | None:
+                      detected_s: float, progress: bool
+                      ) -> tuple[TimeOffsetCalibration | None, Any]:
     """Re-run the first ``n_scans`` scans with corrected IMU stamps until the check finds no
     offset left (:func:`adalio.lio.time_offset.next_offset`); None if no pass estimated one.
     The value: one more step of the search from every pass (the last pass's offset left is
     below significance but not zero; between two passes of opposite signs the step
-    interpolates), or, if an earlier pass left less, that pass's offset."""
+    interpolates), or, if an earlier pass left less, that pass's offset. Also the rotation
+    check's estimate of the last pass (None: none)."""
     from adalio.lio.time_offset import MAX_PASSES, next_offset
 
     base = cfg.sensor.imu_time_offset_s
     tried: list[tuple[float, float]] = [(0.0, detected_s)]
     passes: list[tuple[float, float]] = []
+    rotation = None
     with progress_bar(progress, "timing the IMU", "offset") as bar:
         task = bar.add_task("passes", total=MAX_PASSES, offset="")
         for _ in range(MAX_PASSES):
             trial = float(np.clip(base + next_offset(tried), -1.0, 1.0))
-            left = _offset_pass(bag_path, cfg, trial, n_scans, start_s)
+            c = copy.deepcopy(cfg)
+            c.sensor.imu_time_offset_s = trial
+            left, rotation = _calibration_pass(bag_path, c, n_scans, start_s)
             bar.update(task, advance=1, offset=f"{trial * 1e3:+.1f} ms")
             if left is None:
                 break
@@ -395,12 +471,57 @@ def _find_time_offset(bag_path: str | Path, cfg: Config, n_scans: int, start_s: 
             if not left.significant:
                 break
     if not passes:
-        return None
+        return None, None
     best, residual = min(passes, key=lambda p: abs(p[1]))
     if best == passes[-1][0]:  # the last pass left the least: one more step from all passes
         best = float(np.clip(base + next_offset(tried), -1.0, 1.0))
-    return TimeOffsetCalibration(offset_s=round(best, 5), configured_s=base, detected_s=detected_s,
-                                 residual_s=residual, passes=passes, n_scans=n_scans)
+    return TimeOffsetCalibration(offset_s=round(best, 5), configured_s=base,
+                                 detected_s=detected_s, residual_s=residual, passes=passes,
+                                 n_scans=n_scans), rotation
+
+
+def _find_rotation(bag_path: str | Path, cfg: Config, n_scans: int, start_s: float,
+                   detected: Any, progress: bool) -> RotationCalibration | None:
+    """Re-run the first ``n_scans`` scans with the extrinsic's rotation corrected until the
+    check finds none left (:func:`adalio.lio.extrinsic_check.next_rotation`); None if no pass
+    estimated one. The value as :func:`_find_time_offset`'s: one more step from the pass that
+    left the least, if it was the last."""
+    from adalio.lio.extrinsic_check import MAX_PASSES, next_rotation
+
+    T0 = np.asarray(cfg.sensor.T_imu_lidar, dtype=np.float64)
+    tried: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros(3), detected.rotvec_rad)]
+    passes: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def corrected(theta: np.ndarray) -> np.ndarray:
+        T = T0.copy()
+        T[:3, :3] = Rotation.from_rotvec(theta).as_matrix() @ T0[:3, :3]
+        return T
+
+    with progress_bar(progress, "aligning the IMU", "rotation") as bar:
+        task = bar.add_task("passes", total=MAX_PASSES, rotation="")
+        for _ in range(MAX_PASSES):
+            trial = next_rotation(tried)
+            c = copy.deepcopy(cfg)
+            c.sensor.T_imu_lidar = corrected(trial).tolist()
+            c.sensor.extrinsic_source = "config"
+            _, left = _calibration_pass(bag_path, c, n_scans, start_s)
+            bar.update(task, advance=1,
+                       rotation=f"{np.degrees(np.linalg.norm(trial)):.2f} deg")
+            if left is None:
+                break
+            tried.append((trial, left.rotvec_rad))
+            passes.append((trial, left.rotvec_rad))
+            if left.settled:
+                break
+    if not passes:
+        return None
+    best, residual = min(passes, key=lambda p: float(np.linalg.norm(p[1])))
+    if best is passes[-1][0]:
+        best = next_rotation(tried)
+    return RotationCalibration(correction_rad=best, T_imu_lidar=corrected(best),
+                               detected_rad=detected.rotvec_rad,
+                               residual_rad=float(np.linalg.norm(residual)), passes=passes,
+                               n_scans=n_scans)
 
 
 def _sequencer(bag: Bag, lidar_topic: str, imu_topic: str, cfg: Config,
@@ -410,20 +531,20 @@ def _sequencer(bag: Bag, lidar_topic: str, imu_topic: str, cfg: Config,
                      start_ns=bag.start_ns + round(start_s * 1e9) if start_s else None)
 
 
-def _offset_pass(bag_path: str | Path, cfg: Config, offset_s: float, n_scans: int,
-                 start_s: float) -> Any:
-    """The IMU time offset left after ``offset_s`` over the first ``n_scans`` scans, or None."""
+def _calibration_pass(bag_path: str | Path, cfg: Config, n_scans: int,
+                      start_s: float) -> tuple[Any, Any]:
+    """The IMU time offset and the LiDAR-IMU rotation the checks estimate over the first
+    ``n_scans`` scans with ``cfg`` (each None: no estimate)."""
     from adalio.lio import Odometry
 
-    c = copy.deepcopy(cfg)
-    c.sensor.imu_time_offset_s = offset_s
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         with Bag(bag_path) as bag:
-            lidar_topic, imu_topic = bag.select_topics(c.sensor)
-            odom = Odometry(c)
+            lidar_topic, imu_topic = bag.select_topics(cfg.sensor)
+            odom = Odometry(cfg)
             odom.warn_time_offset = odom.conclude_time_offset = False
-            seq = _sequencer(bag, lidar_topic, imu_topic, c, start_s)
+            odom.warn_extrinsic_rotation = False
+            seq = _sequencer(bag, lidar_topic, imu_topic, cfg, start_s)
             n = 0
             for item in seq:  # the first run's scans: every pass estimates over the same span
                 if isinstance(item, ImuBatch):
@@ -433,7 +554,7 @@ def _offset_pass(bag_path: str | Path, cfg: Config, offset_s: float, n_scans: in
                 n += 1
                 if n >= n_scans:
                     break
-    return odom.time_offset_estimate()
+    return odom.time_offset_estimate(), odom.extrinsic_rotation_estimate()
 
 
 def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
@@ -441,11 +562,12 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
               on_estimate: Callable[[Estimate], None] | None, start_s: float,
               sigma_warn_m: float, parallel_compile: bool,
               on_compile: Callable[[], None] | None, restart_on_offset: bool,
-              warn_time_offset: bool = True) -> RunResult:
+              warn_checks: bool = True) -> RunResult:
     """One pass of :func:`run_bag` (``cfg`` validated). ``restart_on_offset``: stop once the
-    IMU time offset check concludes on a significant offset (``RunResult.time_offset``); the
-    caller restarts with the offset found. ``warn_time_offset``: the estimator's own warning
-    about a significant offset (the caller words its own otherwise)."""
+    IMU time offset check or the LiDAR-IMU rotation check concludes on a significant value
+    (``RunResult.time_offset``, ``.extrinsic_rotation``); the caller restarts with the value
+    found. ``warn_checks``: the estimator's own warnings about them (the caller words its own
+    otherwise)."""
     from adalio.lio import Odometry, warmup
 
     bag = Bag(bag_path).open()
@@ -464,7 +586,8 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
                      "map": out / f"map.{cfg.output.map_format}", "config": out / "config.yaml"}
         paths["config"].write_text(cfg.to_yaml())
         odom = Odometry(cfg)
-        odom.warn_time_offset = warn_time_offset and not restart_on_offset
+        odom.warn_time_offset = warn_checks and not restart_on_offset
+        odom.warn_extrinsic_rotation = warn_checks and not restart_on_offset
         seq = _sequencer(bag, lidar_topic, imu_topic, cfg, start_s)
         tum = TumWriter(paths["trajectory"])
         csvw = ScansCsvWriter(paths["scans"])
@@ -527,7 +650,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
                         on_scan(n_in)
                     if max_scans is not None and n_in >= max_scans:
                         break
-                    if restart_on_offset and _offset_found(odom):
+                    if restart_on_offset and (_offset_found(odom) or _rotation_found(odom)):
                         restart = True
                         break
                 if not interrupted and not restart:  # a pending backfill runs now (a Ctrl-C
@@ -578,7 +701,11 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         lidar_gaps=[((t - est_t[0]) * 1e-9, gap_s, sigma_m)
                     for t, gap_s, sigma_m in odom.lidar_gaps] if est_t else [],
         local_surface_rows=tuple(getattr(odom, "local_surface_rows", (0, 0))),
-        time_offset=getattr(odom, "time_offset", None), stopped_for_time_offset=restart)
-    if not est_t and not interrupted and not (restart_on_offset and _offset_found(odom)):
+        time_offset=getattr(odom, "time_offset", None),
+        stopped_for_time_offset=restart and _offset_found(odom),
+        extrinsic_rotation=getattr(odom, "extrinsic_rotation", None),
+        stopped_for_extrinsic_rotation=restart and _rotation_found(odom))
+    if not est_t and not interrupted and not (restart_on_offset and (
+            _offset_found(odom) or _rotation_found(odom))):
         raise InputError(_no_pose_reason(odom, n_in, lidar_topic, imu_topic, out))
     return result

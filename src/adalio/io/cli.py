@@ -303,6 +303,23 @@ def _timing_text(res: Any) -> str:
     return text
 
 
+def _rotation_text(res: Any) -> str:
+    """What the LiDAR-IMU rotation check concluded ('' if it did not conclude, or is off)."""
+    found = getattr(res, "extrinsic_rotation_found", None)
+    left = getattr(res, "extrinsic_rotation", None)
+    text = ""
+    if found is not None:
+        text = (f"sensor.T_imu_lidar turned by {found.angle_deg:.2f} deg, found over the first "
+                f"{found.n_scans} scans in {len(found.passes)} passes (the first run saw "
+                f"{np.degrees(np.linalg.norm(found.detected_rad)):.2f} deg), the run restarted "
+                "with it; ")
+    if left is not None:
+        text += (f"{np.degrees(left.angle_rad):.2f} deg (+-{np.degrees(left.sigma_rad):.2f}) "
+                 f"left against the LiDAR-registered rotation over {left.span_s:.0f} s"
+                 + (" (see the warning)" if left.significant else ""))
+    return text
+
+
 def _summary(con: Console, res: Any, profile: bool) -> None:
     status = "[yellow]interrupted[/]" if res.interrupted else "[green]done[/]"
     con.print(f"{status}: {res.n_scans} poses from {res.n_scans_in} scans in {res.wall_s:.1f} s "
@@ -328,6 +345,9 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
     timing = _timing_text(res)
     if timing:
         con.print(f"IMU timing: {timing}", highlight=False, soft_wrap=True)
+    rotation = _rotation_text(res)
+    if rotation:
+        con.print(f"LiDAR-IMU rotation: {rotation}", highlight=False, soft_wrap=True)
     ranges = _ranges_text(res.degenerate_ranges_s)
     con.print(f"degenerate scans: {res.n_degenerate}/{res.n_scans}"
               + (f" at {ranges}" if ranges else ""), highlight=False, soft_wrap=True)

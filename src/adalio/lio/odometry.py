@@ -63,6 +63,7 @@ from adalio.lio.degeneracy import (
     observable_projector,
     weak_directions,
 )
+from adalio.lio.extrinsic_check import RotationEstimate
 from adalio.lio.ieskf import (
     UpdateResult,
     _reprojection,
@@ -457,10 +458,15 @@ class Odometry:
         of every LiDAR gap (:meth:`_lidar_gap`)."""
         self._units_check: MovingInit | None = None
         """After a still start: LiDAR-only registrations to compare the gyro's rotation with."""
+        sensor = config.sensor
         self._offset_check: TimeOffsetCheck | None = (
-            TimeOffsetCheck() if config.sensor.imu_time_offset_check else None)
-        """The gyro against the updates' LiDAR-only rotations, until it concludes
-        (sensor.imu_time_offset_check, :mod:`adalio.lio.time_offset`)."""
+            TimeOffsetCheck() if sensor.imu_time_offset_check or sensor.extrinsic_rotation_check
+            else None)
+        """The gyro against the updates' LiDAR-only rotations, until the checks conclude
+        (sensor.imu_time_offset_check, :mod:`adalio.lio.time_offset`;
+        sensor.extrinsic_rotation_check, :mod:`adalio.lio.extrinsic_check`)."""
+        self._offset_open = sensor.imu_time_offset_check
+        self._rotation_open = sensor.extrinsic_rotation_check
         self._offset_judged_ns = 0
         self.warn_time_offset = True
         """Warn when the check concludes on a significant offset (``run_bag`` acts instead)."""
@@ -470,6 +476,12 @@ class Odometry:
         self.time_offset: TimeOffsetEstimate | None = None
         """The IMU time offset the check concluded on, left after sensor.imu_time_offset_s
         (None: not concluded, or the check is off); warned about when significant."""
+        self.warn_extrinsic_rotation = True
+        """Warn when the rotation check concludes on a significant rotation (``run_bag`` acts
+        instead)."""
+        self.extrinsic_rotation: RotationEstimate | None = None
+        """The LiDAR-IMU rotation the check concluded on, left after sensor.T_imu_lidar's (None:
+        not concluded, or the check is off); warned about when significant."""
         self._provenance = MapProvenance(config.filter.map_provenance_cell_m)
         self._W_map = np.zeros((6, 6))
         """World covariance the latest scan inherited from the map (filter.map_uncertainty)."""
@@ -783,14 +795,30 @@ class Odometry:
             self._backfill()
         chk = self._offset_check
         if chk is not None and chk.span_s >= END_MIN_SPAN_S:
-            self._conclude_time_offset(chk.estimate())
+            if self._offset_open:
+                self._conclude_time_offset(chk.estimate())
+            if self._rotation_open:
+                self._conclude_rotation(chk.rotation(self._offset_for_rotation()))
+        self._offset_check = None
 
     def time_offset_estimate(self) -> TimeOffsetEstimate | None:
         """The IMU time offset check's conclusion, or its estimate so far (None: too few
         updates, or the check is off)."""
-        if self.time_offset is not None or self._offset_check is None:
+        if self.time_offset is not None or self._offset_check is None or not self._offset_open:
             return self.time_offset
         return self._offset_check.estimate()
+
+    def extrinsic_rotation_estimate(self) -> RotationEstimate | None:
+        """The LiDAR-IMU rotation check's conclusion, or its estimate so far (None: too few
+        updates, too little rotation, or the check is off)."""
+        if (self.extrinsic_rotation is not None or self._offset_check is None
+                or not self._rotation_open):
+            return self.extrinsic_rotation
+        return self._offset_check.rotation(self._offset_for_rotation())
+
+    def _offset_for_rotation(self) -> float:
+        """The gyro's lateness the rotation check allows for: the time offset concluded on."""
+        return self.time_offset.offset_s if self.time_offset is not None else 0.0
 
     def _hold(self, pts: np.ndarray, t_pts: np.ndarray) -> None:
         """Keep a scan for the backfill: before the initialization the latest
@@ -1121,14 +1149,37 @@ class Odometry:
         if not self.conclude_time_offset:
             return
         self._offset_judged_ns = t_e_ns
-        est = chk.estimate()
-        if est is not None and est.conclusive:
-            self._conclude_time_offset(est)
-        elif span >= MAX_SPAN_S:
-            self._offset_check = None  # too little rotation change to time the gyro
+        if self._offset_open:
+            est = chk.estimate()
+            if est is not None and est.conclusive:
+                self._conclude_time_offset(est)
+            elif span >= MAX_SPAN_S:
+                self._offset_open = False  # too little rotation change to time the gyro
+        if self._rotation_open:
+            rot = chk.rotation(self._offset_for_rotation())
+            if rot is not None and rot.conclusive:
+                self._conclude_rotation(rot)
+            elif span >= MAX_SPAN_S:
+                self._rotation_open = False  # too little rotation about two axes
+        if not (self._offset_open or self._rotation_open):
+            self._offset_check = None
+
+    def _conclude_rotation(self, est: RotationEstimate | None) -> None:
+        self._rotation_open = False
+        if est is None or not est.conclusive:
+            return
+        self.extrinsic_rotation = est
+        if est.significant and self.warn_extrinsic_rotation:
+            warnings.warn(f"the LiDAR-IMU rotation in sensor.T_imu_lidar disagrees with the "
+                          f"data: against the rotation the LiDAR alone registers over "
+                          f"{est.span_s:.0f} s, the gyro's axes are turned at least "
+                          f"{np.degrees(est.angle_rad):.2f} deg (+-"
+                          f"{np.degrees(est.sigma_rad):.2f}) about {est.axis_text()} (this "
+                          "estimate sees about two thirds of it): check the extrinsic's "
+                          "rotation (adalio run finds and applies it itself)", stacklevel=3)
 
     def _conclude_time_offset(self, est: TimeOffsetEstimate | None) -> None:
-        self._offset_check = None
+        self._offset_open = False
         if est is None or not est.conclusive:
             return
         self.time_offset = est
