@@ -130,6 +130,9 @@ class Cell:
     imu_time_offset_ms: float = 0.0
     """The simulated IMU's stamps run this late against the LiDAR's
     (``simulate(imu_time_offset_s=...)``); the run's config does not say it."""
+    extrinsic_error_deg: float = 0.0
+    """The run's config gives the extrinsic's rotation this many degrees off the simulated one
+    (about an axis drawn from the seed, :func:`turned_extrinsic`)."""
     scans: int = 0
     poses: int = 0
     init: str = ""
@@ -159,6 +162,13 @@ class Cell:
     offset_left_ms: float = float("nan")
     """The offset the final run's check concluded was left (NaN: it did not conclude)."""
     offset_passes: int = 0
+    rotation_found_deg: float = float("nan")
+    """The correction of the extrinsic's rotation ``run_bag`` restarted with (NaN: none)."""
+    rotation_passes: int = 0
+    rotation_left_deg: float = float("nan")
+    """The rotation the final run's check concluded was left (NaN: it did not conclude)."""
+    rotation_error_deg: float = float("nan")
+    """The final extrinsic's rotation (the run's config.yaml) against the simulated one."""
     """Which IMU white-noise densities the filter used (``InitReport.noise_used``)."""
 
     @property
@@ -183,6 +193,10 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
                           imu_time_offset_s=cell.imu_time_offset_ms * 1e-3)
     meta = json.loads(sim.meta_path.read_text())
     cfg = load_config(config_file=sim.config_path, overrides=overrides)
+    T_true = cfg.T_imu_lidar()
+    if cell.extrinsic_error_deg:
+        cfg.sensor.T_imu_lidar = turned_extrinsic(T_true, cell.extrinsic_error_deg,
+                                                  cell.seed).tolist()
     start_s = cell.cut_s
     cell.scans = int(meta["n_scans"] - round(start_s * meta["lidar_rate_hz"]))
     cut = f"{cell.cut_s:g}" if cell.start == "moving" else ""
@@ -191,6 +205,7 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     other += "" if cell.lidar_rate_hz == LIDAR_RATE_HZ else f"_lidar{cell.lidar_rate_hz:g}hz"
     other += "" if cell.motion_from is None else f"_hand-{Path(cell.motion_from).stem}"
     other += "" if not cell.imu_time_offset_ms else f"_imu{cell.imu_time_offset_ms:+g}ms"
+    other += "" if not cell.extrinsic_error_deg else f"_rot{cell.extrinsic_error_deg:g}deg"
     out = out_root / (f"{cell.scene}_s{cell.seed}_imu{cell.imu_noise:g}_{cell.lidar}_"
                       f"{cell.start}{cut}{other}")
     try:
@@ -211,6 +226,14 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
         cell.offset_passes = len(res.time_offset_found.passes)
     if res.time_offset is not None:
         cell.offset_left_ms = res.time_offset.offset_s * 1e3
+    if res.extrinsic_rotation_found is not None:
+        cell.rotation_found_deg = res.extrinsic_rotation_found.angle_deg
+        cell.rotation_passes = len(res.extrinsic_rotation_found.passes)
+    if res.extrinsic_rotation is not None:
+        cell.rotation_left_deg = float(np.degrees(res.extrinsic_rotation.angle_rad))
+    R_used = np.asarray(load_config(config_file=res.config_path).sensor.T_imu_lidar)[:3, :3]
+    cell.rotation_error_deg = float(np.degrees(
+        Rotation.from_matrix(R_used @ T_true[:3, :3].T).magnitude()))
     cell.ate_m = float(ate(res.trajectory_path, sim.gt_path, align="se3")["rmse_m"])
     with contextlib.suppress(InputError):
         cons = sigma_consistency(res.trajectory_path, sim.gt_path,
@@ -248,7 +271,31 @@ def _lidar_label(c: Cell) -> str:
     other += [] if c.imu_rate_hz == IMU_RATE_HZ else [f"{c.imu_rate_hz:g} Hz IMU"]
     other += [] if c.lidar_rate_hz == LIDAR_RATE_HZ else [f"{c.lidar_rate_hz:g} Hz"]
     other += [] if not c.imu_time_offset_ms else [f"IMU {c.imu_time_offset_ms:+g} ms"]
+    other += [] if not c.extrinsic_error_deg else [f"rotation {c.extrinsic_error_deg:g}° off"]
     return f"{c.lidar} ({', '.join(other)})" if other else c.lidar
+
+
+MAX_EXTRINSIC_ERROR_DEG = 30.0
+"""``--extrinsic-errors-deg``: larger turns are not a calibration error but a wrong mounting."""
+
+
+def turned_extrinsic(T: np.ndarray, deg: float, seed: int) -> np.ndarray:
+    """``T`` with its rotation turned by ``deg`` degrees about a unit axis drawn from ``seed``
+    (the same axis for every scene and IMU of that seed)."""
+    axis = np.random.default_rng(1000 + seed).normal(size=3)
+    out = np.array(T, dtype=np.float64)
+    out[:3, :3] = Rotation.from_rotvec(np.deg2rad(deg) * axis / np.linalg.norm(axis)).as_matrix() \
+        @ out[:3, :3]
+    return out
+
+
+def _rotation_cell(c: Cell) -> str:
+    """'1.02° (2), 0.03°, 0.08°': the rotation run_bag restarted with (passes), what the final
+    run's check left, and the final extrinsic's error ('–' where none)."""
+    found = "–" if not np.isfinite(c.rotation_found_deg) else \
+        f"{c.rotation_found_deg:.2f}° ({c.rotation_passes})"
+    left = "–" if not np.isfinite(c.rotation_left_deg) else f"{c.rotation_left_deg:.2f}°"
+    return f"{found}, {left}, {c.rotation_error_deg:.2f}°"
 
 
 def _offset_cell(c: Cell) -> str:
@@ -266,14 +313,14 @@ def summary_table(cells: list[Cell]) -> str:
               "within 3σ x / y / z |"),
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     keys = sorted({(c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz, c.lidar_rate_hz,
-                    c.imu_time_offset_ms) for c in cells},
+                    c.imu_time_offset_ms, c.extrinsic_error_deg) for c in cells},
                   key=lambda k: (k[0], k[1] != "still", k[2], k[3] != "hilti", k[3], -k[4],
-                                 k[5], k[6]))
+                                 k[5], k[6], k[7]))
     for key in keys:
         scene, start, noise = key[:3]
         cs = [c for c in cells
               if (c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz,
-                  c.lidar_rate_hz, c.imu_time_offset_ms) == key]
+                  c.lidar_rate_hz, c.imu_time_offset_ms, c.extrinsic_error_deg) == key]
         ates = np.array([c.ate_m for c in cs])
         on_track = ates[ates <= MAX_ATE_M]  # mean and worst of these
         inits = sorted({c.init or "error" for c in cs})
@@ -308,6 +355,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--imu-time-offsets-ms", nargs="+", type=float, default=[0.0],
                     help="the simulated IMU's stamps run this many ms late against the "
                     "LiDAR's (default 0); the runs' configs do not say it")
+    ap.add_argument("--extrinsic-errors-deg", nargs="+", type=float, default=[0.0],
+                    help="the runs' configs give the extrinsic's rotation this many degrees off "
+                    "the simulated one, about an axis drawn from the seed (default 0)")
     ap.add_argument("--starts", nargs="+", default=["still", "moving"],
                     choices=["still", "moving"])
     ap.add_argument("--duration", type=float, default=0.0,
@@ -335,26 +385,31 @@ def main(argv: list[str] | None = None) -> int:
         if not abs(offset) <= MAX_IMU_TIME_OFFSET_S * 1e3:
             raise SystemExit(f"error: --imu-time-offsets-ms must be within "
                              f"+-{MAX_IMU_TIME_OFFSET_S * 1e3:g} (got {offset:g})")
+    for turn in args.extrinsic_errors_deg:
+        if not abs(turn) <= MAX_EXTRINSIC_ERROR_DEG:
+            raise SystemExit(f"error: --extrinsic-errors-deg must be within "
+                             f"+-{MAX_EXTRINSIC_ERROR_DEG:g} (got {turn:g})")
     duration = args.duration or None
     cells = []
     t0 = time.perf_counter()
     print("| scene | seed | IMU noise | LiDAR | start | poses/scans | init | ATE SE(3) | "
           "ms/scan | within 3σ x / y / z | median abs(error) / σ | backfilled, worst error | "
-          "IMU time offset found (passes), left | error |\n"
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+          "IMU time offset found (passes), left | LiDAR-IMU rotation found (passes), left, "
+          "final error | error |\n"
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
           flush=True)
     starts = [("still", 0.0)] if "still" in args.starts else []
     starts += [("moving", c) for c in args.cut_s] if "moving" in args.starts else []
     for scene in args.scenes:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for noise in args.imu_noise:
-                for lidar, mounting, rate, lidar_rate, offset in itertools.product(
+                for lidar, mounting, rate, lidar_rate, offset, turn in itertools.product(
                         args.lidars, args.mountings, args.imu_rates, args.lidar_rates,
-                        args.imu_time_offsets_ms):
+                        args.imu_time_offsets_ms, args.extrinsic_errors_deg):
                     for start, cut_s in starts:
                         c = run_cell(Cell(scene, seed, noise, lidar, start, cut_s, mounting,
-                                          rate, lidar_rate, args.motion_from, offset), duration,
-                                     args.out, overrides)
+                                          rate, lidar_rate, args.motion_from, offset, turn),
+                                     duration, args.out, overrides)
                         cells.append(c)
                         label = f"moving {cut_s:g} s" if start == "moving" else start
                         print(f"| {scene} | {seed} | x{noise:g} | {_lidar_label(c)} | {label} | "
@@ -364,7 +419,7 @@ def main(argv: list[str] | None = None) -> int:
                               f"{sigma_cells(np.array([c.within_3sigma]))} | "
                               f"{' / '.join(f'{v:.2f}' for v in c.median_abs_z)} | "
                               f"{c.backfilled} ({cm(c.backfill_err_m)}) | "
-                              f"{_offset_cell(c)} | {c.error} |",
+                              f"{_offset_cell(c)} | {_rotation_cell(c)} | {c.error} |",
                               flush=True)
     print()
     print(summary_table(cells))
