@@ -6,7 +6,7 @@ off by a degree. The filter trusts its gyro for the rotation between scans, and 
 error turns the gyro's axes against the LiDAR's, so every turn registers a little off and the
 map leans: measured on the simulated hall and corridor (XT-32 at 512 columns, HILTI IMU noise),
 1° off costs 0.26 -> 0.84 cm and 1.0 -> 3.1 cm ATE, and the reported sigmas then cover 6-9 % of
-the scans' errors on two axes (README, "LiDAR-IMU rotation").
+the scans' errors on one or two axes (README, "LiDAR-IMU rotation").
 
 What measures it (hand-eye calibration of the rotation, as LI-Init does with a LiDAR-only
 odometry): the IMU time offset check's data (:class:`adalio.lio.time_offset.TimeOffsetCheck`),
@@ -21,8 +21,8 @@ weights). Its covariance is the sandwich form with the scores' autocorrelation a
 As with the time offset, the estimate sees only part of a rotation error (0.6-0.8 of it,
 measured): the map was built from poses that followed the gyro through the wrong rotation. It
 is unbiased at zero, so it tells an error from none; ``pipeline.run_bag`` finds the value by
-re-running the first scans with corrected rotations until nothing significant is left
-(:func:`next_rotation`).
+re-running the first scans with corrected rotations until what is left is within
+``PASS_TOLERANCE_RAD`` or one standard deviation (:func:`next_rotation`).
 """
 
 from __future__ import annotations
@@ -33,7 +33,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 MIN_ROTATION_RAD = np.deg2rad(0.2)
-"""Smaller estimates are not acted on (0.3° costs the corridor about a millimetre)."""
+"""Smaller estimates are not acted on: the passes leave 0.1-0.3° at best (README, "LiDAR-IMU
+rotation"), so a restart for less would not leave the extrinsic measurably better."""
 SIGNIFICANCE = 4.0
 """... nor are estimates within this many standard deviations (along their axis) of zero."""
 SIGMA_DONE_RAD = np.deg2rad(0.05)
