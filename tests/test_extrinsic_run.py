@@ -109,3 +109,33 @@ def test_estimating_the_extrinsic_online_tracks_with_the_default_preset(tmp_path
     cfg.sensor.extrinsic_rotation_check = False
     res = run_bag(walk.bag_path, cfg, tmp_path / "est", progress=False)
     assert _ate_cm(walk, res) < 1.5 * right_ate_cm, (_ate_cm(walk, res), right_ate_cm)
+
+
+def _feed(odom, cfg, walk) -> None:
+    from adalio import ImuBatch, Sequencer
+    from adalio.io.bag import Bag
+
+    with Bag(walk.bag_path) as bag:
+        lidar_topic, imu_topic = bag.select_topics(cfg.sensor)
+        for item in Sequencer(bag, lidar_topic, imu_topic, cfg.sensor):
+            if isinstance(item, ImuBatch):
+                odom.add_imu(item.t_ns, item.gyro_rad_s, item.accel_m_s2)
+            else:
+                odom.add_scan(item.points_lidar, item.t_ns, item.ring)
+    odom.finish()
+
+
+def test_your_own_loop_gets_the_estimate_and_a_warning(walk):
+    """The Python API: no restart (a stream cannot be re-read), but ``odom.extrinsic_rotation``
+    and a warning, with part of the 2 degrees seen about the axis turned."""
+    from adalio import Odometry
+
+    cfg = _turned(load_config(config_file=walk.config_path))
+    odom = Odometry(cfg)
+    with pytest.warns(UserWarning, match=r"LiDAR-IMU rotation in sensor\.T_imu_lidar disagrees"):
+        _feed(odom, cfg, walk)
+    est = odom.extrinsic_rotation
+    assert est is not None and est.significant
+    assert 0.5 * TURN_DEG < np.degrees(est.angle_rad) < TURN_DEG
+    # the config's rotation is Exp(2 deg AXIS) R_true: the correction Exp(θ) turns back, -AXIS
+    assert est.rotvec_rad @ -AXIS > 0.9 * est.angle_rad
