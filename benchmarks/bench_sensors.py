@@ -35,6 +35,9 @@ recording's hand motion instead of the synthetic one, or none at all (``none``: 
 walk, at the route's own height and attitude). With ``--imu-time-offsets-ms`` the IMU's stamps
 run late (or early) against the LiDAR's, which the runs' configs do not say: the last column
 gives the offset ``run_bag`` found and restarted with, and what the final run's check left.
+With ``--extrinsic-errors-deg`` the runs' configs give the extrinsic's rotation turned by that
+angle about an axis drawn from the seed: the column after gives the rotation ``run_bag`` found
+(passes), what the final run's check left, and the final extrinsic's error.
 
     python benchmarks/bench_sensors.py                      # hall + corridor, 2 seeds, full routes
     python benchmarks/bench_sensors.py --scenes hall --seeds 1 --lidars xt32-512
@@ -43,6 +46,7 @@ gives the offset ``run_bag`` found and restarted with, and what the final run's 
     python benchmarks/bench_sensors.py --starts still --lidars xt32-1000 --lidar-rates 20
     python benchmarks/bench_sensors.py --scenes corridor --starts still --motion-from none
     python benchmarks/bench_sensors.py --starts still --imu-time-offsets-ms 0 20 -20 50
+    python benchmarks/bench_sensors.py --starts still --extrinsic-errors-deg 0 1
 """
 
 from __future__ import annotations

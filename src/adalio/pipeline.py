@@ -484,8 +484,9 @@ def _find_rotation(bag_path: str | Path, cfg: Config, n_scans: int, start_s: flo
                    detected: Any, progress: bool) -> RotationCalibration | None:
     """Re-run the first ``n_scans`` scans with the extrinsic's rotation corrected until what
     the check finds left is settled (``RotationEstimate.settled``; the corrections from
-    :func:`adalio.lio.extrinsic_check.next_rotation`); None if no pass estimated one. The value as :func:`_find_time_offset`'s: one more step from the pass that
-    left the least, if it was the last."""
+    :func:`adalio.lio.extrinsic_check.next_rotation`); None if no pass estimated one. The
+    value as :func:`_find_time_offset`'s: one more step from the pass that left the least, if
+    it was the last, else that pass's correction."""
     from adalio.lio.extrinsic_check import MAX_PASSES, next_rotation
 
     T0 = np.asarray(cfg.sensor.T_imu_lidar, dtype=np.float64)
