@@ -412,14 +412,16 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
     return res
 
 
-def _offset_found(odom: Any) -> bool:
-    est = getattr(odom, "time_offset", None)
+def _significant(odom: Any, check: str) -> bool:
+    """Whether the odometry's check ``check`` (``time_offset``, ``extrinsic_rotation``)
+    concluded on a significant value."""
+    est = getattr(odom, check, None)
     return est is not None and est.significant
 
 
-def _rotation_found(odom: Any) -> bool:
-    est = getattr(odom, "extrinsic_rotation", None)
-    return est is not None and est.significant
+def _calibration_off(odom: Any) -> bool:
+    """A check concluded that the IMU time offset or the LiDAR-IMU rotation is off."""
+    return _significant(odom, "time_offset") or _significant(odom, "extrinsic_rotation")
 
 
 @contextlib.contextmanager
@@ -651,7 +653,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
                         on_scan(n_in)
                     if max_scans is not None and n_in >= max_scans:
                         break
-                    if restart_on_offset and (_offset_found(odom) or _rotation_found(odom)):
+                    if restart_on_offset and _calibration_off(odom):
                         restart = True
                         break
                 if not interrupted and not restart:  # a pending backfill runs now (a Ctrl-C
@@ -703,10 +705,9 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
                     for t, gap_s, sigma_m in odom.lidar_gaps] if est_t else [],
         local_surface_rows=tuple(getattr(odom, "local_surface_rows", (0, 0))),
         time_offset=getattr(odom, "time_offset", None),
-        stopped_for_time_offset=restart and _offset_found(odom),
+        stopped_for_time_offset=restart and _significant(odom, "time_offset"),
         extrinsic_rotation=getattr(odom, "extrinsic_rotation", None),
-        stopped_for_extrinsic_rotation=restart and _rotation_found(odom))
-    if not est_t and not interrupted and not (restart_on_offset and (
-            _offset_found(odom) or _rotation_found(odom))):
+        stopped_for_extrinsic_rotation=restart and _significant(odom, "extrinsic_rotation"))
+    if not est_t and not interrupted and not (restart_on_offset and _calibration_off(odom)):
         raise InputError(_no_pose_reason(odom, n_in, lidar_topic, imu_topic, out))
     return result

@@ -71,7 +71,7 @@ def _data(rng, E_rotvec, noise_rad=2e-4, bias=(0.01, -0.02, 0.005), axes=(1.0, 1
 
 
 def _estimate(data, offset_s=0.0):
-    return estimate_rotation(*data, offset_s, SPAN_S, 0.02, 0.3)
+    return estimate_rotation(*data, offset_s, SPAN_S)
 
 
 @pytest.mark.parametrize("deg", [0.0, 0.5, 2.0, 5.0])

@@ -32,6 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from adalio.lio.time_offset import MAX_PAIR_S, MIN_PAIR_S, long_run_covariance
+
 MIN_ROTATION_RAD = np.deg2rad(0.2)
 """Smaller estimates are not acted on: the passes leave 0.1-0.3° at best (README, "LiDAR-IMU
 rotation"), so a restart for less would not leave the extrinsic measurably better."""
@@ -103,17 +105,19 @@ class RotationEstimate:
 
 
 def estimate_rotation(t_scan_s: np.ndarray, R_scan: np.ndarray, t_imu_s: np.ndarray,
-                      gyro_rad_s: np.ndarray, offset_s: float, span_s: float,
-                      min_pair_s: float, max_pair_s: float) -> RotationEstimate | None:
+                      gyro_rad_s: np.ndarray, offset_s: float,
+                      span_s: float) -> RotationEstimate | None:
     """The correction ``θ`` from orientations ``R_scan`` (N,3,3; the IMU's, LiDAR-only) at
     ``t_scan_s`` and gyro samples whose stamps run ``offset_s`` late: ``mean gyro over
     [t_{k-1} + τ, t_k + τ] = Exp(θ) Log(R_{k-1}ᵀ R_k) / Δt_k + b``. None: too few pairs, or
-    too little rotation about two axes to tell an axis."""
+    too little rotation about two axes to tell an axis. The data as
+    :meth:`adalio.lio.time_offset.TimeOffsetCheck.samples` gives them, paired as that check
+    pairs them."""
     if t_imu_s.size < 4:
         return None
     dt = np.diff(t_scan_s)
     a, b = t_scan_s[:-1] + offset_s, t_scan_s[1:] + offset_s
-    ok = (dt > min_pair_s) & (dt < max_pair_s) & (a >= t_imu_s[0]) & (b <= t_imu_s[-1])
+    ok = (dt > MIN_PAIR_S) & (dt < MAX_PAIR_S) & (a >= t_imu_s[0]) & (b <= t_imu_s[-1])
     idx = np.flatnonzero(ok)
     if idx.size < MIN_PAIRS:
         return None
@@ -156,22 +160,12 @@ def estimate_rotation(t_scan_s: np.ndarray, R_scan: np.ndarray, t_imu_s: np.ndar
     r = w_gyro - w_rot - bias
     score = weights[:, None] * np.einsum("nki,nk->ni", J, r)
     A_inv = np.linalg.inv(A)
-    cov = A_inv @ _long_run_covariance(score, NEWEY_WEST_LAGS) @ A_inv
+    cov = A_inv @ long_run_covariance(score, NEWEY_WEST_LAGS) @ A_inv
     naive = scale**2 * A_inv
     cov_theta = cov[:3, :3] if np.trace(cov[:3, :3]) >= np.trace(naive[:3, :3]) else naive[:3, :3]
     return RotationEstimate(rotvec_rad=theta, cov_rad2=0.5 * (cov_theta + cov_theta.T),
                             span_s=float(span_s), n_pairs=int(n))
 
-
-def _long_run_covariance(score: np.ndarray, lags: int) -> np.ndarray:
-    """Covariance of the sum of the rows of ``score`` allowing for their autocorrelation
-    (Newey-West, Bartlett weights up to ``lags`` rows)."""
-    s = score - score.mean(axis=0)
-    total = s.T @ s
-    for lag in range(1, min(lags, len(s) - 1) + 1):
-        G = s[lag:].T @ s[:-lag]
-        total += (1.0 - lag / (lags + 1.0)) * (G + G.T)
-    return total
 
 
 def next_rotation(tried: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:

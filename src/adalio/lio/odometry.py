@@ -63,7 +63,7 @@ from adalio.lio.degeneracy import (
     observable_projector,
     weak_directions,
 )
-from adalio.lio.extrinsic_check import RotationEstimate
+from adalio.lio.extrinsic_check import RotationEstimate, estimate_rotation
 from adalio.lio.ieskf import (
     UpdateResult,
     _reprojection,
@@ -798,7 +798,7 @@ class Odometry:
             if self._offset_open:
                 self._conclude_time_offset(chk.estimate())
             if self._rotation_open:
-                self._conclude_rotation(chk.rotation(self._offset_for_rotation()))
+                self._conclude_rotation(self._rotation_so_far(chk))
         self._offset_check = None
 
     def time_offset_estimate(self) -> TimeOffsetEstimate | None:
@@ -814,11 +814,16 @@ class Odometry:
         if (self.extrinsic_rotation is not None or self._offset_check is None
                 or not self._rotation_open):
             return self.extrinsic_rotation
-        return self._offset_check.rotation(self._offset_for_rotation())
+        return self._rotation_so_far(self._offset_check)
 
-    def _offset_for_rotation(self) -> float:
-        """The gyro's lateness the rotation check allows for: the time offset concluded on."""
-        return self.time_offset.offset_s if self.time_offset is not None else 0.0
+    def _rotation_so_far(self, chk: TimeOffsetCheck) -> RotationEstimate | None:
+        """The rotation check's estimate from ``chk``'s data, the gyro's lateness taken as the
+        time offset concluded on (none: 0)."""
+        data = chk.samples()
+        if data is None:
+            return None
+        offset_s = self.time_offset.offset_s if self.time_offset is not None else 0.0
+        return estimate_rotation(*data, offset_s, chk.span_s)
 
     def _hold(self, pts: np.ndarray, t_pts: np.ndarray) -> None:
         """Keep a scan for the backfill: before the initialization the latest
@@ -1156,7 +1161,7 @@ class Odometry:
             elif span >= MAX_SPAN_S:
                 self._offset_open = False  # too little rotation change to time the gyro
         if self._rotation_open:
-            rot = chk.rotation(self._offset_for_rotation())
+            rot = self._rotation_so_far(chk)
             if rot is not None and rot.conclusive:
                 self._conclude_rotation(rot)
             elif span >= MAX_SPAN_S:

@@ -33,8 +33,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from adalio.lio.extrinsic_check import RotationEstimate, estimate_rotation
-
 MIN_SPAN_S = 10.0
 """Scans (LiDAR-updated) the check looks at before it may conclude (seconds)."""
 MAX_SPAN_S = 60.0
@@ -120,20 +118,13 @@ class TimeOffsetCheck:
 
     def estimate(self) -> TimeOffsetEstimate | None:
         """The offset and its standard deviation, or None (too few scans or IMU samples)."""
-        data = self._samples()
+        data = self.samples()
         return None if data is None else estimate_offset(*data, self.span_s)
 
-    def rotation(self, offset_s: float) -> RotationEstimate | None:
-        """The LiDAR-IMU rotation left over the same scans, the gyro's stamps taken as running
-        ``offset_s`` late (:func:`adalio.lio.extrinsic_check.estimate_rotation`)."""
-        data = self._samples()
-        if data is None:
-            return None
-        return estimate_rotation(*data, offset_s, self.span_s, MIN_PAIR_S, MAX_PAIR_S)
-
-    def _samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    def samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """(scan ends s, orientations, IMU stamps s, gyro), times from the first scan end;
-        None with fewer than 10 scans or no IMU sample."""
+        None with fewer than 10 scans or no IMU sample (also the LiDAR-IMU rotation check's
+        data, :func:`adalio.lio.extrinsic_check.estimate_rotation`)."""
         if len(self._scan_t) < 10 or not self._imu_t:
             return None
         t_ref = self._scan_t[0]
@@ -231,11 +222,18 @@ def _long_run_variance(score: np.ndarray, lags: int = 10) -> float:
     weights up to ``lags`` pairs): consecutive LiDAR-only orientations share their map and their
     errors, so their residuals are not independent, and the independent form claimed 1.2 ms
     where a robot's walk (few turns, the x10 IMU) moved the estimate by 3-4 ms."""
-    s = score - score.mean()
-    total = float(s @ s)
+    return max(float(long_run_covariance(score[:, None], lags)[0, 0]), 0.0)
+
+
+def long_run_covariance(score: np.ndarray, lags: int) -> np.ndarray:
+    """Covariance of the sum of the rows of ``score`` (n, k) allowing for their
+    autocorrelation (Newey-West, Bartlett weights up to ``lags`` rows)."""
+    s = score - score.mean(axis=0)
+    total = s.T @ s
     for lag in range(1, min(lags, len(s) - 1) + 1):
-        total += 2.0 * (1.0 - lag / (lags + 1.0)) * float(s[lag:] @ s[:-lag])
-    return max(total, 0.0)
+        G = s[lag:].T @ s[:-lag]
+        total += (1.0 - lag / (lags + 1.0)) * (G + G.T)
+    return total
 
 
 def next_offset(tried: list[tuple[float, float]]) -> float:
