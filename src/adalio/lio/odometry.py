@@ -107,6 +107,7 @@ from adalio.lio.time_offset import (
     MIN_SPAN_S,
     TimeOffsetCheck,
     TimeOffsetEstimate,
+    estimate_offset,
 )
 from adalio.lio.voxel import voxel_downsample, voxel_downsample_with_index
 from adalio.types import Estimate, InitReport, ScanStats
@@ -795,10 +796,12 @@ class Odometry:
             self._backfill()
         chk = self._offset_check
         if chk is not None and chk.span_s >= END_MIN_SPAN_S:
+            data = chk.samples()  # both checks' data, gathered once
             if self._offset_open:
-                self._conclude_time_offset(chk.estimate())
+                self._conclude_time_offset(
+                    None if data is None else estimate_offset(*data, chk.span_s))
             if self._rotation_open:
-                self._conclude_rotation(self._rotation_so_far(chk))
+                self._conclude_rotation(self._rotation_from(data, chk.span_s))
         self._offset_check = None
 
     def time_offset_estimate(self) -> TimeOffsetEstimate | None:
@@ -814,16 +817,16 @@ class Odometry:
         if (self.extrinsic_rotation is not None or self._offset_check is None
                 or not self._rotation_open):
             return self.extrinsic_rotation
-        return self._rotation_so_far(self._offset_check)
+        chk = self._offset_check
+        return self._rotation_from(chk.samples(), chk.span_s)
 
-    def _rotation_so_far(self, chk: TimeOffsetCheck) -> RotationEstimate | None:
-        """The rotation check's estimate from ``chk``'s data, the gyro's lateness taken as the
-        time offset concluded on (none: 0)."""
-        data = chk.samples()
+    def _rotation_from(self, data: tuple | None, span_s: float) -> RotationEstimate | None:
+        """The rotation check's estimate from the checks' data (``TimeOffsetCheck.samples``),
+        the gyro's lateness taken as the time offset concluded on (none: 0)."""
         if data is None:
             return None
         offset_s = self.time_offset.offset_s if self.time_offset is not None else 0.0
-        return estimate_rotation(*data, offset_s, chk.span_s)
+        return estimate_rotation(*data, offset_s, span_s)
 
     def _hold(self, pts: np.ndarray, t_pts: np.ndarray) -> None:
         """Keep a scan for the backfill: before the initialization the latest
@@ -1154,14 +1157,15 @@ class Odometry:
         if not self.conclude_time_offset:
             return
         self._offset_judged_ns = t_e_ns
+        data = chk.samples()  # both checks' data, gathered once
         if self._offset_open:
-            est = chk.estimate()
+            est = None if data is None else estimate_offset(*data, span)
             if est is not None and est.conclusive:
                 self._conclude_time_offset(est)
             elif span >= MAX_SPAN_S:
                 self._offset_open = False  # too little rotation change to time the gyro
         if self._rotation_open:
-            rot = self._rotation_so_far(chk)
+            rot = self._rotation_from(data, span)
             if rot is not None and rot.conclusive:
                 self._conclude_rotation(rot)
             elif span >= MAX_SPAN_S:
