@@ -173,6 +173,11 @@ class Cell:
     """The rotation the final run's check concluded was left (NaN: it did not conclude)."""
     rotation_error_deg: float = float("nan")
     """The final extrinsic's rotation (the run's config.yaml) against the simulated one."""
+    offset_unsettled_s: float = float("nan")
+    """The final run's time offset check closed unsettled after this many seconds of updates
+    (``RunResult.time_offset_unsettled``; NaN: it concluded)."""
+    rotation_unsettled_s: float = float("nan")
+    """The same for the rotation check."""
     """Which IMU white-noise densities the filter used (``InitReport.noise_used``)."""
 
     @property
@@ -235,6 +240,10 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
         cell.rotation_passes = len(res.extrinsic_rotation_found.passes)
     if res.extrinsic_rotation is not None:
         cell.rotation_left_deg = float(np.degrees(res.extrinsic_rotation.angle_rad))
+    if res.time_offset_unsettled is not None:
+        cell.offset_unsettled_s = res.time_offset_unsettled.span_s
+    if res.extrinsic_rotation_unsettled is not None:
+        cell.rotation_unsettled_s = res.extrinsic_rotation_unsettled.span_s
     R_used = np.asarray(load_config(config_file=res.config_path).sensor.T_imu_lidar)[:3, :3]
     cell.rotation_error_deg = float(np.degrees(
         Rotation.from_matrix(R_used @ T_true[:3, :3].T).magnitude()))
@@ -295,10 +304,13 @@ def turned_extrinsic(T: np.ndarray, deg: float, seed: int) -> np.ndarray:
 
 def _rotation_cell(c: Cell) -> str:
     """'1.02° (2), 0.03°, 0.08°': the rotation run_bag restarted with (passes), what the final
-    run's check left, and the final extrinsic's error ('–' where none)."""
+    run's check left ('unsettled 60 s': it closed without a conclusion after 60 s of updates),
+    and the final extrinsic's error ('–' where none)."""
     found = "–" if not np.isfinite(c.rotation_found_deg) else \
         f"{c.rotation_found_deg:.2f}° ({c.rotation_passes})"
     left = "–" if not np.isfinite(c.rotation_left_deg) else f"{c.rotation_left_deg:.2f}°"
+    if np.isfinite(c.rotation_unsettled_s):
+        left = f"unsettled {c.rotation_unsettled_s:.0f} s"
     return f"{found}, {left}, {c.rotation_error_deg:.2f}°"
 
 
@@ -308,6 +320,8 @@ def _offset_cell(c: Cell) -> str:
     found = "–" if not np.isfinite(c.offset_found_ms) else \
         f"{c.offset_found_ms:+.1f} ms ({c.offset_passes})"
     left = "–" if not np.isfinite(c.offset_left_ms) else f"{c.offset_left_ms:+.1f} ms"
+    if np.isfinite(c.offset_unsettled_s):
+        left = f"unsettled {c.offset_unsettled_s:.0f} s"
     return f"{found}, {left}"
 
 

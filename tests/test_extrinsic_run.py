@@ -7,6 +7,7 @@ columns)."""
 from __future__ import annotations
 
 import copy
+import time
 
 import numpy as np
 import pytest
@@ -54,6 +55,7 @@ def right_ate_cm(walk, tmp_path_factory) -> float:
     assert res.extrinsic_rotation_found is None  # the right rotation: no restart
     left = res.extrinsic_rotation
     assert left is None or np.degrees(left.angle_rad) < 0.15, left
+    assert (left is None) == (res.extrinsic_rotation_unsettled is not None)  # one or the other
     return _ate_cm(walk, res)
 
 
@@ -69,8 +71,12 @@ def test_a_turned_rotation_costs_the_walk_without_the_check(tmp_path, walk, righ
 def test_run_bag_finds_the_rotation_and_restarts_with_it(tmp_path, walk, right_ate_cm):
     truth = load_config(config_file=walk.config_path)
     cfg = _turned(truth)
+    t0 = time.perf_counter()
     with pytest.warns(UserWarning, match=r"restarted with the corrected sensor\.T_imu_lidar"):
         res = run_bag(walk.bag_path, cfg, tmp_path / "found", progress=False)
+    elapsed_s = time.perf_counter() - t0
+    # the wall time before the restart (first run, passes) is counted apart from the final run's
+    assert 0.0 < res.calibration_wall_s and res.calibration_wall_s + res.wall_s <= elapsed_s
     found = res.extrinsic_rotation_found
     assert found is not None and 1 <= len(found.passes) <= 5, found
     # the first estimate sees only part of the rotation; the passes find the rest
@@ -98,6 +104,8 @@ def test_the_restart_is_one_warning_line_on_the_command_line(tmp_path, walk):
     assert len(warned) == 1 and "sensor.T_imu_lidar" in warned[0], warned
     rotation = [ln for ln in lines if ln.startswith("LiDAR-IMU rotation: ")]
     assert len(rotation) == 1 and "the run restarted with it" in rotation[0], lines
+    done = [ln for ln in lines if ln.startswith("done: ")]  # its time: the restarted run's,
+    assert len(done) == 1 and "on the first run and the passes" in done[0], lines  # and before
 
 
 def test_estimating_the_extrinsic_online_tracks_with_the_default_preset(tmp_path, walk,

@@ -142,6 +142,16 @@ class RunResult:
     extrinsic_rotation_found: RotationCalibration | None = None
     """When the check found the extrinsic's rotation off and the run restarted: how it was
     found (the run's ``config.yaml`` holds the corrected ``sensor.T_imu_lidar``)."""
+    time_offset_unsettled: Any = None
+    """:class:`adalio.types.UnsettledCheck`: the IMU time offset check closed without a
+    conclusion in this run, so ``sensor.imu_time_offset_s`` was used unchecked (None: it
+    concluded, or is off)."""
+    extrinsic_rotation_unsettled: Any = None
+    """The same for the LiDAR-IMU rotation check (``sensor.T_imu_lidar``'s rotation)."""
+    calibration_wall_s: float = 0.0
+    """When the run restarted with a corrected time offset or rotation: the wall time before
+    the restart (the first run and the passes that found the value); ``wall_s`` is the
+    restarted run's."""
     compiled: bool = False
     """The run began on a cold numba cache (the first after an install or an update of adalio):
     its wall time and stage times include the one-time compilation of the kernels."""
@@ -269,6 +279,11 @@ def _config_text(cfg: Config, odom: Any) -> str:
             round(float(v), 4) for v in np.degrees(rotation.rotvec_rad)]
         measured["extrinsic_rotation_left_sigma_deg"] = round(
             float(np.degrees(rotation.sigma_rad)), 4)
+    for key, check in (("imu_time_offset", getattr(odom, "time_offset_unsettled", None)),
+                       ("extrinsic_rotation", getattr(odom, "extrinsic_rotation_unsettled",
+                                                      None))):
+        if check is not None:  # used as configured: the check could not settle it
+            measured[f"{key}_unsettled_after_s"] = round(float(check.span_s), 1)
     if measured:
         import yaml
 
@@ -334,6 +349,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                          sigma_warn_m=sigma_warn_m, parallel_compile=parallel_compile,
                          on_compile=on_compile, restart_on_offset=False)
     seen: set[str] = set()
+    t_start = time.perf_counter()
     with _said_once(seen, again=False):
         first = _run_once(bag_path, cfg, Path(out_dir), progress=progress, max_scans=max_scans,
                           on_scan=on_scan, on_estimate=on_estimate, start_s=start_s,
@@ -383,6 +399,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
     if found is None and found_rot is None and not (first.stopped_for_time_offset
                                                     or first.stopped_for_extrinsic_rotation):
         return first
+    t_restart = time.perf_counter()
     with _said_once(seen, again=True):
         res = _run_once(bag_path, cfg, Path(out_dir), progress=progress, max_scans=max_scans,
                         on_scan=on_scan, on_estimate=on_estimate, start_s=start_s,
@@ -408,6 +425,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                       stacklevel=2)
     res.time_offset_found = found
     res.extrinsic_rotation_found = found_rot
+    res.calibration_wall_s = t_restart - t_start
     res.compiled = first.compiled
     return res
 
@@ -707,7 +725,9 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         time_offset=getattr(odom, "time_offset", None),
         stopped_for_time_offset=restart and _significant(odom, "time_offset"),
         extrinsic_rotation=getattr(odom, "extrinsic_rotation", None),
-        stopped_for_extrinsic_rotation=restart and _significant(odom, "extrinsic_rotation"))
+        stopped_for_extrinsic_rotation=restart and _significant(odom, "extrinsic_rotation"),
+        time_offset_unsettled=getattr(odom, "time_offset_unsettled", None),
+        extrinsic_rotation_unsettled=getattr(odom, "extrinsic_rotation_unsettled", None))
     if not est_t and not interrupted and not (restart_on_offset and _calibration_off(odom)):
         raise InputError(_no_pose_reason(odom, n_in, lidar_topic, imu_topic, out))
     return result

@@ -8,6 +8,7 @@ nanoseconds since the epoch of the bag's clock.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -132,6 +133,24 @@ class Estimate:
     stats: ScanStats = field(default_factory=ScanStats)
     points_world: np.ndarray | None = None
     """(M, 3) the downsampled scan registered into the world (for visualisation)."""
+
+
+@dataclass
+class UnsettledCheck:
+    """A sensor check (the IMU time offset's, the LiDAR-IMU rotation's) that closed without a
+    conclusion: its last estimate was neither precise enough to call the value right nor
+    significant at a usable precision (``Odometry.time_offset_unsettled``,
+    ``Odometry.extrinsic_rotation_unsettled``). The configured value was used as given."""
+
+    span_s: float
+    """Time between the first and the last update the check saw (s)."""
+    estimate: Any = None
+    """Its last estimate (:class:`adalio.lio.time_offset.TimeOffsetEstimate`,
+    :class:`adalio.lio.extrinsic_check.RotationEstimate`), or None: too few updates, or (the
+    rotation) too little rotation about two axes to tell an axis."""
+    gave_up: bool = False
+    """True: it stopped at the check's longest span (``time_offset.MAX_SPAN_S``); False: the
+    recording ended first."""
 
 
 @dataclass

@@ -288,15 +288,42 @@ read without a pose (issue #12's target for a moving start is a pose for 90 % of
 scans of a still start's window are not flagged: the sensor rests there, at the first pose."""
 
 
+def _unsettled_text(check: Any, value: str, precise: str, cause: str, used: str) -> str:
+    """'not settled ...' / 'not checked ...' for a check that closed without a conclusion
+    (:class:`adalio.types.UnsettledCheck`): its last ``value`` against the ``precise`` enough
+    one, the ``cause`` (when the span was long enough) and the config value ``used``."""
+    from adalio.lio.time_offset import END_MIN_SPAN_S
+
+    span = f"{check.span_s:.0f} s of updates" + ("" if check.gave_up else
+                                                  " (the recording ended)")
+    if check.estimate is not None:
+        return (f"not settled over {span}: {value}, where it settles at {precise}: {cause}; "
+                f"{used} used as given")
+    if check.span_s < END_MIN_SPAN_S:
+        return (f"not checked: {check.span_s:.1f} s of updates, it needs {END_MIN_SPAN_S:g}; "
+                f"{used} used as given")
+    return f"not checked over {span}: {cause}; {used} used as given"
+
+
 def _timing_text(res: Any) -> str:
-    """What the IMU time offset check concluded ('' if it did not conclude, or is off)."""
+    """What the IMU time offset check concluded, or that it could not ('' if it is off)."""
+    from adalio.lio.time_offset import SIGMA_DONE_S, SIGMA_SIGNIFICANT_S
+
     found, left = getattr(res, "time_offset_found", None), getattr(res, "time_offset", None)
+    unsettled = getattr(res, "time_offset_unsettled", None)
     text = ""
     if found is not None:
         text = (f"sensor.imu_time_offset_s {found.offset_s:.4f} found over the first "
                 f"{found.n_scans} scans in {len(found.passes)} passes (the first run saw "
                 f"{found.detected_s * 1e3:+.1f} ms), the run restarted with it; ")
-    if left is not None:
+    if unsettled is not None:
+        est = unsettled.estimate
+        value = "" if est is None else f"{est.offset_s * 1e3:+.1f} ms (+-{est.sigma_s * 1e3:.1f})"
+        text += _unsettled_text(
+            unsettled, value, f"+-{SIGMA_DONE_S * 1e3:g} ms, or on a significant offset at "
+            f"+-{SIGMA_SIGNIFICANT_S * 1e3:g} ms", "too little change of the rotation rate to "
+            "time the gyro against the LiDAR", "sensor.imu_time_offset_s")
+    elif left is not None:
         text += (f"{left.offset_s * 1e3:+.1f} ms (+-{left.sigma_s * 1e3:.1f}) left against the "
                  f"LiDAR-registered rotation over {left.span_s:.0f} s"
                  + (" (see the warning)" if left.significant else ""))
@@ -304,16 +331,28 @@ def _timing_text(res: Any) -> str:
 
 
 def _rotation_text(res: Any) -> str:
-    """What the LiDAR-IMU rotation check concluded ('' if it did not conclude, or is off)."""
+    """What the LiDAR-IMU rotation check concluded, or that it could not ('' if it is off)."""
+    from adalio.lio.extrinsic_check import SIGMA_DONE_RAD, SIGMA_SIGNIFICANT_RAD
+
     found = getattr(res, "extrinsic_rotation_found", None)
     left = getattr(res, "extrinsic_rotation", None)
+    unsettled = getattr(res, "extrinsic_rotation_unsettled", None)
     text = ""
     if found is not None:
         text = (f"sensor.T_imu_lidar turned by {found.angle_deg:.2f} deg, found over the first "
                 f"{found.n_scans} scans in {len(found.passes)} passes (the first run saw "
                 f"{np.degrees(np.linalg.norm(found.detected_rad)):.2f} deg), the run restarted "
                 "with it; ")
-    if left is not None:
+    if unsettled is not None:
+        est = unsettled.estimate
+        value = "" if est is None else (f"{np.degrees(est.angle_rad):.2f} deg (+-"
+                                        f"{np.degrees(est.sigma_rad):.2f})")
+        text += _unsettled_text(
+            unsettled, value, f"+-{np.degrees(SIGMA_DONE_RAD):g} deg, or on a significant "
+            f"rotation at +-{np.degrees(SIGMA_SIGNIFICANT_RAD):g} deg", "the rig turned too little about "
+            "two of its axes to tell the gyro's axes from the LiDAR's",
+            "sensor.T_imu_lidar's rotation")
+    elif left is not None:
         text += (f"{np.degrees(left.angle_rad):.2f} deg (+-{np.degrees(left.sigma_rad):.2f}) "
                  f"left against the LiDAR-registered rotation over {left.span_s:.0f} s"
                  + (" (see the warning)" if left.significant else ""))
@@ -322,10 +361,13 @@ def _rotation_text(res: Any) -> str:
 
 def _summary(con: Console, res: Any, profile: bool) -> None:
     status = "[yellow]interrupted[/]" if res.interrupted else "[green]done[/]"
+    before = getattr(res, "calibration_wall_s", 0.0)
+    restarted = (f", after {before:.1f} s on the first run and the passes that found the "
+                 "IMU timing or rotation" if before > 0 else "")
     con.print(f"{status}: {res.n_scans} poses from {res.n_scans_in} scans in {res.wall_s:.1f} s "
               f"({res.n_scans_in / max(res.wall_s, 1e-9):.1f} scans/s, median "
-              f"{res.ms_per_scan_median:.1f} ms/scan) → {res.out_dir}", highlight=False,
-              soft_wrap=True)
+              f"{res.ms_per_scan_median:.1f} ms/scan{restarted}) → {res.out_dir}",
+              highlight=False, soft_wrap=True)
     con.print(f"topics: {res.lidar_topic} + {res.imu_topic}; extrinsic from "
               f"{res.extrinsic_source}; point time {res.time_spec}", highlight=False,
               soft_wrap=True)

@@ -110,7 +110,7 @@ from adalio.lio.time_offset import (
     estimate_offset,
 )
 from adalio.lio.voxel import voxel_downsample, voxel_downsample_with_index
-from adalio.types import Estimate, InitReport, ScanStats
+from adalio.types import Estimate, InitReport, ScanStats, UnsettledCheck
 
 ANCHOR_VARIANCE = 1e-12
 """The backfill's hold to the anchor (:meth:`Odometry._hold_to_anchor`): the variance, m² and
@@ -483,6 +483,13 @@ class Odometry:
         self.extrinsic_rotation: RotationEstimate | None = None
         """The LiDAR-IMU rotation the check concluded on, left after sensor.T_imu_lidar's (None:
         not concluded, or the check is off); warned about when significant."""
+        self.time_offset_unsettled: UnsettledCheck | None = None
+        """The IMU time offset check closed without a conclusion (at ``MAX_SPAN_S``, or at the
+        end of the data): sensor.imu_time_offset_s was used unchecked (None: it concluded, is
+        still open, or is off)."""
+        self.extrinsic_rotation_unsettled: UnsettledCheck | None = None
+        """The same for the LiDAR-IMU rotation check: sensor.T_imu_lidar's rotation was used
+        unchecked."""
         self._provenance = MapProvenance(config.filter.map_provenance_cell_m)
         self._W_map = np.zeros((6, 6))
         """World covariance the latest scan inherited from the map (filter.map_uncertainty)."""
@@ -790,18 +797,21 @@ class Odometry:
         return bool(self._held_scans)
 
     def finish(self) -> None:
-        """End of the data: run a pending backfill now, from the latest state; the IMU time
-        offset check concludes if it has seen ``END_MIN_SPAN_S`` of updates."""
+        """End of the data: run a pending backfill now, from the latest state; the sensor
+        checks still open conclude if they have seen ``END_MIN_SPAN_S`` of updates and their
+        estimates are conclusive, else they close unsettled (:attr:`time_offset_unsettled`,
+        :attr:`extrinsic_rotation_unsettled`)."""
         if self._held_scans and self.initialized:
             self._backfill()
         chk = self._offset_check
-        if chk is not None and chk.span_s >= END_MIN_SPAN_S:
-            data = chk.samples()  # both checks' data, gathered once
+        if chk is not None:
+            span = chk.span_s
+            data = chk.samples() if span >= END_MIN_SPAN_S else None  # gathered once
             if self._offset_open:
                 self._conclude_time_offset(
-                    None if data is None else estimate_offset(*data, chk.span_s))
+                    None if data is None else estimate_offset(*data, span), span)
             if self._rotation_open:
-                self._conclude_rotation(self._rotation_from(data, chk.span_s))
+                self._conclude_rotation(self._rotation_from(data, span), span)
         self._offset_check = None
 
     def time_offset_estimate(self) -> TimeOffsetEstimate | None:
@@ -1160,22 +1170,25 @@ class Odometry:
         data = chk.samples()  # both checks' data, gathered once
         if self._offset_open:
             est = None if data is None else estimate_offset(*data, span)
-            if est is not None and est.conclusive:
-                self._conclude_time_offset(est)
-            elif span >= MAX_SPAN_S:
-                self._offset_open = False  # too little rotation change to time the gyro
+            if (est is not None and est.conclusive) or span >= MAX_SPAN_S:
+                # at MAX_SPAN_S unsettled: too little rotation change to time the gyro
+                self._conclude_time_offset(est, span)
         if self._rotation_open:
             rot = self._rotation_from(data, span)
-            if rot is not None and rot.conclusive:
-                self._conclude_rotation(rot)
-            elif span >= MAX_SPAN_S:
-                self._rotation_open = False  # too little rotation about two axes
+            if (rot is not None and rot.conclusive) or span >= MAX_SPAN_S:
+                # at MAX_SPAN_S unsettled: too little rotation about two axes
+                self._conclude_rotation(rot, span)
         if not (self._offset_open or self._rotation_open):
             self._offset_check = None
 
-    def _conclude_rotation(self, est: RotationEstimate | None) -> None:
+    def _conclude_rotation(self, est: RotationEstimate | None, span_s: float) -> None:
+        """Close the rotation check on ``est`` (over ``span_s`` of updates): its conclusion,
+        warned about when significant, or unsettled (:attr:`extrinsic_rotation_unsettled`)."""
         self._rotation_open = False
         if est is None or not est.conclusive:
+            if self.conclude_time_offset:  # not in run_bag's passes, which read the estimate
+                self.extrinsic_rotation_unsettled = UnsettledCheck(
+                    span_s, est, gave_up=span_s >= MAX_SPAN_S)
             return
         self.extrinsic_rotation = est
         if est.significant and self.warn_extrinsic_rotation:
@@ -1187,9 +1200,14 @@ class Odometry:
                           "estimate sees about two thirds of it): check the extrinsic's "
                           "rotation (adalio run finds and applies it itself)", stacklevel=3)
 
-    def _conclude_time_offset(self, est: TimeOffsetEstimate | None) -> None:
+    def _conclude_time_offset(self, est: TimeOffsetEstimate | None, span_s: float) -> None:
+        """Close the IMU time offset check on ``est`` (over ``span_s`` of updates): its
+        conclusion, warned about when significant, or unsettled (:attr:`time_offset_unsettled`)."""
         self._offset_open = False
         if est is None or not est.conclusive:
+            if self.conclude_time_offset:
+                self.time_offset_unsettled = UnsettledCheck(
+                    span_s, est, gave_up=span_s >= MAX_SPAN_S)
             return
         self.time_offset = est
         if est.significant and self.warn_time_offset:

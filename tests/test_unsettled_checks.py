@@ -1,0 +1,87 @@
+"""The sensor checks say when they could not check: a robot driving straight down a corridor
+turns too little for the gyro to be timed or its axes to be told from the LiDAR's, and a run
+too short gives them too few updates. The configured time offset and extrinsic are then used
+as given, and the run says so (one line each, and ``config.yaml``'s ``measured``) instead of
+saying nothing, as it did before."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from adalio.cli import app
+from adalio.config import load_config
+from adalio.io.writers import read_tum
+from adalio.lio.extrinsic_check import SIGMA_SIGNIFICANT_RAD
+from adalio.lio.time_offset import END_MIN_SPAN_S, SIGMA_SIGNIFICANT_S
+from adalio.pipeline import run_bag
+from adalio.sim import cached_sequence
+
+ROBOT = {"seed": 0, "duration_s": 14.0, "columns": 512, "motion_from": "none"}
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return cached_sequence("corridor", **ROBOT)
+
+
+def test_the_robot_walk_hardly_turns(robot):
+    """The independent truth behind the other tests: the ground truth's attitude stays within
+    a few degrees of the start's, about one axis (the hand's walks turn by tens)."""
+    _, poses = read_tum(robot.gt_path)
+    q = Rotation.from_quat(poses[:, 3:7])
+    rot = q[0].inv() * q
+    rotvec_deg = np.degrees(rot.as_rotvec())
+    assert np.abs(rotvec_deg).max() < 10.0
+    spread = np.sort(np.std(rotvec_deg, axis=0))
+    assert spread[1] < 0.1, spread  # about two of its axes it does not turn at all
+
+
+def test_a_run_that_turns_too_little_says_both_checks_are_unsettled(tmp_path, robot):
+    cfg = load_config(config_file=robot.config_path)
+    res = run_bag(robot.bag_path, cfg, tmp_path / "o", progress=False)
+    assert res.n_scans > 100
+    assert res.time_offset is None and res.extrinsic_rotation is None  # nothing concluded
+    for check, sigma_significant in ((res.time_offset_unsettled, SIGMA_SIGNIFICANT_S),
+                                     (res.extrinsic_rotation_unsettled, SIGMA_SIGNIFICANT_RAD)):
+        assert check is not None and not check.gave_up
+        assert 12.0 < check.span_s < 14.0, check
+        est = check.estimate
+        if est is not None:  # an estimate, but far from the precision the checks act on
+            sigma = est.sigma_s if hasattr(est, "sigma_s") else est.sigma_rad
+            assert sigma > sigma_significant, est
+    measured = yaml.safe_load(res.config_path.read_text())["measured"]
+    assert 12.0 < measured["imu_time_offset_unsettled_after_s"] < 14.0
+    assert 12.0 < measured["extrinsic_rotation_unsettled_after_s"] < 14.0
+    assert res.calibration_wall_s == 0.0  # no restart
+
+
+def test_the_command_line_says_it_in_one_line_each(tmp_path, robot):
+    res = CliRunner().invoke(app, ["run", str(robot.bag_path), "--config",
+                                   str(robot.config_path), "--out", str(tmp_path / "o"),
+                                   "--no-progress"])
+    assert res.exit_code == 0, res.output
+    lines = res.output.splitlines()
+    timing = [ln for ln in lines if ln.startswith("IMU timing: ")]
+    rotation = [ln for ln in lines if ln.startswith("LiDAR-IMU rotation: ")]
+    assert len(timing) == 1 and timing[0].startswith("IMU timing: not "), lines
+    assert "sensor.imu_time_offset_s used as given" in timing[0]
+    assert len(rotation) == 1 and rotation[0].startswith("LiDAR-IMU rotation: not "), lines
+    assert "turned too little about two of its axes" in rotation[0]
+    assert "sensor.T_imu_lidar's rotation used as given" in rotation[0]
+    assert not [ln for ln in lines if ln.startswith("warning:")], lines
+
+
+def test_a_run_too_short_for_the_checks_says_so(tmp_path, robot):
+    """30 scans: 2.5 s of updates after the still start, under the END_MIN_SPAN_S the checks
+    need at the end of the data."""
+    res = CliRunner().invoke(app, ["run", str(robot.bag_path), "--config",
+                                   str(robot.config_path), "--out", str(tmp_path / "o"),
+                                   "--no-progress", "--max-scans", "30"])
+    assert res.exit_code == 0, res.output
+    rotation = [ln for ln in res.output.splitlines() if ln.startswith("LiDAR-IMU rotation: ")]
+    assert len(rotation) == 1, res.output
+    assert f"it needs {END_MIN_SPAN_S:g}" in rotation[0], rotation
