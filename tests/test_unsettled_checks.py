@@ -68,10 +68,10 @@ def test_the_command_line_says_it_in_one_line_each(tmp_path, robot):
     timing = [ln for ln in lines if ln.startswith("IMU timing: ")]
     rotation = [ln for ln in lines if ln.startswith("LiDAR-IMU rotation: ")]
     assert len(timing) == 1 and timing[0].startswith("IMU timing: not "), lines
-    assert "sensor.imu_time_offset_s used as given" in timing[0]
+    assert "sensor.imu_time_offset_s used as it is" in timing[0]
     assert len(rotation) == 1 and rotation[0].startswith("LiDAR-IMU rotation: not "), lines
     assert "turned too little about two of its axes" in rotation[0]
-    assert "sensor.T_imu_lidar's rotation used as given" in rotation[0]
+    assert "sensor.T_imu_lidar's rotation used as it is" in rotation[0]
     assert not [ln for ln in lines if ln.startswith("warning:")], lines
 
 
@@ -85,3 +85,22 @@ def test_a_run_too_short_for_the_checks_says_so(tmp_path, robot):
     rotation = [ln for ln in res.output.splitlines() if ln.startswith("LiDAR-IMU rotation: ")]
     assert len(rotation) == 1, res.output
     assert f"it needs {END_MIN_SPAN_S:g}" in rotation[0], rotation
+
+
+def test_after_a_restart_the_line_names_the_corrected_value():
+    """A run that restarted with a corrected rotation whose final check did not settle: the
+    line says what was found and that the corrected rotation is kept unchecked."""
+    from types import SimpleNamespace
+
+    from adalio.io.cli import _rotation_text
+    from adalio.types import UnsettledCheck
+
+    found = SimpleNamespace(angle_deg=0.95, n_scans=140, passes=[1, 2],
+                            detected_rad=np.deg2rad([0.7, 0.0, 0.0]))
+    res = SimpleNamespace(extrinsic_rotation_found=found, extrinsic_rotation=None,
+                          extrinsic_rotation_unsettled=UnsettledCheck(60.0, None, gave_up=True))
+    text = _rotation_text(res)
+    assert text.startswith("sensor.T_imu_lidar turned by 0.95 deg")
+    assert "the run restarted with it; not checked over 60 s of updates:" in text
+    assert text.endswith("the corrected rotation used as it is"), text
+    assert "(the recording ended)" not in text  # it gave up at 60 s
