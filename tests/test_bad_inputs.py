@@ -25,6 +25,7 @@ import numpy as np
 import pytest
 import yaml
 
+from adalio.config import load_config
 from adalio.io.bag import Bag
 from adalio.io.bagwrite import BagWriter
 from adalio.io.pointcloud2 import POINTFIELD_DTYPES
@@ -347,6 +348,15 @@ def not_rotation(base: Base, folder: Path) -> list[str]:
     return run_args(base, base.bag, folder, config=cfg)
 
 
+def extrinsic_in_mm(base: Base, folder: Path) -> list[str]:
+    """The HILTI rig's extrinsic with its translation typed in millimetres."""
+    cfg = folder / "bad.yaml"
+    T = np.array(load_config(preset="hilti2022").sensor.T_imu_lidar)
+    T[:3, 3] *= 1000.0
+    cfg.write_text(f"preset: hilti2022\nsensor:\n  T_imu_lidar: {T.tolist()}\n")
+    return run_args(base, base.bag, folder, config=cfg)
+
+
 def out_is_file(base: Base, folder: Path) -> list[str]:
     (folder / "taken").write_text("not a folder")
     return ["run", str(base.bag), "--config", str(base.config), "--out", str(folder / "taken")]
@@ -451,6 +461,8 @@ CASES: list[Case] = [
     Case("config_unknown_preset", config_case("preset: hilti2023\n"), "error",
          ("unknown preset 'hilti2023'", "hilti2022")),
     Case("config_extrinsic_not_rotation", not_rotation, "error", ("not a rigid transform",)),
+    Case("config_extrinsic_in_mm", extrinsic_in_mm, "error",
+         ("sensor.T_imu_lidar's translation", "m long", "give it in metres")),
     Case("config_time_field_absent", bag_case(lambda *a: None,
                                               config={"sensor.point_time_field": "t"}),
          "error", ("has no field 't' (sensor.point_time_field)",)),

@@ -58,6 +58,23 @@ def test_non_rotation_extrinsic_rejected():
         transform_from_xyz_quat("0 0 0 1 1 0 0")
 
 
+def test_a_lever_arm_in_millimetres_is_refused_with_its_metres():
+    """Every preset's lever arm and a vehicle's (2 m) load; the HILTI rig's typed in millimetres
+    (55 mm as 55) is refused, naming the key and the value in metres."""
+    for name in available_presets():
+        T = load_config(preset=name).T_imu_lidar()
+        assert np.linalg.norm(T[:3, 3]) < 1.0
+    T = load_config(preset="hilti2022").T_imu_lidar()
+    vehicle = T.copy()
+    vehicle[:3, 3] = [1.2, -0.8, 1.4]
+    load_config(overrides={"sensor.T_imu_lidar": vehicle.tolist()})
+    in_mm = T.copy()
+    in_mm[:3, 3] *= 1000.0
+    with pytest.raises(ConfigError, match=r"sensor\.T_imu_lidar's translation .* is 55\.7 m long"
+                       r".* millimetres.* it is \[-0\.001, -0\.00855, 0\.055\] m"):
+        load_config(overrides={"sensor.T_imu_lidar": in_mm.tolist()})
+
+
 def test_wrong_type_names_key():
     with pytest.raises(ConfigError, match="filter.max_iterations"):
         load_config(overrides={"filter.max_iterations": "many"})
