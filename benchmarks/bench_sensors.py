@@ -178,6 +178,9 @@ class Cell:
     (``RunResult.time_offset_unsettled``; NaN: it concluded)."""
     rotation_unsettled_s: float = float("nan")
     """The same for the rotation check."""
+    rotation_unsettled_deg: float = float("nan")
+    """... and its last estimate's angle and standard deviation (NaN: no estimate)."""
+    rotation_unsettled_sigma_deg: float = float("nan")
     """Which IMU white-noise densities the filter used (``InitReport.noise_used``)."""
 
     @property
@@ -244,6 +247,10 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
         cell.offset_unsettled_s = res.time_offset_unsettled.span_s
     if res.extrinsic_rotation_unsettled is not None:
         cell.rotation_unsettled_s = res.extrinsic_rotation_unsettled.span_s
+        est = res.extrinsic_rotation_unsettled.estimate
+        if est is not None:
+            cell.rotation_unsettled_deg = float(np.degrees(est.angle_rad))
+            cell.rotation_unsettled_sigma_deg = float(np.degrees(est.sigma_rad))
     R_used = np.asarray(load_config(config_file=res.config_path).sensor.T_imu_lidar)[:3, :3]
     cell.rotation_error_deg = float(np.degrees(
         Rotation.from_matrix(R_used @ T_true[:3, :3].T).magnitude()))
@@ -304,13 +311,15 @@ def turned_extrinsic(T: np.ndarray, deg: float, seed: int) -> np.ndarray:
 
 def _rotation_cell(c: Cell) -> str:
     """'1.02° (2), 0.03°, 0.08°': the rotation run_bag restarted with (passes), what the final
-    run's check left ('unsettled 60 s': it closed without a conclusion after 60 s of updates),
-    and the final extrinsic's error ('–' where none)."""
+    run's check left ('unsettled 60 s (0.63° ±0.16)': it closed without a conclusion after 60 s
+    of updates, at that estimate), and the final extrinsic's error ('–' where none)."""
     found = "–" if not np.isfinite(c.rotation_found_deg) else \
         f"{c.rotation_found_deg:.2f}° ({c.rotation_passes})"
     left = "–" if not np.isfinite(c.rotation_left_deg) else f"{c.rotation_left_deg:.2f}°"
     if np.isfinite(c.rotation_unsettled_s):
         left = f"unsettled {c.rotation_unsettled_s:.0f} s"
+        if np.isfinite(c.rotation_unsettled_deg):
+            left += f" ({c.rotation_unsettled_deg:.2f}° ±{c.rotation_unsettled_sigma_deg:.2f})"
     return f"{found}, {left}, {c.rotation_error_deg:.2f}°"
 
 

@@ -284,6 +284,15 @@ def _config_text(cfg: Config, odom: Any) -> str:
                                                       None))):
         if check is not None:  # used as configured: the check could not settle it
             measured[f"{key}_unsettled_after_s"] = round(float(check.span_s), 1)
+            est = check.estimate
+            if est is not None and key == "imu_time_offset":  # where it had got to
+                measured["imu_time_offset_unsettled_s"] = round(float(est.offset_s), 6)
+                measured["imu_time_offset_unsettled_sigma_s"] = round(float(est.sigma_s), 6)
+            elif est is not None:
+                measured["extrinsic_rotation_unsettled_deg"] = [
+                    round(float(v), 4) for v in np.degrees(est.rotvec_rad)]
+                measured["extrinsic_rotation_unsettled_sigma_deg"] = round(
+                    float(np.degrees(est.sigma_rad)), 4)
     if measured:
         import yaml
 

@@ -291,15 +291,15 @@ scans of a still start's window are not flagged: the sensor rests there, at the 
 def _unsettled_text(check: Any, value: str, precise: str, cause: str, used: str) -> str:
     """'not settled ...' / 'not checked ...' for a check that closed without a conclusion
     (:class:`adalio.types.UnsettledCheck`): its last ``value`` against the ``precise`` enough
-    one, the ``cause`` (when the span was long enough) and the value ``used`` (the config's, or
-    the one the run restarted with)."""
+    one; without an estimate, the ``cause`` (when the span was long enough); and the value
+    ``used`` (the config's, or the one the run restarted with)."""
     from adalio.lio.time_offset import END_MIN_SPAN_S
 
     span = f"{check.span_s:.0f} s of updates" + ("" if check.gave_up else
                                                   " (the recording ended)")
     if check.estimate is not None:
-        return (f"not settled over {span}: {value}, where it settles at {precise}: {cause}; "
-                f"{used} used as it is")
+        return (f"not settled over {span}: {value}, where it settles at {precise} (too little "
+                f"rotation, or too noisy a registration, to settle it); {used} used as it is")
     if check.span_s < END_MIN_SPAN_S:
         return (f"not checked: {check.span_s:.1f} s of updates, it needs {END_MIN_SPAN_S:g}; "
                 f"{used} used as it is")
@@ -322,8 +322,8 @@ def _timing_text(res: Any) -> str:
         value = "" if est is None else f"{est.offset_s * 1e3:+.1f} ms (+-{est.sigma_s * 1e3:.1f})"
         text += _unsettled_text(
             unsettled, value, f"+-{SIGMA_DONE_S * 1e3:g} ms, or on a significant offset at "
-            f"+-{SIGMA_SIGNIFICANT_S * 1e3:g} ms", "too little change of the rotation rate to "
-            "time the gyro against the LiDAR",
+            f"+-{SIGMA_SIGNIFICANT_S * 1e3:g} ms", "no change of the rotation rate beyond the "
+            "gyro's noise to time it against the LiDAR, or too few scan pairs",
             "the offset found" if found is not None else "sensor.imu_time_offset_s")
     elif left is not None:
         text += (f"{left.offset_s * 1e3:+.1f} ms (+-{left.sigma_s * 1e3:.1f}) left against the "
@@ -351,8 +351,8 @@ def _rotation_text(res: Any) -> str:
                                         f"{np.degrees(est.sigma_rad):.2f})")
         text += _unsettled_text(
             unsettled, value, f"+-{np.degrees(SIGMA_DONE_RAD):g} deg, or on a significant "
-            f"rotation at +-{np.degrees(SIGMA_SIGNIFICANT_RAD):g} deg", "the rig turned too little about "
-            "two of its axes to tell the gyro's axes from the LiDAR's",
+            f"rotation at +-{np.degrees(SIGMA_SIGNIFICANT_RAD):g} deg", "the rig turned about one "
+            "axis only, or too few scan pairs, to tell the gyro's axes from the LiDAR's",
             "the corrected rotation" if found is not None else "sensor.T_imu_lidar's rotation")
     elif left is not None:
         text += (f"{np.degrees(left.angle_rad):.2f} deg (+-{np.degrees(left.sigma_rad):.2f}) "
