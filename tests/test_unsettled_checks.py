@@ -56,6 +56,11 @@ def test_a_run_that_turns_too_little_says_both_checks_are_unsettled(tmp_path, ro
     measured = yaml.safe_load(res.config_path.read_text())["measured"]
     assert 12.0 < measured["imu_time_offset_unsettled_after_s"] < 14.0
     assert 12.0 < measured["extrinsic_rotation_unsettled_after_s"] < 14.0
+    rot = res.extrinsic_rotation_unsettled.estimate  # where it had got to, when it had a value
+    assert ("extrinsic_rotation_unsettled_deg" in measured) == (rot is not None)
+    if rot is not None:
+        np.testing.assert_allclose(measured["extrinsic_rotation_unsettled_deg"],
+                                   np.degrees(rot.rotvec_rad), atol=1e-4)
     assert res.calibration_wall_s == 0.0  # no restart
 
 
