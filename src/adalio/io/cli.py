@@ -7,7 +7,7 @@ import os
 import statistics
 import sys
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -306,30 +306,36 @@ def _unsettled_text(check: Any, value: str, precise: str, cause: str, used: str)
     return f"not checked over {span}: {cause}; {used} used as it is"
 
 
+def _check_tail(unsettled: Any, left: Any, show: Callable[[Any], str], precise: str,
+                cause: str, used: str) -> str:
+    """What a sensor check's final run says: unsettled (:func:`_unsettled_text`), or the value
+    it concluded was left (``show`` formats an estimate with its deviation), or ''."""
+    if unsettled is not None:
+        est = unsettled.estimate
+        return _unsettled_text(unsettled, "" if est is None else show(est), precise, cause, used)
+    if left is None:
+        return ""
+    return (f"{show(left)} left against the LiDAR-registered rotation over {left.span_s:.0f} s"
+            + (" (see the warning)" if left.significant else ""))
+
+
 def _timing_text(res: Any) -> str:
     """What the IMU time offset check concluded, or that it could not ('' if it is off)."""
     from adalio.lio.time_offset import SIGMA_DONE_S, SIGMA_SIGNIFICANT_S
 
-    found, left = getattr(res, "time_offset_found", None), getattr(res, "time_offset", None)
-    unsettled = getattr(res, "time_offset_unsettled", None)
+    found = getattr(res, "time_offset_found", None)
     text = ""
     if found is not None:
         text = (f"sensor.imu_time_offset_s {found.offset_s:.4f} found over the first "
                 f"{found.n_scans} scans in {len(found.passes)} passes (the first run saw "
                 f"{found.detected_s * 1e3:+.1f} ms), the run restarted with it; ")
-    if unsettled is not None:
-        est = unsettled.estimate
-        value = "" if est is None else f"{est.offset_s * 1e3:+.1f} ms (+-{est.sigma_s * 1e3:.1f})"
-        text += _unsettled_text(
-            unsettled, value, f"+-{SIGMA_DONE_S * 1e3:g} ms, or on a significant offset at "
-            f"+-{SIGMA_SIGNIFICANT_S * 1e3:g} ms", "no change of the rotation rate beyond the "
-            "gyro's noise to time it against the LiDAR, or too few scan pairs",
-            "the offset found" if found is not None else "sensor.imu_time_offset_s")
-    elif left is not None:
-        text += (f"{left.offset_s * 1e3:+.1f} ms (+-{left.sigma_s * 1e3:.1f}) left against the "
-                 f"LiDAR-registered rotation over {left.span_s:.0f} s"
-                 + (" (see the warning)" if left.significant else ""))
-    return text
+    return text + _check_tail(
+        getattr(res, "time_offset_unsettled", None), getattr(res, "time_offset", None),
+        lambda e: f"{e.offset_s * 1e3:+.1f} ms (+-{e.sigma_s * 1e3:.1f})",
+        f"+-{SIGMA_DONE_S * 1e3:g} ms, or on a significant offset at "
+        f"+-{SIGMA_SIGNIFICANT_S * 1e3:g} ms", "no change of the rotation rate beyond the "
+        "gyro's noise to time it against the LiDAR, or too few scan pairs",
+        "the offset found" if found is not None else "sensor.imu_time_offset_s")
 
 
 def _rotation_text(res: Any) -> str:
@@ -337,28 +343,20 @@ def _rotation_text(res: Any) -> str:
     from adalio.lio.extrinsic_check import SIGMA_DONE_RAD, SIGMA_SIGNIFICANT_RAD
 
     found = getattr(res, "extrinsic_rotation_found", None)
-    left = getattr(res, "extrinsic_rotation", None)
-    unsettled = getattr(res, "extrinsic_rotation_unsettled", None)
     text = ""
     if found is not None:
         text = (f"sensor.T_imu_lidar turned by {found.angle_deg:.2f} deg, found over the first "
                 f"{found.n_scans} scans in {len(found.passes)} passes (the first run saw "
                 f"{np.degrees(np.linalg.norm(found.detected_rad)):.2f} deg), the run restarted "
                 "with it; ")
-    if unsettled is not None:
-        est = unsettled.estimate
-        value = "" if est is None else (f"{np.degrees(est.angle_rad):.2f} deg (+-"
-                                        f"{np.degrees(est.sigma_rad):.2f})")
-        text += _unsettled_text(
-            unsettled, value, f"+-{np.degrees(SIGMA_DONE_RAD):g} deg, or on a significant "
-            f"rotation at +-{np.degrees(SIGMA_SIGNIFICANT_RAD):g} deg", "the rig turned about one "
-            "axis only, or too few scan pairs, to tell the gyro's axes from the LiDAR's",
-            "the corrected rotation" if found is not None else "sensor.T_imu_lidar's rotation")
-    elif left is not None:
-        text += (f"{np.degrees(left.angle_rad):.2f} deg (+-{np.degrees(left.sigma_rad):.2f}) "
-                 f"left against the LiDAR-registered rotation over {left.span_s:.0f} s"
-                 + (" (see the warning)" if left.significant else ""))
-    return text
+    return text + _check_tail(
+        getattr(res, "extrinsic_rotation_unsettled", None),
+        getattr(res, "extrinsic_rotation", None),
+        lambda e: f"{np.degrees(e.angle_rad):.2f} deg (+-{np.degrees(e.sigma_rad):.2f})",
+        f"+-{np.degrees(SIGMA_DONE_RAD):g} deg, or on a significant rotation at "
+        f"+-{np.degrees(SIGMA_SIGNIFICANT_RAD):g} deg", "the rig turned about one axis only, or "
+        "too few scan pairs, to tell the gyro's axes from the LiDAR's",
+        "the corrected rotation" if found is not None else "sensor.T_imu_lidar's rotation")
 
 
 def _summary(con: Console, res: Any, profile: bool) -> None:

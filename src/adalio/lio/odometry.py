@@ -1171,12 +1171,12 @@ class Odometry:
         if self._offset_open:
             est = None if data is None else estimate_offset(*data, span)
             if (est is not None and est.conclusive) or span >= MAX_SPAN_S:
-                # at MAX_SPAN_S unsettled: too little rotation change to time the gyro
+                # unsettled at MAX_SPAN_S: too little change of the rotation rate, or noise
                 self._conclude_time_offset(est, span)
         if self._rotation_open:
             rot = self._rotation_from(data, span)
             if (rot is not None and rot.conclusive) or span >= MAX_SPAN_S:
-                # at MAX_SPAN_S unsettled: too little rotation about two axes
+                # unsettled at MAX_SPAN_S: too little rotation about two axes, or noise
                 self._conclude_rotation(rot, span)
         if not (self._offset_open or self._rotation_open):
             self._offset_check = None
