@@ -34,7 +34,7 @@ import typer
 from adalio.errors import AdalioError, InputError
 
 SUMMARY_COLUMNS = ("bag", "status", "poses", "scans", "degenerate_pct", "ms_per_scan", "worker",
-                   "ate_se3_m", "error", "wall_s", "bag_path")
+                   "ate_se3_m", "sensor_checks", "error", "wall_s", "bag_path")
 """Columns of ``summary.csv``; ``bag`` is the output folder name under OUT."""
 MARKER_DIR = ".adalio-batch"
 CONNECT_TIMEOUT_S = 10.0
@@ -161,6 +161,8 @@ class BagRow:
     ms_per_scan: float = math.nan
     worker: str = ""
     ate_se3_m: float = math.nan
+    sensor_checks: str = ""
+    """What the IMU time offset and LiDAR-IMU rotation checks concluded (:func:`checks_text`)."""
     error: str = ""
     wall_s: float = math.nan
     bag_path: str = ""
@@ -174,6 +176,40 @@ class BagRow:
             return str(value)
 
         return {c: fmt(getattr(self, c)) for c in SUMMARY_COLUMNS}
+
+
+def checks_text(res: Any) -> str:
+    """The sensor checks of a run in a few words: 'offset +0.2 ms; rotation 0.05 deg', a value
+    found and restarted with ('rotation 0.95 deg found'), or 'not settled 0.62+-0.16 deg' /
+    'not checked' (README, IMU time offset and LiDAR-IMU rotation); '' with both checks off."""
+    parts = []
+    for name, found, left, unsettled, show in (
+            ("offset", getattr(res, "time_offset_found", None),
+             getattr(res, "time_offset", None), getattr(res, "time_offset_unsettled", None),
+             lambda e: (f"{e.offset_s * 1e3:+.1f}", f"{e.sigma_s * 1e3:.1f}", "ms")),
+            ("rotation", getattr(res, "extrinsic_rotation_found", None),
+             getattr(res, "extrinsic_rotation", None),
+             getattr(res, "extrinsic_rotation_unsettled", None),
+             lambda e: (f"{math.degrees(e.angle_rad):.2f}", f"{math.degrees(e.sigma_rad):.2f}",
+                        "deg"))):
+        text = ""
+        if found is not None:
+            value = (f"{found.offset_s * 1e3:+.1f} ms" if name == "offset" else
+                     f"{found.angle_deg:.2f} deg")
+            text = f"{name} {value} found"
+        if unsettled is not None:
+            est = unsettled.estimate
+            if est is None:
+                text += f"{'; ' if text else name + ' '}not checked"
+            else:
+                v, s, unit = show(est)
+                text += f"{', then ' if text else name + ' '}not settled {v}+-{s} {unit}"
+        elif left is not None and not text:
+            v, _, unit = show(left)
+            text = f"{name} {v} {unit}"
+        if text:
+            parts.append(text)
+    return "; ".join(parts)
 
 
 def one_line(exc: BaseException) -> str:
@@ -215,6 +251,7 @@ def process_bag(job: BagJob) -> BagRow:
         row.poses, row.scans = res.n_scans, res.n_scans_in
         row.degenerate_pct = 100.0 * res.n_degenerate / res.n_scans if res.n_scans else math.nan
         row.ms_per_scan = res.ms_per_scan_median
+        row.sensor_checks = checks_text(res)
         if res.interrupted:
             raise AdalioError("interrupted")
         if job.gt_path is not None:
