@@ -37,7 +37,11 @@ run late (or early) against the LiDAR's, which the runs' configs do not say: the
 gives the offset ``run_bag`` found and restarted with, and what the final run's check left.
 With ``--extrinsic-errors-deg`` the runs' configs give the extrinsic's rotation turned by that
 angle about an axis drawn from the seed: the column after gives the rotation ``run_bag`` found
-(passes), what the final run's check left, and the final extrinsic's error.
+(passes), what the final run's check left, and the final extrinsic's error. With
+``--extrinsic-translation-errors-cm`` the configs' lever arm is that far off, along a direction
+drawn from the seed: the last column gives what the translation check concluded (``found``:
+significant, warned) and how far the configured lever arm plus its correction is from the
+simulated one (the injected error where it did not conclude).
 
     python benchmarks/bench_sensors.py                      # hall + corridor, 2 seeds, full routes
     python benchmarks/bench_sensors.py --scenes hall --seeds 1 --lidars xt32-512
@@ -47,6 +51,7 @@ angle about an axis drawn from the seed: the column after gives the rotation ``r
     python benchmarks/bench_sensors.py --scenes corridor --starts still --motion-from none
     python benchmarks/bench_sensors.py --starts still --imu-time-offsets-ms 0 20 -20 50
     python benchmarks/bench_sensors.py --starts still --extrinsic-errors-deg 0 1
+    python benchmarks/bench_sensors.py --starts still --extrinsic-translation-errors-cm 0 3
 """
 
 from __future__ import annotations
@@ -137,6 +142,8 @@ class Cell:
     extrinsic_error_deg: float = 0.0
     """The run's config gives the extrinsic's rotation this many degrees off the simulated one
     (about an axis drawn from the seed, :func:`turned_extrinsic`)."""
+    extrinsic_translation_error_cm: float = 0.0
+    """... and its lever arm this many centimetres off (:func:`shifted_extrinsic`)."""
     scans: int = 0
     poses: int = 0
     init: str = ""
@@ -181,6 +188,13 @@ class Cell:
     rotation_unsettled_deg: float = float("nan")
     """... and its last estimate's angle and standard deviation (NaN: no estimate)."""
     rotation_unsettled_sigma_deg: float = float("nan")
+    translation_text: str = "–"
+    """What the translation check concluded ('found (+1.4, -2.1, +0.7) cm (+-0.3)', 'settled
+    ...', 'unsettled 60 s ...', '–' off)."""
+    translation_found: bool = False
+    translation_left_cm: float = float("nan")
+    """How far the configured lever arm, plus the correction where the check concluded, is from
+    the simulated one."""
     """Which IMU white-noise densities the filter used (``InitReport.noise_used``)."""
 
     @property
@@ -209,6 +223,10 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     if cell.extrinsic_error_deg:
         cfg.sensor.T_imu_lidar = turned_extrinsic(T_true, cell.extrinsic_error_deg,
                                                   cell.seed).tolist()
+    if cell.extrinsic_translation_error_cm:
+        cfg.sensor.T_imu_lidar = shifted_extrinsic(cfg.T_imu_lidar(),
+                                                   cell.extrinsic_translation_error_cm,
+                                                   cell.seed).tolist()
     start_s = cell.cut_s
     cell.scans = int(meta["n_scans"] - round(start_s * meta["lidar_rate_hz"]))
     cut = f"{cell.cut_s:g}" if cell.start == "moving" else ""
@@ -218,6 +236,8 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     other += "" if cell.motion_from is None else f"_hand-{Path(cell.motion_from).stem}"
     other += "" if not cell.imu_time_offset_ms else f"_imu{cell.imu_time_offset_ms:+g}ms"
     other += "" if not cell.extrinsic_error_deg else f"_rot{cell.extrinsic_error_deg:g}deg"
+    other += "" if not cell.extrinsic_translation_error_cm else \
+        f"_lever{cell.extrinsic_translation_error_cm:g}cm"
     out = out_root / (f"{cell.scene}_s{cell.seed}_imu{cell.imu_noise:g}_{cell.lidar}_"
                       f"{cell.start}{cut}{other}")
     try:
@@ -251,6 +271,17 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
         if est is not None:
             cell.rotation_unsettled_deg = float(np.degrees(est.angle_rad))
             cell.rotation_unsettled_sigma_deg = float(np.degrees(est.sigma_rad))
+    t_cfg = np.asarray(cfg.sensor.T_imu_lidar)[:3, 3]
+    tr = res.extrinsic_translation
+    if tr is not None:
+        cell.translation_found = bool(tr.significant)
+        cell.translation_text = f"{'found' if tr.significant else 'settled'} {tr.text()}"
+        t_cfg = t_cfg + tr.delta_m
+    elif res.extrinsic_translation_unsettled is not None:
+        est = res.extrinsic_translation_unsettled.estimate
+        cell.translation_text = (f"unsettled {res.extrinsic_translation_unsettled.span_s:.0f} s"
+                                 + ("" if est is None else f" {est.text()}"))
+    cell.translation_left_cm = float(100 * np.linalg.norm(t_cfg - T_true[:3, 3]))
     R_used = np.asarray(load_config(config_file=res.config_path).sensor.T_imu_lidar)[:3, :3]
     cell.rotation_error_deg = float(np.degrees(
         Rotation.from_matrix(R_used @ T_true[:3, :3].T).magnitude()))
@@ -292,7 +323,24 @@ def _lidar_label(c: Cell) -> str:
     other += [] if c.lidar_rate_hz == LIDAR_RATE_HZ else [f"{c.lidar_rate_hz:g} Hz"]
     other += [] if not c.imu_time_offset_ms else [f"IMU {c.imu_time_offset_ms:+g} ms"]
     other += [] if not c.extrinsic_error_deg else [f"rotation {c.extrinsic_error_deg:g}° off"]
+    other += [] if not c.extrinsic_translation_error_cm else [
+        f"lever arm {c.extrinsic_translation_error_cm:g} cm off"]
     return f"{c.lidar} ({', '.join(other)})" if other else c.lidar
+
+
+def shifted_extrinsic(T: np.ndarray, cm: float, seed: int) -> np.ndarray:
+    """``T`` with its translation moved by ``cm`` centimetres along a unit direction drawn from
+    ``seed`` (the same for every scene and IMU of that seed)."""
+    direction = np.random.default_rng(2000 + seed).normal(size=3)
+    out = np.array(T, dtype=np.float64)
+    out[:3, 3] += 1e-2 * cm * direction / np.linalg.norm(direction)
+    return out
+
+
+def _translation_cell(c: Cell) -> str:
+    """'found (+1.4, -2.1, +0.7) cm (+-0.3), 1.2 cm': what the translation check concluded, and
+    how far the lever arm (corrected where it concluded) is from the simulated one."""
+    return f"{c.translation_text}, {c.translation_left_cm:.1f} cm"
 
 
 MAX_EXTRINSIC_ERROR_DEG = 30.0
@@ -340,14 +388,16 @@ def summary_table(cells: list[Cell]) -> str:
               "within 3σ x / y / z |"),
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     keys = sorted({(c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz, c.lidar_rate_hz,
-                    c.imu_time_offset_ms, c.extrinsic_error_deg) for c in cells},
+                    c.imu_time_offset_ms, c.extrinsic_error_deg, c.extrinsic_translation_error_cm)
+                   for c in cells},
                   key=lambda k: (k[0], k[1] != "still", k[2], k[3] != "hilti", k[3], -k[4],
-                                 k[5], k[6], k[7]))
+                                 k[5], k[6], k[7], k[8]))
     for key in keys:
         scene, start, noise = key[:3]
         cs = [c for c in cells
               if (c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz,
-                  c.lidar_rate_hz, c.imu_time_offset_ms, c.extrinsic_error_deg) == key]
+                  c.lidar_rate_hz, c.imu_time_offset_ms, c.extrinsic_error_deg,
+                  c.extrinsic_translation_error_cm) == key]
         ates = np.array([c.ate_m for c in cs])
         on_track = ates[ates <= MAX_ATE_M]  # mean and worst of these
         inits = sorted({c.init or "error" for c in cs})
@@ -385,6 +435,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--extrinsic-errors-deg", nargs="+", type=float, default=[0.0],
                     help="the runs' configs give the extrinsic's rotation this many degrees off "
                     "the simulated one, about an axis drawn from the seed (default 0)")
+    ap.add_argument("--extrinsic-translation-errors-cm", nargs="+", type=float, default=[0.0],
+                    help="the runs' configs give the lever arm this many cm off the simulated "
+                    "one, along a direction drawn from the seed (default 0)")
     ap.add_argument("--starts", nargs="+", default=["still", "moving"],
                     choices=["still", "moving"])
     ap.add_argument("--duration", type=float, default=0.0,
@@ -422,21 +475,22 @@ def main(argv: list[str] | None = None) -> int:
     print("| scene | seed | IMU noise | LiDAR | start | poses/scans | init | ATE SE(3) | "
           "ms/scan | within 3σ x / y / z | median abs(error) / σ | backfilled, worst error | "
           "IMU time offset found (passes), left | LiDAR-IMU rotation found (passes), left, "
-          "final error | error |\n"
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+          "final error | LiDAR-IMU translation, lever arm's error | error |\n"
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
           flush=True)
     starts = [("still", 0.0)] if "still" in args.starts else []
     starts += [("moving", c) for c in args.cut_s] if "moving" in args.starts else []
     for scene in args.scenes:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for noise in args.imu_noise:
-                for lidar, mounting, rate, lidar_rate, offset, turn in itertools.product(
+                for lidar, mounting, rate, lidar_rate, offset, turn, lever in itertools.product(
                         args.lidars, args.mountings, args.imu_rates, args.lidar_rates,
-                        args.imu_time_offsets_ms, args.extrinsic_errors_deg):
+                        args.imu_time_offsets_ms, args.extrinsic_errors_deg,
+                        args.extrinsic_translation_errors_cm):
                     for start, cut_s in starts:
                         c = run_cell(Cell(scene, seed, noise, lidar, start, cut_s, mounting,
-                                          rate, lidar_rate, args.motion_from, offset, turn),
-                                     duration, args.out, overrides)
+                                          rate, lidar_rate, args.motion_from, offset, turn,
+                                          lever), duration, args.out, overrides)
                         cells.append(c)
                         label = f"moving {cut_s:g} s" if start == "moving" else start
                         print(f"| {scene} | {seed} | x{noise:g} | {_lidar_label(c)} | {label} | "
@@ -446,7 +500,8 @@ def main(argv: list[str] | None = None) -> int:
                               f"{sigma_cells(np.array([c.within_3sigma]))} | "
                               f"{' / '.join(f'{v:.2f}' for v in c.median_abs_z)} | "
                               f"{c.backfilled} ({cm(c.backfill_err_m)}) | "
-                              f"{_offset_cell(c)} | {_rotation_cell(c)} | {c.error} |",
+                              f"{_offset_cell(c)} | {_rotation_cell(c)} | "
+                              f"{_translation_cell(c)} | {c.error} |",
                               flush=True)
     print()
     print(summary_table(cells))

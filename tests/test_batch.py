@@ -98,7 +98,9 @@ def test_summary_says_what_the_sensor_checks_concluded(local_batch) -> None:
             "measured"]
         assert measured["imu_time_offset_unsettled_after_s"] < 5.0
         assert measured["extrinsic_rotation_unsettled_after_s"] < 5.0
-        assert rows[scene]["sensor_checks"] == "offset not checked; rotation not checked"
+        assert measured["extrinsic_translation_unsettled_after_s"] < 5.0
+        assert rows[scene]["sensor_checks"] == ("offset not checked; rotation not checked; "
+                                                "translation not checked")
 
 
 def test_trajectory_is_bit_identical_to_a_direct_run(local_batch, direct: Path) -> None:

@@ -179,9 +179,10 @@ class BagRow:
 
 
 def checks_text(res: Any) -> str:
-    """The sensor checks of a run in a few words: 'offset +0.2 ms; rotation 0.05 deg', a value
-    found and restarted with ('rotation 0.95 deg found'), or 'not settled 0.62+-0.16 deg' /
-    'not checked' (README, IMU time offset and LiDAR-IMU rotation); '' with both checks off."""
+    """The sensor checks of a run in a few words: 'offset +0.2 ms; rotation 0.05 deg;
+    translation (+0.3, -0.2, +0.4) cm', a value found and restarted with ('rotation 0.95 deg
+    found'), or 'not settled 0.62+-0.16 deg' / 'not checked' (README, IMU time offset and
+    LiDAR-IMU rotation); '' with the checks off."""
     parts = []
     for name, found, left, unsettled, show in (
             ("offset", getattr(res, "time_offset_found", None),
@@ -191,7 +192,11 @@ def checks_text(res: Any) -> str:
              getattr(res, "extrinsic_rotation", None),
              getattr(res, "extrinsic_rotation_unsettled", None),
              lambda e: (f"{math.degrees(e.angle_rad):.2f}", f"{math.degrees(e.sigma_rad):.2f}",
-                        "deg"))):
+                        "deg")),
+            ("translation", None, getattr(res, "extrinsic_translation", None),
+             getattr(res, "extrinsic_translation_unsettled", None),
+             lambda e: ("(" + ", ".join(f"{100 * v:+.1f}" for v in e.delta_m) + ")",
+                        f"{100 * e.sigma_m:.1f}", "cm"))):
         text = ""
         if found is not None:
             value = (f"{found.offset_s * 1e3:+.1f} ms" if name == "offset" else

@@ -79,6 +79,11 @@ class SensorConfig:
     the gyro turns about against those the LiDAR alone registers (:mod:`adalio.lio.
     extrinsic_check`); ``adalio run`` then finds the rotation left and restarts with the
     corrected extrinsic when it matters."""
+    extrinsic_translation_check: bool = True
+    """Check the translation of ``T_imu_lidar`` (the lever arm) against the data over the same
+    updates: the accelerometer against the motion the LiDAR alone registers through it
+    (:mod:`adalio.lio.lever_arm`); a significant disagreement is a warning and a summary line
+    with the correction (no restart)."""
 
 
 @dataclass

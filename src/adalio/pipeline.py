@@ -148,6 +148,11 @@ class RunResult:
     concluded, or is off)."""
     extrinsic_rotation_unsettled: Any = None
     """The same for the LiDAR-IMU rotation check (``sensor.T_imu_lidar``'s rotation)."""
+    extrinsic_translation: Any = None
+    """:class:`adalio.lio.lever_arm.TranslationEstimate` the LiDAR-IMU translation check
+    concluded on (the correction ``sensor.T_imu_lidar``'s translation needs), or None."""
+    extrinsic_translation_unsettled: Any = None
+    """The same for the translation check, closed without a conclusion."""
     calibration_wall_s: float = 0.0
     """When the run restarted with a corrected time offset or rotation: the wall time before
     the restart (the first run and the passes that found the value); ``wall_s`` is the
@@ -279,15 +284,26 @@ def _config_text(cfg: Config, odom: Any) -> str:
             round(float(v), 4) for v in np.degrees(rotation.rotvec_rad)]
         measured["extrinsic_rotation_left_sigma_deg"] = round(
             float(np.degrees(rotation.sigma_rad)), 4)
+    translation = getattr(odom, "extrinsic_translation", None)
+    if translation is not None:  # the correction the translation check concluded on
+        measured["extrinsic_translation_correction_m"] = [
+            round(float(v), 4) for v in translation.delta_m]
+        measured["extrinsic_translation_correction_sigma_m"] = round(translation.sigma_m, 4)
     for key, check in (("imu_time_offset", getattr(odom, "time_offset_unsettled", None)),
                        ("extrinsic_rotation", getattr(odom, "extrinsic_rotation_unsettled",
-                                                      None))):
+                                                      None)),
+                       ("extrinsic_translation", getattr(odom, "extrinsic_translation_unsettled",
+                                                         None))):
         if check is not None:  # used as configured: the check could not settle it
             measured[f"{key}_unsettled_after_s"] = round(float(check.span_s), 1)
             est = check.estimate
             if est is not None and key == "imu_time_offset":  # where it had got to
                 measured["imu_time_offset_unsettled_s"] = round(float(est.offset_s), 6)
                 measured["imu_time_offset_unsettled_sigma_s"] = round(float(est.sigma_s), 6)
+            elif est is not None and key == "extrinsic_translation":
+                measured["extrinsic_translation_unsettled_m"] = [
+                    round(float(v), 4) for v in est.delta_m]
+                measured["extrinsic_translation_unsettled_sigma_m"] = round(est.sigma_m, 4)
             elif est is not None:
                 measured["extrinsic_rotation_unsettled_deg"] = [
                     round(float(v), 4) for v in np.degrees(est.rotvec_rad)]
@@ -367,7 +383,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
     est, rot = first.time_offset, first.extrinsic_rotation
     offset_off = est is not None and est.significant
     if first.interrupted or not (offset_off or (rot is not None and rot.significant)):
-        return first
+        return _warned_translation(first)
     found: TimeOffsetCalibration | None = None
     found_rot: RotationCalibration | None = None
     try:
@@ -407,7 +423,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                       "with it)", stacklevel=2)
     if found is None and found_rot is None and not (first.stopped_for_time_offset
                                                     or first.stopped_for_extrinsic_rotation):
-        return first
+        return _warned_translation(first)
     t_restart = time.perf_counter()
     with _said_once(seen, again=True):
         res = _run_once(bag_path, cfg, Path(out_dir), progress=progress, max_scans=max_scans,
@@ -436,6 +452,17 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
     res.extrinsic_rotation_found = found_rot
     res.calibration_wall_s = t_restart - t_start
     res.compiled = first.compiled
+    return _warned_translation(res)
+
+
+def _warned_translation(res: RunResult) -> RunResult:
+    """``res``, after the warning for a significant LiDAR-IMU translation correction (the runs
+    of the checked path leave it to this, once, from the run whose outputs stand)."""
+    est = res.extrinsic_translation
+    if est is not None and est.significant and not res.interrupted:
+        from adalio.lio.lever_arm import translation_warning
+
+        warnings.warn(translation_warning(est), stacklevel=3)
     return res
 
 
@@ -573,7 +600,7 @@ def _calibration_pass(bag_path: str | Path, cfg: Config, n_scans: int,
             lidar_topic, imu_topic = bag.select_topics(cfg.sensor)
             odom = Odometry(cfg)
             odom.warn_time_offset = odom.conclude_time_offset = False
-            odom.warn_extrinsic_rotation = False
+            odom.warn_extrinsic_rotation = odom.warn_extrinsic_translation = False
             seq = _sequencer(bag, lidar_topic, imu_topic, cfg, start_s)
             n = 0
             for item in seq:  # the first run's scans: every pass estimates over the same span
@@ -618,6 +645,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         odom = Odometry(cfg)
         odom.warn_time_offset = warn_checks and not restart_on_offset
         odom.warn_extrinsic_rotation = warn_checks and not restart_on_offset
+        odom.warn_extrinsic_translation = warn_checks and not restart_on_offset
         seq = _sequencer(bag, lidar_topic, imu_topic, cfg, start_s)
         tum = TumWriter(paths["trajectory"])
         csvw = ScansCsvWriter(paths["scans"])
@@ -736,7 +764,9 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         extrinsic_rotation=getattr(odom, "extrinsic_rotation", None),
         stopped_for_extrinsic_rotation=restart and _significant(odom, "extrinsic_rotation"),
         time_offset_unsettled=getattr(odom, "time_offset_unsettled", None),
-        extrinsic_rotation_unsettled=getattr(odom, "extrinsic_rotation_unsettled", None))
+        extrinsic_rotation_unsettled=getattr(odom, "extrinsic_rotation_unsettled", None),
+        extrinsic_translation=getattr(odom, "extrinsic_translation", None),
+        extrinsic_translation_unsettled=getattr(odom, "extrinsic_translation_unsettled", None))
     if not est_t and not interrupted and not (restart_on_offset and _calibration_off(odom)):
         raise InputError(_no_pose_reason(odom, n_in, lidar_topic, imu_topic, out))
     return result

@@ -307,15 +307,16 @@ def _unsettled_text(check: Any, value: str, precise: str, cause: str, used: str)
 
 
 def _check_tail(unsettled: Any, left: Any, show: Callable[[Any], str], precise: str,
-                cause: str, used: str) -> str:
+                cause: str, used: str,
+                against: str = "left against the LiDAR-registered rotation") -> str:
     """What a sensor check's final run says: unsettled (:func:`_unsettled_text`), or the value
-    it concluded was left (``show`` formats an estimate with its deviation), or ''."""
+    it concluded on (``show`` formats an estimate with its deviation), or ''."""
     if unsettled is not None:
         est = unsettled.estimate
         return _unsettled_text(unsettled, "" if est is None else show(est), precise, cause, used)
     if left is None:
         return ""
-    return (f"{show(left)} left against the LiDAR-registered rotation over {left.span_s:.0f} s"
+    return (f"{show(left)} {against} over {left.span_s:.0f} s"
             + (" (see the warning)" if left.significant else ""))
 
 
@@ -359,6 +360,19 @@ def _rotation_text(res: Any) -> str:
         "the corrected rotation" if found is not None else "sensor.T_imu_lidar's rotation")
 
 
+def _translation_text(res: Any) -> str:
+    """What the LiDAR-IMU translation check concluded, or that it could not ('' if it is off)."""
+    from adalio.lio.lever_arm import SIGMA_DONE_M, SIGMA_SIGNIFICANT_M
+
+    return _check_tail(
+        getattr(res, "extrinsic_translation_unsettled", None),
+        getattr(res, "extrinsic_translation", None), lambda e: e.text(),
+        f"+-{SIGMA_DONE_M * 100:g} cm, or on a significant correction at "
+        f"+-{SIGMA_SIGNIFICANT_M * 100:g} cm", "the rig turned too little, or too few scan "
+        "triples, to tell a lever arm", "sensor.T_imu_lidar's translation",
+        against="off against the LiDAR-registered motion, in the IMU frame,")
+
+
 def _summary(con: Console, res: Any, profile: bool) -> None:
     status = "[yellow]interrupted[/]" if res.interrupted else "[green]done[/]"
     before = getattr(res, "calibration_wall_s", 0.0)
@@ -390,6 +404,9 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
     rotation = _rotation_text(res)
     if rotation:
         con.print(f"LiDAR-IMU rotation: {rotation}", highlight=False, soft_wrap=True)
+    translation = _translation_text(res)
+    if translation:
+        con.print(f"LiDAR-IMU translation: {translation}", highlight=False, soft_wrap=True)
     ranges = _ranges_text(res.degenerate_ranges_s)
     con.print(f"degenerate scans: {res.n_degenerate}/{res.n_scans}"
               + (f" at {ranges}" if ranges else ""), highlight=False, soft_wrap=True)

@@ -73,6 +73,7 @@ from adalio.lio.ieskf import (
     without_direction,
 )
 from adalio.lio.ivox import IVox, hash_key3
+from adalio.lio.lever_arm import TranslationEstimate, estimate_translation, translation_warning
 from adalio.lio.local_surface import LocalSurface, disagrees
 from adalio.lio.map_uncertainty import MapProvenance, deskew_covariance, world_covariance
 from adalio.lio.measurement import (
@@ -370,6 +371,12 @@ def restoring_ratios(assoc: _Association, x: State, dirs: np.ndarray) -> np.ndar
     return rho
 
 
+def _rotation_data(motion: tuple | None) -> tuple | None:
+    """The time offset's and the rotation's data (``TimeOffsetCheck.samples``) from the
+    translation's (``TimeOffsetCheck.motion_samples``)."""
+    return None if motion is None else (motion[0], motion[1], motion[3], motion[4])
+
+
 def _information_update(P: np.ndarray, J: np.ndarray) -> np.ndarray:
     """``P`` after information ``J`` (6x6) on its pose block: ``(P⁻¹ + EᵀJE)⁻¹`` with E the pose
     block, in the form that needs no inverse of ``P``; symmetrised."""
@@ -461,13 +468,15 @@ class Odometry:
         """After a still start: LiDAR-only registrations to compare the gyro's rotation with."""
         sensor = config.sensor
         self._offset_check: TimeOffsetCheck | None = (
-            TimeOffsetCheck() if sensor.imu_time_offset_check or sensor.extrinsic_rotation_check
-            else None)
+            TimeOffsetCheck() if (sensor.imu_time_offset_check or sensor.extrinsic_rotation_check
+                                  or sensor.extrinsic_translation_check) else None)
         """The gyro against the updates' LiDAR-only rotations, until the checks conclude
         (sensor.imu_time_offset_check, :mod:`adalio.lio.time_offset`;
-        sensor.extrinsic_rotation_check, :mod:`adalio.lio.extrinsic_check`)."""
+        sensor.extrinsic_rotation_check, :mod:`adalio.lio.extrinsic_check`;
+        sensor.extrinsic_translation_check, :mod:`adalio.lio.lever_arm`)."""
         self._offset_open = sensor.imu_time_offset_check
         self._rotation_open = sensor.extrinsic_rotation_check
+        self._translation_open = sensor.extrinsic_translation_check
         self._offset_judged_ns = 0
         self.warn_time_offset = True
         """Warn when the check concludes on a significant offset (``run_bag`` acts instead)."""
@@ -490,6 +499,13 @@ class Odometry:
         self.extrinsic_rotation_unsettled: UnsettledCheck | None = None
         """The same for the LiDAR-IMU rotation check: sensor.T_imu_lidar's rotation was used
         unchecked."""
+        self.warn_extrinsic_translation = True
+        """Warn when the translation check concludes on a significant correction."""
+        self.extrinsic_translation: TranslationEstimate | None = None
+        """The correction of sensor.T_imu_lidar's translation the check concluded on (None: not
+        concluded, or the check is off); warned about when significant."""
+        self.extrinsic_translation_unsettled: UnsettledCheck | None = None
+        """The translation check closed without a conclusion."""
         self._provenance = MapProvenance(config.filter.map_provenance_cell_m)
         self._W_map = np.zeros((6, 6))
         """World covariance the latest scan inherited from the map (filter.map_uncertainty)."""
@@ -545,7 +561,7 @@ class Odometry:
         self._last_imu_t_ns = int(t[-1])
         self._pending.append((t, gyro.copy(), acc.copy()))
         if self._offset_check is not None:
-            self._offset_check.add_imu(t, gyro)
+            self._offset_check.add_imu(t, gyro, acc)
 
     def map_points(self) -> np.ndarray:
         """All map points (M,3) float64, world frame (the backfill's included)."""
@@ -806,12 +822,15 @@ class Odometry:
         chk = self._offset_check
         if chk is not None:
             span = chk.span_s
-            data = chk.samples() if span >= END_MIN_SPAN_S else None  # gathered once
+            motion = chk.motion_samples() if span >= END_MIN_SPAN_S else None  # gathered once
+            data = _rotation_data(motion)
             if self._offset_open:
                 self._conclude_time_offset(
                     None if data is None else estimate_offset(*data, span), span)
             if self._rotation_open:
                 self._conclude_rotation(self._rotation_from(data, span), span)
+            if self._translation_open:
+                self._conclude_translation(self._translation_from(motion, span), span)
         self._offset_check = None
 
     def time_offset_estimate(self) -> TimeOffsetEstimate | None:
@@ -1160,14 +1179,16 @@ class Odometry:
         assert chk is not None
         step = result.lidar_step
         assert step is not None
-        chk.add_scan(t_e_ns, result.lidar_from.R @ so3.exp(step[3:6].copy()))
+        chk.add_scan(t_e_ns, result.lidar_from.R @ so3.exp(step[3:6].copy()),
+                     result.lidar_from.p + step[:3])
         span = chk.span_s
         if span < MIN_SPAN_S or t_e_ns - self._offset_judged_ns < TIME_OFFSET_JUDGE_NS:
             return
         if not self.conclude_time_offset:
             return
         self._offset_judged_ns = t_e_ns
-        data = chk.samples()  # both checks' data, gathered once
+        motion = chk.motion_samples()  # the checks' data, gathered once
+        data = _rotation_data(motion)
         if self._offset_open:
             est = None if data is None else estimate_offset(*data, span)
             if (est is not None and est.conclusive) or span >= MAX_SPAN_S:
@@ -1178,8 +1199,34 @@ class Odometry:
             if (rot is not None and rot.conclusive) or span >= MAX_SPAN_S:
                 # unsettled at MAX_SPAN_S: too little rotation about two axes, or noise
                 self._conclude_rotation(rot, span)
-        if not (self._offset_open or self._rotation_open):
+        if self._translation_open:
+            tr = self._translation_from(motion, span)
+            if (tr is not None and tr.conclusive) or span >= MAX_SPAN_S:
+                self._conclude_translation(tr, span)
+        if not (self._offset_open or self._rotation_open or self._translation_open):
             self._offset_check = None
+
+    def _translation_from(self, data: tuple | None,
+                          span_s: float) -> TranslationEstimate | None:
+        """The translation check's estimate from ``TimeOffsetCheck.motion_samples``, the IMU's
+        stamps corrected by the time offset concluded on, the filter's gravity."""
+        if data is None:
+            return None
+        offset_s = self.time_offset.offset_s if self.time_offset is not None else 0.0
+        return estimate_translation(*data, self._state.g, offset_s, span_s)
+
+    def _conclude_translation(self, est: TranslationEstimate | None, span_s: float) -> None:
+        """Close the translation check on ``est``: its conclusion, warned about when
+        significant, or unsettled (:attr:`extrinsic_translation_unsettled`)."""
+        self._translation_open = False
+        if est is None or not est.conclusive:
+            if self.conclude_time_offset:
+                self.extrinsic_translation_unsettled = UnsettledCheck(
+                    span_s, est, gave_up=span_s >= MAX_SPAN_S)
+            return
+        self.extrinsic_translation = est
+        if est.significant and self.warn_extrinsic_translation:
+            warnings.warn(translation_warning(est), stacklevel=3)
 
     def _conclude_rotation(self, est: RotationEstimate | None, span_s: float) -> None:
         """Close the rotation check on ``est`` (over ``span_s`` of updates): its conclusion,

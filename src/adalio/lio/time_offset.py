@@ -89,28 +89,37 @@ class TimeOffsetEstimate:
 
 
 class TimeOffsetCheck:
-    """Collects the gyro and the LiDAR-only orientations at scan ends; :meth:`estimate`."""
+    """Collects the IMU and the LiDAR-only poses at scan ends; :meth:`estimate`."""
 
     def __init__(self) -> None:
         self._imu_t: list[np.ndarray] = []
         self._imu_w: list[np.ndarray] = []
+        self._imu_a: list[np.ndarray] = []
         self._scan_t: list[int] = []
         self._scan_R: list[np.ndarray] = []
+        self._scan_p: list[np.ndarray] = []
 
-    def add_imu(self, t_ns: np.ndarray, gyro_rad_s: np.ndarray) -> None:
-        self._imu_t.append(np.asarray(t_ns, dtype=np.int64).ravel().copy())
+    def add_imu(self, t_ns: np.ndarray, gyro_rad_s: np.ndarray,
+                accel_m_s2: np.ndarray | None = None) -> None:
+        t = np.asarray(t_ns, dtype=np.int64).ravel().copy()
+        self._imu_t.append(t)
         self._imu_w.append(np.asarray(gyro_rad_s, dtype=np.float64).reshape(-1, 3).copy())
+        self._imu_a.append(np.full((t.size, 3), np.nan) if accel_m_s2 is None else
+                           np.asarray(accel_m_s2, dtype=np.float64).reshape(-1, 3).copy())
         if not self._scan_t:  # before the first update: only the latest samples can be needed
             horizon = int(self._imu_t[-1][-1]) - round(IMU_BEFORE_FIRST_SCAN_S * 1e9)
             while len(self._imu_t) > 1 and int(self._imu_t[1][0]) <= horizon:
-                del self._imu_t[0], self._imu_w[0]
+                del self._imu_t[0], self._imu_w[0], self._imu_a[0]
 
-    def add_scan(self, t_ns: int, R_world_imu: np.ndarray) -> None:
-        """The LiDAR-only orientation of the IMU at the scan end ``t_ns``."""
+    def add_scan(self, t_ns: int, R_world_imu: np.ndarray,
+                 p_world_imu: np.ndarray | None = None) -> None:
+        """The LiDAR-only orientation (and position) of the IMU at the scan end ``t_ns``."""
         if self._scan_t and t_ns <= self._scan_t[-1]:
             return
         self._scan_t.append(int(t_ns))
         self._scan_R.append(np.asarray(R_world_imu, dtype=np.float64).copy())
+        self._scan_p.append(np.full(3, np.nan) if p_world_imu is None else
+                            np.asarray(p_world_imu, dtype=np.float64).copy())
 
     @property
     def span_s(self) -> float:
@@ -125,17 +134,27 @@ class TimeOffsetCheck:
         """(scan ends s, orientations, IMU stamps s, gyro), times from the first scan end;
         None with fewer than 10 scans or no IMU sample (also the LiDAR-IMU rotation check's
         data, :func:`adalio.lio.extrinsic_check.estimate_rotation`)."""
+        data = self.motion_samples()
+        return None if data is None else (data[0], data[1], data[3], data[4])
+
+    def motion_samples(self) -> tuple[np.ndarray, ...] | None:
+        """(scan ends s, orientations, positions, IMU stamps s, gyro, accelerometer), as
+        :meth:`samples` with the LiDAR-only positions and the accelerometer (NaN where they were
+        not given; the LiDAR-IMU translation check's data,
+        :func:`adalio.lio.lever_arm.estimate_translation`)."""
         if len(self._scan_t) < 10 or not self._imu_t:
             return None
         t_ref = self._scan_t[0]
         t_scan = (np.asarray(self._scan_t, dtype=np.int64) - t_ref) * 1e-9
         R = np.stack(self._scan_R)
+        p = np.stack(self._scan_p)
         t_imu = np.concatenate(self._imu_t)
         w_imu = np.concatenate(self._imu_w)
+        a_imu = np.concatenate(self._imu_a)
         order = np.argsort(t_imu, kind="stable")
-        t_imu, w_imu = t_imu[order], w_imu[order]
+        t_imu, w_imu, a_imu = t_imu[order], w_imu[order], a_imu[order]
         keep = np.r_[True, np.diff(t_imu) > 0]
-        return t_scan, R, (t_imu[keep] - t_ref) * 1e-9, w_imu[keep]
+        return t_scan, R, p, (t_imu[keep] - t_ref) * 1e-9, w_imu[keep], a_imu[keep]
 
 
 def estimate_offset(t_scan_s: np.ndarray, R_scan: np.ndarray, t_imu_s: np.ndarray,

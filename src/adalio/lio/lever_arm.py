@@ -1,0 +1,216 @@
+"""The LiDAR-IMU translation in the config against the data: does the accelerometer feel the
+motion the LiDAR registers, through the configured lever arm?
+
+A rig's lever arm (``sensor.T_imu_lidar``'s translation) taken from a drawing can be off by
+centimetres. The LiDAR registers its own origin; the filter reports the IMU through the
+configured lever arm, so a translation error ``δ`` puts every reported IMU position off by
+``R(t) δ``, which turns with the rig: measured on the simulated hall (XT-32 at 512 columns,
+HILTI IMU noise), 3 cm off costs the IMU's trajectory 0.26 -> 1.31 cm and the LiDAR's (the
+map's) 0.26 -> 0.48 cm (README, "LiDAR-IMU rotation", *Limits*).
+
+What measures it: the updates' LiDAR-only poses (the IMU time offset check's data,
+:class:`adalio.lio.time_offset.TimeOffsetCheck`), the IMU's position the LiDAR alone registers
+through the configured extrinsic, ``p̂(t) = p(t) + R(t) δ``, against the accelerometer. Over
+three scans ``a < b < c`` (``STRIDE_S`` apart) the velocity at ``a`` drops out of
+
+    (p̂_c - p̂_a - D_ac)/(t_c - t_a) - (p̂_b - p̂_a - D_ab)/(t_b - t_a)
+        = [(R_c - R_a)/(t_c - t_a) - (R_b - R_a)/(t_b - t_a)] δ + (bias, gravity terms),
+
+``D`` the accelerometer integrated twice from rest at ``a`` (in the world, through the
+LiDAR-only orientation at ``a`` and the gyro after it), with ``½ g t²``. Least squares with
+Huber weights for ``δ``, a constant accelerometer bias and a gravity correction; the covariance
+is the sandwich form with Newey-West over the overlapping triples. A translation error is seen
+only when the rig turns: along the axis it turns about (the vertical, for a walk) hardly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from adalio.lio.time_offset import MAX_PAIR_S, MIN_PAIR_S, long_run_covariance
+
+STRIDE_S = 0.3
+"""Time between the three scans of a triple: the accelerometer's noise, integrated twice, grows
+with it and the registration's noise falls (measured on the hall's whole walk: deviations 0.7,
+0.2, 0.15, 0.15 cm at 0.1, 0.2, 0.3, 0.5 s; beyond, the vertical drifts by centimetres)."""
+MIN_TRANSLATION_M = 0.02
+"""Smaller estimates are not acted on: with the right extrinsic the estimate keeps 0.3-0.6 cm
+(the registration's own, shared by its overlapping triples)."""
+SIGNIFICANCE = 4.0
+"""... nor are estimates within this many standard deviations (along their direction) of zero."""
+SIGMA_DONE_M = 0.005
+"""The check concludes once the estimate's largest standard deviation is at most this."""
+SIGMA_SIGNIFICANT_M = 0.01
+"""... or once its estimate is significant with a standard deviation of at most this."""
+HUBER_K = 2.5
+NEWEY_WEST_LAGS = 10
+MIN_TRIPLES = 50
+"""Fewer triples: no estimate."""
+
+
+@dataclass
+class TranslationEstimate:
+    """The residual LiDAR-IMU translation over the scans checked."""
+
+    delta_m: np.ndarray
+    """(3,) ``δ`` in the IMU frame: the correction the configured ``T_imu_lidar`` translation
+    needs added (``t ← t + δ``)."""
+    cov_m2: np.ndarray
+    """(3,3) its covariance."""
+    span_s: float
+    n_triples: int
+
+    @property
+    def length_m(self) -> float:
+        return float(np.linalg.norm(self.delta_m))
+
+    @property
+    def sigma_m(self) -> float:
+        """The standard deviation along the estimate's direction (the largest one at zero)."""
+        n = self.length_m
+        if n == 0.0:
+            return float(np.sqrt(max(np.linalg.eigvalsh(self.cov_m2)[-1], 0.0)))
+        u = self.delta_m / n
+        return float(np.sqrt(max(u @ self.cov_m2 @ u, 0.0)))
+
+    @property
+    def significant(self) -> bool:
+        return self.length_m >= max(MIN_TRANSLATION_M, SIGNIFICANCE * self.sigma_m)
+
+    @property
+    def conclusive(self) -> bool:
+        """Precise enough to call the translation right, or significant at a usable precision."""
+        worst = float(np.sqrt(max(np.linalg.eigvalsh(self.cov_m2)[-1], 0.0)))
+        return worst <= SIGMA_DONE_M or (self.significant and self.sigma_m <= SIGMA_SIGNIFICANT_M)
+
+    def text(self) -> str:
+        """'(+1.4, -2.1, +0.7) cm (+-0.3)' in the IMU frame."""
+        d = 100.0 * self.delta_m
+        return f"({d[0]:+.1f}, {d[1]:+.1f}, {d[2]:+.1f}) cm (+-{100.0 * self.sigma_m:.1f})"
+
+
+def _prefix_rotations(steps: Rotation) -> Rotation:
+    """Inclusive prefix products ``s_0 s_1 ... s_k`` (Hillis-Steele, log2(n) batched steps)."""
+    q = steps
+    shift = 1
+    n = len(q)
+    while shift < n:
+        q = Rotation.concatenate([q[:shift], q[:-shift] * q[shift:]])
+        shift *= 2
+    return q
+
+
+def _cumulative(t: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Trapezoid cumulative integral of samples ``f`` (n, ...) at ``t`` (n,), 0 at ``t[0]``."""
+    h = np.diff(t).reshape((-1,) + (1,) * (f.ndim - 1))
+    return np.concatenate([np.zeros((1,) + f.shape[1:]),
+                           np.cumsum(0.5 * (f[1:] + f[:-1]) * h, axis=0)])
+
+
+def _interp(t_query: np.ndarray, t: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Linear interpolation of (n, ...) samples along the first axis."""
+    flat = f.reshape(len(t), -1)
+    out = np.stack([np.interp(t_query, t, flat[:, i]) for i in range(flat.shape[1])], axis=1)
+    return out.reshape((len(t_query),) + f.shape[1:])
+
+
+def estimate_translation(t_scan_s: np.ndarray, R_scan: np.ndarray, p_scan: np.ndarray,
+                         t_imu_s: np.ndarray, gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray,
+                         gravity_world_m_s2: np.ndarray, offset_s: float,
+                         span_s: float) -> TranslationEstimate | None:
+    """``δ`` from the IMU's LiDAR-only orientations ``R_scan`` (N,3,3) and positions ``p_scan``
+    (N,3) at ``t_scan_s``, the gyro and accelerometer samples (stamps running ``offset_s``
+    late) and the world's gravity vector. None: too few triples, or too little rotation to
+    tell a translation."""
+    t_imu = np.asarray(t_imu_s, dtype=np.float64) - offset_s
+    if t_imu.size < 4 or len(t_scan_s) < 3:
+        return None
+    dt = np.diff(t_scan_s)
+    good = (dt > MIN_PAIR_S) & (dt < MAX_PAIR_S)
+    if not np.any(good):
+        return None
+    m = max(1, round(STRIDE_S / float(np.median(dt[good]))))
+    bad_before = np.concatenate([[0], np.cumsum(~good)])
+    a = np.arange(len(t_scan_s) - 2 * m)
+    c = a + 2 * m
+    ok = (bad_before[c] == bad_before[a]) & (t_scan_s[a] >= t_imu[0]) & (t_scan_s[c] <= t_imu[-1])
+    a = a[ok]
+    if a.size < MIN_TRIPLES:
+        return None
+    b, c = a + m, a + 2 * m
+    # the gyro's bias: the median difference to the LiDAR-only rate between consecutive scans
+    k = np.flatnonzero(good & (t_scan_s[:-1] >= t_imu[0]) & (t_scan_s[1:] <= t_imu[-1]))
+    C_w = _cumulative(t_imu, gyro_rad_s)
+    w_gyro = (_interp(t_scan_s[k + 1], t_imu, C_w) - _interp(t_scan_s[k], t_imu, C_w)) / dt[k, None]
+    rel = np.einsum("nji,njk->nik", R_scan[k], R_scan[k + 1])
+    w_lidar = Rotation.from_matrix(rel).as_rotvec() / dt[k, None]
+    b_g = np.median(w_gyro - w_lidar, axis=0)
+    # the gyro's orientation track Q (from the first sample) and the accelerometer through it
+    w_mid = 0.5 * (gyro_rad_s[1:] + gyro_rad_s[:-1]) - b_g
+    Q = Rotation.concatenate([Rotation.identity(),
+                              _prefix_rotations(Rotation.from_rotvec(
+                                  w_mid * np.diff(t_imu)[:, None]))])
+    Qm = Q.as_matrix()
+    F = np.einsum("nij,nj->ni", Qm, accel_m_s2)
+    F1, K1 = _cumulative(t_imu, F), _cumulative(t_imu, Qm)
+    F2, K2 = _cumulative(t_imu, F1), _cumulative(t_imu, K1)
+    Q_at = Slerp(t_imu, Q)
+
+    def double_integral(i: np.ndarray, j: np.ndarray):
+        """World-frame accelerometer integrated twice from rest at scans i to scans j, and its
+        derivative against the accelerometer's bias (negated)."""
+        ti, tj = t_scan_s[i], t_scan_s[j]
+        A = np.einsum("nij,nkj->nik", R_scan[i], Q_at(ti).as_matrix())  # R_i Q(t_i)ᵀ
+        dF = _interp(tj, t_imu, F2) - _interp(ti, t_imu, F2) \
+            - _interp(ti, t_imu, F1) * (tj - ti)[:, None]
+        dK = _interp(tj, t_imu, K2) - _interp(ti, t_imu, K2) \
+            - _interp(ti, t_imu, K1) * (tj - ti)[:, None, None]
+        return np.einsum("nij,nj->ni", A, dF), np.einsum("nij,njk->nik", A, dK)
+
+    D_ab, J_ab = double_integral(a, b)
+    D_ac, J_ac = double_integral(a, c)
+    d1 = (t_scan_s[b] - t_scan_s[a])[:, None]
+    d2 = (t_scan_s[c] - t_scan_s[a])[:, None]
+    g = np.asarray(gravity_world_m_s2, dtype=np.float64)
+    r = ((p_scan[c] - p_scan[a] - D_ac - 0.5 * g * d2**2) / d2
+         - (p_scan[b] - p_scan[a] - D_ab - 0.5 * g * d1**2) / d1)
+    n = a.size
+    H = np.zeros((n, 3, 9))
+    H[:, :, :3] = (R_scan[c] - R_scan[a]) / d2[:, :, None] - (R_scan[b] - R_scan[a]) / d1[:, :, None]
+    H[:, :, 3:6] = -(J_ac / d2[:, :, None] - J_ab / d1[:, :, None])  # the bias, subtracted
+    H[:, :, 6:] = 0.5 * (d2 - d1)[:, :, None] * np.eye(3)            # a gravity correction
+    weights = np.ones(n)
+    x = np.zeros(9)
+    for _ in range(5):
+        A = np.einsum("n,nki,nkj->ij", weights, H, H)
+        lam = np.linalg.eigvalsh(A[:3, :3] - A[:3, 3:] @ np.linalg.solve(A[3:, 3:], A[3:, :3]))
+        if not lam[0] > 1e-9 * max(lam[-1], 1e-300) or not lam[-1] > 0.0:
+            return None  # the rig did not turn enough to tell a translation
+        x = np.linalg.solve(A, np.einsum("n,nki,nk->i", weights, H, r))
+        e = r - np.einsum("nki,i->nk", H, x)
+        norm = np.linalg.norm(e, axis=1)
+        scale = 1.4826 * float(np.median(norm)) / np.sqrt(3.0) + 1e-12
+        z = norm / scale
+        weights = np.where(z < HUBER_K, 1.0, HUBER_K / np.maximum(z, 1e-12))
+    A = np.einsum("n,nki,nkj->ij", weights, H, H)
+    x = np.linalg.solve(A, np.einsum("n,nki,nk->i", weights, H, r))
+    e = r - np.einsum("nki,i->nk", H, x)
+    score = weights[:, None] * np.einsum("nki,nk->ni", H, e)
+    A_inv = np.linalg.inv(A)
+    cov = A_inv @ long_run_covariance(score, NEWEY_WEST_LAGS + 2 * m) @ A_inv
+    naive = scale**2 * A_inv
+    cov_d = cov[:3, :3] if np.trace(cov[:3, :3]) >= np.trace(naive[:3, :3]) else naive[:3, :3]
+    return TranslationEstimate(delta_m=x[:3], cov_m2=0.5 * (cov_d + cov_d.T),
+                               span_s=float(span_s), n_triples=int(n))
+
+
+def translation_warning(est: TranslationEstimate) -> str:
+    """The warning for a significant correction (the odometry's and ``run_bag``'s)."""
+    return (f"the LiDAR-IMU translation in sensor.T_imu_lidar disagrees with the data: over "
+            f"{est.span_s:.0f} s the accelerometer feels the motion the LiDAR registers through a "
+            f"lever arm {est.text()} off, in the IMU frame: add that to sensor.T_imu_lidar's "
+            "translation (the IMU's reported positions are off by up to its length as the rig "
+            "turns; the map, from the LiDAR's poses, much less)")
