@@ -40,8 +40,9 @@ angle about an axis drawn from the seed: the column after gives the rotation ``r
 (passes), what the final run's check left, and the final extrinsic's error. With
 ``--extrinsic-translation-errors-cm`` the configs' lever arm is that far off, along a direction
 drawn from the seed: the last column gives what the translation check concluded (``found``:
-significant, warned) and how far the configured lever arm plus its correction is from the
-simulated one (the injected error where it did not conclude).
+significant, warned; ``settled``: precise and not significant) and how far the configured lever
+arm plus the correction it found is from the simulated one (the injected error where it found
+none).
 
     python benchmarks/bench_sensors.py                      # hall + corridor, 2 seeds, full routes
     python benchmarks/bench_sensors.py --scenes hall --seeds 1 --lidars xt32-512
@@ -193,8 +194,8 @@ class Cell:
     ...', 'unsettled 60 s ...', '–' off)."""
     translation_found: bool = False
     translation_left_cm: float = float("nan")
-    """How far the configured lever arm, plus the correction where the check concluded, is from
-    the simulated one."""
+    """How far the configured lever arm, plus the correction where the check found one (and
+    warned), is from the simulated one."""
     """Which IMU white-noise densities the filter used (``InitReport.noise_used``)."""
 
     @property
@@ -276,7 +277,8 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     if tr is not None:
         cell.translation_found = bool(tr.significant)
         cell.translation_text = f"{'found' if tr.significant else 'settled'} {tr.text()}"
-        t_cfg = t_cfg + tr.delta_m
+        if tr.significant:  # the correction the warning gives
+            t_cfg = t_cfg + tr.delta_m
     elif res.extrinsic_translation_unsettled is not None:
         est = res.extrinsic_translation_unsettled.estimate
         cell.translation_text = (f"unsettled {res.extrinsic_translation_unsettled.span_s:.0f} s"
