@@ -28,7 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
 from adalio.lio.time_offset import MAX_PAIR_S, MIN_PAIR_S, long_run_covariance
 
@@ -92,15 +92,25 @@ class TranslationEstimate:
         return f"({d[0]:+.1f}, {d[1]:+.1f}, {d[2]:+.1f}) cm (+-{100.0 * self.sigma_m:.1f})"
 
 
-def _prefix_rotations(steps: Rotation) -> Rotation:
-    """Inclusive prefix products ``s_0 s_1 ... s_k`` (Hillis-Steele, log2(n) batched steps)."""
-    q = steps
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton products of (n,4) scalar-last quaternions."""
+    ax, ay, az, aw = a.T
+    bx, by, bz, bw = b.T
+    return np.stack([aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw,
+                     aw * bw - ax * bx - ay * by - az * bz], axis=1)
+
+
+def _prefix_rotations(steps: np.ndarray) -> np.ndarray:
+    """Inclusive prefix products ``s_0 s_1 ... s_k`` of (n,4) quaternions (Hillis-Steele:
+    log2(n) batched steps instead of n sequential ones)."""
+    q = steps.copy()
     shift = 1
-    n = len(q)
-    while shift < n:
-        q = Rotation.concatenate([q[:shift], q[:-shift] * q[shift:]])
+    while shift < len(q):
+        q[shift:] = _quat_mul(q[:-shift], q[shift:])
         shift *= 2
-    return q
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def _cumulative(t: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -150,20 +160,24 @@ def estimate_translation(t_scan_s: np.ndarray, R_scan: np.ndarray, p_scan: np.nd
     b_g = np.median(w_gyro - w_lidar, axis=0)
     # the gyro's orientation track Q (from the first sample) and the accelerometer through it
     w_mid = 0.5 * (gyro_rad_s[1:] + gyro_rad_s[:-1]) - b_g
-    Q = Rotation.concatenate([Rotation.identity(),
-                              _prefix_rotations(Rotation.from_rotvec(
-                                  w_mid * np.diff(t_imu)[:, None]))])
-    Qm = Q.as_matrix()
+    steps = Rotation.from_rotvec(w_mid * np.diff(t_imu)[:, None]).as_quat()
+    Q = np.concatenate([[[0.0, 0.0, 0.0, 1.0]], _prefix_rotations(steps)])
+    Qm = Rotation.from_quat(Q).as_matrix()
     F = np.einsum("nij,nj->ni", Qm, accel_m_s2)
     F1, K1 = _cumulative(t_imu, F), _cumulative(t_imu, Qm)
     F2, K2 = _cumulative(t_imu, F1), _cumulative(t_imu, K1)
-    Q_at = Slerp(t_imu, Q)
+
+    def Q_at(t: np.ndarray) -> np.ndarray:
+        """The track at scan times: its sample before, turned on at that interval's rate."""
+        j = np.clip(np.searchsorted(t_imu, t, side="right") - 1, 0, len(w_mid) - 1)
+        turn = Rotation.from_rotvec(w_mid[j] * (t - t_imu[j])[:, None])
+        return (Rotation.from_quat(Q[j]) * turn).as_matrix()
 
     def double_integral(i: np.ndarray, j: np.ndarray):
         """World-frame accelerometer integrated twice from rest at scans i to scans j, and its
         derivative against the accelerometer's bias (negated)."""
         ti, tj = t_scan_s[i], t_scan_s[j]
-        A = np.einsum("nij,nkj->nik", R_scan[i], Q_at(ti).as_matrix())  # R_i Q(t_i)ᵀ
+        A = np.einsum("nij,nkj->nik", R_scan[i], Q_at(ti))  # R_i Q(t_i)ᵀ
         dF = _interp(tj, t_imu, F2) - _interp(ti, t_imu, F2) \
             - _interp(ti, t_imu, F1) * (tj - ti)[:, None]
         dK = _interp(tj, t_imu, K2) - _interp(ti, t_imu, K2) \
