@@ -278,7 +278,7 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
         cell.translation_found = bool(tr.significant)
         cell.translation_text = f"{'found' if tr.significant else 'settled'} {tr.text()}"
         if tr.significant:  # the correction the warning gives
-            t_cfg = t_cfg + tr.delta_m
+            t_cfg = t_cfg + tr.horizontal_m
     elif res.extrinsic_translation_unsettled is not None:
         est = res.extrinsic_translation_unsettled.estimate
         cell.translation_text = (f"unsettled {res.extrinsic_translation_unsettled.span_s:.0f} s"

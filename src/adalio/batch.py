@@ -195,7 +195,7 @@ def checks_text(res: Any) -> str:
                         "deg")),
             ("translation", None, getattr(res, "extrinsic_translation", None),
              getattr(res, "extrinsic_translation_unsettled", None),
-             lambda e: ("(" + ", ".join(f"{100 * v:+.1f}" for v in e.delta_m) + ")",
+             lambda e: ("(" + ", ".join(f"{100 * v:+.1f}" for v in e.horizontal_m) + ")",
                         f"{100 * e.sigma_m:.1f}", "cm"))):
         text = ""
         if found is not None:

@@ -287,7 +287,7 @@ def _config_text(cfg: Config, odom: Any) -> str:
     translation = getattr(odom, "extrinsic_translation", None)
     if translation is not None:  # the correction the translation check concluded on
         measured["extrinsic_translation_correction_m"] = [
-            round(float(v), 4) for v in translation.delta_m]
+            round(float(v), 4) for v in translation.horizontal_m]
         measured["extrinsic_translation_correction_sigma_m"] = round(translation.sigma_m, 4)
     for key, check in (("imu_time_offset", getattr(odom, "time_offset_unsettled", None)),
                        ("extrinsic_rotation", getattr(odom, "extrinsic_rotation_unsettled",
@@ -302,7 +302,7 @@ def _config_text(cfg: Config, odom: Any) -> str:
                 measured["imu_time_offset_unsettled_sigma_s"] = round(float(est.sigma_s), 6)
             elif est is not None and key == "extrinsic_translation":
                 measured["extrinsic_translation_unsettled_m"] = [
-                    round(float(v), 4) for v in est.delta_m]
+                    round(float(v), 4) for v in est.horizontal_m]
                 measured["extrinsic_translation_unsettled_sigma_m"] = round(est.sigma_m, 4)
             elif est is not None:
                 measured["extrinsic_rotation_unsettled_deg"] = [

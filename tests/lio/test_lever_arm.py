@@ -64,7 +64,9 @@ def test_the_lever_arm_error_is_recovered(delta_cm):
     assert np.all(np.abs(err) < 4 * sigma + 1e-4), (est.delta_m, delta, sigma)
     assert np.all(np.abs(err) < 3e-3), err  # millimetres, from a 20 s hand
     assert np.all(sigma < 2e-3), sigma
-    assert est.significant == (np.linalg.norm(delta) >= MIN_TRANSLATION_M)
+    across = (np.eye(3) - np.outer(est.up_imu, est.up_imu)) @ delta  # what the check acts on
+    np.testing.assert_allclose(est.horizontal_m, across, atol=3e-3)
+    assert est.significant == (np.linalg.norm(across) >= MIN_TRANSLATION_M)
     if est.significant:
         assert "sensor.T_imu_lidar's translation" in translation_warning(est)
 
