@@ -38,8 +38,8 @@ def _shifted(cfg):
 def test_a_lever_arm_3_cm_off_is_found(tmp_path, walk):
     truth = load_config(config_file=walk.config_path)
     cfg = _shifted(truth)
-    with pytest.warns(UserWarning, match=r"LiDAR-IMU translation in sensor\.T_imu_lidar "
-                                         r"disagrees"):
+    with pytest.warns(UserWarning, match=r"LiDAR-IMU translation in sensor\.T_imu_lidar may "
+                                         r"be off"):
         res = run_bag(walk.bag_path, cfg, tmp_path / "off", progress=False)
     est = res.extrinsic_translation
     assert est is not None and est.significant, est

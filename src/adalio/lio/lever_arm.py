@@ -250,9 +250,10 @@ def estimate_translation(t_scan_s: np.ndarray, R_scan: np.ndarray, p_scan: np.nd
 
 def translation_warning(est: TranslationEstimate) -> str:
     """The warning for a significant correction (the odometry's and ``run_bag``'s)."""
-    return (f"the LiDAR-IMU translation in sensor.T_imu_lidar disagrees with the data: over "
-            f"{est.span_s:.0f} s the accelerometer feels the motion the LiDAR registers through a "
-            f"lever arm {est.text()} off across the rig's vertical, in the IMU frame: add that to "
-            "sensor.T_imu_lidar's translation (the IMU's reported positions are off by up to its "
-            "length as the rig turns; the map, from the LiDAR's poses, much less; the part along "
-            "the vertical, about which the rig turns, is not checked)")
+    return (f"the LiDAR-IMU translation in sensor.T_imu_lidar may be off: over {est.span_s:.0f} "
+            "s the accelerometer matches the motion the LiDAR registers best with the lever arm "
+            f"moved by {est.text()} across the rig's vertical, in the IMU frame: check "
+            "sensor.T_imu_lidar's translation (the estimate is good to a centimetre or two, and "
+            "the part along the vertical, about which the rig turns, is not checked; the IMU's "
+            "reported positions are off by up to the error as the rig turns, the map much "
+            "less)")

@@ -132,6 +132,9 @@ UNITS_CHECK_S = 10.0
 """After a still start, the unit check registers scans LiDAR-only for at most this long."""
 TIME_OFFSET_JUDGE_NS = 2_000_000_000
 """The IMU time offset check estimates every 2 s of updates (20-45 ms each time)."""
+TRANSLATION_JUDGE_NS = 10_000_000_000
+"""The lever arm check estimates every 10 s of updates (45-60 ms at 60 s of data; every 2 s
+it cost the 64 s corridor's run 1.17x its wall time), and at the end of its span."""
 LIDAR_GAP_PERIODS = 1.5
 """An interval between scans longer than this many nominal periods is a LiDAR gap: at least
 one sweep is missing (jitter of half a period passes)."""
@@ -477,6 +480,7 @@ class Odometry:
         self._offset_open = sensor.imu_time_offset_check
         self._rotation_open = sensor.extrinsic_rotation_check
         self._translation_open = sensor.extrinsic_translation_check
+        self._translation_judged_ns = 0
         self._offset_judged_ns = 0
         self.warn_time_offset = True
         """Warn when the check concludes on a significant offset (``run_bag`` acts instead)."""
@@ -1199,7 +1203,9 @@ class Odometry:
             if (rot is not None and rot.conclusive) or span >= MAX_SPAN_S:
                 # unsettled at MAX_SPAN_S: too little rotation about two axes, or noise
                 self._conclude_rotation(rot, span)
-        if self._translation_open:
+        if self._translation_open and (t_e_ns - self._translation_judged_ns
+                                       >= TRANSLATION_JUDGE_NS or span >= MAX_SPAN_S):
+            self._translation_judged_ns = t_e_ns
             tr = self._translation_from(motion, span)
             if (tr is not None and tr.conclusive) or span >= MAX_SPAN_S:
                 self._conclude_translation(tr, span)
