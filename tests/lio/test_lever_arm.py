@@ -85,3 +85,15 @@ def test_the_stamps_offset_is_taken_out():
     t_scan, R, p, t_imu, gyro, accel = _data(rng, [0.03, 0.0, -0.02])
     est = estimate_translation(t_scan, R, p, t_imu + 0.02, gyro, accel, G, 0.02, SPAN_S)
     assert est is not None and np.all(np.abs(est.delta_m - [0.03, 0.0, -0.02]) < 3e-3)
+
+
+def test_a_rig_at_rest_gives_no_estimate_and_no_error():
+    """A minute at rest: every triple the same, the bias and gravity indistinguishable, and
+    nothing to tell a lever arm by (a singular system, not an exception)."""
+    t_imu = np.arange(0.0, 60.5, 1.0 / IMU_HZ)
+    t_scan = np.arange(0.2, 60.0, 1.0 / SCAN_HZ)
+    R = np.repeat(np.eye(3)[None], t_scan.size, axis=0)
+    p = np.zeros((t_scan.size, 3))
+    gyro = np.zeros((t_imu.size, 3))
+    accel = np.tile(-G, (t_imu.size, 1))
+    assert estimate_translation(t_scan, R, p, t_imu, gyro, accel, G, 0.0, 60.0) is None

@@ -223,6 +223,19 @@ def estimate_translation(t_scan_s: np.ndarray, R_scan: np.ndarray, p_scan: np.nd
     H[:, :, :3] = (R_scan[c] - R_scan[a]) / d2[:, :, None] - (R_scan[b] - R_scan[a]) / d1[:, :, None]
     H[:, :, 3:6] = -(J_ac / d2[:, :, None] - J_ab / d1[:, :, None])  # the bias, subtracted
     H[:, :, 6:] = 0.5 * (d2 - d1)[:, :, None] * np.eye(3)            # a gravity correction
+    up = np.einsum("nji,j->ni", R_scan[a], -g / np.linalg.norm(g)).mean(axis=0)
+    try:
+        return _fit(r, H, m, span_s, up / np.linalg.norm(up))
+    except np.linalg.LinAlgError:  # no motion to tell the bias from gravity, or no rotation
+        return None
+
+
+def _fit(r: np.ndarray, H: np.ndarray, m: int, span_s: float,
+         up_imu: np.ndarray) -> TranslationEstimate | None:
+    """Huber-weighted least squares of the triples' residuals ``r`` (n,3) on ``H`` (n,3,9)
+    [lever arm, accelerometer bias, gravity] (``m`` scans apart, the rig's vertical
+    ``up_imu``); None without the rotation to tell a lever arm."""
+    n = len(r)
     weights = np.ones(n)
     x = np.zeros(9)
     for _ in range(5):
@@ -244,10 +257,8 @@ def estimate_translation(t_scan_s: np.ndarray, R_scan: np.ndarray, p_scan: np.nd
     cov = A_inv @ long_run_covariance(score, NEWEY_WEST_LAGS + 2 * m) @ A_inv
     naive = scale**2 * A_inv
     cov_d = cov[:3, :3] if np.trace(cov[:3, :3]) >= np.trace(naive[:3, :3]) else naive[:3, :3]
-    up = np.einsum("nji,j->ni", R_scan[a], -g / np.linalg.norm(g)).mean(axis=0)
     return TranslationEstimate(delta_m=x[:3], cov_m2=0.5 * (cov_d + cov_d.T),
-                               span_s=float(span_s), n_triples=int(n),
-                               up_imu=up / np.linalg.norm(up))
+                               span_s=float(span_s), n_triples=int(n), up_imu=up_imu)
 
 
 def translation_warning(est: TranslationEstimate) -> str:
