@@ -1,11 +1,11 @@
 """A LiDAR-IMU lever arm in the config that is off by 3 cm (an extrinsic from a drawing): the
-run says so in one warning and a summary line with the correction, from the accelerometer
-against the motion the LiDAR registers; with the right lever arm it says nothing of the kind."""
+run says so in a summary line with the correction, from the accelerometer against the motion
+the LiDAR registers (a hint, not a warning: on short recordings it also flags right lever arms,
+README "LiDAR-IMU lever arm"); with the right lever arm it does not flag this walk's."""
 
 from __future__ import annotations
 
 import copy
-import warnings
 
 import numpy as np
 import pytest
@@ -38,9 +38,7 @@ def _shifted(cfg):
 def test_a_lever_arm_3_cm_off_is_found(tmp_path, walk):
     truth = load_config(config_file=walk.config_path)
     cfg = _shifted(truth)
-    with pytest.warns(UserWarning, match=r"LiDAR-IMU translation in sensor\.T_imu_lidar may "
-                                         r"be off"):
-        res = run_bag(walk.bag_path, cfg, tmp_path / "off", progress=False)
+    res = run_bag(walk.bag_path, cfg, tmp_path / "off", progress=False)
     est = res.extrinsic_translation
     assert est is not None and est.significant, est
     # the correction the warning gives is across the rig's vertical (the IMU's z here)
@@ -55,24 +53,21 @@ def test_a_lever_arm_3_cm_off_is_found(tmp_path, walk):
                                atol=1e-4)
 
 
-def test_the_right_lever_arm_gives_no_warning(tmp_path, walk):
+def test_the_right_lever_arm_is_not_flagged(tmp_path, walk):
     cfg = load_config(config_file=walk.config_path)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", UserWarning)
-        res = run_bag(walk.bag_path, cfg, tmp_path / "right", progress=False)
+    res = run_bag(walk.bag_path, cfg, tmp_path / "right", progress=False)
     est = res.extrinsic_translation or res.extrinsic_translation_unsettled.estimate
     assert est is not None and not est.significant, est
     assert est.length_m < 0.015, est.horizontal_m  # measured: 0.8 cm across the vertical
 
 
-def test_the_command_line_says_it_in_one_warning_and_one_line(tmp_path, walk):
+def test_the_command_line_says_it_in_one_line_and_no_warning(tmp_path, walk):
     config_path = tmp_path / "shifted.yaml"
     config_path.write_text(_shifted(load_config(config_file=walk.config_path)).to_yaml())
     res = CliRunner().invoke(app, ["run", str(walk.bag_path), "--config", str(config_path),
                                    "--out", str(tmp_path / "o"), "--no-progress"])
     assert res.exit_code == 0, res.output
     lines = res.output.splitlines()
-    warned = [ln for ln in lines if ln.startswith("warning:")]
-    assert len(warned) == 1 and "sensor.T_imu_lidar's translation" in warned[0], warned
+    assert not [ln for ln in lines if ln.startswith("warning:")], lines
     line = [ln for ln in lines if ln.startswith("LiDAR-IMU translation: ")]
-    assert len(line) == 1 and "(see the warning)" in line[0], lines
+    assert len(line) == 1 and ": check sensor.T_imu_lidar's translation" in line[0], lines

@@ -82,8 +82,8 @@ class SensorConfig:
     extrinsic_translation_check: bool = True
     """Check the translation of ``T_imu_lidar`` (the lever arm) against the data over the same
     updates: the accelerometer against the motion the LiDAR alone registers through it
-    (:mod:`adalio.lio.lever_arm`); a significant disagreement is a warning and a summary line
-    with the correction (no restart)."""
+    (:mod:`adalio.lio.lever_arm`); a significant disagreement is a summary line with the
+    correction across the rig's vertical (a hint: no warning, no restart)."""
 
 
 @dataclass

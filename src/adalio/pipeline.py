@@ -383,7 +383,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
     est, rot = first.time_offset, first.extrinsic_rotation
     offset_off = est is not None and est.significant
     if first.interrupted or not (offset_off or (rot is not None and rot.significant)):
-        return _warned_translation(first)
+        return first
     found: TimeOffsetCalibration | None = None
     found_rot: RotationCalibration | None = None
     try:
@@ -423,7 +423,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                       "with it)", stacklevel=2)
     if found is None and found_rot is None and not (first.stopped_for_time_offset
                                                     or first.stopped_for_extrinsic_rotation):
-        return _warned_translation(first)
+        return first
     t_restart = time.perf_counter()
     with _said_once(seen, again=True):
         res = _run_once(bag_path, cfg, Path(out_dir), progress=progress, max_scans=max_scans,
@@ -452,17 +452,6 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
     res.extrinsic_rotation_found = found_rot
     res.calibration_wall_s = t_restart - t_start
     res.compiled = first.compiled
-    return _warned_translation(res)
-
-
-def _warned_translation(res: RunResult) -> RunResult:
-    """``res``, after the warning for a significant LiDAR-IMU translation correction (the runs
-    of the checked path leave it to this, once, from the run whose outputs stand)."""
-    est = res.extrinsic_translation
-    if est is not None and est.significant and not res.interrupted:
-        from adalio.lio.lever_arm import translation_warning
-
-        warnings.warn(translation_warning(est), stacklevel=3)
     return res
 
 
@@ -600,7 +589,7 @@ def _calibration_pass(bag_path: str | Path, cfg: Config, n_scans: int,
             lidar_topic, imu_topic = bag.select_topics(cfg.sensor)
             odom = Odometry(cfg)
             odom.warn_time_offset = odom.conclude_time_offset = False
-            odom.warn_extrinsic_rotation = odom.warn_extrinsic_translation = False
+            odom.warn_extrinsic_rotation = False
             seq = _sequencer(bag, lidar_topic, imu_topic, cfg, start_s)
             n = 0
             for item in seq:  # the first run's scans: every pass estimates over the same span
@@ -645,7 +634,6 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         odom = Odometry(cfg)
         odom.warn_time_offset = warn_checks and not restart_on_offset
         odom.warn_extrinsic_rotation = warn_checks and not restart_on_offset
-        odom.warn_extrinsic_translation = warn_checks and not restart_on_offset
         seq = _sequencer(bag, lidar_topic, imu_topic, cfg, start_s)
         tum = TumWriter(paths["trajectory"])
         csvw = ScansCsvWriter(paths["scans"])

@@ -308,7 +308,8 @@ def _unsettled_text(check: Any, value: str, precise: str, cause: str, used: str)
 
 def _check_tail(unsettled: Any, left: Any, show: Callable[[Any], str], precise: str,
                 cause: str, used: str,
-                against: str = "left against the LiDAR-registered rotation") -> str:
+                against: str = "left against the LiDAR-registered rotation",
+                significant: str = " (see the warning)") -> str:
     """What a sensor check's final run says: unsettled (:func:`_unsettled_text`), or the value
     it concluded on (``show`` formats an estimate with its deviation), or ''."""
     if unsettled is not None:
@@ -317,7 +318,7 @@ def _check_tail(unsettled: Any, left: Any, show: Callable[[Any], str], precise: 
     if left is None:
         return ""
     return (f"{show(left)} {against} over {left.span_s:.0f} s"
-            + (" (see the warning)" if left.significant else ""))
+            + (significant if left.significant else ""))
 
 
 def _timing_text(res: Any) -> str:
@@ -370,7 +371,9 @@ def _translation_text(res: Any) -> str:
         f"+-{SIGMA_DONE_M * 100:g} cm, or on a significant correction at "
         f"+-{SIGMA_SIGNIFICANT_M * 100:g} cm", "the rig turned too little, or too few scan "
         "triples, to tell a lever arm", "sensor.T_imu_lidar's translation",
-        against="off against the LiDAR-registered motion, in the IMU frame,")
+        against="off against the LiDAR-registered motion, in the IMU frame,",
+        significant=": check sensor.T_imu_lidar's translation (this estimate is good to a "
+        "centimetre or two; the part along the rig's vertical is not checked)")
 
 
 def _summary(con: Console, res: Any, profile: bool) -> None:

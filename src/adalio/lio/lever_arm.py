@@ -260,13 +260,3 @@ def _fit(r: np.ndarray, H: np.ndarray, m: int, span_s: float,
     return TranslationEstimate(delta_m=x[:3], cov_m2=0.5 * (cov_d + cov_d.T),
                                span_s=float(span_s), n_triples=int(n), up_imu=up_imu)
 
-
-def translation_warning(est: TranslationEstimate) -> str:
-    """The warning for a significant correction (the odometry's and ``run_bag``'s)."""
-    return (f"the LiDAR-IMU translation in sensor.T_imu_lidar may be off: over {est.span_s:.0f} "
-            "s the accelerometer matches the motion the LiDAR registers best with the lever arm "
-            f"moved by {est.text()} across the rig's vertical, in the IMU frame: check "
-            "sensor.T_imu_lidar's translation (the estimate is good to a centimetre or two, and "
-            "the part along the vertical, about which the rig turns, is not checked; the IMU's "
-            "reported positions are off by up to the error as the rig turns, the map much "
-            "less)")

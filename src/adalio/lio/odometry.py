@@ -73,7 +73,7 @@ from adalio.lio.ieskf import (
     without_direction,
 )
 from adalio.lio.ivox import IVox, hash_key3
-from adalio.lio.lever_arm import TranslationEstimate, estimate_translation, translation_warning
+from adalio.lio.lever_arm import TranslationEstimate, estimate_translation
 from adalio.lio.local_surface import LocalSurface, disagrees
 from adalio.lio.map_uncertainty import MapProvenance, deskew_covariance, world_covariance
 from adalio.lio.measurement import (
@@ -503,11 +503,10 @@ class Odometry:
         self.extrinsic_rotation_unsettled: UnsettledCheck | None = None
         """The same for the LiDAR-IMU rotation check: sensor.T_imu_lidar's rotation was used
         unchecked."""
-        self.warn_extrinsic_translation = True
-        """Warn when the translation check concludes on a significant correction."""
         self.extrinsic_translation: TranslationEstimate | None = None
         """The correction of sensor.T_imu_lidar's translation the check concluded on (None: not
-        concluded, or the check is off); warned about when significant."""
+        concluded, or the check is off); never warned about (a hint: README, "LiDAR-IMU lever
+        arm")."""
         self.extrinsic_translation_unsettled: UnsettledCheck | None = None
         """The translation check closed without a conclusion."""
         self._provenance = MapProvenance(config.filter.map_provenance_cell_m)
@@ -1222,8 +1221,8 @@ class Odometry:
         return estimate_translation(*data, self._state.g, offset_s, span_s)
 
     def _conclude_translation(self, est: TranslationEstimate | None, span_s: float) -> None:
-        """Close the translation check on ``est``: its conclusion, warned about when
-        significant, or unsettled (:attr:`extrinsic_translation_unsettled`)."""
+        """Close the translation check on ``est``: its conclusion (said, not warned about), or
+        unsettled (:attr:`extrinsic_translation_unsettled`)."""
         self._translation_open = False
         if est is None or not est.conclusive:
             if self.conclude_time_offset:
@@ -1231,8 +1230,6 @@ class Odometry:
                     span_s, est, gave_up=span_s >= MAX_SPAN_S)
             return
         self.extrinsic_translation = est
-        if est.significant and self.warn_extrinsic_translation:
-            warnings.warn(translation_warning(est), stacklevel=3)
 
     def _conclude_rotation(self, est: RotationEstimate | None, span_s: float) -> None:
         """Close the rotation check on ``est`` (over ``span_s`` of updates): its conclusion,
