@@ -819,7 +819,7 @@ class Odometry:
         """End of the data: run a pending backfill now, from the latest state; the sensor
         checks still open conclude if they have seen ``END_MIN_SPAN_S`` of updates and their
         estimates are conclusive, else they close unsettled (:attr:`time_offset_unsettled`,
-        :attr:`extrinsic_rotation_unsettled`)."""
+        :attr:`extrinsic_rotation_unsettled`, :attr:`extrinsic_translation_unsettled`)."""
         if self._held_scans and self.initialized:
             self._backfill()
         chk = self._offset_check

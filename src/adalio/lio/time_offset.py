@@ -133,7 +133,8 @@ class TimeOffsetCheck:
     def samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """(scan ends s, orientations, IMU stamps s, gyro), times from the first scan end;
         None with fewer than 10 scans or no IMU sample (also the LiDAR-IMU rotation check's
-        data, :func:`adalio.lio.extrinsic_check.estimate_rotation`)."""
+        data, :func:`adalio.lio.extrinsic_check.estimate_rotation`; :meth:`motion_samples` adds
+        the positions and the accelerometer for the lever arm check)."""
         data = self.motion_samples()
         return None if data is None else (data[0], data[1], data[3], data[4])
 
