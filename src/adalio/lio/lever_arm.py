@@ -6,7 +6,9 @@ centimetres. The LiDAR registers its own origin; the filter reports the IMU thro
 configured lever arm, so a translation error ``δ`` puts every reported IMU position off by
 ``R(t) δ``, which turns with the rig: measured on the simulated hall (XT-32 at 512 columns,
 HILTI IMU noise), 3 cm off costs the IMU's trajectory 0.26 -> 1.31 cm and the LiDAR's (the
-map's) 0.26 -> 0.48 cm (README, "LiDAR-IMU rotation", *Limits*).
+map's) 0.26 -> 0.48 cm (README, "LiDAR-IMU lever arm"). A significant correction is said in
+the run's summary, a hint only (no warning, no restart): it is good to a centimetre or two,
+and short recordings flag right lever arms now and then (measured, README).
 
 What measures it: the updates' LiDAR-only poses (the IMU time offset check's data,
 :class:`adalio.lio.time_offset.TimeOffsetCheck`), the IMU's position the LiDAR alone registers
@@ -24,7 +26,7 @@ is the sandwich form with Newey-West over the overlapping triples.
 A translation error is seen only when the rig turns, and a walk or a robot turns mostly about
 the vertical: the part of ``δ`` along the rig's mean vertical is barely seen, and measured
 biased by up to 3 cm (the x10 corridor, seed 1, right extrinsic: (-0.9, +2.3, +3.3) cm, the
-vertical the largest) where the part across it held to 1-2 cm. The check acts on the part
+vertical the largest) where the part across it held to 1-2 cm. The check judges the part
 across the vertical only (:attr:`TranslationEstimate.horizontal_m`); the vertical is left as
 configured.
 """
@@ -44,7 +46,7 @@ with it and the registration's noise falls (the hall's whole walk, least squares
 Newey-West, scratch: largest deviations 0.74, 0.24, 0.19, 0.41 cm at 0.1, 0.2, 0.3, 0.5 s;
 beyond, the vertical drifts by centimetres)."""
 MIN_TRANSLATION_M = 0.02
-"""Smaller corrections are not acted on: with the right lever arm the estimate keeps 0.3-1.5 cm
+"""Smaller corrections are not flagged: with the right lever arm the estimate keeps 0.3-1.5 cm
 across the vertical (the registration's own error, shared by overlapping triples; README,
 "LiDAR-IMU lever arm")."""
 SIGNIFICANCE = 4.0
