@@ -56,6 +56,39 @@ GAIN_RANGE = (0.2, 1.5)
 """The share of a rotation error the estimate sees, as the passes measure it, is clipped here."""
 
 
+def largest_sigma(cov: np.ndarray) -> float:
+    """The largest standard deviation of a covariance (its largest eigenvalue's root)."""
+    return float(np.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0)))
+
+
+def sigma_along(v: np.ndarray, cov: np.ndarray) -> float:
+    """The standard deviation of an estimate ``v`` of covariance ``cov`` along its own
+    direction (:func:`largest_sigma` at zero): how far it is from zero in its deviations."""
+    n = float(np.linalg.norm(v))
+    if n == 0.0:
+        return largest_sigma(cov)
+    u = v / n
+    return float(np.sqrt(max(u @ cov @ u, 0.0)))
+
+
+def pair_rates(R_start: np.ndarray, R_end: np.ndarray, t_start_s: np.ndarray,
+               t_end_s: np.ndarray, dt_s: np.ndarray, t_imu_s: np.ndarray,
+               gyro_rad_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n,3) mean angular rates over scan pairs ``dt_s`` long: the LiDAR-only one,
+    ``Log(R_startᵀ R_end) / dt``, and the gyro's over ``[t_start_s, t_end_s]`` (its own clock;
+    the samples trapezoid-integrated, the ends interpolated)."""
+    rel = np.einsum("nji,njk->nik", R_start, R_end)
+    w_lidar = Rotation.from_matrix(rel).as_rotvec() / dt_s[:, None]
+    steps = np.diff(t_imu_s)
+    C = np.concatenate([np.zeros((1, 3)),
+                        np.cumsum(0.5 * (gyro_rad_s[1:] + gyro_rad_s[:-1]) * steps[:, None],
+                                  axis=0)])
+    n = len(dt_s)
+    ends = np.stack([np.interp(np.r_[t_start_s, t_end_s], t_imu_s, C[:, i])
+                     for i in range(3)], 1)
+    return w_lidar, (ends[n:] - ends[:n]) / dt_s[:, None]
+
+
 @dataclass
 class RotationEstimate:
     """The residual LiDAR-IMU rotation over the scans checked."""
@@ -75,11 +108,7 @@ class RotationEstimate:
     @property
     def sigma_rad(self) -> float:
         """The standard deviation along the estimate's axis (the largest one at zero)."""
-        a = self.angle_rad
-        if a == 0.0:
-            return float(np.sqrt(np.linalg.eigvalsh(self.cov_rad2)[-1]))
-        u = self.rotvec_rad / a
-        return float(np.sqrt(max(u @ self.cov_rad2 @ u, 0.0)))
+        return sigma_along(self.rotvec_rad, self.cov_rad2)
 
     @property
     def significant(self) -> bool:
@@ -93,9 +122,8 @@ class RotationEstimate:
     @property
     def conclusive(self) -> bool:
         """Precise enough to call the rotation right, or significant at a usable precision."""
-        worst = float(np.sqrt(max(np.linalg.eigvalsh(self.cov_rad2)[-1], 0.0)))
-        return worst <= SIGMA_DONE_RAD or (self.significant
-                                           and self.sigma_rad <= SIGMA_SIGNIFICANT_RAD)
+        return largest_sigma(self.cov_rad2) <= SIGMA_DONE_RAD or (
+            self.significant and self.sigma_rad <= SIGMA_SIGNIFICANT_RAD)
 
     def axis_text(self) -> str:
         """The rotation's unit axis in the IMU frame, as '(x, y, z) of the IMU frame'."""
@@ -121,14 +149,8 @@ def estimate_rotation(t_scan_s: np.ndarray, R_scan: np.ndarray, t_imu_s: np.ndar
     idx = np.flatnonzero(ok)
     if idx.size < MIN_PAIRS:
         return None
-    rel = np.einsum("nji,njk->nik", R_scan[idx], R_scan[idx + 1])
-    w_lidar = Rotation.from_matrix(rel).as_rotvec() / dt[idx, None]
-    steps = np.diff(t_imu_s)
-    C = np.concatenate([np.zeros((1, 3)),
-                        np.cumsum(0.5 * (gyro_rad_s[1:] + gyro_rad_s[:-1]) * steps[:, None],
-                                  axis=0)])
-    ends = np.stack([np.interp(np.r_[a[idx], b[idx]], t_imu_s, C[:, i]) for i in range(3)], 1)
-    w_gyro = (ends[idx.size:] - ends[:idx.size]) / dt[idx, None]
+    w_lidar, w_gyro = pair_rates(R_scan[idx], R_scan[idx + 1], a[idx], b[idx], dt[idx],
+                                 t_imu_s, gyro_rad_s)
     n = idx.size
     theta = np.zeros(3)
     bias = np.median(w_gyro - w_lidar, axis=0)

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from adalio.lio.extrinsic_check import largest_sigma, pair_rates, sigma_along
 from adalio.lio.time_offset import MAX_PAIR_S, MIN_PAIR_S, long_run_covariance
 
 STRIDE_S = 0.3
@@ -99,11 +100,7 @@ class TranslationEstimate:
     def sigma_m(self) -> float:
         """The standard deviation of :attr:`horizontal_m` along its direction (the largest one
         across the vertical at zero)."""
-        n = self.length_m
-        if n == 0.0:
-            return float(np.sqrt(max(np.linalg.eigvalsh(self.horizontal_cov_m2)[-1], 0.0)))
-        u = self.horizontal_m / n
-        return float(np.sqrt(max(u @ self.cov_m2 @ u, 0.0)))
+        return sigma_along(self.horizontal_m, self.horizontal_cov_m2)
 
     @property
     def significant(self) -> bool:
@@ -112,8 +109,8 @@ class TranslationEstimate:
     @property
     def conclusive(self) -> bool:
         """Precise enough to call the translation right, or significant at a usable precision."""
-        worst = float(np.sqrt(max(np.linalg.eigvalsh(self.horizontal_cov_m2)[-1], 0.0)))
-        return worst <= SIGMA_DONE_M or (self.significant and self.sigma_m <= SIGMA_SIGNIFICANT_M)
+        return largest_sigma(self.horizontal_cov_m2) <= SIGMA_DONE_M or (
+            self.significant and self.sigma_m <= SIGMA_SIGNIFICANT_M)
 
     def text(self) -> str:
         """'(+1.4, -2.1, +0.7) cm (+-0.3)': :attr:`horizontal_m` in the IMU frame."""
@@ -182,10 +179,8 @@ def estimate_translation(t_scan_s: np.ndarray, R_scan: np.ndarray, p_scan: np.nd
     b, c = a + m, a + 2 * m
     # the gyro's bias: the median difference to the LiDAR-only rate between consecutive scans
     k = np.flatnonzero(good & (t_scan_s[:-1] >= t_imu[0]) & (t_scan_s[1:] <= t_imu[-1]))
-    C_w = _cumulative(t_imu, gyro_rad_s)
-    w_gyro = (_interp(t_scan_s[k + 1], t_imu, C_w) - _interp(t_scan_s[k], t_imu, C_w)) / dt[k, None]
-    rel = np.einsum("nji,njk->nik", R_scan[k], R_scan[k + 1])
-    w_lidar = Rotation.from_matrix(rel).as_rotvec() / dt[k, None]
+    w_lidar, w_gyro = pair_rates(R_scan[k], R_scan[k + 1], t_scan_s[k], t_scan_s[k + 1], dt[k],
+                                 t_imu, gyro_rad_s)
     b_g = np.median(w_gyro - w_lidar, axis=0)
     # the gyro's orientation track Q (from the first sample) and the accelerometer through it
     w_mid = 0.5 * (gyro_rad_s[1:] + gyro_rad_s[:-1]) - b_g
