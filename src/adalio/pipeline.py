@@ -268,47 +268,39 @@ def progress_bar(enabled: bool, unit: str, field: str, console: Any = None) -> A
                     transient=False, console=console)
 
 
+_MEASURED_CHECKS = (
+    ("imu_time_offset", "time_offset", "left", "s",
+     lambda e: round(float(e.offset_s), 6), lambda e: round(float(e.sigma_s), 6)),
+    ("extrinsic_rotation", "extrinsic_rotation", "left", "deg",
+     lambda e: [round(float(v), 4) for v in np.degrees(e.rotvec_rad)],
+     lambda e: round(float(np.degrees(e.sigma_rad)), 4)),
+    ("extrinsic_translation", "extrinsic_translation", "correction", "m",
+     lambda e: [round(float(v), 4) for v in e.horizontal_m], lambda e: round(e.sigma_m, 4)),
+)
+"""``config.yaml``'s ``measured:`` keys of the sensor checks: (key prefix, the odometry's
+attribute, the concluded value's word, unit, the value, its sigma)."""
+
+
 def _config_text(cfg: Config, odom: Any) -> str:
     """The effective config, plus what initialization measured (``measured:``, read back as
     information only)."""
     text = cfg.to_yaml()
     report = getattr(odom, "init_report", None)
-    offset = getattr(odom, "time_offset", None)
     measured = report.to_dict() if report is not None else {}
-    if offset is not None:  # what the IMU time offset check left after imu_time_offset_s
-        measured["imu_time_offset_left_s"] = round(float(offset.offset_s), 6)
-        measured["imu_time_offset_left_sigma_s"] = round(float(offset.sigma_s), 6)
-    rotation = getattr(odom, "extrinsic_rotation", None)
-    if rotation is not None:  # what the rotation check left after T_imu_lidar's rotation
-        measured["extrinsic_rotation_left_deg"] = [
-            round(float(v), 4) for v in np.degrees(rotation.rotvec_rad)]
-        measured["extrinsic_rotation_left_sigma_deg"] = round(
-            float(np.degrees(rotation.sigma_rad)), 4)
-    translation = getattr(odom, "extrinsic_translation", None)
-    if translation is not None:  # the correction the translation check concluded on
-        measured["extrinsic_translation_correction_m"] = [
-            round(float(v), 4) for v in translation.horizontal_m]
-        measured["extrinsic_translation_correction_sigma_m"] = round(translation.sigma_m, 4)
-    for key, check in (("imu_time_offset", getattr(odom, "time_offset_unsettled", None)),
-                       ("extrinsic_rotation", getattr(odom, "extrinsic_rotation_unsettled",
-                                                      None)),
-                       ("extrinsic_translation", getattr(odom, "extrinsic_translation_unsettled",
-                                                         None))):
+    # what each sensor check concluded (left after the config's value, or the lever arm's
+    # correction); then, for those that closed unsettled, after how long and at which estimate
+    for name, attr, word, unit, value, sigma in _MEASURED_CHECKS:
+        est = getattr(odom, attr, None)
+        if est is not None:
+            measured[f"{name}_{word}_{unit}"] = value(est)
+            measured[f"{name}_{word}_sigma_{unit}"] = sigma(est)
+    for name, attr, _, unit, value, sigma in _MEASURED_CHECKS:
+        check = getattr(odom, f"{attr}_unsettled", None)
         if check is not None:  # used as configured: the check could not settle it
-            measured[f"{key}_unsettled_after_s"] = round(float(check.span_s), 1)
-            est = check.estimate
-            if est is not None and key == "imu_time_offset":  # where it had got to
-                measured["imu_time_offset_unsettled_s"] = round(float(est.offset_s), 6)
-                measured["imu_time_offset_unsettled_sigma_s"] = round(float(est.sigma_s), 6)
-            elif est is not None and key == "extrinsic_translation":
-                measured["extrinsic_translation_unsettled_m"] = [
-                    round(float(v), 4) for v in est.horizontal_m]
-                measured["extrinsic_translation_unsettled_sigma_m"] = round(est.sigma_m, 4)
-            elif est is not None:
-                measured["extrinsic_rotation_unsettled_deg"] = [
-                    round(float(v), 4) for v in np.degrees(est.rotvec_rad)]
-                measured["extrinsic_rotation_unsettled_sigma_deg"] = round(
-                    float(np.degrees(est.sigma_rad)), 4)
+            measured[f"{name}_unsettled_after_s"] = round(float(check.span_s), 1)
+            if check.estimate is not None:
+                measured[f"{name}_unsettled_{unit}"] = value(check.estimate)
+                measured[f"{name}_unsettled_sigma_{unit}"] = sigma(check.estimate)
     if measured:
         import yaml
 
