@@ -857,8 +857,13 @@ class Odometry:
         the gyro's lateness taken as the time offset concluded on (none: 0)."""
         if data is None:
             return None
-        offset_s = self.time_offset.offset_s if self.time_offset is not None else 0.0
-        return estimate_rotation(*data, offset_s, span_s)
+        return estimate_rotation(*data, self._offset_found_s, span_s)
+
+    @property
+    def _offset_found_s(self) -> float:
+        """The IMU time offset the check concluded on (0 until it does): the lateness the
+        rotation and lever arm checks take the gyro's and accelerometer's stamps to have."""
+        return self.time_offset.offset_s if self.time_offset is not None else 0.0
 
     def _hold(self, pts: np.ndarray, t_pts: np.ndarray) -> None:
         """Keep a scan for the backfill: before the initialization the latest
@@ -1190,6 +1195,10 @@ class Odometry:
         if not self.conclude_time_offset:
             return
         self._offset_judged_ns = t_e_ns
+        translation_due = self._translation_open and (
+            t_e_ns - self._translation_judged_ns >= TRANSLATION_JUDGE_NS or span >= MAX_SPAN_S)
+        if not (self._offset_open or self._rotation_open or translation_due):
+            return  # only the lever arm check is open, and it estimates every 10 s
         motion = chk.motion_samples()  # the checks' data, gathered once
         data = _rotation_data(motion)
         if self._offset_open:
@@ -1202,8 +1211,7 @@ class Odometry:
             if (rot is not None and rot.conclusive) or span >= MAX_SPAN_S:
                 # unsettled at MAX_SPAN_S: too little rotation about two axes, or noise
                 self._conclude_rotation(rot, span)
-        if self._translation_open and (t_e_ns - self._translation_judged_ns
-                                       >= TRANSLATION_JUDGE_NS or span >= MAX_SPAN_S):
+        if translation_due:
             self._translation_judged_ns = t_e_ns
             tr = self._translation_from(motion, span)
             if (tr is not None and tr.conclusive) or span >= MAX_SPAN_S:
@@ -1217,8 +1225,7 @@ class Odometry:
         stamps corrected by the time offset concluded on, the filter's gravity."""
         if data is None:
             return None
-        offset_s = self.time_offset.offset_s if self.time_offset is not None else 0.0
-        return estimate_translation(*data, self._state.g, offset_s, span_s)
+        return estimate_translation(*data, self._state.g, self._offset_found_s, span_s)
 
     def _conclude_translation(self, est: TranslationEstimate | None, span_s: float) -> None:
         """Close the translation check on ``est``: its conclusion (said, not warned about), or
