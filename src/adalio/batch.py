@@ -162,7 +162,8 @@ class BagRow:
     worker: str = ""
     ate_se3_m: float = math.nan
     sensor_checks: str = ""
-    """What the IMU time offset and LiDAR-IMU rotation checks concluded (:func:`checks_text`)."""
+    """What the IMU time offset, LiDAR-IMU rotation and lever arm checks concluded
+    (:func:`checks_text`)."""
     error: str = ""
     wall_s: float = math.nan
     bag_path: str = ""
@@ -181,8 +182,8 @@ class BagRow:
 def checks_text(res: Any) -> str:
     """The sensor checks of a run in a few words: 'offset +0.2 ms; rotation 0.05 deg;
     translation (+0.3, -0.2, +0.4) cm', a value found and restarted with ('rotation 0.95 deg
-    found'), or 'not settled 0.62+-0.16 deg' / 'not checked' (README, IMU time offset and
-    LiDAR-IMU rotation); '' with the checks off."""
+    found'), or 'not settled 0.62+-0.16 deg' / 'not checked' (README, IMU time offset,
+    LiDAR-IMU rotation, LiDAR-IMU lever arm); '' with the checks off."""
     parts = []
     for name, found, left, unsettled, show in (
             ("offset", getattr(res, "time_offset_found", None),

@@ -137,17 +137,19 @@ class Estimate:
 
 @dataclass
 class UnsettledCheck:
-    """A sensor check (the IMU time offset's, the LiDAR-IMU rotation's) that closed without a
-    conclusion: its last estimate was neither precise enough to call the value right nor
-    significant at a usable precision (``Odometry.time_offset_unsettled``,
-    ``Odometry.extrinsic_rotation_unsettled``). The configured value was used as given."""
+    """A sensor check (the IMU time offset's, the LiDAR-IMU rotation's, the lever arm's) that
+    closed without a conclusion: its last estimate was neither precise enough to call the value
+    right nor significant at a usable precision (``Odometry.time_offset_unsettled``,
+    ``.extrinsic_rotation_unsettled``, ``.extrinsic_translation_unsettled``). The configured
+    value was used as it is."""
 
     span_s: float
     """Time between the first and the last update the check saw (s)."""
     estimate: Any = None
     """Its last estimate (:class:`adalio.lio.time_offset.TimeOffsetEstimate`,
-    :class:`adalio.lio.extrinsic_check.RotationEstimate`), or None: too few updates, or (the
-    rotation) too little rotation about two axes to tell an axis."""
+    :class:`adalio.lio.extrinsic_check.RotationEstimate`,
+    :class:`adalio.lio.lever_arm.TranslationEstimate`), or None: too few updates, or too little
+    rotation (or change of it) to estimate anything."""
     gave_up: bool = False
     """True: it stopped at the check's longest span (``time_offset.MAX_SPAN_S``); False: the
     recording ended first."""
