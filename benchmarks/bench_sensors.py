@@ -40,7 +40,7 @@ angle about an axis drawn from the seed: the column after gives the rotation ``r
 (passes), what the final run's check left, and the final extrinsic's error. With
 ``--extrinsic-translation-errors-cm`` the configs' lever arm is that far off, along a direction
 drawn from the seed: the last column gives what the translation check concluded (``found``:
-significant, warned; ``settled``: precise and not significant) and how far the configured lever
+significant, flagged in the run's summary; ``settled``: precise and not significant) and how far the configured lever
 arm plus the correction it found is from the simulated one (the injected error where it found
 none).
 
@@ -193,9 +193,10 @@ class Cell:
     """What the translation check concluded ('found (+1.4, -2.1, +0.7) cm (+-0.3)', 'settled
     ...', 'unsettled 60 s ...', '–' off)."""
     translation_found: bool = False
+    """The check flagged a significant correction (cells.json; the text says 'found')."""
     translation_left_cm: float = float("nan")
-    """How far the configured lever arm, plus the correction where the check found one (and
-    warned), is from the simulated one."""
+    """How far the configured lever arm, plus the correction where the check found (flagged)
+    one, is from the simulated one."""
     """Which IMU white-noise densities the filter used (``InitReport.noise_used``)."""
 
     @property
@@ -277,7 +278,7 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     if tr is not None:
         cell.translation_found = bool(tr.significant)
         cell.translation_text = f"{'found' if tr.significant else 'settled'} {tr.text()}"
-        if tr.significant:  # the correction the warning gives
+        if tr.significant:  # the correction the summary's line gives
             t_cfg = t_cfg + tr.horizontal_m
     elif res.extrinsic_translation_unsettled is not None:
         est = res.extrinsic_translation_unsettled.estimate
