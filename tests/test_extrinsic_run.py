@@ -86,6 +86,10 @@ def test_run_bag_finds_the_rotation_and_restarts_with_it(tmp_path, walk, right_a
     saved = load_config(config_file=res.config_path)  # a re-run from config.yaml starts right
     np.testing.assert_allclose(saved.T_imu_lidar(), found.T_imu_lidar, atol=1e-9)
     assert saved.sensor.extrinsic_source == "config"
+    # the corrected rotation is known as well as the estimate that found it, not better than
+    # the configured one: the restarted run's sigmas carry that
+    assert saved.sensor.extrinsic_rotation_sigma_deg >= max(
+        cfg.sensor.extrinsic_rotation_sigma_deg, np.degrees(found.sigma_rad) - 1e-3) > 0.0
     measured = yaml.safe_load(res.config_path.read_text())["measured"]
     if "extrinsic_rotation_left_deg" in measured:  # what the final run's check left
         assert np.linalg.norm(measured["extrinsic_rotation_left_deg"]) < 0.3, measured

@@ -79,6 +79,15 @@ class SensorConfig:
     the gyro turns about against those the LiDAR alone registers (:mod:`adalio.lio.
     extrinsic_check`); ``adalio run`` then finds the rotation left and restarts with the
     corrected extrinsic when it matters."""
+    extrinsic_rotation_sigma_deg: float = 0.1
+    """How well ``T_imu_lidar``'s rotation is known (degrees, one standard deviation about each
+    axis). The filter uses the rotation as exact, so an error in it turns the whole map about
+    the first pose (the rows register against a map built through the same rotation) and no
+    update can see that: the reported sigmas add it (:mod:`adalio.lio.extrinsic_sigma`),
+    narrowed by what the rotation check estimates. 0.1 is a calibrated rig; a rotation read off
+    a drawing is good to about 0.5; 0 reports the filter's sigmas alone. After a restart with a
+    found rotation, the restarted run's ``config.yaml`` holds the correction's own deviation
+    here (at least this value)."""
     extrinsic_translation_check: bool = True
     """Check the translation of ``T_imu_lidar`` (the lever arm) against the data over the same
     updates: the accelerometer against the motion the LiDAR alone registers through it
@@ -570,6 +579,7 @@ RANGES: dict[str, Range] = {
     "sensor.imu_rate_hz": POSITIVE,
     "sensor.lidar_rate_hz": POSITIVE,
     "sensor.imu_time_offset_s": Range(-1.0, 1.0),
+    "sensor.extrinsic_rotation_sigma_deg": Range(0.0, 10.0),
     "preprocess.blind_m": NON_NEGATIVE,
     "preprocess.max_range_m": POSITIVE,
     "preprocess.point_filter_num": AT_LEAST_ONE,

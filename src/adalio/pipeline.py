@@ -73,6 +73,9 @@ class RotationCalibration:
     """(correction tried, rotation left) rotation vectors (rad) of each pass."""
     n_scans: int
     """Scans each pass read (the first run's, up to the check's conclusion)."""
+    sigma_rad: float = 0.0
+    """The first run's estimate's largest standard deviation (rad): how well the correction
+    is known; the restarted run's ``sensor.extrinsic_rotation_sigma_deg`` is at least this."""
 
     @property
     def angle_deg(self) -> float:
@@ -117,6 +120,11 @@ class RunResult:
     """(start, end) seconds of consecutive scans whose largest position standard deviation
     (scans.csv sigma_x/y/z_m) exceeds ``sigma_warn_m``."""
     n_sigma_warn: int = 0
+    sigma_warn_extrinsic_m: float = 0.0
+    """Over the scans beyond ``sigma_warn_m``, the largest position standard deviation (m)
+    that the LiDAR-IMU rotation's own uncertainty alone gives them
+    (``sensor.extrinsic_rotation_sigma_deg``): how much of the warning a better known rotation
+    would take away."""
     lidar_gaps: list[tuple[float, float, float]] = field(default_factory=list)
     """(start s since the first estimated scan, missing time s, the largest position sigma
     predicted at the scan after it, m) of each LiDAR gap (``Odometry.lidar_gaps``; scans.csv
@@ -407,6 +415,9 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
     if found_rot is not None:
         cfg.sensor.T_imu_lidar = found_rot.T_imu_lidar.tolist()
         cfg.sensor.extrinsic_source = "config"
+        cfg.sensor.extrinsic_rotation_sigma_deg = max(
+            cfg.sensor.extrinsic_rotation_sigma_deg,
+            round(float(np.degrees(found_rot.sigma_rad)), 3))
         warnings.warn(f"the LiDAR-IMU rotation disagrees with the data: the gyro turns about "
                       f"axes {found_rot.angle_deg:.2f} deg away from those the LiDAR alone "
                       f"registers (found over the first {found_rot.n_scans} scans in "
@@ -524,7 +535,7 @@ def _find_rotation(bag_path: str | Path, cfg: Config, n_scans: int, start_s: flo
     :func:`adalio.lio.extrinsic_check.next_rotation`); None if no pass estimated one. The
     value as :func:`_find_time_offset`'s: one more step from the pass that left the least, if
     it was the last, else that pass's correction."""
-    from adalio.lio.extrinsic_check import MAX_PASSES, next_rotation
+    from adalio.lio.extrinsic_check import MAX_PASSES, largest_sigma, next_rotation
 
     T0 = np.asarray(cfg.sensor.T_imu_lidar, dtype=np.float64)
     tried: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros(3), detected.rotvec_rad)]
@@ -559,7 +570,7 @@ def _find_rotation(bag_path: str | Path, cfg: Config, n_scans: int, start_s: flo
     return RotationCalibration(correction_rad=best, T_imu_lidar=corrected(best),
                                detected_rad=detected.rotvec_rad,
                                residual_rad=float(np.linalg.norm(residual)), passes=passes,
-                               n_scans=n_scans)
+                               n_scans=n_scans, sigma_rad=largest_sigma(detected.cov_rad2))
 
 
 def _sequencer(bag: Bag, lidar_topic: str, imu_topic: str, cfg: Config,
@@ -635,11 +646,12 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         held: list[bool] = []
         risky: list[bool] = []
         blind: list[bool] = []
+        risky_extrinsic_m = 0.0
         late = False
         """A backfilled row was written after later ones: the files are sorted at the end."""
 
         def write(e: Estimate, ms: float) -> None:
-            nonlocal late
+            nonlocal late, risky_extrinsic_m
             late = late or bool(est_t and int(e.t_ns) < est_t[-1])
             tum.write(e.t_ns, e.T_world_imu)
             stats = e.stats
@@ -653,6 +665,8 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
             degen.append(bool(stats.degenerate))
             held.append(stats.held_directions > 0)
             risky.append(bool(np.nanmax(stats.sigma_p_world_m) > sigma_warn_m))
+            if risky[-1]:
+                risky_extrinsic_m = max(risky_extrinsic_m, float(stats.sigma_extrinsic_m))
             blind.append(bool(stats.height_blind))
             if on_estimate is not None:
                 on_estimate(e)
@@ -734,7 +748,8 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         time_spec=seq.decoder.time_spec.describe() if seq.decoder.time_spec else "",
         sequencer=seq.stats, n_scans_in=n_in, init_report=odom.init_report,
         sigma_warn_m=sigma_warn_m, sigma_warn_ranges_s=_flag_ranges(est_t, risky),
-        n_sigma_warn=int(sum(risky)), n_height_blind=int(sum(blind)),
+        n_sigma_warn=int(sum(risky)), sigma_warn_extrinsic_m=risky_extrinsic_m,
+        n_height_blind=int(sum(blind)),
         height_blind_ranges_s=_flag_ranges(est_t, blind), compiled=compiled,
         lidar_gaps=[((t - est_t[0]) * 1e-9, gap_s, sigma_m)
                     for t, gap_s, sigma_m in odom.lidar_gaps] if est_t else [],

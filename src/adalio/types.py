@@ -109,6 +109,10 @@ class ScanStats:
     sigma_rot_world_deg: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
     """Standard deviations of small rotations about the world x, y, z axes (deg): roll, pitch
     and yaw of a level sensor (yaw exactly)."""
+    sigma_extrinsic_m: float = 0.0
+    """Of ``sigma_p_world_m``, the largest position standard deviation (m) the LiDAR-IMU
+    rotation's own uncertainty alone gives (``sensor.extrinsic_rotation_sigma_deg``;
+    :mod:`adalio.lio.extrinsic_sigma`)."""
     backfill: bool = False
     """The pose comes from the backfill (the filter run backwards from the initialization over
     the scans read before it), stamped at the scan's start rather than its end."""

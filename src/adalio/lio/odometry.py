@@ -64,6 +64,7 @@ from adalio.lio.degeneracy import (
     weak_directions,
 )
 from adalio.lio.extrinsic_check import RotationEstimate, estimate_rotation
+from adalio.lio.extrinsic_sigma import extrinsic_rotation_covariance, rotation_second_moment
 from adalio.lio.ieskf import (
     UpdateResult,
     _reprojection,
@@ -509,6 +510,9 @@ class Odometry:
         arm")."""
         self.extrinsic_translation_unsettled: UnsettledCheck | None = None
         """The translation check closed without a conclusion."""
+        self._rotation_latest: RotationEstimate | None = None
+        """The rotation check's latest estimate (concluded or not): it narrows the extrinsic
+        rotation's share of the reported sigmas (:meth:`_extrinsic_covariance`)."""
         self._provenance = MapProvenance(config.filter.map_provenance_cell_m)
         self._W_map = np.zeros((6, 6))
         """World covariance the latest scan inherited from the map (filter.map_uncertainty)."""
@@ -724,9 +728,12 @@ class Odometry:
             self._finest_cell_m = min(self._finest_cell_m, cell_m)
         if cfg.filter.map_uncertainty and loc is not None:
             self._W_map = self._provenance.map_covariance(s.p, assoc.nearest[assoc.selected])
-        W_world = self._world_covariance()
+        W_world = self._world_covariance(extrinsic=False)
         if cfg.filter.map_uncertainty:
             self._provenance.add_scan(s.p, W_world, p_world if inserted else p_world[:0])
+        W_ext = self._extrinsic_covariance()
+        W_world = W_world + W_ext
+        stats.sigma_extrinsic_m = float(np.sqrt(max(np.max(np.diag(W_ext)[:3]), 0.0)))
         t0 = _timer(stage_ms, "map", t0)
 
         stats.n_down, stats.n_down_general = int(down.shape[0]), int(down_general.shape[0])
@@ -1208,6 +1215,8 @@ class Odometry:
                 self._conclude_time_offset(est, span)
         if self._rotation_open:
             rot = self._rotation_from(data, span)
+            if rot is not None:
+                self._rotation_latest = rot
             if (rot is not None and rot.conclusive) or span >= MAX_SPAN_S:
                 # unsettled at MAX_SPAN_S: too little rotation about two axes, or noise
                 self._conclude_rotation(rot, span)
@@ -1584,18 +1593,36 @@ class Odometry:
                 q *= period_s if np.isfinite(period_s) else 1.0 / self.cfg.sensor.imu_rate_hz
         return deskew_covariance(q, self._span_s)
 
-    def _world_covariance(self) -> np.ndarray:
+    def _world_covariance(self, extrinsic: bool = True) -> np.ndarray:
         """6x6 world covariance of the pose: the filter's (or, with
         ``filter.sigmas_discount_normal_noise``, the one behind the reported sigmas), combined
         with the map's if ``filter.map_uncertainty`` (``map_uncertainty.world_covariance``),
         plus the scan's undistortion rotation (``filter.sigmas_deskew_noise``) outside that
         combination: the gyro noise of this sweep is independent of the map's error and of the
-        registration's bias, which the combination's bound is for."""
+        registration's bias, which the combination's bound is for; and, with ``extrinsic``,
+        the extrinsic rotation's (:meth:`_extrinsic_covariance`), which the map's provenance
+        must not carry (it is the same error for every scan)."""
         W = pose_covariance_world(self._state.R, self._sigmas_P)
         f = self.cfg.filter
         if f.map_uncertainty:
             W = world_covariance(W, self._W_map, f.map_error_correlated)
-        return W + self._deskew_covariance()
+        W = W + self._deskew_covariance()
+        return W + self._extrinsic_covariance() if extrinsic else W
+
+    def _extrinsic_covariance(self) -> np.ndarray:
+        """The world covariance an error of ``T_imu_lidar``'s rotation puts into the pose
+        against the first one (:mod:`adalio.lio.extrinsic_sigma`): ``sensor.
+        extrinsic_rotation_sigma_deg`` as the prior, narrowed by the rotation check's latest
+        estimate. Zero before the first pose and with the prior at 0."""
+        anchor = self._anchor_state
+        sigma_rad = np.radians(self.cfg.sensor.extrinsic_rotation_sigma_deg)
+        if anchor is None or not sigma_rad > 0:
+            return np.zeros((6, 6))
+        est = self._rotation_latest
+        M = (rotation_second_moment(sigma_rad) if est is None else
+             rotation_second_moment(sigma_rad, est.rotvec_rad, est.cov_rad2))
+        s = self._state
+        return extrinsic_rotation_covariance(M, anchor.R, s.R, s.p - anchor.p)
 
     def _emit(self, stats: ScanStats, stage_ms: dict[str, float], t_start: float,
               p_world: np.ndarray, W_world: np.ndarray | None = None) -> Estimate:

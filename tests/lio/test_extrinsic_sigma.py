@@ -1,0 +1,81 @@
+"""The extrinsic rotation's share of the reported sigmas against brute force: poses composed
+exactly through a turned map (Monte Carlo), and the Bayesian posterior in its other form."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from adalio.lio.extrinsic_sigma import extrinsic_rotation_covariance, rotation_second_moment
+
+
+def _poses(rng, n):
+    R = Rotation.random(n, random_state=rng).as_matrix()
+    p = rng.uniform(-20.0, 20.0, size=(n, 3))
+    return R, p
+
+
+def test_the_covariance_is_that_of_poses_through_a_turned_map():
+    """Draw the extrinsic's error, turn the map about the first pose by R0 theta and compose
+    each pose exactly (the LiDAR's pose follows the map, the IMU's is it through the used
+    rotation); the errors' covariance is G M G^T to Monte Carlo precision."""
+    rng = np.random.default_rng(0)
+    R_all, p_all = _poses(rng, 4)
+    R0, p0 = R_all[0], p_all[0]
+    sigma = np.radians([0.3, 0.1, 0.2])
+    A = Rotation.random(random_state=1).as_matrix()
+    M = A @ np.diag(sigma**2) @ A.T
+    thetas = rng.multivariate_normal(np.zeros(3), M, size=20000)
+    for R, p in zip(R_all[1:], p_all[1:], strict=True):
+        errs = np.empty((len(thetas), 6))
+        for i, th in enumerate(thetas):
+            turn = Rotation.from_rotvec(R0 @ th).as_matrix()  # the map turned about p0
+            p_est = p0 + turn @ (p - p0)
+            R_est = turn @ R @ Rotation.from_rotvec(-th).as_matrix()
+            errs[i, :3] = p_est - p
+            errs[i, 3:] = Rotation.from_matrix(R_est @ R.T).as_rotvec()
+        W = extrinsic_rotation_covariance(M, R0, R, p - p0)
+        emp = np.cov(errs.T)
+        scale = np.sqrt(np.outer(np.diag(W), np.diag(W)))
+        assert np.max(np.abs(emp - W) / scale) < 0.05, (emp, W)
+
+
+def test_the_first_pose_has_none():
+    R = Rotation.random(random_state=2).as_matrix()
+    W = extrinsic_rotation_covariance(np.eye(3) * 1e-4, R, R, np.zeros(3))
+    assert np.allclose(W, 0.0)
+
+
+def test_the_second_moment_is_the_posterior_variance_plus_its_mean_squared():
+    rng = np.random.default_rng(3)
+    s = np.radians(0.1)
+    B = rng.normal(size=(3, 3))
+    C = B @ B.T * np.radians(0.08) ** 2
+    e = np.radians([0.2, -0.1, 0.05])
+    M = rotation_second_moment(s, e, C)
+    P = np.eye(3) * s**2  # the gain form of the same posterior
+    K = P @ np.linalg.inv(P + C)
+    m = K @ e
+    V = P - K @ P
+    np.testing.assert_allclose(M, V + np.outer(m, m), atol=1e-14)
+    # by sampling: the prior's thetas, weighted by the estimate's likelihood
+    th = rng.normal(scale=s, size=(400000, 3))
+    r = e - th
+    w = np.exp(-0.5 * np.einsum("ni,ij,nj->n", r, np.linalg.inv(C), r))
+    w /= w.sum()
+    np.testing.assert_allclose(np.einsum("n,ni,nj->ij", w, th, th), M, rtol=0.05,
+                               atol=0.02 * s**2)
+
+
+def test_an_axis_the_check_cannot_see_keeps_the_prior():
+    s = np.radians(0.2)
+    # a singular covariance: the check saw nothing about z (no information, not certainty)
+    info = np.diag([1.0 / np.radians(0.05) ** 2] * 2 + [0.0])
+    M = rotation_second_moment(s, np.zeros(3), np.linalg.pinv(info))
+    assert np.isclose(M[2, 2], s**2) and M[0, 0] < 0.1 * s**2
+
+
+def test_no_estimate_is_the_prior_and_zero_is_exact():
+    s = np.radians(0.1)
+    np.testing.assert_allclose(rotation_second_moment(s), np.eye(3) * s**2)
+    assert not rotation_second_moment(0.0, np.ones(3), np.eye(3)).any()
