@@ -6,7 +6,11 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from adalio.lio.extrinsic_sigma import extrinsic_rotation_covariance, rotation_second_moment
+from adalio.lio.extrinsic_sigma import (
+    extrinsic_rotation_covariance,
+    prior_scale,
+    rotation_second_moment,
+)
 
 
 def _poses(rng, n):
@@ -53,26 +57,50 @@ def test_the_second_moment_is_the_posterior_variance_plus_its_mean_squared():
     C = B @ B.T * np.radians(0.08) ** 2
     e = np.radians([0.2, -0.1, 0.05])
     M = rotation_second_moment(s, e, C)
-    P = np.eye(3) * s**2  # the gain form of the same posterior
+    P = np.eye(3) * s**2 * prior_scale(s**2, e, C)  # the gain form of the same posterior
     K = P @ np.linalg.inv(P + C)
     m = K @ e
     V = P - K @ P
     np.testing.assert_allclose(M, V + np.outer(m, m), atol=1e-14)
     # by sampling: the prior's thetas, weighted by the estimate's likelihood
-    th = rng.normal(scale=s, size=(400000, 3))
+    th = rng.normal(scale=np.sqrt(P[0, 0]), size=(400000, 3))
     r = e - th
     w = np.exp(-0.5 * np.einsum("ni,ij,nj->n", r, np.linalg.inv(C), r))
     w /= w.sum()
     np.testing.assert_allclose(np.einsum("n,ni,nj->ij", w, th, th), M, rtol=0.05,
-                               atol=0.02 * s**2)
+                               atol=0.02 * P[0, 0])
+
+
+def test_the_prior_is_widened_to_what_makes_the_estimate_most_likely():
+    s2 = np.radians(0.1) ** 2
+    rng = np.random.default_rng(4)
+    B = rng.normal(size=(3, 3))
+    C = B @ B.T * np.radians(0.1) ** 2
+    grid = np.exp(np.linspace(0.0, np.log(1e4), 20001))
+    for e_deg in ([0.05, 0.0, 0.02], [1.0, 0.2, -0.3], [0.0, 0.6, 0.0]):
+        e = np.radians(e_deg)
+
+        def nll(scale, e=e):
+            S = scale * s2 * np.eye(3) + C
+            return np.linalg.slogdet(S)[1] + e @ np.linalg.solve(S, e)
+
+        brute = grid[np.argmin([nll(g) for g in grid])]
+        assert np.isclose(prior_scale(s2, e, C), brute, rtol=2e-3), (e_deg, brute)
+    # a rotation 1 deg off in a config that claims 0.1: the second moment reaches the estimate
+    e = np.radians([1.0, 0.0, 0.0])
+    C = np.diag(np.radians([0.15, 0.5, 0.5]) ** 2)
+    M = rotation_second_moment(np.radians(0.1), e, C)
+    assert np.sqrt(M[0, 0]) > np.radians(0.9)
+    # one within the claim leaves the prior as it is
+    assert prior_scale(s2, np.radians([0.05, 0.0, 0.0]), C) == 1.0
 
 
 def test_an_axis_the_check_cannot_see_keeps_the_prior():
     s = np.radians(0.2)
-    # a singular covariance: the check saw nothing about z (no information, not certainty)
-    info = np.diag([1.0 / np.radians(0.05) ** 2] * 2 + [0.0])
-    M = rotation_second_moment(s, np.zeros(3), np.linalg.pinv(info))
-    assert np.isclose(M[2, 2], s**2) and M[0, 0] < 0.1 * s**2
+    for blind in (1e6, 0.0):  # a huge variance, or a degenerate one: no information either way
+        C = np.diag([np.radians(0.05) ** 2, np.radians(0.05) ** 2, blind])
+        M = rotation_second_moment(s, np.zeros(3), C)
+        assert np.isclose(M[2, 2], s**2, rtol=1e-6) and M[0, 0] < 0.1 * s**2
 
 
 def test_no_estimate_is_the_prior_and_zero_is_exact():

@@ -10,41 +10,78 @@ pose, a pose at ``p`` with attitude ``R`` is off by
     δp = φ × (p - p₀) = -[p - p₀]× R₀ θ,       δφ = φ - R θ = (R₀ - R) θ
 
 (world frame; measured on the simulator's walks with 0.3° off: this explains the errors after
-aligning the first pose to within 0.3-0.9 cm in the hall and the corridor, where the sigmas
-without it held 8-33 % of the scans along one axis; README, *LiDAR-IMU rotation*). No update
+aligning the first pose to within 0.1-0.6 cm rms per axis in the hall and 0.5-2.4 cm in the
+corridor, where they reach 7.6 and 27 cm and the sigmas without it held 8-33 % of the scans
+along one axis; README, Outputs, *Uncertainty*). No update
 sees it: the map moves with it. So the reported world covariance adds ``G M Gᵀ`` with
 ``G = [-[p - p₀]× R₀; R₀ - R]`` and ``M`` the second moment of ``θ``: the prior
 ``σ² I`` of ``sensor.extrinsic_rotation_sigma_deg``, or, once the rotation check has an
 estimate ``e`` of covariance ``C``, the posterior's ``V + m mᵀ`` with
 ``V = (I/σ² + C⁻¹)⁻¹``, ``m = V C⁻¹ e`` (the filter still uses ``θ = 0``, so its error is the
 whole ``θ``, whose mean square given the estimate is the posterior's variance plus its mean
-squared). The error is the same for every scan (a systematic one), so it is added to the
-reported covariance only, outside the map's provenance (``map_uncertainty``), which would
-count it again through every map extension. The trajectory is unchanged.
+squared). Where the estimate contradicts the prior (a config that claims 0.1° for a rotation
+1° off), the prior's variance is first widened to what makes the estimate most likely
+(:func:`prior_scale`), so a wrong claim cannot shrink what the data show. The error is the
+same for every scan (a systematic one), so it is added to the reported covariance only,
+outside the map's provenance (``map_uncertainty``), which would count it again through every
+map extension. The trajectory is unchanged.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.optimize import minimize_scalar
+
+MAX_PRIOR_SCALE = 1e4
+"""The prior's variance is widened at most this much (100 times its deviation) where the check's
+estimate contradicts it (:func:`prior_scale`)."""
+
+
+def prior_scale(prior_var_rad2: float, estimate_rad: np.ndarray,
+                estimate_cov_rad2: np.ndarray) -> float:
+    """The factor ``s ≥ 1`` on the prior's variance that makes the check's estimate most likely
+    (type-II maximum likelihood: ``e ~ N(0, s σ² I + C)``): 1 while the estimate is within what
+    the prior allows, and about ``(|e|² - c²) / σ²`` along the estimate where it lies beyond (a
+    rotation 1° off in a config that claims 0.1°: the configured deviation is contradicted by
+    the data, so it is not allowed to shrink the estimate to a tenth). Directions the check
+    holds no information about (a deviation that is not finite and positive) are left out."""
+    w, U = np.linalg.eigh(0.5 * (estimate_cov_rad2 + estimate_cov_rad2.T))
+    z2 = (U.T @ estimate_rad) ** 2
+    seen = np.isfinite(w) & (w > 0.0)
+    w, z2 = w[seen], z2[seen]
+    if not w.size or not np.all(np.isfinite(z2)):
+        return 1.0
+
+    def nll(log_s: float) -> float:
+        v = np.exp(log_s) * prior_var_rad2 + w
+        return float(np.sum(np.log(v) + z2 / v))
+
+    res = minimize_scalar(nll, bounds=(0.0, np.log(MAX_PRIOR_SCALE)), method="bounded",
+                          options={"xatol": 1e-4})
+    best = float(res.x) if nll(float(res.x)) < nll(0.0) else 0.0
+    return float(np.exp(best))
 
 
 def rotation_second_moment(prior_sigma_rad: float, estimate_rad: np.ndarray | None = None,
                            estimate_cov_rad2: np.ndarray | None = None) -> np.ndarray:
     """(3,3) ``E[θ θᵀ]`` of the extrinsic's rotation error (rad²): ``σ² I`` with no estimate,
     else the posterior's ``V + m mᵀ`` given the check's estimate ``estimate_rad`` of covariance
-    ``estimate_cov_rad2`` (module doc). Zero when the prior is zero (the rotation taken as
-    exact)."""
+    ``estimate_cov_rad2`` (module doc), the prior widened by :func:`prior_scale` where the
+    estimate contradicts it. Directions whose deviation is not finite and positive hold no
+    information. Zero when the prior is zero (the rotation taken as exact)."""
     if not prior_sigma_rad > 0:
         return np.zeros((3, 3))
-    prior_info = np.eye(3) / prior_sigma_rad**2
     if estimate_rad is None or estimate_cov_rad2 is None:
         return np.eye(3) * prior_sigma_rad**2
-    C = 0.5 * (np.asarray(estimate_cov_rad2, float) + np.asarray(estimate_cov_rad2, float).T)
+    C = np.asarray(estimate_cov_rad2, dtype=np.float64)
     e = np.asarray(estimate_rad, dtype=np.float64).reshape(3)
     if not (np.all(np.isfinite(C)) and np.all(np.isfinite(e))):
         return np.eye(3) * prior_sigma_rad**2
-    info = np.linalg.pinv(C, hermitian=True)  # a direction the check cannot see: no information
-    V = np.linalg.inv(prior_info + info)
+    w, U = np.linalg.eigh(0.5 * (C + C.T))
+    held = w > 0.0
+    info = (U[:, held] / w[held]) @ U[:, held].T
+    prior_var = prior_sigma_rad**2 * prior_scale(prior_sigma_rad**2, e, C)
+    V = np.linalg.inv(np.eye(3) / prior_var + info)
     m = V @ info @ e
     M = V + np.outer(m, m)
     return 0.5 * (M + M.T)
@@ -63,4 +100,4 @@ def extrinsic_rotation_covariance(M_rad2: np.ndarray, R_anchor: np.ndarray, R: n
     return 0.5 * (W + W.T)
 
 
-__all__ = ["extrinsic_rotation_covariance", "rotation_second_moment"]
+__all__ = ["extrinsic_rotation_covariance", "prior_scale", "rotation_second_moment"]
