@@ -73,5 +73,5 @@ def test_the_at_risk_line_says_how_much_is_the_rotations(tmp_path, walk):
                                    "--out", str(tmp_path / "o"), "--no-progress"])
     assert res.exit_code == 0, res.output
     risk = [ln for ln in res.output.splitlines() if ln.startswith("at risk: position sigma")]
-    assert len(risk) == 1 and "the LiDAR-IMU rotation's own uncertainty gives up to" in risk[0] \
+    assert len(risk) == 1 and "the LiDAR-IMU extrinsic's own uncertainty gives up to" in risk[0] \
         and "sensor.extrinsic_rotation_sigma_deg" in risk[0], res.output

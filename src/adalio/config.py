@@ -88,6 +88,12 @@ class SensorConfig:
     a drawing is good to about 0.5; 0 reports the filter's sigmas alone. After a restart with a
     found rotation, the restarted run's ``config.yaml`` holds the correction's own deviation
     here (at least this value)."""
+    extrinsic_translation_sigma_m: float = 0.01
+    """How well ``T_imu_lidar``'s translation (the lever arm) is known (metres, one standard
+    deviation along each axis): the reported sigmas add what an error of it does, a position
+    error ``(R₀ - R) δ`` that changes as the rig turns (:mod:`adalio.lio.extrinsic_sigma`),
+    narrowed across the rig's vertical by what the lever arm check estimates. 0.01 is a
+    calibrated rig's or a careful tape measure's; 0 leaves it out."""
     extrinsic_translation_check: bool = True
     """Check the translation of ``T_imu_lidar`` (the lever arm) against the data over the same
     updates: the accelerometer against the motion the LiDAR alone registers through it
@@ -580,6 +586,7 @@ RANGES: dict[str, Range] = {
     "sensor.lidar_rate_hz": POSITIVE,
     "sensor.imu_time_offset_s": Range(-1.0, 1.0),
     "sensor.extrinsic_rotation_sigma_deg": Range(0.0, 10.0),
+    "sensor.extrinsic_translation_sigma_m": Range(0.0, 1.0),
     "preprocess.blind_m": NON_NEGATIVE,
     "preprocess.max_range_m": POSITIVE,
     "preprocess.point_filter_num": AT_LEAST_ONE,

@@ -122,9 +122,9 @@ class RunResult:
     n_sigma_warn: int = 0
     sigma_warn_extrinsic_m: float = 0.0
     """Over the scans beyond ``sigma_warn_m``, the largest position standard deviation (m)
-    that the LiDAR-IMU rotation's own uncertainty alone gives them
-    (``sensor.extrinsic_rotation_sigma_deg``): how much of the warning a better known rotation
-    would take away."""
+    that the LiDAR-IMU extrinsic's own uncertainty alone gives them
+    (``sensor.extrinsic_rotation_sigma_deg``, ``sensor.extrinsic_translation_sigma_m``): how
+    much of the warning a better known extrinsic would take away."""
     lidar_gaps: list[tuple[float, float, float]] = field(default_factory=list)
     """(start s since the first estimated scan, missing time s, the largest position sigma
     predicted at the scan after it, m) of each LiDAR gap (``Odometry.lidar_gaps``; scans.csv

@@ -111,8 +111,8 @@ class ScanStats:
     and yaw of a level sensor (yaw exactly)."""
     sigma_extrinsic_m: float = 0.0
     """Of ``sigma_p_world_m``, the largest position standard deviation (m) the LiDAR-IMU
-    rotation's own uncertainty alone gives (``sensor.extrinsic_rotation_sigma_deg``;
-    :mod:`adalio.lio.extrinsic_sigma`)."""
+    extrinsic's own uncertainty alone gives (``sensor.extrinsic_rotation_sigma_deg``,
+    ``sensor.extrinsic_translation_sigma_m``; :mod:`adalio.lio.extrinsic_sigma`)."""
     backfill: bool = False
     """The pose comes from the backfill (the filter run backwards from the initialization over
     the scans read before it), stamped at the scan's start rather than its end."""

@@ -7,9 +7,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from adalio.lio.extrinsic_sigma import (
+    error_second_moment,
     extrinsic_rotation_covariance,
+    extrinsic_translation_covariance,
     prior_scale,
-    rotation_second_moment,
 )
 
 
@@ -44,6 +45,26 @@ def test_the_covariance_is_that_of_poses_through_a_turned_map():
         assert np.max(np.abs(emp - W) / scale) < 0.05, (emp, W)
 
 
+def test_the_translation_covariance_is_that_of_poses_through_a_shifted_map():
+    """A lever arm off by delta: the first scan's points land shifted by R0 delta, the LiDAR's
+    later positions follow that map, and the IMU's are the LiDAR's less the used lever arm
+    turned by the attitude; their errors' covariance is G M G^T, exactly (it is linear)."""
+    rng = np.random.default_rng(5)
+    R_all, p_all = _poses(rng, 4)
+    R0 = R_all[0]
+    t_true = np.array([-0.01, -0.0085, 0.055])
+    M = np.diag([0.02, 0.01, 0.005]) ** 2
+    deltas = rng.multivariate_normal(np.zeros(3), M, size=20000)
+    for R, p in zip(R_all[1:], p_all[1:], strict=True):
+        lidar_true = p + R @ t_true
+        lidar_est = lidar_true + deltas @ R0.T  # the map, and the LiDAR on it, shifted by R0 delta
+        imu_est = lidar_est - (t_true + deltas) @ R.T
+        W = extrinsic_translation_covariance(M, R0, R)
+        np.testing.assert_allclose(np.cov((imu_est - p).T), W[:3, :3],
+                                   atol=0.05 * np.max(np.diag(W[:3, :3])))
+        assert not W[3:].any()
+
+
 def test_the_first_pose_has_none():
     R = Rotation.random(random_state=2).as_matrix()
     W = extrinsic_rotation_covariance(np.eye(3) * 1e-4, R, R, np.zeros(3))
@@ -56,7 +77,7 @@ def test_the_second_moment_is_the_posterior_variance_plus_its_mean_squared():
     B = rng.normal(size=(3, 3))
     C = B @ B.T * np.radians(0.08) ** 2
     e = np.radians([0.2, -0.1, 0.05])
-    M = rotation_second_moment(s, e, C)
+    M = error_second_moment(s, e, C)
     P = np.eye(3) * s**2 * prior_scale(s**2, e, C)  # the gain form of the same posterior
     K = P @ np.linalg.inv(P + C)
     m = K @ e
@@ -89,7 +110,7 @@ def test_the_prior_is_widened_to_what_makes_the_estimate_most_likely():
     # a rotation 1 deg off in a config that claims 0.1: the second moment reaches the estimate
     e = np.radians([1.0, 0.0, 0.0])
     C = np.diag(np.radians([0.15, 0.5, 0.5]) ** 2)
-    M = rotation_second_moment(np.radians(0.1), e, C)
+    M = error_second_moment(np.radians(0.1), e, C)
     assert np.sqrt(M[0, 0]) > np.radians(0.9)
     # one within the claim leaves the prior as it is
     assert prior_scale(s2, np.radians([0.05, 0.0, 0.0]), C) == 1.0
@@ -99,11 +120,11 @@ def test_an_axis_the_check_cannot_see_keeps_the_prior():
     s = np.radians(0.2)
     for blind in (1e6, 0.0):  # a huge variance, or a degenerate one: no information either way
         C = np.diag([np.radians(0.05) ** 2, np.radians(0.05) ** 2, blind])
-        M = rotation_second_moment(s, np.zeros(3), C)
+        M = error_second_moment(s, np.zeros(3), C)
         assert np.isclose(M[2, 2], s**2, rtol=1e-6) and M[0, 0] < 0.1 * s**2
 
 
 def test_no_estimate_is_the_prior_and_zero_is_exact():
     s = np.radians(0.1)
-    np.testing.assert_allclose(rotation_second_moment(s), np.eye(3) * s**2)
-    assert not rotation_second_moment(0.0, np.ones(3), np.eye(3)).any()
+    np.testing.assert_allclose(error_second_moment(s), np.eye(3) * s**2)
+    assert not error_second_moment(0.0, np.ones(3), np.eye(3)).any()

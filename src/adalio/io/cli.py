@@ -418,8 +418,9 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
         con.print(f"[yellow]at risk:[/] position sigma above {res.sigma_warn_m:g} m (scans.csv "
                   f"sigma_x/y/z_m) in {res.n_sigma_warn}/{res.n_scans} scans at "
                   f"{_ranges_text(res.sigma_warn_ranges_s)}"
-                  + (f"; the LiDAR-IMU rotation's own uncertainty gives up to {ext_m:.2g} m of "
-                     "it (sensor.extrinsic_rotation_sigma_deg: how well you know it)"
+                  + (f"; the LiDAR-IMU extrinsic's own uncertainty gives up to {ext_m:.2g} m of "
+                     "it (sensor.extrinsic_rotation_sigma_deg, extrinsic_translation_sigma_m: "
+                     "how well you know it)"
                      if ext_m >= 0.1 * res.sigma_warn_m else ""),
                   highlight=False, soft_wrap=True)
     gaps = getattr(res, "lidar_gaps", [])

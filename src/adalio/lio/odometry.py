@@ -64,7 +64,11 @@ from adalio.lio.degeneracy import (
     weak_directions,
 )
 from adalio.lio.extrinsic_check import RotationEstimate, estimate_rotation
-from adalio.lio.extrinsic_sigma import extrinsic_rotation_covariance, rotation_second_moment
+from adalio.lio.extrinsic_sigma import (
+    error_second_moment,
+    extrinsic_rotation_covariance,
+    extrinsic_translation_covariance,
+)
 from adalio.lio.ieskf import (
     UpdateResult,
     _reprojection,
@@ -513,6 +517,8 @@ class Odometry:
         self._rotation_latest: RotationEstimate | None = None
         """The rotation check's latest estimate (concluded or not): it narrows the extrinsic
         rotation's share of the reported sigmas (:meth:`_extrinsic_covariance`)."""
+        self._translation_latest: TranslationEstimate | None = None
+        """The lever arm check's, likewise for the translation's share."""
         self._provenance = MapProvenance(config.filter.map_provenance_cell_m)
         self._W_map = np.zeros((6, 6))
         """World covariance the latest scan inherited from the map (filter.map_uncertainty)."""
@@ -1223,6 +1229,8 @@ class Odometry:
         if translation_due:
             self._translation_judged_ns = t_e_ns
             tr = self._translation_from(motion, span)
+            if tr is not None:
+                self._translation_latest = tr
             if (tr is not None and tr.conclusive) or span >= MAX_SPAN_S:
                 self._conclude_translation(tr, span)
         if not (self._offset_open or self._rotation_open or self._translation_open):
@@ -1610,19 +1618,29 @@ class Odometry:
         return W + self._extrinsic_covariance() if extrinsic else W
 
     def _extrinsic_covariance(self) -> np.ndarray:
-        """The world covariance an error of ``T_imu_lidar``'s rotation puts into the pose
-        against the first one (:mod:`adalio.lio.extrinsic_sigma`): ``sensor.
-        extrinsic_rotation_sigma_deg`` as the prior, narrowed by the rotation check's latest
-        estimate. Zero before the first pose and with the prior at 0."""
+        """The world covariance an error of ``T_imu_lidar`` puts into the pose against the
+        first one (:mod:`adalio.lio.extrinsic_sigma`): ``sensor.extrinsic_rotation_sigma_deg``
+        and ``sensor.extrinsic_translation_sigma_m`` as the priors, narrowed by the rotation
+        and the lever arm checks' latest estimates (the latter across the rig's vertical only).
+        Zero before the first pose and with both priors at 0."""
         anchor = self._anchor_state
-        sigma_rad = np.radians(self.cfg.sensor.extrinsic_rotation_sigma_deg)
-        if anchor is None or not sigma_rad > 0:
-            return np.zeros((6, 6))
-        est = self._rotation_latest
-        M = (rotation_second_moment(sigma_rad) if est is None else
-             rotation_second_moment(sigma_rad, est.rotvec_rad, est.cov_rad2))
-        s = self._state
-        return extrinsic_rotation_covariance(M, anchor.R, s.R, s.p - anchor.p)
+        W = np.zeros((6, 6))
+        if anchor is None:
+            return W
+        sensor, s = self.cfg.sensor, self._state
+        sigma_rad = np.radians(sensor.extrinsic_rotation_sigma_deg)
+        if sigma_rad > 0:
+            rot = self._rotation_latest
+            M = (error_second_moment(sigma_rad) if rot is None else
+                 error_second_moment(sigma_rad, rot.rotvec_rad, rot.cov_rad2))
+            W += extrinsic_rotation_covariance(M, anchor.R, s.R, s.p - anchor.p)
+        sigma_m = sensor.extrinsic_translation_sigma_m
+        if sigma_m > 0:
+            tr = self._translation_latest
+            M = (error_second_moment(sigma_m) if tr is None else
+                 error_second_moment(sigma_m, tr.horizontal_m, tr.horizontal_cov_m2))
+            W += extrinsic_translation_covariance(M, anchor.R, s.R)
+        return W
 
     def _emit(self, stats: ScanStats, stage_ms: dict[str, float], t_start: float,
               p_world: np.ndarray, W_world: np.ndarray | None = None) -> Estimate:
