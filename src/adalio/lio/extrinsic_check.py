@@ -54,6 +54,11 @@ MAX_PASSES = 5
 """``run_bag``'s passes over the first scans to find the rotation (two or three suffice)."""
 GAIN_RANGE = (0.2, 1.5)
 """The share of a rotation error the estimate sees, as the passes measure it, is clipped here."""
+SEEN_SHARE = 2.0 / 3.0
+"""The share of a rotation error the estimate sees, without passes to measure it (0.6-0.8 on
+the restarts' first estimates; 0.62-0.87 where 1° was never found, session 62): the reported
+sigmas read an estimate ``e`` of covariance ``C`` as the rotation ``e / SEEN_SHARE`` of
+covariance ``C / SEEN_SHARE²`` (:mod:`adalio.lio.extrinsic_sigma`)."""
 
 
 def largest_sigma(cov: np.ndarray) -> float:

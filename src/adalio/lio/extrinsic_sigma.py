@@ -16,7 +16,8 @@ along one axis; README, Outputs, *Uncertainty*). No update
 sees it: the map moves with it. So the reported world covariance adds ``G M Gᵀ`` with
 ``G = [-[p - p₀]× R₀; R₀ - R]`` and ``M`` the second moment of ``θ``: the prior
 ``σ² I`` of ``sensor.extrinsic_rotation_sigma_deg``, or, once the rotation check has an
-estimate ``e`` of covariance ``C``, the posterior's ``V + m mᵀ`` with
+estimate ``e`` of covariance ``C`` (read as ``e / κ`` of covariance ``C / κ²``: it sees the
+share ``κ = extrinsic_check.SEEN_SHARE`` of a rotation error), the posterior's ``V + m mᵀ`` with
 ``V = (I/σ² + C⁻¹)⁻¹``, ``m = V C⁻¹ e`` (the filter still uses ``θ = 0``, so its error is the
 whole ``θ``, whose mean square given the estimate is the posterior's variance plus its mean
 squared). Where the estimate contradicts the prior (a config that claims 0.1° for a rotation

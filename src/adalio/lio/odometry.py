@@ -63,7 +63,7 @@ from adalio.lio.degeneracy import (
     observable_projector,
     weak_directions,
 )
-from adalio.lio.extrinsic_check import RotationEstimate, estimate_rotation
+from adalio.lio.extrinsic_check import SEEN_SHARE, RotationEstimate, estimate_rotation
 from adalio.lio.extrinsic_sigma import (
     error_second_moment,
     extrinsic_rotation_covariance,
@@ -1631,8 +1631,9 @@ class Odometry:
         sigma_rad = np.radians(sensor.extrinsic_rotation_sigma_deg)
         if sigma_rad > 0:
             rot = self._rotation_latest
-            M = (error_second_moment(sigma_rad) if rot is None else
-                 error_second_moment(sigma_rad, rot.rotvec_rad, rot.cov_rad2))
+            M = (error_second_moment(sigma_rad) if rot is None else  # it sees part of it
+                 error_second_moment(sigma_rad, rot.rotvec_rad / SEEN_SHARE,
+                                     rot.cov_rad2 / SEEN_SHARE**2))
             W += extrinsic_rotation_covariance(M, anchor.R, s.R, s.p - anchor.p)
         sigma_m = sensor.extrinsic_translation_sigma_m
         if sigma_m > 0:
