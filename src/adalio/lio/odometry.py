@@ -514,11 +514,12 @@ class Odometry:
         arm")."""
         self.extrinsic_translation_unsettled: UnsettledCheck | None = None
         """The translation check closed without a conclusion."""
-        self._rotation_latest: RotationEstimate | None = None
-        """The rotation check's latest estimate (concluded or not): it narrows the extrinsic
-        rotation's share of the reported sigmas (:meth:`_extrinsic_covariance`)."""
-        self._translation_latest: TranslationEstimate | None = None
-        """The lever arm check's, likewise for the translation's share."""
+        self._rotation_M = error_second_moment(np.radians(sensor.extrinsic_rotation_sigma_deg))
+        """The second moment of the extrinsic rotation's error (rad², IMU frame) behind its
+        share of the reported sigmas (:meth:`_extrinsic_covariance`): the configured prior, then
+        narrowed (or widened) by each estimate of the rotation check, concluded or not."""
+        self._translation_M = error_second_moment(sensor.extrinsic_translation_sigma_m)
+        """The same for the lever arm (m²) and the lever arm check's estimates."""
         self._provenance = MapProvenance(config.filter.map_provenance_cell_m)
         self._W_map = np.zeros((6, 6))
         """World covariance the latest scan inherited from the map (filter.map_uncertainty)."""
@@ -1221,16 +1222,20 @@ class Odometry:
                 self._conclude_time_offset(est, span)
         if self._rotation_open:
             rot = self._rotation_from(data, span)
-            if rot is not None:
-                self._rotation_latest = rot
+            if rot is not None and self.cfg.sensor.extrinsic_rotation_sigma_deg > 0:
+                self._rotation_M = error_second_moment(  # the estimate sees part of it
+                    np.radians(self.cfg.sensor.extrinsic_rotation_sigma_deg),
+                    rot.rotvec_rad / SEEN_SHARE, rot.cov_rad2 / SEEN_SHARE**2)
             if (rot is not None and rot.conclusive) or span >= MAX_SPAN_S:
                 # unsettled at MAX_SPAN_S: too little rotation about two axes, or noise
                 self._conclude_rotation(rot, span)
         if translation_due:
             self._translation_judged_ns = t_e_ns
             tr = self._translation_from(motion, span)
-            if tr is not None:
-                self._translation_latest = tr
+            if tr is not None and self.cfg.sensor.extrinsic_translation_sigma_m > 0:
+                self._translation_M = error_second_moment(
+                    self.cfg.sensor.extrinsic_translation_sigma_m, tr.horizontal_m,
+                    tr.horizontal_cov_m2)
             if (tr is not None and tr.conclusive) or span >= MAX_SPAN_S:
                 self._conclude_translation(tr, span)
         if not (self._offset_open or self._rotation_open or self._translation_open):
@@ -1624,24 +1629,11 @@ class Odometry:
         and the lever arm checks' latest estimates (the latter across the rig's vertical only).
         Zero before the first pose and with both priors at 0."""
         anchor = self._anchor_state
-        W = np.zeros((6, 6))
         if anchor is None:
-            return W
-        sensor, s = self.cfg.sensor, self._state
-        sigma_rad = np.radians(sensor.extrinsic_rotation_sigma_deg)
-        if sigma_rad > 0:
-            rot = self._rotation_latest
-            M = (error_second_moment(sigma_rad) if rot is None else  # it sees part of it
-                 error_second_moment(sigma_rad, rot.rotvec_rad / SEEN_SHARE,
-                                     rot.cov_rad2 / SEEN_SHARE**2))
-            W += extrinsic_rotation_covariance(M, anchor.R, s.R, s.p - anchor.p)
-        sigma_m = sensor.extrinsic_translation_sigma_m
-        if sigma_m > 0:
-            tr = self._translation_latest
-            M = (error_second_moment(sigma_m) if tr is None else
-                 error_second_moment(sigma_m, tr.horizontal_m, tr.horizontal_cov_m2))
-            W += extrinsic_translation_covariance(M, anchor.R, s.R)
-        return W
+            return np.zeros((6, 6))
+        s = self._state
+        return (extrinsic_rotation_covariance(self._rotation_M, anchor.R, s.R, s.p - anchor.p)
+                + extrinsic_translation_covariance(self._translation_M, anchor.R, s.R))
 
     def _emit(self, stats: ScanStats, stage_ms: dict[str, float], t_start: float,
               p_world: np.ndarray, W_world: np.ndarray | None = None) -> Estimate:
