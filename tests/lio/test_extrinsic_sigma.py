@@ -118,7 +118,8 @@ def test_the_prior_is_widened_to_what_makes_the_estimate_most_likely():
 
 def test_an_axis_the_check_cannot_see_keeps_the_prior():
     s = np.radians(0.2)
-    for blind in (1e6, 0.0):  # a huge variance, or a degenerate one: no information either way
+    for blind in (1e6, 0.0, 1e-22):  # a huge variance, or a degenerate one (rounding left over
+        # from a projection, as the lever arm check's across the vertical): no information
         C = np.diag([np.radians(0.05) ** 2, np.radians(0.05) ** 2, blind])
         M = error_second_moment(s, np.zeros(3), C)
         assert np.isclose(M[2, 2], s**2, rtol=1e-6) and M[0, 0] < 0.1 * s**2
@@ -128,3 +129,18 @@ def test_no_estimate_is_the_prior_and_zero_is_exact():
     s = np.radians(0.1)
     np.testing.assert_allclose(error_second_moment(s), np.eye(3) * s**2)
     assert not error_second_moment(0.0, np.ones(3), np.eye(3)).any()
+
+
+def test_a_projected_estimate_never_breaks_the_second_moment():
+    """The lever arm check's covariance across the vertical is singular up to rounding along
+    it (a run once stopped on a singular matrix here): any scale, any vertical, finite and
+    positive definite."""
+    rng = np.random.default_rng(6)
+    for _ in range(2000):
+        up = rng.normal(size=3)
+        up /= np.linalg.norm(up)
+        P = np.eye(3) - np.outer(up, up)
+        B = rng.normal(size=(3, 3)) * 10 ** rng.uniform(-4, -1)
+        e = P @ rng.normal(size=3) * 10 ** rng.uniform(-4, -1)
+        M = error_second_moment(10 ** rng.uniform(-4, -1), e, P @ (B @ B.T) @ P)
+        assert np.all(np.isfinite(M)) and np.linalg.eigvalsh(M).min() > 0

@@ -45,6 +45,16 @@ MAX_PRIOR_SCALE = 1e4
 estimate contradicts it (:func:`prior_scale`)."""
 
 
+def _held(w: np.ndarray) -> np.ndarray:
+    """The eigenvalues of an estimate's covariance that hold information: finite, and above
+    rounding against the largest (a projected covariance, such as the lever arm check's across
+    the vertical, keeps ~1e-20 along what it projected out: that is no information, not
+    certainty)."""
+    finite = np.isfinite(w)
+    top = float(np.max(w[finite])) if finite.any() else 0.0
+    return finite & (w > 1e-14 * top) & (w > 0.0)
+
+
 def prior_scale(prior_var_rad2: float, estimate_rad: np.ndarray,
                 estimate_cov_rad2: np.ndarray) -> float:
     """The factor ``s ≥ 1`` on the prior's variance that makes the check's estimate most likely
@@ -55,7 +65,7 @@ def prior_scale(prior_var_rad2: float, estimate_rad: np.ndarray,
     holds no information about (a deviation that is not finite and positive) are left out."""
     w, U = np.linalg.eigh(0.5 * (estimate_cov_rad2 + estimate_cov_rad2.T))
     z2 = (U.T @ estimate_rad) ** 2
-    seen = np.isfinite(w) & (w > 0.0)
+    seen = _held(w)
     w, z2 = w[seen], z2[seen]
     if not w.size or not np.all(np.isfinite(z2)):
         return 1.0
@@ -87,10 +97,11 @@ def error_second_moment(prior_sigma_rad: float, estimate_rad: np.ndarray | None 
     if not (np.all(np.isfinite(C)) and np.all(np.isfinite(e))):
         return np.eye(3) * prior_sigma_rad**2
     w, U = np.linalg.eigh(0.5 * (C + C.T))
-    held = w > 0.0
+    held = _held(w)
     info = (U[:, held] / w[held]) @ U[:, held].T
     prior_var = prior_sigma_rad**2 * prior_scale(prior_sigma_rad**2, e, C)
-    V = np.linalg.inv(np.eye(3) / prior_var + info)
+    lam, Q = np.linalg.eigh(np.eye(3) / prior_var + 0.5 * (info + info.T))
+    V = (Q / lam) @ Q.T  # positive definite: the prior's term is
     m = V @ info @ e
     M = V + np.outer(m, m)
     return 0.5 * (M + M.T)
