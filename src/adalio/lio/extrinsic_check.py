@@ -5,8 +5,9 @@ A rig's extrinsic rotation (``sensor.T_imu_lidar``) taken from a drawing or a da
 off by a degree. The filter trusts its gyro for the rotation between scans, and a rotation
 error turns the gyro's axes against the LiDAR's, so every turn registers a little off and the
 map leans: measured on the simulated hall and corridor (XT-32 at 512 columns, HILTI IMU noise),
-1° off costs 0.26 -> 0.84 cm and 1.0 -> 3.1 cm ATE, and the reported sigmas then cover 6-9 % of
-the scans' errors on one or two axes (README, "LiDAR-IMU rotation").
+1° off costs 0.26 -> 0.84 cm and 1.0 -> 3.1 cm ATE, and the reported sigmas then covered 6-9 %
+of the scans' errors on one or two axes (README, "LiDAR-IMU rotation"), until they took the
+extrinsic's own uncertainty, narrowed by this check's estimate (:mod:`adalio.lio.extrinsic_sigma`).
 
 What measures it (hand-eye calibration of the rotation, as LI-Init does with a LiDAR-only
 odometry): the IMU time offset check's data (:class:`adalio.lio.time_offset.TimeOffsetCheck`),
