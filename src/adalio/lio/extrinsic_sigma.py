@@ -87,7 +87,7 @@ def error_second_moment(prior_sigma_rad: float, estimate_rad: np.ndarray | None 
     else the posterior's ``V + m mᵀ`` given the check's estimate ``estimate_rad`` of covariance
     ``estimate_cov_rad2`` (module doc), the prior widened by :func:`prior_scale` where the
     estimate contradicts it. Directions whose deviation is not finite and positive hold no
-    information. Zero when the prior is zero (the rotation taken as exact)."""
+    information. Zero when the prior is zero (the value taken as exact)."""
     if not prior_sigma_rad > 0:
         return np.zeros((3, 3))
     if estimate_rad is None or estimate_cov_rad2 is None:

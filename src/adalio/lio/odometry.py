@@ -1613,8 +1613,8 @@ class Odometry:
         plus the scan's undistortion rotation (``filter.sigmas_deskew_noise``) outside that
         combination: the gyro noise of this sweep is independent of the map's error and of the
         registration's bias, which the combination's bound is for; and, with ``extrinsic``,
-        the extrinsic rotation's (:meth:`_extrinsic_covariance`), which the map's provenance
-        must not carry (it is the same error for every scan)."""
+        the extrinsic's own (:meth:`_extrinsic_covariance`), which the map's provenance must
+        not carry (it is the same error for every scan)."""
         W = pose_covariance_world(self._state.R, self._sigmas_P)
         f = self.cfg.filter
         if f.map_uncertainty:
