@@ -45,6 +45,25 @@ def pytest_configure(config: pytest.Config) -> None:
     _SESSION_CACHE.append(cache)
 
 
+HALL_WALK = {"seed": 0, "duration_s": 14.0, "columns": 512}
+"""The 14 s hall walk (XT-32 at 512 columns) the sensor checks' run tests share."""
+
+
+@pytest.fixture(scope="session")
+def hall_walk_of():
+    """``hall_walk_of(**settings)``: the shared hall walk simulated with other settings (an IMU
+    running late, ...)."""
+    from adalio.sim import cached_sequence
+
+    return lambda **settings: cached_sequence("hall", **HALL_WALK, **settings)
+
+
+@pytest.fixture(scope="session")
+def hall_walk(hall_walk_of):
+    """The shared 14 s hall walk as simulated."""
+    return hall_walk_of()
+
+
 def pytest_terminal_summary(terminalreporter) -> None:
     for cache in _SESSION_CACHE:
         size = sum(f.stat().st_size for f in cache.rglob("*") if f.is_file())

@@ -19,16 +19,9 @@ from adalio.cli import app
 from adalio.config import load_config
 from adalio.eval.metrics import ate
 from adalio.pipeline import run_bag
-from adalio.sim import cached_sequence
 
-WALK = {"seed": 0, "duration_s": 14.0, "columns": 512}  # test_time_offset_run's walk
 TURN_DEG = 2.0
 AXIS = np.array([0.6, -0.3, 0.74]) / np.linalg.norm([0.6, -0.3, 0.74])
-
-
-@pytest.fixture(scope="module")
-def walk():
-    return cached_sequence("hall", **WALK)
 
 
 def _turned(cfg, deg: float = TURN_DEG):
@@ -49,31 +42,31 @@ def _ate_cm(sim, res) -> float:
 
 
 @pytest.fixture(scope="module")
-def right_ate_cm(walk, tmp_path_factory) -> float:
-    cfg = load_config(config_file=walk.config_path)
-    res = run_bag(walk.bag_path, cfg, tmp_path_factory.mktemp("right"), progress=False)
+def right_ate_cm(hall_walk, tmp_path_factory) -> float:
+    cfg = load_config(config_file=hall_walk.config_path)
+    res = run_bag(hall_walk.bag_path, cfg, tmp_path_factory.mktemp("right"), progress=False)
     assert res.extrinsic_rotation_found is None  # the right rotation: no restart
     left = res.extrinsic_rotation
     assert left is None or np.degrees(left.angle_rad) < 0.15, left
     assert (left is None) == (res.extrinsic_rotation_unsettled is not None)  # one or the other
-    return _ate_cm(walk, res)
+    return _ate_cm(hall_walk, res)
 
 
-def test_a_turned_rotation_costs_the_walk_without_the_check(tmp_path, walk, right_ate_cm):
-    cfg = _turned(load_config(config_file=walk.config_path))
+def test_a_turned_rotation_costs_the_walk_without_the_check(tmp_path, hall_walk, right_ate_cm):
+    cfg = _turned(load_config(config_file=hall_walk.config_path))
     cfg.sensor.extrinsic_rotation_check = False
-    res = run_bag(walk.bag_path, cfg, tmp_path / "off", progress=False)
+    res = run_bag(hall_walk.bag_path, cfg, tmp_path / "off", progress=False)
     assert res.extrinsic_rotation is None and res.extrinsic_rotation_found is None
     # measured: 2 degrees off doubles the walk's error (0.41 against 0.17 cm)
-    assert _ate_cm(walk, res) > 1.6 * right_ate_cm, (_ate_cm(walk, res), right_ate_cm)
+    assert _ate_cm(hall_walk, res) > 1.6 * right_ate_cm, (_ate_cm(hall_walk, res), right_ate_cm)
 
 
-def test_run_bag_finds_the_rotation_and_restarts_with_it(tmp_path, walk, right_ate_cm):
-    truth = load_config(config_file=walk.config_path)
+def test_run_bag_finds_the_rotation_and_restarts_with_it(tmp_path, hall_walk, right_ate_cm):
+    truth = load_config(config_file=hall_walk.config_path)
     cfg = _turned(truth)
     t0 = time.perf_counter()
     with pytest.warns(UserWarning, match=r"restarted with the corrected sensor\.T_imu_lidar"):
-        res = run_bag(walk.bag_path, cfg, tmp_path / "found", progress=False)
+        res = run_bag(hall_walk.bag_path, cfg, tmp_path / "found", progress=False)
     elapsed_s = time.perf_counter() - t0
     # the wall time before the restart (first run, passes) is counted apart from the final run's
     assert 0.0 < res.calibration_wall_s and res.calibration_wall_s + res.wall_s <= elapsed_s
@@ -93,14 +86,14 @@ def test_run_bag_finds_the_rotation_and_restarts_with_it(tmp_path, walk, right_a
     measured = yaml.safe_load(res.config_path.read_text())["measured"]
     if "extrinsic_rotation_left_deg" in measured:  # what the final run's check left
         assert np.linalg.norm(measured["extrinsic_rotation_left_deg"]) < 0.3, measured
-    assert _ate_cm(walk, res) < 1.3 * right_ate_cm, (_ate_cm(walk, res), right_ate_cm)
+    assert _ate_cm(hall_walk, res) < 1.3 * right_ate_cm, (_ate_cm(hall_walk, res), right_ate_cm)
 
 
-def test_the_restart_is_one_warning_line_on_the_command_line(tmp_path, walk):
-    cfg = _turned(load_config(config_file=walk.config_path))
+def test_the_restart_is_one_warning_line_on_the_command_line(tmp_path, hall_walk):
+    cfg = _turned(load_config(config_file=hall_walk.config_path))
     config_path = tmp_path / "turned.yaml"
     config_path.write_text(cfg.to_yaml())
-    res = CliRunner().invoke(app, ["run", str(walk.bag_path), "--config", str(config_path),
+    res = CliRunner().invoke(app, ["run", str(hall_walk.bag_path), "--config", str(config_path),
                                    "--out", str(tmp_path / "o"), "--no-progress"])
     assert res.exit_code == 0, res.output
     lines = res.output.splitlines()
@@ -112,22 +105,22 @@ def test_the_restart_is_one_warning_line_on_the_command_line(tmp_path, walk):
     assert len(done) == 1 and "on the first run and the passes" in done[0], lines  # and before
 
 
-def test_estimating_the_extrinsic_online_tracks_with_the_default_preset(tmp_path, walk,
+def test_estimating_the_extrinsic_online_tracks_with_the_default_preset(tmp_path, hall_walk,
                                                                        right_ate_cm):
     """filter.estimate_extrinsic with errors in variables on (the default): before the
     correction reached the extrinsic's columns this walk ended tens of metres off."""
-    cfg = load_config(config_file=walk.config_path)
+    cfg = load_config(config_file=hall_walk.config_path)
     cfg.filter.estimate_extrinsic = True
     cfg.sensor.extrinsic_rotation_check = False
-    res = run_bag(walk.bag_path, cfg, tmp_path / "est", progress=False)
-    assert _ate_cm(walk, res) < 1.5 * right_ate_cm, (_ate_cm(walk, res), right_ate_cm)
+    res = run_bag(hall_walk.bag_path, cfg, tmp_path / "est", progress=False)
+    assert _ate_cm(hall_walk, res) < 1.5 * right_ate_cm, (_ate_cm(hall_walk, res), right_ate_cm)
 
 
-def _feed(odom, cfg, walk) -> None:
+def _feed(odom, cfg, hall_walk) -> None:
     from adalio import ImuBatch, Sequencer
     from adalio.io.bag import Bag
 
-    with Bag(walk.bag_path) as bag:
+    with Bag(hall_walk.bag_path) as bag:
         lidar_topic, imu_topic = bag.select_topics(cfg.sensor)
         for item in Sequencer(bag, lidar_topic, imu_topic, cfg.sensor):
             if isinstance(item, ImuBatch):
@@ -137,15 +130,15 @@ def _feed(odom, cfg, walk) -> None:
     odom.finish()
 
 
-def test_your_own_loop_gets_the_estimate_and_a_warning(walk):
+def test_your_own_loop_gets_the_estimate_and_a_warning(hall_walk):
     """The Python API: no restart (a stream cannot be re-read), but ``odom.extrinsic_rotation``
     and a warning, with part of the 2 degrees seen about the axis turned."""
     from adalio import Odometry
 
-    cfg = _turned(load_config(config_file=walk.config_path))
+    cfg = _turned(load_config(config_file=hall_walk.config_path))
     odom = Odometry(cfg)
     with pytest.warns(UserWarning, match=r"LiDAR-IMU rotation in sensor\.T_imu_lidar disagrees"):
-        _feed(odom, cfg, walk)
+        _feed(odom, cfg, hall_walk)
     est = odom.extrinsic_rotation
     assert est is not None and est.significant
     assert 0.5 * TURN_DEG < np.degrees(est.angle_rad) < TURN_DEG

@@ -8,22 +8,14 @@ from __future__ import annotations
 import copy
 
 import numpy as np
-import pytest
 import yaml
 from typer.testing import CliRunner
 
 from adalio.cli import app
 from adalio.config import load_config
 from adalio.pipeline import run_bag
-from adalio.sim import cached_sequence
 
-WALK = {"seed": 0, "duration_s": 14.0, "columns": 512}  # test_extrinsic_run's walk
 OFF_M = 0.03 * np.array([-0.35, 0.62, -0.70]) / np.linalg.norm([-0.35, 0.62, -0.70])
-
-
-@pytest.fixture(scope="module")
-def walk():
-    return cached_sequence("hall", **WALK)
 
 
 def _shifted(cfg):
@@ -35,10 +27,10 @@ def _shifted(cfg):
     return out
 
 
-def test_a_lever_arm_3_cm_off_is_found(tmp_path, walk):
-    truth = load_config(config_file=walk.config_path)
+def test_a_lever_arm_3_cm_off_is_found(tmp_path, hall_walk):
+    truth = load_config(config_file=hall_walk.config_path)
     cfg = _shifted(truth)
-    res = run_bag(walk.bag_path, cfg, tmp_path / "off", progress=False)
+    res = run_bag(hall_walk.bag_path, cfg, tmp_path / "off", progress=False)
     est = res.extrinsic_translation
     assert est is not None and est.significant, est
     # the correction the warning gives is across the rig's vertical (the IMU's z here)
@@ -53,18 +45,18 @@ def test_a_lever_arm_3_cm_off_is_found(tmp_path, walk):
                                atol=1e-4)
 
 
-def test_the_right_lever_arm_is_not_flagged(tmp_path, walk):
-    cfg = load_config(config_file=walk.config_path)
-    res = run_bag(walk.bag_path, cfg, tmp_path / "right", progress=False)
+def test_the_right_lever_arm_is_not_flagged(tmp_path, hall_walk):
+    cfg = load_config(config_file=hall_walk.config_path)
+    res = run_bag(hall_walk.bag_path, cfg, tmp_path / "right", progress=False)
     est = res.extrinsic_translation or res.extrinsic_translation_unsettled.estimate
     assert est is not None and not est.significant, est
     assert est.length_m < 0.015, est.horizontal_m  # measured: 0.8 cm across the vertical
 
 
-def test_the_command_line_says_it_in_one_line_and_no_warning(tmp_path, walk):
+def test_the_command_line_says_it_in_one_line_and_no_warning(tmp_path, hall_walk):
     config_path = tmp_path / "shifted.yaml"
-    config_path.write_text(_shifted(load_config(config_file=walk.config_path)).to_yaml())
-    res = CliRunner().invoke(app, ["run", str(walk.bag_path), "--config", str(config_path),
+    config_path.write_text(_shifted(load_config(config_file=hall_walk.config_path)).to_yaml())
+    res = CliRunner().invoke(app, ["run", str(hall_walk.bag_path), "--config", str(config_path),
                                    "--out", str(tmp_path / "o"), "--no-progress"])
     assert res.exit_code == 0, res.output
     lines = res.output.splitlines()

@@ -15,20 +15,18 @@ from adalio.config import load_config
 from adalio.eval.metrics import ate
 from adalio.io.bag import Bag
 from adalio.pipeline import run_bag
-from adalio.sim import cached_sequence
 
 LATE_S = 0.03
-WALK = {"seed": 0, "duration_s": 14.0, "columns": 512}
 
 
 @pytest.fixture(scope="module")
-def late():
-    return cached_sequence("hall", imu_time_offset_s=LATE_S, **WALK)
+def late(hall_walk_of):
+    return hall_walk_of(imu_time_offset_s=LATE_S)
 
 
 @pytest.fixture(scope="module")
-def on_time():
-    return cached_sequence("hall", **WALK)
+def on_time(hall_walk):
+    return hall_walk
 
 
 @pytest.fixture(scope="module")
