@@ -91,6 +91,7 @@ def test_run_bag_finds_the_rotation_and_restarts_with_it(tmp_path, hall_walk, ri
 
 def test_the_restart_is_one_warning_line_on_the_command_line(tmp_path, hall_walk):
     cfg = _turned(load_config(config_file=hall_walk.config_path))
+    cfg.sensor.extrinsic_rotation_sigma_deg = 0.0  # sigmas without it: the restart keeps that
     config_path = tmp_path / "turned.yaml"
     config_path.write_text(cfg.to_yaml())
     res = CliRunner().invoke(app, ["run", str(hall_walk.bag_path), "--config", str(config_path),
@@ -103,6 +104,8 @@ def test_the_restart_is_one_warning_line_on_the_command_line(tmp_path, hall_walk
     assert len(rotation) == 1 and "the run restarted with it" in rotation[0], lines
     done = [ln for ln in lines if ln.startswith("done: ")]  # its time: the restarted run's,
     assert len(done) == 1 and "on the first run and the passes" in done[0], lines  # and before
+    saved = load_config(config_file=tmp_path / "o" / "config.yaml")
+    assert saved.sensor.extrinsic_rotation_sigma_deg == 0.0
 
 
 def test_estimating_the_extrinsic_online_tracks_with_the_default_preset(tmp_path, hall_walk,

@@ -87,7 +87,7 @@ class SensorConfig:
     narrowed by what the rotation check estimates. 0.1 is a calibrated rig; a rotation read off
     a drawing is good to about 0.5; 0 reports the filter's sigmas alone. After a restart with a
     found rotation, the restarted run's ``config.yaml`` holds the correction's own deviation
-    here (at least this value)."""
+    here (at least this value; 0 stays 0)."""
     extrinsic_translation_sigma_m: float = 0.01
     """How well ``T_imu_lidar``'s translation (the lever arm) is known (metres, one standard
     deviation along each axis): the reported sigmas add what an error of it does, a position

@@ -415,9 +415,10 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
     if found_rot is not None:
         cfg.sensor.T_imu_lidar = found_rot.T_imu_lidar.tolist()
         cfg.sensor.extrinsic_source = "config"
-        cfg.sensor.extrinsic_rotation_sigma_deg = max(
-            cfg.sensor.extrinsic_rotation_sigma_deg,
-            round(float(np.degrees(found_rot.sigma_rad)), 3))
+        if cfg.sensor.extrinsic_rotation_sigma_deg > 0:  # 0: the user wants it left out
+            cfg.sensor.extrinsic_rotation_sigma_deg = max(
+                cfg.sensor.extrinsic_rotation_sigma_deg,
+                round(float(np.degrees(found_rot.sigma_rad)), 3))
         warnings.warn(f"the LiDAR-IMU rotation disagrees with the data: the gyro turns about "
                       f"axes {found_rot.angle_deg:.2f} deg away from those the LiDAR alone "
                       f"registers (found over the first {found_rot.n_scans} scans in "
