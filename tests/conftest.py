@@ -49,7 +49,7 @@ HALL_WALK = {"seed": 0, "duration_s": 14.0, "columns": 512}
 """The 14 s hall walk (XT-32 at 512 columns) the sensor checks' run tests share."""
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def hall_walk_of():
     """``hall_walk_of(**settings)``: the shared hall walk simulated with other settings (an IMU
     running late, ...)."""
@@ -58,9 +58,10 @@ def hall_walk_of():
     return lambda **settings: cached_sequence("hall", **HALL_WALK, **settings)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def hall_walk(hall_walk_of):
-    """The shared 14 s hall walk as simulated."""
+    """The shared 14 s hall walk as simulated. Per module, not per session: other tests evict
+    the sequence cache, and ``cached_sequence`` simulates an evicted sequence again."""
     return hall_walk_of()
 
 
