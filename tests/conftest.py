@@ -58,10 +58,11 @@ def hall_walk_of():
     return lambda **settings: cached_sequence("hall", **HALL_WALK, **settings)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def hall_walk(hall_walk_of):
-    """The shared 14 s hall walk as simulated. Per module, not per session: other tests evict
-    the sequence cache, and ``cached_sequence`` simulates an evicted sequence again."""
+    """The shared 14 s hall walk as simulated. Looked up for each test: the sequence cache keeps
+    only the sequence a process was handed last from eviction, and ``cached_sequence``
+    simulates an evicted one again (a longer-lived fixture went stale in CI)."""
     return hall_walk_of()
 
 

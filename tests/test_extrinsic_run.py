@@ -42,7 +42,8 @@ def _ate_cm(sim, res) -> float:
 
 
 @pytest.fixture(scope="module")
-def right_ate_cm(hall_walk, tmp_path_factory) -> float:
+def right_ate_cm(hall_walk_of, tmp_path_factory) -> float:
+    hall_walk = hall_walk_of()
     cfg = load_config(config_file=hall_walk.config_path)
     res = run_bag(hall_walk.bag_path, cfg, tmp_path_factory.mktemp("right"), progress=False)
     assert res.extrinsic_rotation_found is None  # the right rotation: no restart

@@ -19,18 +19,14 @@ from adalio.pipeline import run_bag
 LATE_S = 0.03
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def late(hall_walk_of):
     return hall_walk_of(imu_time_offset_s=LATE_S)
 
 
 @pytest.fixture(scope="module")
-def on_time(hall_walk):
-    return hall_walk
-
-
-@pytest.fixture(scope="module")
-def on_time_ate(on_time, tmp_path_factory) -> float:
+def on_time_ate(hall_walk_of, tmp_path_factory) -> float:
+    on_time = hall_walk_of()
     res = run_bag(on_time.bag_path, load_config(config_file=on_time.config_path),
                   tmp_path_factory.mktemp("on_time"), progress=False)
     assert res.time_offset_found is None  # on time: no restart

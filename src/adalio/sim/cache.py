@@ -4,6 +4,7 @@ used first out)."""
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import hashlib
 import os
@@ -111,6 +112,15 @@ def _locked(path: Path) -> Iterator[None]:
 _HELD: list = []
 """The open ``.use`` lock file of the sequence this process was handed last (:func:`_hold`)."""
 _HELD_LOCK = threading.Lock()
+
+
+@atexit.register
+def _release_held() -> None:
+    """Close the held ``.use`` file at exit (the lock goes with the process anyway; closing it
+    keeps the interpreter from warning about an unclosed file)."""
+    with _HELD_LOCK:
+        while _HELD:
+            _HELD.pop().close()
 
 
 def _hold(root: Path, key: str) -> None:
