@@ -1222,7 +1222,7 @@ class Odometry:
                 self._conclude_time_offset(est, span)
         if self._rotation_open:
             rot = self._rotation_from(data, span)
-            if rot is not None and self.cfg.sensor.extrinsic_rotation_sigma_deg > 0:
+            if rot is not None:  # zero stays zero with the prior at 0
                 self._rotation_M = error_second_moment(  # the estimate sees part of it
                     np.radians(self.cfg.sensor.extrinsic_rotation_sigma_deg),
                     rot.rotvec_rad / SEEN_SHARE, rot.cov_rad2 / SEEN_SHARE**2)
@@ -1232,7 +1232,7 @@ class Odometry:
         if translation_due:
             self._translation_judged_ns = t_e_ns
             tr = self._translation_from(motion, span)
-            if tr is not None and self.cfg.sensor.extrinsic_translation_sigma_m > 0:
+            if tr is not None:
                 self._translation_M = error_second_moment(
                     self.cfg.sensor.extrinsic_translation_sigma_m, tr.horizontal_m,
                     tr.horizontal_cov_m2)
