@@ -80,29 +80,41 @@ def prior_scale(prior_var_rad2: float, estimate_rad: np.ndarray,
     return float(np.exp(best))
 
 
-def error_second_moment(prior_sigma_rad: float, estimate_rad: np.ndarray | None = None,
-                        estimate_cov_rad2: np.ndarray | None = None) -> np.ndarray:
-    """(3,3) ``E[θ θᵀ]`` of the extrinsic's rotation error (rad²; or of its translation error,
-    m², with the arguments in metres): ``σ² I`` with no estimate,
-    else the posterior's ``V + m mᵀ`` given the check's estimate ``estimate_rad`` of covariance
-    ``estimate_cov_rad2`` (module doc), the prior widened by :func:`prior_scale` where the
-    estimate contradicts it. Directions whose deviation is not finite and positive hold no
-    information. Zero when the prior is zero (the value taken as exact)."""
-    if not prior_sigma_rad > 0:
-        return np.zeros((3, 3))
-    if estimate_rad is None or estimate_cov_rad2 is None:
-        return np.eye(3) * prior_sigma_rad**2
+def posterior(prior_sigma_rad: float, estimate_rad: np.ndarray,
+              estimate_cov_rad2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(3,) mean ``m`` and (3,3) covariance ``V`` of the extrinsic's rotation error (rad; or of
+    its translation error, m, with the arguments in metres) given an estimate ``estimate_rad``
+    of covariance ``estimate_cov_rad2`` and the prior ``N(0, σ² I)``, its variance widened by
+    :func:`prior_scale` where the estimate contradicts it: ``V = (I/σ² + C⁻¹)⁻¹``,
+    ``m = V C⁻¹ e``. Directions whose deviation is not finite and positive hold no information
+    (``m`` is 0 and ``V`` the prior's there). ``σ`` must be positive."""
     C = np.asarray(estimate_cov_rad2, dtype=np.float64)
     e = np.asarray(estimate_rad, dtype=np.float64).reshape(3)
     if not (np.all(np.isfinite(C)) and np.all(np.isfinite(e))):
-        return np.eye(3) * prior_sigma_rad**2
+        return np.zeros(3), np.eye(3) * prior_sigma_rad**2
     w, U = np.linalg.eigh(0.5 * (C + C.T))
     held = _held(w)
     info = (U[:, held] / w[held]) @ U[:, held].T
     prior_var = prior_sigma_rad**2 * prior_scale(prior_sigma_rad**2, e, C)
     lam, Q = np.linalg.eigh(np.eye(3) / prior_var + 0.5 * (info + info.T))
     V = (Q / lam) @ Q.T  # positive definite: the prior's term is
-    m = V @ info @ e
+    return V @ info @ e, 0.5 * (V + V.T)
+
+
+def error_second_moment(prior_sigma_rad: float, estimate_rad: np.ndarray | None = None,
+                        estimate_cov_rad2: np.ndarray | None = None) -> np.ndarray:
+    """(3,3) ``E[θ θᵀ]`` of the extrinsic's rotation error (rad²; or of its translation error,
+    m², with the arguments in metres): ``σ² I`` with no estimate,
+    else the posterior's ``V + m mᵀ`` given the check's estimate ``estimate_rad`` of covariance
+    ``estimate_cov_rad2`` (module doc; :func:`posterior`), the prior widened by
+    :func:`prior_scale` where the estimate contradicts it. Directions whose deviation is not
+    finite and positive hold no information. Zero when the prior is zero (the value taken as
+    exact)."""
+    if not prior_sigma_rad > 0:
+        return np.zeros((3, 3))
+    if estimate_rad is None or estimate_cov_rad2 is None:
+        return np.eye(3) * prior_sigma_rad**2
+    m, V = posterior(prior_sigma_rad, estimate_rad, estimate_cov_rad2)
     M = V + np.outer(m, m)
     return 0.5 * (M + M.T)
 
@@ -131,4 +143,4 @@ def extrinsic_translation_covariance(M_m2: np.ndarray, R_anchor: np.ndarray,
 
 
 __all__ = ["error_second_moment", "extrinsic_rotation_covariance",
-           "extrinsic_translation_covariance", "prior_scale"]
+           "extrinsic_translation_covariance", "posterior", "prior_scale"]
