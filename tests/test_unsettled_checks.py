@@ -101,11 +101,14 @@ def test_after_a_restart_the_line_names_the_corrected_value():
     from adalio.types import UnsettledCheck
 
     found = SimpleNamespace(angle_deg=0.95, n_scans=140, passes=[1, 2],
-                            detected_rad=np.deg2rad([0.7, 0.0, 0.0]))
+                            detected_rad=np.deg2rad([0.7, 0.0, 0.0]),
+                            found_rad=np.deg2rad([1.0, 0.0, 0.0]))
     res = SimpleNamespace(extrinsic_rotation_found=found, extrinsic_rotation=None,
                           extrinsic_rotation_unsettled=UnsettledCheck(60.0, None, gave_up=True))
     text = _rotation_text(res)
-    assert text.startswith("sensor.T_imu_lidar turned by 0.95 deg")
+    # what was applied, of what the passes found (the posterior mean, run_bag)
+    assert text.startswith("sensor.T_imu_lidar turned by 0.95 deg (1.00 deg as found, weighed "
+                           "by its noise), found over the first 140 scans in 2 passes"), text
     assert "the run restarted with it; not checked over 60 s of updates:" in text
     assert text.endswith("the corrected rotation used as it is"), text
     assert "(the recording ended)" not in text  # it gave up at 60 s

@@ -61,7 +61,9 @@ class RotationCalibration:
 
     correction_rad: np.ndarray
     """(3,) the rotation vector ``θ`` applied on the left of the configured rotation
-    (``R ← Exp(θ) R``, IMU frame)."""
+    (``R ← Exp(θ) R``, IMU frame): the passes' value (``found_rad``) weighed against how well
+    it is known and ``sensor.extrinsic_rotation_sigma_deg`` (the posterior mean,
+    :func:`adalio.lio.extrinsic_sigma.posterior`; ``found_rad`` itself with a configured 0)."""
     T_imu_lidar: np.ndarray
     """(4,4) the extrinsic the run restarted with."""
     detected_rad: np.ndarray
@@ -74,8 +76,13 @@ class RotationCalibration:
     n_scans: int
     """Scans each pass read (the first run's, up to the check's conclusion)."""
     sigma_rad: float = 0.0
-    """The first run's estimate's largest standard deviation (rad): how well the correction
-    is known; the restarted run's ``sensor.extrinsic_rotation_sigma_deg`` is at least this."""
+    """The largest standard deviation (rad) of the value found (``found_rad``): the rotation
+    left after ``correction_rad`` is at most about this on each axis (the posterior's own
+    covariance understates it where the rotation is comparable to it: a widened prior is an
+    estimate too), and the restarted run's ``sensor.extrinsic_rotation_sigma_deg`` is at least
+    this."""
+    found_rad: np.ndarray | None = None
+    """(3,) the rotation vector the passes found (before it was weighed, ``correction_rad``)."""
 
     @property
     def angle_deg(self) -> float:
@@ -534,13 +541,22 @@ def _find_rotation(bag_path: str | Path, cfg: Config, n_scans: int, start_s: flo
     """Re-run the first ``n_scans`` scans with the extrinsic's rotation corrected until what
     the check finds left is settled (``RotationEstimate.settled``; the corrections from
     :func:`adalio.lio.extrinsic_check.next_rotation`); None if no pass estimated one. The
-    value as :func:`_find_time_offset`'s: one more step from the pass that left the least, if
-    it was the last, else that pass's correction."""
-    from adalio.lio.extrinsic_check import MAX_PASSES, largest_sigma, next_rotation
+    value found as :func:`_find_time_offset`'s: one more step from the pass that left the least,
+    if it was the last, else that pass's correction. Its covariance is that pass's estimate's
+    over the squared gain (the estimate's noise, read through the share of a rotation it sees;
+    a gain above 1, a noisy secant, is read as 1: the estimate sees at most the whole rotation).
+    The correction applied is its posterior mean under ``sensor.extrinsic_rotation_sigma_deg``
+    (:func:`adalio.lio.extrinsic_sigma.posterior`, the prior widened to what the value makes
+    most likely): a value that its own noise could have made is shrunk towards the configured
+    rotation instead of applied whole (the passes find a rotation where the check's estimate is
+    zero, and an estimate that concluded on a noisy excursion carries it into the value)."""
+    from adalio.lio.extrinsic_check import MAX_PASSES, largest_sigma, next_rotation, pass_gain
+    from adalio.lio.extrinsic_sigma import posterior
 
     T0 = np.asarray(cfg.sensor.T_imu_lidar, dtype=np.float64)
     tried: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros(3), detected.rotvec_rad)]
     passes: list[tuple[np.ndarray, np.ndarray]] = []
+    covs: list[np.ndarray] = []
 
     def corrected(theta: np.ndarray) -> np.ndarray:
         T = T0.copy()
@@ -561,17 +577,22 @@ def _find_rotation(bag_path: str | Path, cfg: Config, n_scans: int, start_s: flo
                 break
             tried.append((trial, left.rotvec_rad))
             passes.append((trial, left.rotvec_rad))
+            covs.append(left.cov_rad2)
             if left.settled:
                 break
     if not passes:
         return None
-    best, residual = min(passes, key=lambda p: float(np.linalg.norm(p[1])))
-    if best is passes[-1][0]:
-        best = next_rotation(tried)
+    k = min(range(len(passes)), key=lambda i: float(np.linalg.norm(passes[i][1])))
+    found = next_rotation(tried) if k == len(passes) - 1 else passes[k][0]
+    cov = covs[k] / min(pass_gain(tried), 1.0) ** 2  # it sees at most the whole rotation
+    best = found
+    prior_rad = float(np.radians(cfg.sensor.extrinsic_rotation_sigma_deg))
+    if prior_rad > 0:  # 0: the configured rotation's error is left out of the sigmas
+        best, _ = posterior(prior_rad, found, cov)
     return RotationCalibration(correction_rad=best, T_imu_lidar=corrected(best),
                                detected_rad=detected.rotvec_rad,
-                               residual_rad=float(np.linalg.norm(residual)), passes=passes,
-                               n_scans=n_scans, sigma_rad=largest_sigma(detected.cov_rad2))
+                               residual_rad=float(np.linalg.norm(passes[k][1])), passes=passes,
+                               n_scans=n_scans, sigma_rad=largest_sigma(cov), found_rad=found)
 
 
 def _sequencer(bag: Bag, lidar_topic: str, imu_topic: str, cfg: Config,

@@ -196,17 +196,21 @@ def estimate_rotation(t_scan_s: np.ndarray, R_scan: np.ndarray, t_imu_s: np.ndar
 
 
 
+def pass_gain(tried: list[tuple[np.ndarray, np.ndarray]]) -> float:
+    """The share of a correction that the rotation left falls by (the estimate's gain), from the
+    (correction, rotation left) pairs so far: measured along the last step between two passes
+    (a secant, clipped to ``GAIN_RANGE``), 1 before the second pass."""
+    if len(tried) < 2:
+        return 1.0
+    (c0, e0), (c1, e1) = tried[-2], tried[-1]
+    d = c1 - c0
+    dd = float(d @ d)
+    return float(np.clip((e0 - e1) @ d / dd, *GAIN_RANGE)) if dd > 0.0 else 1.0
+
+
 def next_rotation(tried: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
     """The next correction to try (a rotation vector, rad), from the (correction, rotation
-    left) pairs so far, the first at correction zero. The rotation left falls by a share of
-    each correction (the estimate's gain); the gain is measured along the last step between
-    two passes (a secant, clipped to ``GAIN_RANGE``), 1 before the second pass."""
+    left) pairs so far, the first at correction zero: the last correction plus the rotation it
+    left over the estimate's gain (:func:`pass_gain`)."""
     c1, e1 = tried[-1]
-    gain = 1.0
-    if len(tried) >= 2:
-        c0, e0 = tried[-2]
-        d = c1 - c0
-        dd = float(d @ d)
-        if dd > 0.0:
-            gain = float(np.clip((e0 - e1) @ d / dd, *GAIN_RANGE))
-    return c1 + e1 / gain
+    return c1 + e1 / pass_gain(tried)
