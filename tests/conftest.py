@@ -58,6 +58,29 @@ def hall_walk_of():
     return lambda **settings: cached_sequence("hall", **HALL_WALK, **settings)
 
 
+@pytest.fixture(scope="session")
+def turned():
+    """``turned(cfg, deg)``: a copy of ``cfg`` whose extrinsic's rotation is turned by ``deg``
+    about the fixed unit axis ``turned.axis`` (IMU frame: ``R <- Exp(deg * axis) R``), the
+    rotation error the extrinsic checks' run tests give the shared walk."""
+    import copy
+
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    axis = np.array([0.6, -0.3, 0.74]) / np.linalg.norm([0.6, -0.3, 0.74])
+
+    def turn(cfg, deg: float):
+        out = copy.deepcopy(cfg)
+        T = cfg.T_imu_lidar()
+        T[:3, :3] = Rotation.from_rotvec(np.deg2rad(deg) * axis).as_matrix() @ T[:3, :3]
+        out.sensor.T_imu_lidar = T.tolist()
+        return out
+
+    turn.axis = axis
+    return turn
+
+
 @pytest.fixture
 def hall_walk(hall_walk_of):
     """The shared 14 s hall walk as simulated. Looked up for each test: the sequence cache keeps

@@ -6,7 +6,6 @@ columns)."""
 
 from __future__ import annotations
 
-import copy
 import time
 
 import numpy as np
@@ -21,15 +20,6 @@ from adalio.eval.metrics import ate
 from adalio.pipeline import run_bag
 
 TURN_DEG = 2.0
-AXIS = np.array([0.6, -0.3, 0.74]) / np.linalg.norm([0.6, -0.3, 0.74])
-
-
-def _turned(cfg, deg: float = TURN_DEG):
-    out = copy.deepcopy(cfg)
-    T = cfg.T_imu_lidar()
-    T[:3, :3] = Rotation.from_rotvec(np.deg2rad(deg) * AXIS).as_matrix() @ T[:3, :3]
-    out.sensor.T_imu_lidar = T.tolist()
-    return out
 
 
 def _rotation_error_deg(T_a, T_b) -> float:
@@ -53,8 +43,8 @@ def right_ate_cm(hall_walk_of, tmp_path_factory) -> float:
     return _ate_cm(hall_walk, res)
 
 
-def test_a_turned_rotation_costs_the_walk_without_the_check(tmp_path, hall_walk, right_ate_cm):
-    cfg = _turned(load_config(config_file=hall_walk.config_path))
+def test_a_turned_rotation_costs_the_walk_without_the_check(tmp_path, hall_walk, right_ate_cm, turned):
+    cfg = turned(load_config(config_file=hall_walk.config_path), TURN_DEG)
     cfg.sensor.extrinsic_rotation_check = False
     res = run_bag(hall_walk.bag_path, cfg, tmp_path / "off", progress=False)
     assert res.extrinsic_rotation is None and res.extrinsic_rotation_found is None
@@ -62,9 +52,9 @@ def test_a_turned_rotation_costs_the_walk_without_the_check(tmp_path, hall_walk,
     assert _ate_cm(hall_walk, res) > 1.6 * right_ate_cm, (_ate_cm(hall_walk, res), right_ate_cm)
 
 
-def test_run_bag_finds_the_rotation_and_restarts_with_it(tmp_path, hall_walk, right_ate_cm):
+def test_run_bag_finds_the_rotation_and_restarts_with_it(tmp_path, hall_walk, right_ate_cm, turned):
     truth = load_config(config_file=hall_walk.config_path)
-    cfg = _turned(truth)
+    cfg = turned(truth, TURN_DEG)
     t0 = time.perf_counter()
     with pytest.warns(UserWarning, match=r"restarted with the corrected sensor\.T_imu_lidar"):
         res = run_bag(hall_walk.bag_path, cfg, tmp_path / "found", progress=False)
@@ -90,8 +80,8 @@ def test_run_bag_finds_the_rotation_and_restarts_with_it(tmp_path, hall_walk, ri
     assert _ate_cm(hall_walk, res) < 1.3 * right_ate_cm, (_ate_cm(hall_walk, res), right_ate_cm)
 
 
-def test_the_restart_is_one_warning_line_on_the_command_line(tmp_path, hall_walk):
-    cfg = _turned(load_config(config_file=hall_walk.config_path))
+def test_the_restart_is_one_warning_line_on_the_command_line(tmp_path, hall_walk, turned):
+    cfg = turned(load_config(config_file=hall_walk.config_path), TURN_DEG)
     cfg.sensor.extrinsic_rotation_sigma_deg = 0.0  # sigmas without it: the restart keeps that
     config_path = tmp_path / "turned.yaml"
     config_path.write_text(cfg.to_yaml())
@@ -134,12 +124,12 @@ def _feed(odom, cfg, hall_walk) -> None:
     odom.finish()
 
 
-def test_your_own_loop_gets_the_estimate_and_a_warning(hall_walk):
+def test_your_own_loop_gets_the_estimate_and_a_warning(hall_walk, turned):
     """The Python API: no restart (a stream cannot be re-read), but ``odom.extrinsic_rotation``
     and a warning, with part of the 2 degrees seen about the axis turned."""
     from adalio import Odometry
 
-    cfg = _turned(load_config(config_file=hall_walk.config_path))
+    cfg = turned(load_config(config_file=hall_walk.config_path), TURN_DEG)
     odom = Odometry(cfg)
     with pytest.warns(UserWarning, match=r"LiDAR-IMU rotation in sensor\.T_imu_lidar disagrees"):
         _feed(odom, cfg, hall_walk)
@@ -147,4 +137,4 @@ def test_your_own_loop_gets_the_estimate_and_a_warning(hall_walk):
     assert est is not None and est.significant
     assert 0.5 * TURN_DEG < np.degrees(est.angle_rad) < TURN_DEG
     # the config's rotation is Exp(2 deg AXIS) R_true: the correction Exp(θ) turns back, -AXIS
-    assert est.rotvec_rad @ -AXIS > 0.9 * est.angle_rad
+    assert est.rotvec_rad @ -turned.axis > 0.9 * est.angle_rad
