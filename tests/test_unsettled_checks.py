@@ -112,3 +112,50 @@ def test_after_a_restart_the_line_names_the_corrected_value():
     assert "the run restarted with it; not checked over 60 s of updates:" in text
     assert text.endswith("the corrected rotation used as it is"), text
     assert "(the recording ended)" not in text  # it gave up at 60 s
+
+
+def test_a_significant_rotation_concludes_at_the_last_look_however_imprecise():
+    """At ``MAX_SPAN_S`` or the end of the data, a significant estimate (0.8 deg at 4.4
+    deviations) concludes although its deviation (0.18 deg) is above the 0.15 deg an earlier
+    look needs (run_bag then weighs the value found by its noise); one below significance, or
+    significant with a deviation of degrees (a robot's), stays unsettled at the last look too."""
+    from adalio.lio import Odometry
+    from adalio.lio.extrinsic_check import RotationEstimate
+
+    def estimate(deg):
+        return RotationEstimate(rotvec_rad=np.radians([deg, 0.0, 0.0]),
+                                cov_rad2=np.eye(3) * np.radians(0.18) ** 2, span_s=60.0,
+                                n_pairs=500)
+
+    strong, weak = estimate(0.8), estimate(0.6)
+    assert strong.significant and not strong.conclusive and not weak.significant
+    # a robot's walk (it turns about one axis only): 4 deviations of 2 deg are no rotation
+    robot = RotationEstimate(rotvec_rad=np.radians([9.0, 0.0, 0.0]),
+                             cov_rad2=np.eye(3) * np.radians(2.0) ** 2, span_s=60.0, n_pairs=500)
+    assert robot.significant
+    for est, last, concluded in ((strong, False, False), (strong, True, True),
+                                 (weak, True, False), (robot, True, False)):
+        odom = Odometry(load_config())
+        odom.warn_extrinsic_rotation = False
+        odom._conclude_rotation(est, 60.0, last=last)
+        assert (odom.extrinsic_rotation is est) == concluded
+        assert (odom.extrinsic_rotation_unsettled is None) == concluded
+
+
+def test_the_restarted_deviation_stays_within_what_the_config_loads(tmp_path):
+    """The restarted run's config.yaml must load again: a found value's deviation of 12 deg is
+    written as the largest the config allows, 0.2 deg as it is, and a configured 0 stays 0."""
+    from adalio.pipeline import restarted_rotation_sigma_deg
+
+    cfg = load_config()
+    for configured, found_deg, expected in ((0.1, 12.0, None), (0.1, 0.2, 0.2), (0.5, 0.2, 0.5),
+                                            (0.0, 12.0, 0.0)):
+        cfg.sensor.extrinsic_rotation_sigma_deg = restarted_rotation_sigma_deg(
+            configured, np.radians(found_deg))
+        path = tmp_path / "c.yaml"
+        path.write_text(cfg.to_yaml())
+        loaded = load_config(config_file=path).sensor.extrinsic_rotation_sigma_deg
+        if expected is None:  # beyond the range: the largest it allows, above what was configured
+            assert configured < loaded < found_deg
+        else:
+            assert loaded == pytest.approx(expected)

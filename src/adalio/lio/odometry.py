@@ -845,7 +845,7 @@ class Odometry:
                 self._conclude_time_offset(
                     None if data is None else estimate_offset(*data, span), span)
             if self._rotation_open:
-                self._conclude_rotation(self._rotation_from(data, span), span)
+                self._conclude_rotation(self._rotation_from(data, span), span, last=True)
             if self._translation_open:
                 self._conclude_translation(self._translation_from(motion, span), span)
         self._offset_check = None
@@ -1228,7 +1228,7 @@ class Odometry:
                     rot.rotvec_rad / SEEN_SHARE, rot.cov_rad2 / SEEN_SHARE**2)
             if (rot is not None and rot.conclusive) or span >= MAX_SPAN_S:
                 # unsettled at MAX_SPAN_S: too little rotation about two axes, or noise
-                self._conclude_rotation(rot, span)
+                self._conclude_rotation(rot, span, last=span >= MAX_SPAN_S)
         if translation_due:
             self._translation_judged_ns = t_e_ns
             tr = self._translation_from(motion, span)
@@ -1260,11 +1260,16 @@ class Odometry:
             return
         self.extrinsic_translation = est
 
-    def _conclude_rotation(self, est: RotationEstimate | None, span_s: float) -> None:
+    def _conclude_rotation(self, est: RotationEstimate | None, span_s: float, *,
+                           last: bool = False) -> None:
         """Close the rotation check on ``est`` (over ``span_s`` of updates): its conclusion,
-        warned about when significant, or unsettled (:attr:`extrinsic_rotation_unsettled`)."""
+        warned about when significant, or unsettled (:attr:`extrinsic_rotation_unsettled`).
+        ``last``: the check's last look (``MAX_SPAN_S`` or the end of the data), where a
+        significant estimate concludes with a larger deviation
+        (``RotationEstimate.conclusive_at_last``: ``run_bag`` weighs the value it finds by its
+        noise, so an imprecise one is not applied whole)."""
         self._rotation_open = False
-        if est is None or not est.conclusive:
+        if est is None or not (est.conclusive_at_last if last else est.conclusive):
             if self.conclude_time_offset:  # not in run_bag's passes, which read the estimate
                 self.extrinsic_rotation_unsettled = UnsettledCheck(
                     span_s, est, gave_up=span_s >= MAX_SPAN_S)
