@@ -25,7 +25,7 @@ from typing import Any, Self
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from adalio.config import Config, validate_transform
+from adalio.config import RANGES, Config, validate_transform
 from adalio.errors import AdalioError, BagError, ConfigError, InputError
 from adalio.io.bag import Bag, chain_transform
 from adalio.io.sequencer import Sequencer, SequencerStats
@@ -422,10 +422,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
     if found_rot is not None:
         cfg.sensor.T_imu_lidar = found_rot.T_imu_lidar.tolist()
         cfg.sensor.extrinsic_source = "config"
-        if cfg.sensor.extrinsic_rotation_sigma_deg > 0:  # 0: the user wants it left out
-            cfg.sensor.extrinsic_rotation_sigma_deg = max(
-                cfg.sensor.extrinsic_rotation_sigma_deg,
-                round(float(np.degrees(found_rot.sigma_rad)), 3))
+        cfg.sensor.extrinsic_rotation_sigma_deg = restarted_rotation_sigma_deg(
+            cfg.sensor.extrinsic_rotation_sigma_deg, found_rot.sigma_rad)
         warnings.warn(f"the LiDAR-IMU rotation disagrees with the data: the gyro turns about "
                       f"axes {found_rot.angle_deg:.2f} deg away from those the LiDAR alone "
                       f"registers (found over the first {found_rot.n_scans} scans in "
@@ -464,6 +462,16 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
     res.calibration_wall_s = t_restart - t_start
     res.compiled = first.compiled
     return res
+
+
+def restarted_rotation_sigma_deg(configured_deg: float, found_sigma_rad: float) -> float:
+    """The restarted run's ``sensor.extrinsic_rotation_sigma_deg`` after a found rotation: at
+    least the found value's deviation, within what the config allows (its ``config.yaml`` must
+    load again); a configured 0 (the sigmas without the extrinsic's term) stays 0."""
+    if not configured_deg > 0:
+        return configured_deg
+    top = RANGES["sensor.extrinsic_rotation_sigma_deg"].hi
+    return min(max(configured_deg, round(float(np.degrees(found_sigma_rad)), 3)), top)
 
 
 def _significant(odom: Any, check: str) -> bool:
