@@ -76,11 +76,12 @@ class RotationCalibration:
     n_scans: int
     """Scans each pass read (the first run's, up to the check's conclusion)."""
     sigma_rad: float = 0.0
-    """The largest standard deviation (rad) of the value found (``found_rad``): the rotation
-    left after ``correction_rad`` is at most about this on each axis (the posterior's own
-    covariance understates it where the rotation is comparable to it: a widened prior is an
-    estimate too), and the restarted run's ``sensor.extrinsic_rotation_sigma_deg`` is at least
-    this."""
+    """The largest standard deviation (rad) of the value found (``found_rad``), which the
+    restarted run's ``sensor.extrinsic_rotation_sigma_deg`` is at least: the rotation left after
+    ``correction_rad`` was up to 2.8 times it where the first estimate concluded on a noisy
+    excursion (session 63; the restarted sigmas still held). Not the posterior's own
+    covariance, which understates it where the rotation is comparable to the noise (a widened
+    prior is an estimate too)."""
     found_rad: np.ndarray | None = None
     """(3,) the rotation vector the passes found (before it was weighed, ``correction_rad``)."""
 
