@@ -43,7 +43,8 @@ def right_ate_cm(hall_walk_of, tmp_path_factory) -> float:
     return _ate_cm(hall_walk, res)
 
 
-def test_a_turned_rotation_costs_the_walk_without_the_check(tmp_path, hall_walk, right_ate_cm, turned):
+def test_a_turned_rotation_costs_the_walk_without_the_check(tmp_path, hall_walk, right_ate_cm,
+                                                            turned):
     cfg = turned(load_config(config_file=hall_walk.config_path), TURN_DEG)
     cfg.sensor.extrinsic_rotation_check = False
     res = run_bag(hall_walk.bag_path, cfg, tmp_path / "off", progress=False)

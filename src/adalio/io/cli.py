@@ -347,9 +347,9 @@ def _rotation_text(res: Any) -> str:
     found = getattr(res, "extrinsic_rotation_found", None)
     text = ""
     if found is not None:
-        value = getattr(found, "found_rad", None)
-        weighed = ("" if value is None else
-                   f" ({np.degrees(np.linalg.norm(value)):.2f} deg as found, weighed by its noise)")
+        weighed = ("" if found.found_rad is None else
+                   f" ({np.degrees(np.linalg.norm(found.found_rad)):.2f} deg as found, weighed "
+                   "by its noise)")
         text = (f"sensor.T_imu_lidar turned by {found.angle_deg:.2f} deg{weighed}, found over "
                 f"the first {found.n_scans} scans in {len(found.passes)} passes (the first run "
                 f"saw {np.degrees(np.linalg.norm(found.detected_rad)):.2f} deg), the run "
