@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from adalio.sim import SCENES, simulate
 from adalio.sim.generate import T_IMU_LIDAR_HILTI, build_trajectory, mesh_distance_m
-from adalio.sim.imu import GRAVITY_M_S2, ImuNoise, synthesize_imu
+from adalio.sim.imu import GRAVITY_M_S2, ImuNoise, sensitivity_errors, synthesize_imu
 from adalio.sim.lidar import RayCaster
 from adalio.sim.scenes import build_scene
 
@@ -249,3 +249,31 @@ def test_mesh_distance_matches_brute_force():
     brute = np.array([np.linalg.norm(trimesh.triangles.closest_point(
         tris, np.repeat(p[None], len(tris), 0)) - p, axis=1).min() for p in pts])
     np.testing.assert_allclose(mesh_distance_m(caster, pts), brute, atol=1e-9)
+
+
+def test_imu_sensitivity_errors_are_what_a_regression_on_the_truth_recovers():
+    """With sensitivity errors the samples are ``(I + E) x + bias + noise``: a least-squares fit
+    of the samples on the true rate and specific force (plus a constant) recovers ``I + E`` for
+    each sensor, while the IMU without them fits the identity; the draws are the seed's own
+    stream (the white noise and biases do not move) and scale with ``sigma``."""
+    traj = build_trajectory(build_scene("hall", 0), np.asarray(T_IMU_LIDAR_HILTI), 0)
+    t_ns = 2_500_000_000 + np.arange(12_000, dtype=np.int64) * 2_500_000  # 30 s of the walk
+    E = sensitivity_errors(3, 0.01)
+    assert np.array_equal(sensitivity_errors(3, 0.02)[0], 2.0 * E[0])
+    assert not np.allclose(sensitivity_errors(4, 0.01)[0], E[0])
+    assert not np.any(sensitivity_errors(3, 0.0)[0])
+    def imu(bias_scale, sensitivity=None):
+        return synthesize_imu(traj, t_ns, 0, np.random.default_rng(7), bias_scale=bias_scale,
+                              sensitivity=sensitivity)
+
+    plain, off = imu(0.0), imu(0.0, E)  # without bias walks: the fit's constant is exact
+    # tolerances: the white noise's share of the fit (the accelerometer sees little but gravity)
+    for name, unit, E_s, tol in (("gyro", "rad_s", E[0], 1e-3), ("accel", "m_s2", E[1], 3e-3)):
+        true = getattr(off, f"{name}_true_{unit}")
+        X = np.column_stack([true, np.ones(len(true))])
+        for sample, expected in ((off, np.eye(3) + E_s), (plain, np.eye(3))):
+            fit, *_ = np.linalg.lstsq(X, getattr(sample, f"{name}_{unit}"), rcond=None)
+            np.testing.assert_allclose(fit[:3].T, expected, rtol=0, atol=tol)
+        np.testing.assert_array_equal(getattr(imu(1.0, E), f"{name}_bias_{unit}"),
+                                      getattr(imu(1.0), f"{name}_bias_{unit}"))
+    assert min(np.abs(E[0]).max(), np.abs(E[1]).max()) > 5 * 3e-3  # errors >> tolerances

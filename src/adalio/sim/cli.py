@@ -50,6 +50,11 @@ def register(app: typer.Typer) -> None:
             "--imu-time-offset-ms", help="The IMU's stamps run this many ms late against the "
             "LiDAR's (negative: early), as an IMU stamped on arrival; within +-1000. config.yaml "
             "does not say it (meta.json does).")] = 0.0,
+        imu_scale_error_pct: Annotated[float, typer.Option(
+            "--imu-scale-error-pct", help="The gyro and the accelerometer read the truth "
+            "through I + E, E's nine entries drawn N(0, PCT %) from the seed: scale factors and "
+            "cross-axis sensitivity, as an uncalibrated MEMS IMU (0-10; default 0). config.yaml "
+            "does not say it (meta.json gives E).")] = 0.0,
     ) -> None:
         """Simulate a handheld LiDAR + IMU walk through an indoor scene into a ROS bag."""
         import json
@@ -71,7 +76,8 @@ def register(app: typer.Typer) -> None:
                                  imu_bias_scale=imu_bias_scale, motion_from=motion_from,
                                  T_imu_lidar=T_imu_lidar, imu_rate_hz=imu_rate,
                                  lidar_rate_hz=lidar_rate,
-                                 imu_time_offset_s=imu_time_offset_ms * 1e-3)
+                                 imu_time_offset_s=imu_time_offset_ms * 1e-3,
+                                 imu_scale_error_pct=imu_scale_error_pct)
         meta = json.loads(res.meta_path.read_text())
         console().print(
             f"[green]wrote[/] {res.bag_path} ({meta['n_scans']} sweeps, {meta['n_imu']} IMU, "

@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 from adalio.config import preset_dict, validate_transform
 from adalio.errors import InputError
 from adalio.sim.bagout import FORMATS, POINT_STEP, SimBagWriter, bag_path_for
-from adalio.sim.imu import GRAVITY_M_S2, ImuNoise, synthesize_imu
+from adalio.sim.imu import GRAVITY_M_S2, ImuNoise, sensitivity_errors, synthesize_imu
 from adalio.sim.lidar import LIDAR_MODELS, Occluder, RayCaster, SweepSimulator, lidar_model
 from adalio.sim.scenes import build_scene
 from adalio.sim.trajectory import HandheldMotion, Trajectory
@@ -41,6 +41,9 @@ MAX_IMU_RATE_HZ = 4000.0
 100-1000 Hz that LiDAR-inertial rigs record (a sequence's IMU samples are held in memory whole)."""
 MAX_IMU_TIME_OFFSET_S = 1.0
 """The IMU stamp offsets ``simulate`` writes (as ``sensor.imu_time_offset_s`` accepts)."""
+MAX_IMU_SCALE_ERROR_PCT = 10.0
+"""The IMU sensitivity errors ``simulate`` draws, at most (standard deviation per entry, %):
+consumer MEMS datasheets give scale-factor tolerances and cross-axis sensitivities of 0.5-3 %."""
 GT_RATE_HZ = 100.0
 T_IMU_LIDAR_HILTI = [[0.0, -1.0, 0.0, -0.001], [-1.0, 0.0, 0.0, -0.00855],
                      [0.0, 0.0, -1.0, 0.055], [0.0, 0.0, 0.0, 1.0]]
@@ -91,6 +94,14 @@ class SimResult:
 
 def _ns_to_s_str(t_ns: int) -> str:
     return f"{t_ns // 1_000_000_000}.{t_ns % 1_000_000_000:09d}"
+
+
+def check_imu_scale_error(pct: float) -> None:
+    """``--imu-scale-error-pct`` within 0 .. :data:`MAX_IMU_SCALE_ERROR_PCT`, else an
+    ``InputError`` naming it."""
+    if not 0.0 <= pct <= MAX_IMU_SCALE_ERROR_PCT:
+        raise InputError(f"--imu-scale-error-pct must be 0-{MAX_IMU_SCALE_ERROR_PCT:g} "
+                         f"(got {pct:g})")
 
 
 def _check_args(scene: str, duration_s: float | None, lidar: str, fmt: str,
@@ -177,7 +188,8 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
              make_room: Callable[[int], object] | None = None,
              imu_rate_hz: float = IMU_RATE_HZ,
              lidar_rate_hz: float | None = None,
-             imu_time_offset_s: float = 0.0) -> SimResult:
+             imu_time_offset_s: float = 0.0,
+             imu_scale_error_pct: float = 0.0) -> SimResult:
     """Generate one sequence of ``scene`` into ``out_dir`` (created; the bag must not exist).
 
     ``duration_s`` None walks the whole route; shorter values truncate it (static start kept).
@@ -196,6 +208,11 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     ``imu_time_offset_s``: the IMU's stamps run this much late against the LiDAR's (each sample
     is the motion at its time, stamped later; negative: early), as an IMU stamped on arrival;
     ``config.yaml`` does not say it (``meta.json`` does), as a user would not know it.
+    ``imu_scale_error_pct``: the gyro and the accelerometer read the truth through ``I + E``,
+    each of ``E``'s nine entries drawn N(0, pct / 100) from the seed (scale factors on the
+    diagonal, cross-axis sensitivity and misalignment off it; :func:`adalio.sim.imu.
+    sensitivity_errors`); ``meta.json`` gives both ``E``, ``config.yaml`` neither (an
+    uncalibrated IMU).
     ``motion_from``: a TUM trajectory (>= 10 Hz) whose handheld motion replaces the synthetic
     one (:class:`adalio.sim.trajectory.HandheldMotion`; the seed picks where in it to start);
     ``"none"``: no hand motion at all, the route's own path and attitude (a robot's walk).
@@ -208,6 +225,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     if not imu_bias_scale >= 0:
         raise InputError(f"--imu-bias-scale must be >= 0 (got {imu_bias_scale})")
     _check_args(scene, duration_s, lidar, fmt, noise_scale, imu_rate_hz)
+    check_imu_scale_error(imu_scale_error_pct)
     if not abs(imu_time_offset_s) <= MAX_IMU_TIME_OFFSET_S:
         raise InputError(f"--imu-time-offset-ms must be within +-{MAX_IMU_TIME_OFFSET_S * 1e3:g} "
                          f"ms (got {imu_time_offset_s * 1e3:g})")
@@ -238,9 +256,11 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     rate_hz = 1e9 / imu_dt_ns  # the rate the integer-ns stamps hold
     t_imu = t0 + np.arange(dur_ns // imu_dt_ns + 1, dtype=np.int64) * imu_dt_ns
     imu_noise = ImuNoise()
+    sensitivity = (sensitivity_errors(seed, imu_scale_error_pct / 100.0)
+                   if imu_scale_error_pct else None)
     imu = synthesize_imu(traj, t_imu, t0, np.random.default_rng([seed, 200]), imu_noise,
                          noise_scale, rate_hz, white_scale=imu_noise_scale,
-                         bias_scale=imu_bias_scale)
+                         bias_scale=imu_bias_scale, sensitivity=sensitivity)
     period = model.period_ns
     n_scans = dur_ns // period
     need = sequence_bytes(n_scans, model.columns, model.channels, len(t_imu))
@@ -315,6 +335,11 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
         "start_time_ns": t0, "start_time_s": _ns_to_s_str(t0), "static_s": traj.static_s,
         "imu_rate_hz": rate_hz, "lidar_rate_hz": model.rate_hz, "gt_rate_hz": GT_RATE_HZ,
         "imu_time_offset_s": offset_ns * 1e-9,
+        "imu_scale_error_pct": float(imu_scale_error_pct),
+        "imu_gyro_sensitivity_error": (np.zeros((3, 3)) if sensitivity is None
+                                       else sensitivity[0]).tolist(),
+        "imu_accel_sensitivity_error": (np.zeros((3, 3)) if sensitivity is None
+                                        else sensitivity[1]).tolist(),
         "gravity_m_s2": GRAVITY_M_S2, "n_scans": int(n_scans), "n_imu": len(t_imu),
         "n_points": int(n_points), "route_length_m": traj.route_length_m,
         "min_clearance_m": round(clearance, 4),
