@@ -439,6 +439,10 @@ CASES: list[Case] = [
     Case("simulate_imu_bias_scale_negative",
          lambda b, f: ["simulate", "--scene", "hall", "--out", str(f / "s"),
                        "--imu-bias-scale", "-1"], "error", ("--imu-bias-scale must be >= 0",)),
+    Case("simulate_imu_scale_error_too_large",
+         lambda b, f: ["simulate", "--scene", "hall", "--out", str(f / "s"),
+                       "--imu-scale-error-pct", "20"], "error",
+         ("--imu-scale-error-pct must be 0-10 (got 20)",)),
     # config
     Case("config_missing", lambda b, f: run_args(b, b.bag, f, config=f / "none.yaml"), "error",
          ("none.yaml does not exist",)),
@@ -461,6 +465,10 @@ CASES: list[Case] = [
     Case("config_unknown_preset", config_case("preset: hilti2023\n"), "error",
          ("unknown preset 'hilti2023'", "hilti2022")),
     Case("config_extrinsic_not_rotation", not_rotation, "error", ("not a rigid transform",)),
+    Case("config_gyro_sensitivity_not_one",
+         config_case("preset: hilti2022\nsensor:\n  gyro_sensitivity: [[57.3, 0, 0], [0, 57.3, 0], "
+                     "[0, 0, 57.3]]\n"), "error",
+         ("sensor.gyro_sensitivity differs from the identity by 56.3",)),
     Case("config_extrinsic_in_mm", extrinsic_in_mm, "error",
          ("sensor.T_imu_lidar's translation", "m long", "give it in metres")),
     Case("config_time_field_absent", bag_case(lambda *a: None,

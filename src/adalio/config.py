@@ -37,6 +37,10 @@ def _identity4() -> list[list[float]]:
     return [[1.0 if i == j else 0.0 for j in range(4)] for i in range(4)]
 
 
+def _identity3() -> list[list[float]]:
+    return [[1.0 if i == j else 0.0 for j in range(3)] for i in range(3)]
+
+
 @dataclass
 class SensorConfig:
     """Topics, extrinsic and time handling of the LiDAR + IMU rig."""
@@ -59,6 +63,14 @@ class SensorConfig:
     gyro_unit: str = "rad_s"
     """'rad_s' or 'deg_s' (converted on reading). A deg/s gyro read as rad/s is detected (rates
     beyond 2000 deg/s, or 57x the LiDAR-registered rotation) and stops the run naming this key."""
+    gyro_sensitivity: list[list[float]] = field(default_factory=_identity3)
+    """3x3 row-major: the gyro reads ``S ω`` for the true rate ``ω`` (its scale factors on the
+    diagonal, its cross-axis sensitivity and axis misalignment off it; an IMU intrinsic
+    calibration such as Kalibr's ``scale-misalignment`` model or OpenVINS's ``Dw`` gives it).
+    adalio reads ``S⁻¹ x`` for every sample ``x`` (after ``gyro_unit``). The identity: taken as
+    exact. Within ``MAX_SENSITIVITY_ERROR`` of it per entry."""
+    accel_sensitivity: list[list[float]] = field(default_factory=_identity3)
+    """The same for the accelerometer (after ``accel_unit``)."""
     point_time_field: str = "auto"
     """Per-point time field name, or 'auto' (t, time, timestamp, timestamps, offset_time, ...),
     or 'none' to reconstruct times from azimuth."""
@@ -94,6 +106,19 @@ class SensorConfig:
     error ``(R₀ - R) δ`` that changes as the rig turns (:mod:`adalio.lio.extrinsic_sigma`),
     narrowed across the rig's vertical by what the lever arm check estimates. 0.01 is a
     calibrated rig's or a careful tape measure's; 0 leaves it out."""
+    gyro_axes_sigma_deg: float = 0.0
+    """How well the gyro's axes are known against the IMU's frame, the accelerometer's, which
+    the trajectory is given in (degrees, one standard deviation about each axis). The rotation
+    check measures the gyro's axes against the LiDAR's and cannot tell a turn of the gyro
+    inside the IMU (an uncalibrated IMU's axis misalignment) from one of the extrinsic: after a
+    restart that also found the gyro's scale off, ``adalio run`` sets it to the rotation it
+    applied, and the reported sigmas add it like ``extrinsic_rotation_sigma_deg`` (never
+    narrowed by the check, which cannot see it). 0: the gyro's axes are the IMU's."""
+    gyro_scale_check: bool = True
+    """Check the gyro's scale factors (``gyro_sensitivity``) against the data over the same
+    updates: the rates the gyro reads against those the LiDAR alone registers
+    (:mod:`adalio.lio.gyro_scale`); ``adalio run`` then finds the scale error left and restarts
+    with the corrected ``gyro_sensitivity`` when it matters."""
     extrinsic_translation_check: bool = True
     """Check the translation of ``T_imu_lidar`` (the lever arm) against the data over the same
     updates: the accelerometer against the motion the LiDAR alone registers through it
@@ -501,7 +526,33 @@ class Config:
             rule.check(key, values[key])
         _cross_checks(self)
         self.T_imu_lidar()
+        validate_sensitivity(self.sensor.gyro_sensitivity, "sensor.gyro_sensitivity")
+        validate_sensitivity(self.sensor.accel_sensitivity, "sensor.accel_sensitivity")
         return self
+
+
+MAX_SENSITIVITY_ERROR = 0.1
+"""``sensor.gyro_sensitivity`` and ``sensor.accel_sensitivity`` may differ from the identity by
+at most this per entry: MEMS scale factors and cross-axis sensitivities are off by 0.1-3 %; a
+matrix further off is not a sensitivity (a frame's rotation belongs in ``T_imu_lidar``, a unit in
+``gyro_unit`` / ``accel_unit``)."""
+
+
+def validate_sensitivity(S: Any, where: str) -> np.ndarray:
+    """Return ``S`` as a 3x3 float64 sensitivity matrix or raise ConfigError naming ``where``."""
+    try:
+        M = np.asarray(S, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where} must be a 3x3 matrix of numbers") from None
+    if M.shape != (3, 3) or not np.all(np.isfinite(M)):
+        raise ConfigError(f"{where} must be a finite 3x3 matrix (got shape {M.shape})")
+    off = float(np.abs(M - np.eye(3)).max())
+    if off > MAX_SENSITIVITY_ERROR:
+        raise ConfigError(f"{where} differs from the identity by {off:.3g} in an entry, more "
+                          f"than the {MAX_SENSITIVITY_ERROR:g} a sensitivity (scale factors, "
+                          f"cross-axis) does: a frame's rotation belongs in sensor.T_imu_lidar, "
+                          f"a unit in sensor.gyro_unit / sensor.accel_unit")
+    return M
 
 
 def _choice(value: Any, allowed: tuple, key: str) -> None:
@@ -586,6 +637,7 @@ RANGES: dict[str, Range] = {
     "sensor.lidar_rate_hz": POSITIVE,
     "sensor.imu_time_offset_s": Range(-1.0, 1.0),
     "sensor.extrinsic_rotation_sigma_deg": Range(0.0, 10.0),
+    "sensor.gyro_axes_sigma_deg": Range(0.0, 10.0),
     "sensor.extrinsic_translation_sigma_m": Range(0.0, 1.0),
     "preprocess.blind_m": NON_NEGATIVE,
     "preprocess.max_range_m": POSITIVE,

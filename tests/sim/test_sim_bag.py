@@ -275,3 +275,34 @@ def test_cli_simulate_mounts_the_imu_as_the_extrinsic_says(tmp_path):
     assert np.degrees(np.arccos(up_imu @ T[:3, 2])) < 1.0
     hilti = np.asarray(load_config("hilti2022").sensor.T_imu_lidar)
     assert np.degrees(np.arccos(up_imu @ hilti[:3, 2])) > 45.0
+
+
+def test_the_gyro_sensitivity_in_the_config_undoes_the_simulated_one(tmp_path):
+    """A sequence simulated with IMU sensitivity errors (``imu_scale_error_pct``), read with
+    ``meta.json``'s matrices as ``sensor.gyro_sensitivity`` / ``accel_sensitivity``, gives the
+    samples of the same sequence without them, up to the errors' share of the bias and noise
+    (``S⁻¹ (S ω + b + n) = ω + S⁻¹ (b + n)``); read without them, it does not."""
+    def imu(res, **sensor):
+        cfg = load_config(config_file=res.config_path,
+                          overrides={f"sensor.{k}": v for k, v in sensor.items()})
+        with Bag(res.bag_path) as bag:
+            lidar, imu_topic = bag.select_topics(cfg.sensor)
+            batches = [i for i in Sequencer(bag, lidar, imu_topic, cfg.sensor)
+                       if isinstance(i, ImuBatch)]
+        return (np.concatenate([b.gyro_rad_s for b in batches]),
+                np.concatenate([b.accel_m_s2 for b in batches]))
+
+    plain = simulate("hall", tmp_path / "plain", duration_s=6.0, columns=90, seed=1)
+    off = simulate("hall", tmp_path / "off", duration_s=6.0, columns=90, seed=1,
+                   imu_scale_error_pct=2.0)
+    meta = json.loads(off.meta_path.read_text())
+    assert meta["imu_scale_error_pct"] == 2.0
+    S = {k: (np.eye(3) + np.asarray(meta[f"imu_{k}_sensitivity_error"])).tolist()
+         for k in ("gyro", "accel")}
+    gyro0, accel0 = imu(plain)
+    gyro1, accel1 = imu(off)
+    gyro2, accel2 = imu(off, gyro_sensitivity=S["gyro"], accel_sensitivity=S["accel"])
+    for raw, undone, truth in ((gyro1, gyro2, gyro0), (accel1, accel2, accel0)):
+        # 2 % of the hand's rates, of gravity, against 2 % of the bias and noise
+        assert np.abs(undone - truth).max() < 0.1 * np.abs(raw - truth).max()
+    assert np.abs(gyro1 - gyro0).max() > 1e-3 and np.abs(accel1 - accel0).max() > 0.1

@@ -254,6 +254,13 @@ def imu_msg_arrays(msgs: list[Any]) -> ImuBatch:
     return ImuBatch(t, g, a)
 
 
+def _inverse_unless_identity(S: list[list[float]]) -> np.ndarray | None:
+    """The inverse of a sensitivity matrix (``sensor.gyro_sensitivity``), None for the identity
+    (the samples are then read as they are, bit for bit)."""
+    M = np.asarray(S, dtype=np.float64)
+    return None if np.array_equal(M, np.eye(3)) else np.linalg.inv(M)
+
+
 def accel_is_in_g(accel: np.ndarray) -> bool:
     """True if the mean accelerometer norm of (static-ish) samples is near 1 (units of g)."""
     accel = accel[np.isfinite(accel).all(axis=1)] if accel.ndim == 2 else accel
@@ -306,12 +313,18 @@ class Sequencer:
             return batch
 
         gyro_scale = np.pi / 180.0 if self.sensor.gyro_unit == "deg_s" else 1.0
+        gyro_inv = _inverse_unless_identity(self.sensor.gyro_sensitivity)
+        accel_inv = _inverse_unless_identity(self.sensor.accel_sensitivity)
 
         def scaled(item: ImuBatch | Scan) -> ImuBatch | Scan:
             if isinstance(item, ImuBatch) and self._accel_scale != 1.0:
                 item.accel_m_s2 = item.accel_m_s2 * self._accel_scale
             if isinstance(item, ImuBatch) and gyro_scale != 1.0:
                 item.gyro_rad_s = item.gyro_rad_s * gyro_scale
+            if isinstance(item, ImuBatch) and gyro_inv is not None:
+                item.gyro_rad_s = item.gyro_rad_s @ gyro_inv.T
+            if isinstance(item, ImuBatch) and accel_inv is not None:
+                item.accel_m_s2 = item.accel_m_s2 @ accel_inv.T
             return item
 
         def decide(force: bool) -> Iterator[ImuBatch | Scan]:
