@@ -194,6 +194,9 @@ def checks_text(res: Any) -> str:
              getattr(res, "extrinsic_rotation_unsettled", None),
              lambda e: (f"{math.degrees(e.angle_rad):.2f}", f"{math.degrees(e.sigma_rad):.2f}",
                         "deg")),
+            ("gyro scale", getattr(res, "gyro_scale_found", None),
+             getattr(res, "gyro_scale", None), getattr(res, "gyro_scale_unsettled", None),
+             lambda e: (f"{100 * e.largest:.2f}", f"{100 * e.sigma:.2f}", "%")),
             ("translation", None, getattr(res, "extrinsic_translation", None),
              getattr(res, "extrinsic_translation_unsettled", None),
              lambda e: ("(" + ", ".join(f"{100 * v:+.1f}" for v in e.horizontal_m) + ")",
@@ -201,6 +204,7 @@ def checks_text(res: Any) -> str:
         text = ""
         if found is not None:
             value = (f"{found.offset_s * 1e3:+.1f} ms" if name == "offset" else
+                     f"{found.largest_pct:.2f} %" if name == "gyro scale" else
                      f"{found.angle_deg:.2f} deg")
             text = f"{name} {value} found"
         if unsettled is not None:

@@ -25,7 +25,7 @@ from typing import Any, Self
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from adalio.config import RANGES, Config, validate_transform
+from adalio.config import RANGES, Config, validate_sensitivity, validate_transform
 from adalio.errors import AdalioError, BagError, ConfigError, InputError
 from adalio.io.bag import Bag, chain_transform
 from adalio.io.sequencer import Sequencer, SequencerStats
@@ -88,6 +88,38 @@ class RotationCalibration:
     @property
     def angle_deg(self) -> float:
         return float(np.degrees(np.linalg.norm(self.correction_rad)))
+
+
+@dataclass
+class GyroScaleCalibration:
+    """How ``run_bag`` found the gyro's scale error before restarting (``RunResult``)."""
+
+    correction: np.ndarray
+    """(6,) the symmetric correction's entries xx, xy, xz, yy, yz, zz (fractions) applied on
+    the right of the configured sensitivity (:func:`adalio.lio.gyro_scale.
+    corrected_sensitivity`)."""
+    gyro_sensitivity: np.ndarray
+    """(3,3) the ``sensor.gyro_sensitivity`` the run restarted with."""
+    detected: np.ndarray
+    """(6,) the estimate that started the search (it sees part of the error)."""
+    residual: float
+    """The least largest entry a pass left; ``correction`` is one more step from there."""
+    passes: list[tuple[np.ndarray, np.ndarray]]
+    """(correction tried, scale error left) of each pass."""
+    n_scans: int
+
+    @property
+    def largest_pct(self) -> float:
+        """The correction's largest entry, in percent."""
+        return float(100 * np.abs(self.correction).max())
+
+    def text(self) -> str:
+        """'scale factors x +0.52 / y -0.31 / z +1.20 %, largest cross-axis +0.40 %'"""
+        d = 100 * self.correction[[0, 3, 5]]
+        off = 100 * self.correction[[1, 2, 4]]
+        k = int(np.argmax(np.abs(off)))
+        return (f"scale factors x {d[0]:+.2f} / y {d[1]:+.2f} / z {d[2]:+.2f} %, largest "
+                f"cross-axis {off[k]:+.2f} %")
 
 
 @dataclass
@@ -158,6 +190,21 @@ class RunResult:
     extrinsic_rotation_found: RotationCalibration | None = None
     """When the check found the extrinsic's rotation off and the run restarted: how it was
     found (the run's ``config.yaml`` holds the corrected ``sensor.T_imu_lidar``)."""
+    gyro_scale: Any = None
+    """:class:`adalio.lio.gyro_scale.GyroScaleEstimate` the gyro scale check concluded on in
+    this run (left after ``sensor.gyro_sensitivity``), or None."""
+    stopped_for_gyro_scale: bool = False
+    """The run stopped where the gyro scale check concluded, for :func:`run_bag` to restart
+    it."""
+    gyro_scale_found: GyroScaleCalibration | None = None
+    """When the check found the gyro's scale factors off and the run restarted: how (the run's
+    ``config.yaml`` holds the corrected ``sensor.gyro_sensitivity``)."""
+    gyro_scale_unsettled: Any = None
+    """The gyro scale check closed without a conclusion (``sensor.gyro_sensitivity`` used
+    unchecked)."""
+    gyro_scale_so_far: Any = None
+    """Where the run stopped for another check while the gyro scale check was still open: its
+    estimate there (:func:`run_bag` searches the scale when it is significant)."""
     time_offset_unsettled: Any = None
     """:class:`adalio.types.UnsettledCheck`: the IMU time offset check closed without a
     conclusion in this run, so ``sensor.imu_time_offset_s`` was used unchecked (None: it
@@ -376,7 +423,8 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         raise AdalioError("the estimator (adalio.lio.Odometry) is not available in this "
                           "install; update adalio") from None
 
-    if not (cfg.sensor.imu_time_offset_check or cfg.sensor.extrinsic_rotation_check):
+    if not (cfg.sensor.imu_time_offset_check or cfg.sensor.extrinsic_rotation_check
+            or cfg.sensor.gyro_scale_check):
         return _run_once(bag_path, cfg, Path(out_dir), progress=progress, max_scans=max_scans,
                          on_scan=on_scan, on_estimate=on_estimate, start_s=start_s,
                          sigma_warn_m=sigma_warn_m, parallel_compile=parallel_compile,
@@ -389,20 +437,42 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                           sigma_warn_m=sigma_warn_m, parallel_compile=parallel_compile,
                           on_compile=on_compile, restart_on_offset=True)
     est, rot = first.time_offset, first.extrinsic_rotation
+    scale = first.gyro_scale if first.gyro_scale is not None else first.gyro_scale_so_far
     offset_off = est is not None and est.significant
-    if first.interrupted or not (offset_off or (rot is not None and rot.significant)):
+    if first.interrupted or not (offset_off or (rot is not None and rot.significant)
+                                 or (scale is not None and scale.significant
+                                     and scale.conclusive)):
         return first
     found: TimeOffsetCalibration | None = None
     found_rot: RotationCalibration | None = None
+    found_scale: GyroScaleCalibration | None = None
     try:
         if offset_off:
-            found, rot_after = _find_time_offset(bag_path, cfg, first.n_scans_in, start_s,
-                                                 est.offset_s, progress)
+            found, rot_after, scale_after = _find_time_offset(
+                bag_path, cfg, first.n_scans_in, start_s, est.offset_s, progress)
             if found is not None:
                 cfg.sensor.imu_time_offset_s = found.offset_s
                 rot = rot_after  # the rotation with the gyro's stamps corrected
+                scale = scale_after if scale_after is not None else scale
+        n_rot = first.n_scans_in
+        n_scale = max(first.n_scans_in, round(SCALE_SPAN_S * cfg.sensor.lidar_rate_hz))
+        if (scale is not None and scale.significant and not scale.conclusive
+                and n_scale > first.n_scans_in):  # the first run stopped for another check
+            _, _, scale = _calibration_pass(bag_path, cfg, n_scale, start_s)
+        if scale is not None and scale.significant and scale.conclusive:  # before the
+            # rotation: a scale error turns the rotation check's estimate too (the scale
+            # check's fit holds both)
+            n_rot = n_scale
+            found_scale, rot_after = _find_gyro_scale(bag_path, cfg, n_rot, start_s, scale,
+                                                      progress)
+            if found_scale is not None:
+                cfg.sensor.gyro_sensitivity = found_scale.gyro_sensitivity.tolist()
+                rot = rot_after
         if rot is not None and rot.significant:
-            found_rot = _find_rotation(bag_path, cfg, first.n_scans_in, start_s, rot, progress)
+            found_rot, _ = _find_rotation(bag_path, cfg, n_rot, start_s, rot, progress)
+            if found_rot is not None:
+                cfg.sensor.T_imu_lidar = found_rot.T_imu_lidar.tolist()
+                cfg.sensor.extrinsic_source = "config"
     except KeyboardInterrupt:  # the first run's outputs stand
         first.interrupted = True
         return first
@@ -421,18 +491,30 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                       f"with sensor.imu_time_offset_s: {found.offset_s:.4f} (set it in your "
                       "config to start with it)", stacklevel=2)
     if found_rot is not None:
-        cfg.sensor.T_imu_lidar = found_rot.T_imu_lidar.tolist()
-        cfg.sensor.extrinsic_source = "config"
         cfg.sensor.extrinsic_rotation_sigma_deg = restarted_rotation_sigma_deg(
             cfg.sensor.extrinsic_rotation_sigma_deg, found_rot.sigma_rad)
+        if found_scale is not None:
+            # the gyro is uncalibrated, and the rotation found may be its own axes' misalignment
+            # rather than the extrinsic's: the trajectory's frame then follows the gyro's axes,
+            # off the IMU's by up to the whole correction, which no check can see
+            cfg.sensor.gyro_axes_sigma_deg = restarted_gyro_axes_sigma_deg(
+                cfg.sensor.gyro_axes_sigma_deg, float(np.linalg.norm(found_rot.correction_rad)))
         warnings.warn(f"the LiDAR-IMU rotation disagrees with the data: the gyro turns about "
                       f"axes {found_rot.angle_deg:.2f} deg away from those the LiDAR alone "
                       f"registers (found over the first {found_rot.n_scans} scans in "
                       f"{len(found_rot.passes)} passes); the run restarted with the corrected "
                       f"sensor.T_imu_lidar (in its config.yaml; set it in your config to start "
                       "with it)", stacklevel=2)
-    if found is None and found_rot is None and not (first.stopped_for_time_offset
-                                                    or first.stopped_for_extrinsic_rotation):
+    if found_scale is not None:
+        warnings.warn(f"the gyro's scale factors disagree with the data: against the rates the "
+                      f"LiDAR alone registers, the gyro reads {found_scale.text()} off (found "
+                      f"over the first {found_scale.n_scans} scans in "
+                      f"{len(found_scale.passes)} passes); the run restarted with the corrected "
+                      f"sensor.gyro_sensitivity (in its config.yaml; calibrate the IMU's "
+                      f"intrinsics, or set it in your config to start with it)", stacklevel=2)
+    if found is None and found_rot is None and found_scale is None and not (
+            first.stopped_for_time_offset or first.stopped_for_extrinsic_rotation
+            or first.stopped_for_gyro_scale):
         return first
     t_restart = time.perf_counter()
     with _said_once(seen, again=True):
@@ -458,11 +540,23 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                       f"against the rotation the LiDAR alone registers over "
                       f"{rot_left.span_s:.0f} s: check sensor.T_imu_lidar's rotation",
                       stacklevel=2)
+    scale_left = res.gyro_scale
+    if found_scale is not None and scale_left is not None and scale_left.significant:
+        warnings.warn(f"after the restart, the gyro still reads {scale_left.text()} off against "
+                      f"the rates the LiDAR alone registers over {scale_left.span_s:.0f} s: "
+                      f"calibrate the IMU's intrinsics (sensor.gyro_sensitivity)", stacklevel=2)
     res.time_offset_found = found
     res.extrinsic_rotation_found = found_rot
+    res.gyro_scale_found = found_scale
     res.calibration_wall_s = t_restart - t_start
     res.compiled = first.compiled
     return res
+
+
+SCALE_SPAN_S = 30.0
+"""The passes that find the gyro's scale error run over at least this many seconds of scans
+(the first run's, if longer): over the first 10 s of the hall its estimate missed an entry by
+7 deviations, over 20-40 s it is within 0.1-0.6 % of each (session 64)."""
 
 
 def restarted_rotation_sigma_deg(configured_deg: float, found_sigma_rad: float) -> float:
@@ -475,6 +569,13 @@ def restarted_rotation_sigma_deg(configured_deg: float, found_sigma_rad: float) 
     return min(max(configured_deg, round(float(np.degrees(found_sigma_rad)), 3)), top)
 
 
+def restarted_gyro_axes_sigma_deg(configured_deg: float, correction_rad: float) -> float:
+    """The restarted run's ``sensor.gyro_axes_sigma_deg`` after a rotation found together with a
+    gyro scale error: at least the rotation applied, within what the config allows."""
+    top = RANGES["sensor.gyro_axes_sigma_deg"].hi
+    return min(max(configured_deg, round(float(np.degrees(correction_rad)), 3)), top)
+
+
 def _significant(odom: Any, check: str) -> bool:
     """Whether the odometry's check ``check`` (``time_offset``, ``extrinsic_rotation``)
     concluded on a significant value."""
@@ -483,8 +584,10 @@ def _significant(odom: Any, check: str) -> bool:
 
 
 def _calibration_off(odom: Any) -> bool:
-    """A check concluded that the IMU time offset or the LiDAR-IMU rotation is off."""
-    return _significant(odom, "time_offset") or _significant(odom, "extrinsic_rotation")
+    """A check concluded that the IMU time offset, the LiDAR-IMU rotation or the gyro's scale
+    is off."""
+    return (_significant(odom, "time_offset") or _significant(odom, "extrinsic_rotation")
+            or _significant(odom, "gyro_scale"))
 
 
 @contextlib.contextmanager
@@ -508,26 +611,26 @@ def _said_once(seen: set[str], *, again: bool) -> Iterator[None]:
 
 def _find_time_offset(bag_path: str | Path, cfg: Config, n_scans: int, start_s: float,
                       detected_s: float, progress: bool
-                      ) -> tuple[TimeOffsetCalibration | None, Any]:
+                      ) -> tuple[TimeOffsetCalibration | None, Any, Any]:
     """Re-run the first ``n_scans`` scans with corrected IMU stamps until the check finds no
     offset left (:func:`adalio.lio.time_offset.next_offset`); None if no pass estimated one.
     The value: one more step of the search from every pass (the last pass's offset left is
     below significance but not zero; between two passes of opposite signs the step
     interpolates), or, if an earlier pass left less, that pass's offset. Also the rotation
-    check's estimate of the last pass (None: none)."""
+    check's and the gyro scale check's estimates of the last pass (None: none)."""
     from adalio.lio.time_offset import MAX_PASSES, next_offset
 
     base = cfg.sensor.imu_time_offset_s
     tried: list[tuple[float, float]] = [(0.0, detected_s)]
     passes: list[tuple[float, float]] = []
-    rotation = None
+    rotation = scale = None
     with progress_bar(progress, "timing the IMU", "offset") as bar:
         task = bar.add_task("passes", total=MAX_PASSES, offset="")
         for _ in range(MAX_PASSES):
             trial = float(np.clip(base + next_offset(tried), -1.0, 1.0))
             c = copy.deepcopy(cfg)
             c.sensor.imu_time_offset_s = trial
-            left, rotation = _calibration_pass(bag_path, c, n_scans, start_s)
+            left, rotation, scale = _calibration_pass(bag_path, c, n_scans, start_s)
             bar.update(task, advance=1, offset=f"{trial * 1e3:+.1f} ms")
             if left is None:
                 break
@@ -536,17 +639,17 @@ def _find_time_offset(bag_path: str | Path, cfg: Config, n_scans: int, start_s: 
             if not left.significant:
                 break
     if not passes:
-        return None, None
+        return None, None, None
     best, residual = min(passes, key=lambda p: abs(p[1]))
     if best == passes[-1][0]:  # the last pass left the least: one more step from all passes
         best = float(np.clip(base + next_offset(tried), -1.0, 1.0))
     return TimeOffsetCalibration(offset_s=round(best, 5), configured_s=base,
                                  detected_s=detected_s, residual_s=residual, passes=passes,
-                                 n_scans=n_scans), rotation
+                                 n_scans=n_scans), rotation, scale
 
 
 def _find_rotation(bag_path: str | Path, cfg: Config, n_scans: int, start_s: float,
-                   detected: Any, progress: bool) -> RotationCalibration | None:
+                   detected: Any, progress: bool) -> tuple[RotationCalibration | None, Any]:
     """Re-run the first ``n_scans`` scans with the extrinsic's rotation corrected until what
     the check finds left is settled (``RotationEstimate.settled``; the corrections from
     :func:`adalio.lio.extrinsic_check.next_rotation`); None if no pass estimated one. The
@@ -558,7 +661,8 @@ def _find_rotation(bag_path: str | Path, cfg: Config, n_scans: int, start_s: flo
     (:func:`adalio.lio.extrinsic_sigma.posterior`, the prior widened to what the value makes
     most likely): a value that its own noise could have made is shrunk towards the configured
     rotation instead of applied whole (the passes find a rotation where the check's estimate is
-    zero, and an estimate that concluded on a noisy excursion carries it into the value)."""
+    zero, and an estimate that concluded on a noisy excursion carries it into the value).
+    Also the gyro scale check's estimate of the pass that left the least (None: none)."""
     from adalio.lio.extrinsic_check import MAX_PASSES, largest_sigma, next_rotation, pass_gain
     from adalio.lio.extrinsic_sigma import posterior
 
@@ -566,6 +670,7 @@ def _find_rotation(bag_path: str | Path, cfg: Config, n_scans: int, start_s: flo
     tried: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros(3), detected.rotvec_rad)]
     passes: list[tuple[np.ndarray, np.ndarray]] = []
     covs: list[np.ndarray] = []
+    scales: list[Any] = []
 
     def corrected(theta: np.ndarray) -> np.ndarray:
         T = T0.copy()
@@ -579,18 +684,19 @@ def _find_rotation(bag_path: str | Path, cfg: Config, n_scans: int, start_s: flo
             c = copy.deepcopy(cfg)
             c.sensor.T_imu_lidar = corrected(trial).tolist()
             c.sensor.extrinsic_source = "config"
-            _, left = _calibration_pass(bag_path, c, n_scans, start_s)
+            _, left, scale = _calibration_pass(bag_path, c, n_scans, start_s)
             bar.update(task, advance=1,
                        rotation=f"{np.degrees(np.linalg.norm(trial)):.2f} deg")
             if left is None:
                 break
+            scales.append(scale)
             tried.append((trial, left.rotvec_rad))
             passes.append((trial, left.rotvec_rad))
             covs.append(left.cov_rad2)
             if left.settled:
                 break
     if not passes:
-        return None
+        return None, None
     k = min(range(len(passes)), key=lambda i: float(np.linalg.norm(passes[i][1])))
     found = next_rotation(tried) if k == len(passes) - 1 else passes[k][0]
     cov = covs[k] / min(pass_gain(tried), 1.0) ** 2  # it sees at most the whole rotation
@@ -601,7 +707,55 @@ def _find_rotation(bag_path: str | Path, cfg: Config, n_scans: int, start_s: flo
     return RotationCalibration(correction_rad=best, T_imu_lidar=corrected(best),
                                detected_rad=detected.rotvec_rad,
                                residual_rad=float(np.linalg.norm(passes[k][1])), passes=passes,
-                               n_scans=n_scans, sigma_rad=largest_sigma(cov), found_rad=found)
+                               n_scans=n_scans, sigma_rad=largest_sigma(cov),
+                               found_rad=found), scales[k]
+
+
+def _find_gyro_scale(bag_path: str | Path, cfg: Config, n_scans: int, start_s: float,
+                     detected: Any, progress: bool) -> tuple[GyroScaleCalibration | None, Any]:
+    """Re-run the first ``n_scans`` scans with the gyro's sensitivity corrected until what the
+    gyro scale check finds left is settled (``GyroScaleEstimate.settled``; the corrections
+    from :func:`adalio.lio.gyro_scale.next_scale`); the value as :func:`_find_rotation`'s (one
+    more step from the pass that left the least, if it was the last). None if no pass
+    estimated one, or the value is no sensitivity (``config.validate_sensitivity``). Also the
+    rotation check's estimate of the pass that left the least (None: none)."""
+    from adalio.lio.gyro_scale import MAX_PASSES, corrected_sensitivity, next_scale
+
+    S0 = np.asarray(cfg.sensor.gyro_sensitivity, dtype=np.float64)
+    tried: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros(6), detected.s)]
+    passes: list[tuple[np.ndarray, np.ndarray]] = []
+    rotations: list[Any] = []
+    with progress_bar(progress, "scaling the gyro", "scale") as bar:
+        task = bar.add_task("passes", total=MAX_PASSES, scale="")
+        for _ in range(MAX_PASSES):
+            trial = next_scale(tried)
+            c = copy.deepcopy(cfg)
+            c.sensor.gyro_sensitivity = corrected_sensitivity(S0, trial).tolist()
+            try:
+                validate_sensitivity(c.sensor.gyro_sensitivity, "sensor.gyro_sensitivity")
+            except ConfigError:
+                break
+            _, rotation, left = _calibration_pass(bag_path, c, n_scans, start_s)
+            bar.update(task, advance=1, scale=f"{100 * np.abs(trial).max():.2f} %")
+            if left is None:
+                break
+            rotations.append(rotation)
+            tried.append((trial, left.s))
+            passes.append((trial, left.s))
+            if left.settled:
+                break
+    if not passes:
+        return None, None
+    k = min(range(len(passes)), key=lambda i: float(np.abs(passes[i][1]).max()))
+    best = next_scale(tried) if k == len(passes) - 1 else passes[k][0]
+    S = corrected_sensitivity(S0, best)
+    try:
+        validate_sensitivity(S, "sensor.gyro_sensitivity")
+    except ConfigError:
+        return None, None
+    return GyroScaleCalibration(correction=best, gyro_sensitivity=S, detected=detected.s,
+                                residual=float(np.abs(passes[k][1]).max()), passes=passes,
+                                n_scans=n_scans), rotations[k]
 
 
 def _sequencer(bag: Bag, lidar_topic: str, imu_topic: str, cfg: Config,
@@ -612,9 +766,9 @@ def _sequencer(bag: Bag, lidar_topic: str, imu_topic: str, cfg: Config,
 
 
 def _calibration_pass(bag_path: str | Path, cfg: Config, n_scans: int,
-                      start_s: float) -> tuple[Any, Any]:
-    """The IMU time offset and the LiDAR-IMU rotation the checks estimate over the first
-    ``n_scans`` scans with ``cfg`` (each None: no estimate)."""
+                      start_s: float) -> tuple[Any, Any, Any]:
+    """The IMU time offset, the LiDAR-IMU rotation and the gyro's scale error the checks
+    estimate over the first ``n_scans`` scans with ``cfg`` (each None: no estimate)."""
     from adalio.lio import Odometry
 
     with warnings.catch_warnings():
@@ -634,7 +788,8 @@ def _calibration_pass(bag_path: str | Path, cfg: Config, n_scans: int,
                 n += 1
                 if n >= n_scans:
                     break
-    return odom.time_offset_estimate(), odom.extrinsic_rotation_estimate()
+    return (odom.time_offset_estimate(), odom.extrinsic_rotation_estimate(),
+            odom.gyro_scale_estimate())
 
 
 def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
@@ -789,6 +944,11 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         stopped_for_time_offset=restart and _significant(odom, "time_offset"),
         extrinsic_rotation=getattr(odom, "extrinsic_rotation", None),
         stopped_for_extrinsic_rotation=restart and _significant(odom, "extrinsic_rotation"),
+        gyro_scale=getattr(odom, "gyro_scale", None),
+        stopped_for_gyro_scale=restart and _significant(odom, "gyro_scale"),
+        gyro_scale_unsettled=getattr(odom, "gyro_scale_unsettled", None),
+        gyro_scale_so_far=(odom.gyro_scale_estimate() if restart and odom.gyro_scale is None
+                           else None),
         time_offset_unsettled=getattr(odom, "time_offset_unsettled", None),
         extrinsic_rotation_unsettled=getattr(odom, "extrinsic_rotation_unsettled", None),
         extrinsic_translation=getattr(odom, "extrinsic_translation", None),

@@ -364,6 +364,26 @@ def _rotation_text(res: Any) -> str:
         "the corrected rotation" if found is not None else "sensor.T_imu_lidar's rotation")
 
 
+def _gyro_scale_text(res: Any) -> str:
+    """What the gyro scale check concluded, or that it could not ('' if it is off)."""
+    from adalio.lio.gyro_scale import SIGMA_DONE, SIGMA_SIGNIFICANT
+
+    found = getattr(res, "gyro_scale_found", None)
+    text = ""
+    if found is not None:
+        text = (f"sensor.gyro_sensitivity corrected by {found.text()}, found over the first "
+                f"{found.n_scans} scans in {len(found.passes)} passes (the first run saw "
+                f"{100 * np.abs(found.detected).max():.2f} %), the run restarted with it; ")
+    return text + _check_tail(
+        getattr(res, "gyro_scale_unsettled", None), getattr(res, "gyro_scale", None),
+        lambda e: e.text(),
+        f"+-{SIGMA_DONE * 100:g} %, or on a significant error at +-{SIGMA_SIGNIFICANT * 100:g} %",
+        "too few scan pairs whose rotation the LiDAR registers to 0.09 deg (a shaft's, a "
+        "corridor's walls hold it too weakly), or too little rotation about some axis, to tell "
+        "the gyro's scales", "the corrected sensitivity" if found is not None else
+        "sensor.gyro_sensitivity", against="left against the LiDAR-registered rates")
+
+
 def _translation_text(res: Any) -> str:
     """What the LiDAR-IMU translation check concluded, or that it could not ('' if it is off)."""
     from adalio.lio.lever_arm import SIGMA_DONE_M, SIGMA_SIGNIFICANT_M
@@ -383,7 +403,7 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
     status = "[yellow]interrupted[/]" if res.interrupted else "[green]done[/]"
     before = getattr(res, "calibration_wall_s", 0.0)
     restarted = (f", after {before:.1f} s on the first run and the passes that found the "
-                 "IMU timing or rotation" if before > 0 else "")
+                 "IMU timing, rotation or gyro scale" if before > 0 else "")
     con.print(f"{status}: {res.n_scans} poses from {res.n_scans_in} scans in {res.wall_s:.1f} s "
               f"({res.n_scans_in / max(res.wall_s, 1e-9):.1f} scans/s, median "
               f"{res.ms_per_scan_median:.1f} ms/scan{restarted}) → {res.out_dir}",
@@ -410,6 +430,9 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
     rotation = _rotation_text(res)
     if rotation:
         con.print(f"LiDAR-IMU rotation: {rotation}", highlight=False, soft_wrap=True)
+    scale = _gyro_scale_text(res)
+    if scale:
+        con.print(f"gyro scale: {scale}", highlight=False, soft_wrap=True)
     translation = _translation_text(res)
     if translation:
         con.print(f"LiDAR-IMU translation: {translation}", highlight=False, soft_wrap=True)

@@ -69,6 +69,7 @@ from adalio.lio.extrinsic_sigma import (
     extrinsic_rotation_covariance,
     extrinsic_translation_covariance,
 )
+from adalio.lio.gyro_scale import GyroScaleEstimate, estimate_gyro_scale
 from adalio.lio.ieskf import (
     UpdateResult,
     _reprojection,
@@ -477,7 +478,8 @@ class Odometry:
         sensor = config.sensor
         self._offset_check: TimeOffsetCheck | None = (
             TimeOffsetCheck() if (sensor.imu_time_offset_check or sensor.extrinsic_rotation_check
-                                  or sensor.extrinsic_translation_check) else None)
+                                  or sensor.extrinsic_translation_check
+                                  or sensor.gyro_scale_check) else None)
         """The gyro against the updates' LiDAR-only rotations, until the checks conclude
         (sensor.imu_time_offset_check, :mod:`adalio.lio.time_offset`;
         sensor.extrinsic_rotation_check, :mod:`adalio.lio.extrinsic_check`;
@@ -485,6 +487,7 @@ class Odometry:
         self._offset_open = sensor.imu_time_offset_check
         self._rotation_open = sensor.extrinsic_rotation_check
         self._translation_open = sensor.extrinsic_translation_check
+        self._scale_open = sensor.gyro_scale_check
         self._translation_judged_ns = 0
         self._offset_judged_ns = 0
         self.warn_time_offset = True
@@ -514,7 +517,16 @@ class Odometry:
         arm")."""
         self.extrinsic_translation_unsettled: UnsettledCheck | None = None
         """The translation check closed without a conclusion."""
+        self.gyro_scale: GyroScaleEstimate | None = None
+        """The gyro's scale error (the symmetric part of its sensitivity error left after
+        sensor.gyro_sensitivity) the gyro scale check concluded on (None: not concluded, or the
+        check is off; :mod:`adalio.lio.gyro_scale`); ``run_bag`` acts on a significant one."""
+        self.gyro_scale_unsettled: UnsettledCheck | None = None
+        """The gyro scale check closed without a conclusion."""
         self._rotation_M = error_second_moment(np.radians(sensor.extrinsic_rotation_sigma_deg))
+        self._gyro_axes_M = error_second_moment(np.radians(sensor.gyro_axes_sigma_deg))
+        """The gyro's axes against the IMU's frame (``sensor.gyro_axes_sigma_deg``): a turn of
+        the trajectory's frame the rotation check cannot see, added to ``_rotation_M``."""
         """The second moment of the extrinsic rotation's error (rad², IMU frame) behind its
         share of the reported sigmas (:meth:`_extrinsic_covariance`): the configured prior, then
         narrowed (or widened) by each estimate of the rotation check, concluded or not."""
@@ -848,6 +860,8 @@ class Odometry:
                 self._conclude_rotation(self._rotation_from(data, span), span, last=True)
             if self._translation_open:
                 self._conclude_translation(self._translation_from(motion, span), span)
+            if self._scale_open:
+                self._conclude_scale(self._scale_from(data, span), span)
         self._offset_check = None
 
     def time_offset_estimate(self) -> TimeOffsetEstimate | None:
@@ -865,6 +879,53 @@ class Odometry:
             return self.extrinsic_rotation
         chk = self._offset_check
         return self._rotation_from(chk.samples(), chk.span_s)
+
+    def gyro_scale_estimate(self) -> GyroScaleEstimate | None:
+        """The gyro scale check's conclusion, or its estimate so far (None: too few updates,
+        too little rotation about some axis, or the check is off)."""
+        if self.gyro_scale is not None or self._offset_check is None or not self._scale_open:
+            return self.gyro_scale
+        chk = self._offset_check
+        return self._scale_from(chk.samples(), chk.span_s)
+
+    def _scale_from(self, data: tuple | None, span_s: float) -> GyroScaleEstimate | None:
+        """The gyro scale check's estimate from the checks' data, as :meth:`_rotation_from`,
+        over the scan pairs whose LiDAR-only orientations are known well
+        (``TimeOffsetCheck.rotation_sds``)."""
+        if data is None or self._offset_check is None:
+            return None
+        return estimate_gyro_scale(*data, self._offset_found_s, span_s,
+                                   rot_sd_rad=self._offset_check.rotation_sds())
+
+    def _lidar_rotation_sd(self, result: UpdateResult) -> float:
+        """The standard deviation (rad) of the update's LiDAR-only orientation about its
+        weakest axis: ``filter.laser_point_cov`` over the rotation block of the registration's
+        information, translation marginalised (NaN without rows)."""
+        if result.lidar_normal is None:
+            return float("nan")
+        A = result.lidar_normal[0]
+        try:
+            info = A[3:, 3:] - A[3:, :3] @ np.linalg.solve(A[:3, :3], A[:3, 3:])
+        except np.linalg.LinAlgError:
+            return float("inf")
+        weakest = float(np.linalg.eigvalsh(0.5 * (info + info.T))[0])
+        return float(np.sqrt(self.cfg.filter.laser_point_cov / weakest)) if weakest > 0 else \
+            float("inf")
+
+    def _conclude_scale(self, est: GyroScaleEstimate | None, span_s: float) -> None:
+        """Close the gyro scale check on ``est``: its conclusion (``run_bag`` acts on a
+        significant one), or unsettled (:attr:`gyro_scale_unsettled`). Unlike the rotation
+        check's, its last look (``MAX_SPAN_S`` or the end of the data) asks the same precision
+        of a significant estimate (``SIGMA_SIGNIFICANT``): where the LiDAR registers the
+        rotation too weakly to measure the scales to it (a spiral shaft: a rotational
+        information a hundredth of the hall's), the estimate's bias outgrows its deviation."""
+        self._scale_open = False
+        if est is None or not est.conclusive:
+            if self.conclude_time_offset:
+                self.gyro_scale_unsettled = UnsettledCheck(
+                    span_s, est, gave_up=span_s >= MAX_SPAN_S)
+            return
+        self.gyro_scale = est
 
     def _rotation_from(self, data: tuple | None, span_s: float) -> RotationEstimate | None:
         """The rotation check's estimate from the checks' data (``TimeOffsetCheck.samples``),
@@ -1202,7 +1263,7 @@ class Odometry:
         step = result.lidar_step
         assert step is not None
         chk.add_scan(t_e_ns, result.lidar_from.R @ so3.exp(step[3:6].copy()),
-                     result.lidar_from.p + step[:3])
+                     result.lidar_from.p + step[:3], self._lidar_rotation_sd(result))
         span = chk.span_s
         if span < MIN_SPAN_S or t_e_ns - self._offset_judged_ns < TIME_OFFSET_JUDGE_NS:
             return
@@ -1211,7 +1272,8 @@ class Odometry:
         self._offset_judged_ns = t_e_ns
         translation_due = self._translation_open and (
             t_e_ns - self._translation_judged_ns >= TRANSLATION_JUDGE_NS or span >= MAX_SPAN_S)
-        if not (self._offset_open or self._rotation_open or translation_due):
+        if not (self._offset_open or self._rotation_open or self._scale_open
+                or translation_due):
             return  # only the lever arm check is open, and it estimates every 10 s
         motion = chk.motion_samples()  # the checks' data, gathered once
         data = _rotation_data(motion)
@@ -1229,6 +1291,10 @@ class Odometry:
             if (rot is not None and rot.conclusive) or span >= MAX_SPAN_S:
                 # unsettled at MAX_SPAN_S: too little rotation about two axes, or noise
                 self._conclude_rotation(rot, span, last=span >= MAX_SPAN_S)
+        if self._scale_open:
+            sc = self._scale_from(data, span)
+            if (sc is not None and sc.conclusive) or span >= MAX_SPAN_S:
+                self._conclude_scale(sc, span)
         if translation_due:
             self._translation_judged_ns = t_e_ns
             tr = self._translation_from(motion, span)
@@ -1238,7 +1304,8 @@ class Odometry:
                     tr.horizontal_cov_m2)
             if (tr is not None and tr.conclusive) or span >= MAX_SPAN_S:
                 self._conclude_translation(tr, span)
-        if not (self._offset_open or self._rotation_open or self._translation_open):
+        if not (self._offset_open or self._rotation_open or self._translation_open
+                or self._scale_open):
             self._offset_check = None
 
     def _translation_from(self, data: tuple | None,
@@ -1631,13 +1698,15 @@ class Odometry:
         """The world covariance an error of ``T_imu_lidar`` puts into the pose against the
         first one (:mod:`adalio.lio.extrinsic_sigma`): ``sensor.extrinsic_rotation_sigma_deg``
         and ``sensor.extrinsic_translation_sigma_m`` as the priors, narrowed by the rotation
-        and the lever arm checks' latest estimates (the latter across the rig's vertical only).
+        and the lever arm checks' latest estimates (the latter across the rig's vertical only);
+        ``sensor.gyro_axes_sigma_deg`` added to the rotation's, never narrowed.
         Zero before the first pose and with both priors at 0."""
         anchor = self._anchor_state
         if anchor is None:
             return np.zeros((6, 6))
         s = self._state
-        return (extrinsic_rotation_covariance(self._rotation_M, anchor.R, s.R, s.p - anchor.p)
+        return (extrinsic_rotation_covariance(self._rotation_M + self._gyro_axes_M, anchor.R,
+                                              s.R, s.p - anchor.p)
                 + extrinsic_translation_covariance(self._translation_M, anchor.R, s.R))
 
     def _emit(self, stats: ScanStats, stage_ms: dict[str, float], t_start: float,

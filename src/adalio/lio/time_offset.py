@@ -98,6 +98,7 @@ class TimeOffsetCheck:
         self._scan_t: list[int] = []
         self._scan_R: list[np.ndarray] = []
         self._scan_p: list[np.ndarray] = []
+        self._scan_rot_sd: list[float] = []
 
     def add_imu(self, t_ns: np.ndarray, gyro_rad_s: np.ndarray,
                 accel_m_s2: np.ndarray | None = None) -> None:
@@ -112,14 +113,22 @@ class TimeOffsetCheck:
                 del self._imu_t[0], self._imu_w[0], self._imu_a[0]
 
     def add_scan(self, t_ns: int, R_world_imu: np.ndarray,
-                 p_world_imu: np.ndarray | None = None) -> None:
-        """The LiDAR-only orientation (and position) of the IMU at the scan end ``t_ns``."""
+                 p_world_imu: np.ndarray | None = None, rot_sd_rad: float = np.nan) -> None:
+        """The LiDAR-only orientation (and position) of the IMU at the scan end ``t_ns``, and
+        how well the registration knows that orientation about its weakest axis
+        (``rot_sd_rad``, :meth:`rotation_sds`)."""
         if self._scan_t and t_ns <= self._scan_t[-1]:
             return
+        self._scan_rot_sd.append(float(rot_sd_rad))
         self._scan_t.append(int(t_ns))
         self._scan_R.append(np.asarray(R_world_imu, dtype=np.float64).copy())
         self._scan_p.append(np.full(3, np.nan) if p_world_imu is None else
                             np.asarray(p_world_imu, dtype=np.float64).copy())
+
+    def rotation_sds(self) -> np.ndarray:
+        """(n,) per scan of :meth:`samples`, the standard deviation (rad) of its LiDAR-only
+        orientation about its weakest axis (NaN: not given)."""
+        return np.asarray(self._scan_rot_sd, dtype=np.float64)
 
     @property
     def span_s(self) -> float:
