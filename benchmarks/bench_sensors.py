@@ -42,7 +42,10 @@ angle about an axis drawn from the seed: the column after gives the rotation ``r
 drawn from the seed: the last column gives what the translation check concluded (``found``:
 significant, flagged in the run's summary; ``settled``: precise and not significant) and how far the configured lever
 arm plus the correction it found is from the simulated one (the injected error where it found
-none).
+none). With ``--imu-scale-errors-pct`` the simulated gyro and accelerometer read the truth
+through ``I + E`` (scale factors and cross-axis sensitivity, each entry of ``E`` drawn from the
+seed with that standard deviation, ``simulate(imu_scale_error_pct=...)``), which no config says:
+an uncalibrated MEMS IMU.
 
     python benchmarks/bench_sensors.py                      # hall + corridor, 2 seeds, full routes
     python benchmarks/bench_sensors.py --scenes hall --seeds 1 --lidars xt32-512
@@ -53,6 +56,7 @@ none).
     python benchmarks/bench_sensors.py --starts still --imu-time-offsets-ms 0 20 -20 50
     python benchmarks/bench_sensors.py --starts still --extrinsic-errors-deg 0 1
     python benchmarks/bench_sensors.py --starts still --extrinsic-translation-errors-cm 0 3
+    python benchmarks/bench_sensors.py --starts still --imu-scale-errors-pct 0 0.3 1
 """
 
 from __future__ import annotations
@@ -80,6 +84,7 @@ from adalio.sim import cached_sequence
 from adalio.sim.generate import (
     IMU_RATE_HZ,
     MAX_IMU_RATE_HZ,
+    MAX_IMU_SCALE_ERROR_PCT,
     MAX_IMU_TIME_OFFSET_S,
     MIN_IMU_RATE_HZ,
 )
@@ -145,6 +150,19 @@ class Cell:
     (about an axis drawn from the seed, :func:`turned_extrinsic`)."""
     extrinsic_translation_error_cm: float = 0.0
     """... and its lever arm this many centimetres off (:func:`shifted_extrinsic`)."""
+    imu_scale_error_pct: float = 0.0
+    """The simulated IMU's sensitivity errors, standard deviation per entry in %
+    (``simulate(imu_scale_error_pct=...)``); the run's config does not say them."""
+    scale_found_pct: float = float("nan")
+    """The gyro scale correction ``run_bag`` restarted with, its largest entry in % (NaN: none)."""
+    scale_passes: int = 0
+    scale_left_pct: float = float("nan")
+    """The final run's gyro scale check: its estimate's largest entry in % (NaN: no
+    estimate)."""
+    scale_left_sigma_pct: float = float("nan")
+    scale_error_pct: float = float("nan")
+    """The symmetric part of the gyro's sensitivity error left after the final run's
+    ``sensor.gyro_sensitivity`` (the simulated one from ``meta.json``), largest entry in %."""
     scans: int = 0
     poses: int = 0
     init: str = ""
@@ -218,7 +236,8 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
                           columns=columns, imu_noise_scale=cell.imu_noise,
                           T_imu_lidar=MOUNTINGS[cell.mounting], imu_rate_hz=cell.imu_rate_hz,
                           motion_from=cell.motion_from, lidar_rate_hz=cell.lidar_rate_hz,
-                          imu_time_offset_s=cell.imu_time_offset_ms * 1e-3)
+                          imu_time_offset_s=cell.imu_time_offset_ms * 1e-3,
+                          imu_scale_error_pct=cell.imu_scale_error_pct)
     meta = json.loads(sim.meta_path.read_text())
     cfg = load_config(config_file=sim.config_path, overrides=overrides)
     T_true = cfg.T_imu_lidar()
@@ -240,6 +259,7 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     other += "" if not cell.extrinsic_error_deg else f"_rot{cell.extrinsic_error_deg:g}deg"
     other += "" if not cell.extrinsic_translation_error_cm else \
         f"_lever{cell.extrinsic_translation_error_cm:g}cm"
+    other += "" if not cell.imu_scale_error_pct else f"_scale{cell.imu_scale_error_pct:g}pct"
     out = out_root / (f"{cell.scene}_s{cell.seed}_imu{cell.imu_noise:g}_{cell.lidar}_"
                       f"{cell.start}{cut}{other}")
     try:
@@ -288,6 +308,17 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     R_used = np.asarray(load_config(config_file=res.config_path).sensor.T_imu_lidar)[:3, :3]
     cell.rotation_error_deg = float(np.degrees(
         Rotation.from_matrix(R_used @ T_true[:3, :3].T).magnitude()))
+    if res.gyro_scale_found is not None:
+        cell.scale_found_pct = res.gyro_scale_found.largest_pct
+        cell.scale_passes = len(res.gyro_scale_found.passes)
+    sc = res.gyro_scale if res.gyro_scale is not None else (
+        None if res.gyro_scale_unsettled is None else res.gyro_scale_unsettled.estimate)
+    if sc is not None:
+        cell.scale_left_pct, cell.scale_left_sigma_pct = 100 * sc.largest, 100 * sc.sigma
+    S_used = np.asarray(load_config(config_file=res.config_path).sensor.gyro_sensitivity)
+    S_true = np.eye(3) + np.asarray(meta.get("imu_gyro_sensitivity_error", np.zeros((3, 3))))
+    left = np.linalg.solve(S_used, S_true) - np.eye(3)
+    cell.scale_error_pct = float(100 * np.abs(0.5 * (left + left.T)).max())
     cell.ate_m = float(ate(res.trajectory_path, sim.gt_path, align="se3")["rmse_m"])
     with contextlib.suppress(InputError):
         cons = sigma_consistency(res.trajectory_path, sim.gt_path,
@@ -328,6 +359,7 @@ def _lidar_label(c: Cell) -> str:
     other += [] if not c.extrinsic_error_deg else [f"rotation {c.extrinsic_error_deg:g}° off"]
     other += [] if not c.extrinsic_translation_error_cm else [
         f"lever arm {c.extrinsic_translation_error_cm:g} cm off"]
+    other += [] if not c.imu_scale_error_pct else [f"IMU scales {c.imu_scale_error_pct:g} %"]
     return f"{c.lidar} ({', '.join(other)})" if other else c.lidar
 
 
@@ -374,6 +406,16 @@ def _rotation_cell(c: Cell) -> str:
     return f"{found}, {left}, {c.rotation_error_deg:.2f}°"
 
 
+def _scale_cell(c: Cell) -> str:
+    """'1.85 % (3), 0.12 % (+-0.05), 0.21 %': the gyro scale correction run_bag restarted with
+    (passes), the final run's estimate, and the gyro's scale error left ('–' where none)."""
+    found = "–" if not np.isfinite(c.scale_found_pct) else \
+        f"{c.scale_found_pct:.2f} % ({c.scale_passes})"
+    left = "–" if not np.isfinite(c.scale_left_pct) else \
+        f"{c.scale_left_pct:.2f} % (+-{c.scale_left_sigma_pct:.2f})"
+    return f"{found}, {left}, {c.scale_error_pct:.2f} %"
+
+
 def _offset_cell(c: Cell) -> str:
     """'+21.0 ms (2), +0.3 ms': the offset run_bag restarted with (passes), and what the final
     run's check left ('–' where none)."""
@@ -391,16 +433,17 @@ def summary_table(cells: list[Cell]) -> str:
               "within 3σ x / y / z |"),
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     keys = sorted({(c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz, c.lidar_rate_hz,
-                    c.imu_time_offset_ms, c.extrinsic_error_deg, c.extrinsic_translation_error_cm)
+                    c.imu_time_offset_ms, c.extrinsic_error_deg, c.extrinsic_translation_error_cm,
+                    c.imu_scale_error_pct)
                    for c in cells},
                   key=lambda k: (k[0], k[1] != "still", k[2], k[3] != "hilti", k[3], -k[4],
-                                 k[5], k[6], k[7], k[8]))
+                                 k[5], k[6], k[7], k[8], k[9]))
     for key in keys:
         scene, start, noise = key[:3]
         cs = [c for c in cells
               if (c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz,
                   c.lidar_rate_hz, c.imu_time_offset_ms, c.extrinsic_error_deg,
-                  c.extrinsic_translation_error_cm) == key]
+                  c.extrinsic_translation_error_cm, c.imu_scale_error_pct) == key]
         ates = np.array([c.ate_m for c in cs])
         on_track = ates[ates <= MAX_ATE_M]  # mean and worst of these
         inits = sorted({c.init or "error" for c in cs})
@@ -441,6 +484,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--extrinsic-translation-errors-cm", nargs="+", type=float, default=[0.0],
                     help="the runs' configs give the lever arm this many cm off the simulated "
                     "one, along a direction drawn from the seed (default 0)")
+    ap.add_argument("--imu-scale-errors-pct", nargs="+", type=float, default=[0.0],
+                    help="the simulated gyro's and accelerometer's sensitivity errors (scale "
+                    "factors and cross-axis), standard deviation per entry in %% (default 0); "
+                    "the runs' configs do not say them")
     ap.add_argument("--starts", nargs="+", default=["still", "moving"],
                     choices=["still", "moving"])
     ap.add_argument("--duration", type=float, default=0.0,
@@ -472,28 +519,34 @@ def main(argv: list[str] | None = None) -> int:
         if not abs(turn) <= MAX_EXTRINSIC_ERROR_DEG:
             raise SystemExit(f"error: --extrinsic-errors-deg must be within "
                              f"+-{MAX_EXTRINSIC_ERROR_DEG:g} (got {turn:g})")
+    for pct in args.imu_scale_errors_pct:
+        if not 0.0 <= pct <= MAX_IMU_SCALE_ERROR_PCT:
+            raise SystemExit(f"error: --imu-scale-errors-pct must be 0-"
+                             f"{MAX_IMU_SCALE_ERROR_PCT:g} (got {pct:g})")
     duration = args.duration or None
     cells = []
     t0 = time.perf_counter()
     print("| scene | seed | IMU noise | LiDAR | start | poses/scans | init | ATE SE(3) | "
           "ms/scan | within 3σ x / y / z | median abs(error) / σ | backfilled, worst error | "
           "IMU time offset found (passes), left | LiDAR-IMU rotation found (passes), left, "
-          "final error | LiDAR-IMU translation, lever arm's error | error |\n"
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+          "final error | LiDAR-IMU translation, lever arm's error | gyro scale found (passes), "
+          "left, final error | error |\n"
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
           flush=True)
     starts = [("still", 0.0)] if "still" in args.starts else []
     starts += [("moving", c) for c in args.cut_s] if "moving" in args.starts else []
     for scene in args.scenes:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for noise in args.imu_noise:
-                for lidar, mounting, rate, lidar_rate, offset, turn, lever in itertools.product(
+                for (lidar, mounting, rate, lidar_rate, offset, turn, lever,
+                     scale) in itertools.product(
                         args.lidars, args.mountings, args.imu_rates, args.lidar_rates,
                         args.imu_time_offsets_ms, args.extrinsic_errors_deg,
-                        args.extrinsic_translation_errors_cm):
+                        args.extrinsic_translation_errors_cm, args.imu_scale_errors_pct):
                     for start, cut_s in starts:
                         c = run_cell(Cell(scene, seed, noise, lidar, start, cut_s, mounting,
                                           rate, lidar_rate, args.motion_from, offset, turn,
-                                          lever), duration, args.out, overrides)
+                                          lever, scale), duration, args.out, overrides)
                         cells.append(c)
                         label = f"moving {cut_s:g} s" if start == "moving" else start
                         print(f"| {scene} | {seed} | x{noise:g} | {_lidar_label(c)} | {label} | "
@@ -504,7 +557,7 @@ def main(argv: list[str] | None = None) -> int:
                               f"{' / '.join(f'{v:.2f}' for v in c.median_abs_z)} | "
                               f"{c.backfilled} ({cm(c.backfill_err_m)}) | "
                               f"{_offset_cell(c)} | {_rotation_cell(c)} | "
-                              f"{_translation_cell(c)} | {c.error} |",
+                              f"{_translation_cell(c)} | {_scale_cell(c)} | {c.error} |",
                               flush=True)
     print()
     print(summary_table(cells))
