@@ -99,7 +99,9 @@ def test_summary_says_what_the_sensor_checks_concluded(local_batch) -> None:
         assert measured["imu_time_offset_unsettled_after_s"] < 5.0
         assert measured["extrinsic_rotation_unsettled_after_s"] < 5.0
         assert measured["extrinsic_translation_unsettled_after_s"] < 5.0
+        assert measured["gyro_scale_unsettled_after_s"] < 5.0
         assert rows[scene]["sensor_checks"] == ("offset not checked; rotation not checked; "
+                                                "gyro scale not checked; "
                                                 "translation not checked")
 
 

@@ -339,6 +339,8 @@ _MEASURED_CHECKS = (
      lambda e: round(float(np.degrees(e.sigma_rad)), 4)),
     ("extrinsic_translation", "extrinsic_translation", "correction", "m",
      lambda e: [round(float(v), 4) for v in e.horizontal_m], lambda e: round(e.sigma_m, 4)),
+    ("gyro_scale", "gyro_scale", "left", "pct",
+     lambda e: [round(float(v) * 100, 3) for v in e.s], lambda e: round(e.sigma * 100, 3)),
 )
 """``config.yaml``'s ``measured:`` keys of the sensor checks: (key prefix, the odometry's
 attribute, the concluded value's word, unit, the value, its sigma)."""
@@ -456,8 +458,10 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                 scale = scale_after if scale_after is not None else scale
         n_rot = first.n_scans_in
         n_scale = max(first.n_scans_in, round(SCALE_SPAN_S * cfg.sensor.lidar_rate_hz))
-        if (scale is not None and scale.significant and not scale.conclusive
-                and n_scale > first.n_scans_in):  # the first run stopped for another check
+        if scale is not None and scale.significant and (
+                not scale.conclusive or found is not None):  # the first run stopped for
+            # another check, or its estimate ran with the IMU's stamps off (a lag reads as a
+            # scale: 30 ms late gave -14 %): estimated again over the scale's span
             _, _, scale = _calibration_pass(bag_path, cfg, n_scale, start_s)
         if scale is not None and scale.significant and scale.conclusive:  # before the
             # rotation: a scale error turns the rotation check's estimate too (the scale
@@ -717,9 +721,15 @@ def _find_gyro_scale(bag_path: str | Path, cfg: Config, n_scans: int, start_s: f
     gyro scale check finds left is settled (``GyroScaleEstimate.settled``; the corrections
     from :func:`adalio.lio.gyro_scale.next_scale`); the value as :func:`_find_rotation`'s (one
     more step from the pass that left the least, if it was the last). None if no pass
-    estimated one, or the value is no sensitivity (``config.validate_sensitivity``). Also the
+    estimated one, the value is below ``MIN_SCALE_ERROR`` (the first estimate was not the
+    gyro's), or it is no sensitivity (``config.validate_sensitivity``). Also the
     rotation check's estimate of the pass that left the least (None: none)."""
-    from adalio.lio.gyro_scale import MAX_PASSES, corrected_sensitivity, next_scale
+    from adalio.lio.gyro_scale import (
+        MAX_PASSES,
+        MIN_SCALE_ERROR,
+        corrected_sensitivity,
+        next_scale,
+    )
 
     S0 = np.asarray(cfg.sensor.gyro_sensitivity, dtype=np.float64)
     tried: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros(6), detected.s)]
@@ -748,6 +758,8 @@ def _find_gyro_scale(bag_path: str | Path, cfg: Config, n_scans: int, start_s: f
         return None, None
     k = min(range(len(passes)), key=lambda i: float(np.abs(passes[i][1]).max()))
     best = next_scale(tried) if k == len(passes) - 1 else passes[k][0]
+    if np.abs(best).max() < MIN_SCALE_ERROR:  # the passes took the first estimate back
+        return None, None
     S = corrected_sensitivity(S0, best)
     try:
         validate_sensitivity(S, "sensor.gyro_sensitivity")
