@@ -473,7 +473,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                 cfg.sensor.gyro_sensitivity = found_scale.gyro_sensitivity.tolist()
                 rot = rot_after
         if rot is not None and rot.significant:
-            found_rot, _ = _find_rotation(bag_path, cfg, n_rot, start_s, rot, progress)
+            found_rot = _find_rotation(bag_path, cfg, n_rot, start_s, rot, progress)
             if found_rot is not None:
                 cfg.sensor.T_imu_lidar = found_rot.T_imu_lidar.tolist()
                 cfg.sensor.extrinsic_source = "config"
@@ -653,7 +653,7 @@ def _find_time_offset(bag_path: str | Path, cfg: Config, n_scans: int, start_s: 
 
 
 def _find_rotation(bag_path: str | Path, cfg: Config, n_scans: int, start_s: float,
-                   detected: Any, progress: bool) -> tuple[RotationCalibration | None, Any]:
+                   detected: Any, progress: bool) -> RotationCalibration | None:
     """Re-run the first ``n_scans`` scans with the extrinsic's rotation corrected until what
     the check finds left is settled (``RotationEstimate.settled``; the corrections from
     :func:`adalio.lio.extrinsic_check.next_rotation`); None if no pass estimated one. The
@@ -665,8 +665,7 @@ def _find_rotation(bag_path: str | Path, cfg: Config, n_scans: int, start_s: flo
     (:func:`adalio.lio.extrinsic_sigma.posterior`, the prior widened to what the value makes
     most likely): a value that its own noise could have made is shrunk towards the configured
     rotation instead of applied whole (the passes find a rotation where the check's estimate is
-    zero, and an estimate that concluded on a noisy excursion carries it into the value).
-    Also the gyro scale check's estimate of the pass that left the least (None: none)."""
+    zero, and an estimate that concluded on a noisy excursion carries it into the value)."""
     from adalio.lio.extrinsic_check import MAX_PASSES, largest_sigma, next_rotation, pass_gain
     from adalio.lio.extrinsic_sigma import posterior
 
@@ -674,7 +673,6 @@ def _find_rotation(bag_path: str | Path, cfg: Config, n_scans: int, start_s: flo
     tried: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros(3), detected.rotvec_rad)]
     passes: list[tuple[np.ndarray, np.ndarray]] = []
     covs: list[np.ndarray] = []
-    scales: list[Any] = []
 
     def corrected(theta: np.ndarray) -> np.ndarray:
         T = T0.copy()
@@ -688,19 +686,18 @@ def _find_rotation(bag_path: str | Path, cfg: Config, n_scans: int, start_s: flo
             c = copy.deepcopy(cfg)
             c.sensor.T_imu_lidar = corrected(trial).tolist()
             c.sensor.extrinsic_source = "config"
-            _, left, scale = _calibration_pass(bag_path, c, n_scans, start_s)
+            _, left, _ = _calibration_pass(bag_path, c, n_scans, start_s)
             bar.update(task, advance=1,
                        rotation=f"{np.degrees(np.linalg.norm(trial)):.2f} deg")
             if left is None:
                 break
-            scales.append(scale)
             tried.append((trial, left.rotvec_rad))
             passes.append((trial, left.rotvec_rad))
             covs.append(left.cov_rad2)
             if left.settled:
                 break
     if not passes:
-        return None, None
+        return None
     k = min(range(len(passes)), key=lambda i: float(np.linalg.norm(passes[i][1])))
     found = next_rotation(tried) if k == len(passes) - 1 else passes[k][0]
     cov = covs[k] / min(pass_gain(tried), 1.0) ** 2  # it sees at most the whole rotation
@@ -711,8 +708,7 @@ def _find_rotation(bag_path: str | Path, cfg: Config, n_scans: int, start_s: flo
     return RotationCalibration(correction_rad=best, T_imu_lidar=corrected(best),
                                detected_rad=detected.rotvec_rad,
                                residual_rad=float(np.linalg.norm(passes[k][1])), passes=passes,
-                               n_scans=n_scans, sigma_rad=largest_sigma(cov),
-                               found_rad=found), scales[k]
+                               n_scans=n_scans, sigma_rad=largest_sigma(cov), found_rad=found)
 
 
 def _find_gyro_scale(bag_path: str | Path, cfg: Config, n_scans: int, start_s: float,

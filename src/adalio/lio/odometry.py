@@ -524,12 +524,12 @@ class Odometry:
         self.gyro_scale_unsettled: UnsettledCheck | None = None
         """The gyro scale check closed without a conclusion."""
         self._rotation_M = error_second_moment(np.radians(sensor.extrinsic_rotation_sigma_deg))
-        self._gyro_axes_M = error_second_moment(np.radians(sensor.gyro_axes_sigma_deg))
-        """The gyro's axes against the IMU's frame (``sensor.gyro_axes_sigma_deg``): a turn of
-        the trajectory's frame the rotation check cannot see, added to ``_rotation_M``."""
         """The second moment of the extrinsic rotation's error (rad², IMU frame) behind its
         share of the reported sigmas (:meth:`_extrinsic_covariance`): the configured prior, then
         narrowed (or widened) by each estimate of the rotation check, concluded or not."""
+        self._gyro_axes_M = error_second_moment(np.radians(sensor.gyro_axes_sigma_deg))
+        """The gyro's axes against the IMU's frame (``sensor.gyro_axes_sigma_deg``): a turn of
+        the trajectory's frame the rotation check cannot see, added to ``_rotation_M``."""
         self._translation_M = error_second_moment(sensor.extrinsic_translation_sigma_m)
         """The same for the lever arm (m²) and the lever arm check's estimates."""
         self._provenance = MapProvenance(config.filter.map_provenance_cell_m)
