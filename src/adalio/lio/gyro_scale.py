@@ -33,7 +33,7 @@ from adalio.lio.extrinsic_check import (
     next_rotation,
     pair_rates,
 )
-from adalio.lio.time_offset import MAX_PAIR_S, MIN_PAIR_S, long_run_covariance
+from adalio.lio.time_offset import MAX_PAIR_S, MIN_PAIR_S, huber_least_squares
 
 MIN_SCALE_ERROR = 0.006
 """Smaller estimates (largest entry of the symmetric part) are not acted on: the check has an
@@ -153,33 +153,17 @@ def estimate_gyro_scale(t_scan_s: np.ndarray, R_scan: np.ndarray, t_imu_s: np.nd
     for i in range(3):
         X[:, i, 3 * i:3 * i + 3] = w_lidar
         X[:, i, 9 + i] = 1.0
-    y = w_gyro - w_lidar
-    weights = np.ones(n)
-    for _ in range(8):
-        H = np.einsum("n,nki,nkj->ij", weights, X, X)
-        lam = np.linalg.eigvalsh(H[:9, :9] - H[:9, 9:] @ np.linalg.solve(H[9:, 9:], H[9:, :9]))
-        if not lam[0] > MIN_EXCITATION * max(lam[-1], 1e-300) or not lam[-1] > 0.0:
-            return None  # too little rotation about some axis
-        beta = np.linalg.solve(H, np.einsum("n,nki,nk->i", weights, X, y))
-        r = y - np.einsum("nki,i->nk", X, beta)
-        norm = np.linalg.norm(r, axis=1)
-        scale = 1.4826 * float(np.median(norm)) / np.sqrt(3.0) + 1e-12
-        z = norm / scale
-        weights = np.where(z < HUBER_K, 1.0, HUBER_K / np.maximum(z, 1e-12))
-    H = np.einsum("n,nki,nkj->ij", weights, X, X)
-    beta = np.linalg.solve(H, np.einsum("n,nki,nk->i", weights, X, y))
-    r = y - np.einsum("nki,i->nk", X, beta)
-    score = weights[:, None] * np.einsum("nki,nk->ni", X, r)
-    H_inv = np.linalg.inv(H)
-    cov = H_inv @ long_run_covariance(score, NEWEY_WEST_LAGS) @ H_inv
-    naive = scale**2 * H_inv
-    if np.trace(cov[:9, :9]) < np.trace(naive[:9, :9]):
-        cov = naive
+    fit = huber_least_squares(w_gyro - w_lidar, X, 9, iterations=8,
+                              min_excitation=MIN_EXCITATION, lags=NEWEY_WEST_LAGS,
+                              huber_k=HUBER_K)
+    if fit is None:
+        return None  # too little rotation about some axis
+    beta, cov = fit
     P = np.zeros((6, 9))  # the symmetric part's entries from A's nine
     for k, (i, j) in enumerate(PAIRS):
         P[k, 3 * i + j] += 0.5
         P[k, 3 * j + i] += 0.5
-    C = P @ cov[:9, :9] @ P.T
+    C = P @ cov @ P.T
     return GyroScaleEstimate(s=P @ beta[:9], cov=0.5 * (C + C.T), span_s=float(span_s),
                              n_pairs=int(n))
 

@@ -39,7 +39,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from adalio.lio.extrinsic_check import largest_sigma, pair_rates, sigma_along
-from adalio.lio.time_offset import MAX_PAIR_S, MIN_PAIR_S, long_run_covariance
+from adalio.lio.time_offset import MAX_PAIR_S, MIN_PAIR_S, huber_least_squares
 
 STRIDE_S = 0.3
 """Time between the three scans of a triple: the accelerometer's noise, integrated twice, grows
@@ -232,28 +232,12 @@ def _fit(r: np.ndarray, H: np.ndarray, m: int, span_s: float,
     """Huber-weighted least squares of the triples' residuals ``r`` (n,3) on ``H`` (n,3,9)
     [lever arm, accelerometer bias, gravity] (``m`` scans apart, the rig's vertical
     ``up_imu``); None without the rotation to tell a lever arm."""
+    fit = huber_least_squares(r, H, 3, iterations=5, min_excitation=1e-9,
+                              lags=NEWEY_WEST_LAGS + 2 * m, huber_k=HUBER_K)
+    if fit is None:
+        return None  # the rig did not turn enough to tell a translation
+    x, cov_d = fit
     n = len(r)
-    weights = np.ones(n)
-    x = np.zeros(9)
-    for _ in range(5):
-        A = np.einsum("n,nki,nkj->ij", weights, H, H)
-        lam = np.linalg.eigvalsh(A[:3, :3] - A[:3, 3:] @ np.linalg.solve(A[3:, 3:], A[3:, :3]))
-        if not lam[0] > 1e-9 * max(lam[-1], 1e-300) or not lam[-1] > 0.0:
-            return None  # the rig did not turn enough to tell a translation
-        x = np.linalg.solve(A, np.einsum("n,nki,nk->i", weights, H, r))
-        e = r - np.einsum("nki,i->nk", H, x)
-        norm = np.linalg.norm(e, axis=1)
-        scale = 1.4826 * float(np.median(norm)) / np.sqrt(3.0) + 1e-12
-        z = norm / scale
-        weights = np.where(z < HUBER_K, 1.0, HUBER_K / np.maximum(z, 1e-12))
-    A = np.einsum("n,nki,nkj->ij", weights, H, H)
-    x = np.linalg.solve(A, np.einsum("n,nki,nk->i", weights, H, r))
-    e = r - np.einsum("nki,i->nk", H, x)
-    score = weights[:, None] * np.einsum("nki,nk->ni", H, e)
-    A_inv = np.linalg.inv(A)
-    cov = A_inv @ long_run_covariance(score, NEWEY_WEST_LAGS + 2 * m) @ A_inv
-    naive = scale**2 * A_inv
-    cov_d = cov[:3, :3] if np.trace(cov[:3, :3]) >= np.trace(naive[:3, :3]) else naive[:3, :3]
     return TranslationEstimate(delta_m=x[:3], cov_m2=0.5 * (cov_d + cov_d.T),
                                span_s=float(span_s), n_triples=int(n), up_imu=up_imu)
 

@@ -265,6 +265,41 @@ def long_run_covariance(score: np.ndarray, lags: int) -> np.ndarray:
     return total
 
 
+def huber_least_squares(r: np.ndarray, H: np.ndarray, k: int, *, iterations: int,
+                        min_excitation: float, lags: int,
+                        huber_k: float = HUBER_K) -> tuple[np.ndarray, np.ndarray] | None:
+    """Huber-weighted least squares of residuals ``r`` (n,3) on ``H`` (n,3,p), iterated
+    ``iterations`` times (the weights from the residuals' robust spread), then the solution
+    and the covariance of its first ``k`` unknowns: the sandwich form with Newey-West over
+    ``lags`` rows, or the plain ``spread² A⁻¹`` where that is larger (trace). None where the
+    first ``k`` unknowns are not told apart: the smallest eigenvalue of their information (the
+    others marginalised) under ``min_excitation`` times its largest. The fit of the lever arm
+    and of the gyro's scale (:mod:`adalio.lio.lever_arm`, :mod:`adalio.lio.gyro_scale`)."""
+    n = len(r)
+    weights = np.ones(n)
+    scale = 1.0
+    for _ in range(iterations):
+        A = np.einsum("n,nki,nkj->ij", weights, H, H)
+        lam = np.linalg.eigvalsh(A[:k, :k] - A[:k, k:] @ np.linalg.solve(A[k:, k:], A[k:, :k]))
+        if not lam[0] > min_excitation * max(lam[-1], 1e-300) or not lam[-1] > 0.0:
+            return None
+        x = np.linalg.solve(A, np.einsum("n,nki,nk->i", weights, H, r))
+        e = r - np.einsum("nki,i->nk", H, x)
+        norm = np.linalg.norm(e, axis=1)
+        scale = 1.4826 * float(np.median(norm)) / np.sqrt(3.0) + 1e-12
+        z = norm / scale
+        weights = np.where(z < huber_k, 1.0, huber_k / np.maximum(z, 1e-12))
+    A = np.einsum("n,nki,nkj->ij", weights, H, H)
+    x = np.linalg.solve(A, np.einsum("n,nki,nk->i", weights, H, r))
+    e = r - np.einsum("nki,i->nk", H, x)
+    score = weights[:, None] * np.einsum("nki,nk->ni", H, e)
+    A_inv = np.linalg.inv(A)
+    cov = A_inv @ long_run_covariance(score, lags) @ A_inv
+    naive = scale**2 * A_inv
+    C = cov[:k, :k] if np.trace(cov[:k, :k]) >= np.trace(naive[:k, :k]) else naive[:k, :k]
+    return x, C
+
+
 def next_offset(tried: list[tuple[float, float]]) -> float:
     """The next correction to try, from the (correction, offset left) pairs so far.
 
