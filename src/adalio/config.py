@@ -540,12 +540,7 @@ matrix further off is not a sensitivity (a frame's rotation belongs in ``T_imu_l
 
 def validate_sensitivity(S: Any, where: str) -> np.ndarray:
     """Return ``S`` as a 3x3 float64 sensitivity matrix or raise ConfigError naming ``where``."""
-    try:
-        M = np.asarray(S, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{where} must be a 3x3 matrix of numbers") from None
-    if M.shape != (3, 3) or not np.all(np.isfinite(M)):
-        raise ConfigError(f"{where} must be a finite 3x3 matrix (got shape {M.shape})")
+    M = _finite_matrix(S, 3, where)
     off = float(np.abs(M - np.eye(3)).max())
     if off > MAX_SENSITIVITY_ERROR:
         raise ConfigError(f"{where} differs from the identity by {off:.3g} in an entry, more "
@@ -722,14 +717,20 @@ off without a word (the 14 s hall walk: 0.17 cm right, 2.3 m with the HILTI rig'
 arm read as 55 m)."""
 
 
+def _finite_matrix(value: Any, n: int, where: str) -> np.ndarray:
+    """``value`` as a finite n x n float64 array, or a ConfigError naming ``where``."""
+    try:
+        M = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where} must be a {n}x{n} matrix of numbers") from None
+    if M.shape != (n, n) or not np.all(np.isfinite(M)):
+        raise ConfigError(f"{where} must be a finite {n}x{n} matrix (got shape {M.shape})")
+    return M
+
+
 def validate_transform(T: Any, where: str) -> np.ndarray:
     """Return ``T`` as a 4x4 float64 rigid transform or raise ConfigError naming ``where``."""
-    try:
-        M = np.asarray(T, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{where} must be a 4x4 matrix of numbers") from None
-    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
-        raise ConfigError(f"{where} must be a finite 4x4 matrix (got shape {M.shape})")
+    M = _finite_matrix(T, 4, where)
     R = M[:3, :3]
     if (np.abs(R.T @ R - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(R) - 1.0) > 1e-3
             or np.abs(M[3] - [0, 0, 0, 1]).max() > 1e-9):

@@ -114,12 +114,10 @@ class GyroScaleCalibration:
         return float(100 * np.abs(self.correction).max())
 
     def text(self) -> str:
-        """'scale factors x +0.52 / y -0.31 / z +1.20 %, largest cross-axis +0.40 %'"""
-        d = 100 * self.correction[[0, 3, 5]]
-        off = 100 * self.correction[[1, 2, 4]]
-        k = int(np.argmax(np.abs(off)))
-        return (f"scale factors x {d[0]:+.2f} / y {d[1]:+.2f} / z {d[2]:+.2f} %, largest "
-                f"cross-axis {off[k]:+.2f} %")
+        """The correction as :func:`adalio.lio.gyro_scale.scale_text` says it."""
+        from adalio.lio.gyro_scale import scale_text
+
+        return scale_text(self.correction)
 
 
 @dataclass

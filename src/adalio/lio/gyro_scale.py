@@ -63,6 +63,16 @@ PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 """The symmetric part's six entries, in the order of ``GyroScaleEstimate.s``."""
 
 
+def scale_text(s: np.ndarray) -> str:
+    """'scale factors x +0.52 / y -0.31 / z +1.20 %, largest cross-axis +0.40 %' of the six
+    entries ``s`` (:data:`PAIRS`, fractions)."""
+    d = 100 * np.asarray(s)[[0, 3, 5]]
+    off = 100 * np.asarray(s)[[1, 2, 4]]
+    k = int(np.argmax(np.abs(off)))
+    return (f"scale factors x {d[0]:+.2f} / y {d[1]:+.2f} / z {d[2]:+.2f} %, largest "
+            f"cross-axis {off[k]:+.2f} %")
+
+
 def sym_from_vector(s: np.ndarray) -> np.ndarray:
     """The symmetric 3x3 matrix of the six entries ``s`` (:data:`PAIRS`)."""
     M = np.zeros((3, 3))
@@ -119,12 +129,8 @@ class GyroScaleEstimate:
                     or (self.significant and self.sigma <= SIGMA_SIGNIFICANT))
 
     def text(self) -> str:
-        """'scale factors x +0.52 / y -0.31 / z +1.20 %, largest cross-axis +0.40 % (+-0.05)'"""
-        d = 100 * np.diag(self.matrix)
-        off = 100 * self.s[[1, 2, 4]]
-        k = int(np.argmax(np.abs(off)))
-        return (f"scale factors x {d[0]:+.2f} / y {d[1]:+.2f} / z {d[2]:+.2f} %, largest "
-                f"cross-axis {off[k]:+.2f} % (+-{100 * self.sigma:.2f})")
+        """:func:`scale_text` with the largest entry's deviation: '... +0.40 % (+-0.05)'."""
+        return f"{scale_text(self.s)} (+-{100 * self.sigma:.2f})"
 
 
 def estimate_gyro_scale(t_scan_s: np.ndarray, R_scan: np.ndarray, t_imu_s: np.ndarray,

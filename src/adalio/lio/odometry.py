@@ -1263,7 +1263,8 @@ class Odometry:
         step = result.lidar_step
         assert step is not None
         chk.add_scan(t_e_ns, result.lidar_from.R @ so3.exp(step[3:6].copy()),
-                     result.lidar_from.p + step[:3], self._lidar_rotation_sd(result))
+                     result.lidar_from.p + step[:3],
+                     self._lidar_rotation_sd(result) if self._scale_open else np.nan)
         span = chk.span_s
         if span < MIN_SPAN_S or t_e_ns - self._offset_judged_ns < TIME_OFFSET_JUDGE_NS:
             return
