@@ -55,6 +55,10 @@ def register(app: typer.Typer) -> None:
             "through I + E, E's nine entries drawn N(0, PCT %) from the seed: scale factors and "
             "cross-axis sensitivity, as an uncalibrated MEMS IMU (0-10; default 0). config.yaml "
             "does not say it (meta.json gives E).")] = 0.0,
+        people: Annotated[int, typer.Option(
+            "--people", help="That many people walk along the route while the rig does "
+            "(upright cylinders 0.4 m wide, 1.75 m tall, 0.8-1.5 m/s, both ways; 0-20, default "
+            "0); meta.json says where.")] = 0,
     ) -> None:
         """Simulate a handheld LiDAR + IMU walk through an indoor scene into a ROS bag."""
         import json
@@ -77,7 +81,7 @@ def register(app: typer.Typer) -> None:
                                  T_imu_lidar=T_imu_lidar, imu_rate_hz=imu_rate,
                                  lidar_rate_hz=lidar_rate,
                                  imu_time_offset_s=imu_time_offset_ms * 1e-3,
-                                 imu_scale_error_pct=imu_scale_error_pct)
+                                 imu_scale_error_pct=imu_scale_error_pct, people=people)
         meta = json.loads(res.meta_path.read_text())
         console().print(
             f"[green]wrote[/] {res.bag_path} ({meta['n_scans']} sweeps, {meta['n_imu']} IMU, "

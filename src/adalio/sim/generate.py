@@ -27,6 +27,7 @@ from adalio.errors import InputError
 from adalio.sim.bagout import FORMATS, POINT_STEP, SimBagWriter, bag_path_for
 from adalio.sim.imu import GRAVITY_M_S2, ImuNoise, sensitivity_errors, synthesize_imu
 from adalio.sim.lidar import LIDAR_MODELS, Occluder, RayCaster, SweepSimulator, lidar_model
+from adalio.sim.people import People, check_people
 from adalio.sim.scenes import build_scene
 from adalio.sim.trajectory import HandheldMotion, Trajectory
 
@@ -189,7 +190,8 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
              imu_rate_hz: float = IMU_RATE_HZ,
              lidar_rate_hz: float | None = None,
              imu_time_offset_s: float = 0.0,
-             imu_scale_error_pct: float = 0.0) -> SimResult:
+             imu_scale_error_pct: float = 0.0,
+             people: int = 0) -> SimResult:
     """Generate one sequence of ``scene`` into ``out_dir`` (created; the bag must not exist).
 
     ``duration_s`` None walks the whole route; shorter values truncate it (static start kept).
@@ -213,6 +215,9 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     diagonal, cross-axis sensitivity and misalignment off it; :func:`adalio.sim.imu.
     sensitivity_errors`); ``meta.json`` gives both ``E``, ``config.yaml`` neither (an
     uncalibrated IMU).
+    ``people``: that many people walk along the route while the rig does (upright cylinders,
+    :mod:`adalio.sim.people`; where and how fast each walks is drawn from the seed's own stream,
+    so the scene, the motion and the noise stay as without them); ``meta.json`` says where.
     ``motion_from``: a TUM trajectory (>= 10 Hz) whose handheld motion replaces the synthetic
     one (:class:`adalio.sim.trajectory.HandheldMotion`; the seed picks where in it to start);
     ``"none"``: no hand motion at all, the route's own path and attitude (a robot's walk).
@@ -226,6 +231,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
         raise InputError(f"--imu-bias-scale must be >= 0 (got {imu_bias_scale})")
     _check_args(scene, duration_s, lidar, fmt, noise_scale, imu_rate_hz)
     check_imu_scale_error(imu_scale_error_pct)
+    check_people(people)
     if not abs(imu_time_offset_s) <= MAX_IMU_TIME_OFFSET_S:
         raise InputError(f"--imu-time-offset-ms must be within +-{MAX_IMU_TIME_OFFSET_S * 1e3:g} "
                          f"ms (got {imu_time_offset_s * 1e3:g})")
@@ -267,7 +273,9 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     if make_room is not None:
         make_room(need)
     check_free_space(out_dir, need)
-    sim = SweepSimulator(caster, traj, model, T_il, t0, Occluder() if occluder else None)
+    walkers = People.along_route(scn.waypoints_m, int(people), seed)
+    sim = SweepSimulator(caster, traj, model, T_il, t0, Occluder() if occluder else None,
+                         walkers)
     n_points = 0
     bar = None
     if progress:
@@ -340,6 +348,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
                                        else sensitivity[0]).tolist(),
         "imu_accel_sensitivity_error": (np.zeros((3, 3)) if sensitivity is None
                                         else sensitivity[1]).tolist(),
+        "people": walkers.as_dict(),
         "gravity_m_s2": GRAVITY_M_S2, "n_scans": int(n_scans), "n_imu": len(t_imu),
         "n_points": int(n_points), "route_length_m": traj.route_length_m,
         "min_clearance_m": round(clearance, 4),

@@ -17,7 +17,12 @@ import trimesh
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
 from adalio.errors import InputError
+from adalio.sim.people import People
 from adalio.sim.trajectory import Trajectory
+
+PERSON_FACE = -2
+"""``SweepPoints.face`` of a return from a walking person (no face of the scene's mesh)."""
+PERSON_ALBEDO = 0.35
 
 
 @dataclass(frozen=True)
@@ -115,7 +120,7 @@ class SweepPoints:
     intensity: np.ndarray
     valid: np.ndarray
     face: np.ndarray
-    """Mesh face hit (-1 for misses and occluder returns)."""
+    """Mesh face hit (-1 for misses and occluder returns, ``PERSON_FACE`` for a person)."""
 
 
 class RayCaster:
@@ -162,8 +167,10 @@ class SweepSimulator:
     """Simulates sweeps of one LiDAR model on one scene (directions and occluder precomputed)."""
 
     def __init__(self, caster: RayCaster, traj: Trajectory, model: LidarModel,
-                 T_imu_lidar: np.ndarray, t0_ns: int, occluder: Occluder | None = None) -> None:
+                 T_imu_lidar: np.ndarray, t0_ns: int, occluder: Occluder | None = None,
+                 people: People | None = None) -> None:
         self.caster, self.traj, self.model, self.t0_ns = caster, traj, model, int(t0_ns)
+        self.people = people if people is not None and people.count else None
         self.R_il = np.asarray(T_imu_lidar, dtype=np.float64)[:3, :3]
         self.t_il = np.asarray(T_imu_lidar, dtype=np.float64)[:3, 3]
         self.dirs_lidar = beam_directions(model)
@@ -195,6 +202,14 @@ class SweepSimulator:
         cos_inc = np.abs((self.caster.face_normals[fidx] * dirs_w).sum(-1))
         cos_inc = np.where(use_occ, 0.8, cos_inc)
         albedo = np.where(use_occ, 0.3, self.caster.albedo[fidx])
+        if self.people is not None:
+            feet = np.repeat(self.people.positions((col_t_ns - self.t0_ns) * 1e-9), K, axis=0)
+            d_person, cos_person = self.people.cast(origins, dirs_w, feet)
+            on_person = d_person < dist
+            dist = np.where(on_person, d_person, dist)
+            face = np.where(on_person, PERSON_FACE, face)
+            cos_inc = np.where(on_person, cos_person, cos_inc)
+            albedo = np.where(on_person, PERSON_ALBEDO, albedo)
         finite = np.isfinite(dist)
         r_true = np.where(finite, dist, 0.0)
         valid = finite & (cos_inc > 0.02)
