@@ -45,7 +45,8 @@ arm plus the correction it found is from the simulated one (the injected error w
 none). With ``--imu-scale-errors-pct`` the simulated gyro and accelerometer read the truth
 through ``I + E`` (scale factors and cross-axis sensitivity, each entry of ``E`` drawn from the
 seed with that standard deviation, ``simulate(imu_scale_error_pct=...)``), which no config says:
-an uncalibrated MEMS IMU.
+an uncalibrated MEMS IMU. With ``--people`` that many people walk along the route while the
+rig does (``simulate(people=...)``, upright cylinders; :mod:`adalio.sim.people`).
 
     python benchmarks/bench_sensors.py                      # hall + corridor, 2 seeds, full routes
     python benchmarks/bench_sensors.py --scenes hall --seeds 1 --lidars xt32-512
@@ -57,6 +58,7 @@ an uncalibrated MEMS IMU.
     python benchmarks/bench_sensors.py --starts still --extrinsic-errors-deg 0 1
     python benchmarks/bench_sensors.py --starts still --extrinsic-translation-errors-cm 0 3
     python benchmarks/bench_sensors.py --starts still --imu-scale-errors-pct 0 0.3 1
+    python benchmarks/bench_sensors.py --starts still --people 0 4
 """
 
 from __future__ import annotations
@@ -79,6 +81,7 @@ from adalio.config import load_config
 from adalio.errors import InputError
 from adalio.eval.files import read_scans_csv
 from adalio.eval.metrics import ate, sigma_consistency
+from adalio.eval.scene_map import map_off_scene
 from adalio.pipeline import run_bag
 from adalio.sim import cached_sequence
 from adalio.sim.generate import (
@@ -89,6 +92,7 @@ from adalio.sim.generate import (
     MIN_IMU_RATE_HZ,
 )
 from adalio.sim.lidar import lidar_model
+from adalio.sim.people import MAX_PEOPLE
 
 LIDARS = {"xt32-512": ("xt32", 512), "xt32-2000": ("xt32", 2000), "os1-64": ("ouster64", None),
           "vlp16": ("vlp16", None), "xt32-1000": ("xt32", 1000)}
@@ -153,6 +157,12 @@ class Cell:
     imu_scale_error_pct: float = 0.0
     """The simulated IMU's sensitivity errors, standard deviation per entry in %
     (``simulate(imu_scale_error_pct=...)``); the run's config does not say them."""
+    people: int = 0
+    """People walking along the route (``simulate(people=...)``)."""
+    map_off_scene: float = float("nan")
+    """Share of the written map's points off the scene's surfaces, the map placed by the
+    trajectory's SE(3) alignment to the GT: ghosts of people walking by, and a map that drifted
+    (:func:`adalio.eval.scene_map.map_off_scene`)."""
     scale_found_pct: float = float("nan")
     """The gyro scale correction ``run_bag`` restarted with, its largest entry in % (NaN: none)."""
     scale_passes: int = 0
@@ -237,7 +247,7 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
                           T_imu_lidar=MOUNTINGS[cell.mounting], imu_rate_hz=cell.imu_rate_hz,
                           motion_from=cell.motion_from, lidar_rate_hz=cell.lidar_rate_hz,
                           imu_time_offset_s=cell.imu_time_offset_ms * 1e-3,
-                          imu_scale_error_pct=cell.imu_scale_error_pct)
+                          imu_scale_error_pct=cell.imu_scale_error_pct, people=cell.people)
     meta = json.loads(sim.meta_path.read_text())
     cfg = load_config(config_file=sim.config_path, overrides=overrides)
     T_true = cfg.T_imu_lidar()
@@ -260,6 +270,7 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     other += "" if not cell.extrinsic_translation_error_cm else \
         f"_lever{cell.extrinsic_translation_error_cm:g}cm"
     other += "" if not cell.imu_scale_error_pct else f"_scale{cell.imu_scale_error_pct:g}pct"
+    other += "" if not cell.people else f"_people{cell.people}"
     out = out_root / (f"{cell.scene}_s{cell.seed}_imu{cell.imu_noise:g}_{cell.lidar}_"
                       f"{cell.start}{cut}{other}")
     try:
@@ -321,6 +332,9 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     cell.scale_error_pct = float(100 * np.abs(0.5 * (left + left.T)).max())
     cell.ate_m = float(ate(res.trajectory_path, sim.gt_path, align="se3")["rmse_m"])
     with contextlib.suppress(InputError):
+        cell.map_off_scene = map_off_scene(res.map_path, res.trajectory_path, sim.gt_path,
+                                           sim.meta_path)
+    with contextlib.suppress(InputError):
         cons = sigma_consistency(res.trajectory_path, sim.gt_path,
                                  read_scans_csv(out / "scans.csv"))
         cell.within_3sigma = [float(v) for v in cons.within_3sigma]
@@ -328,6 +342,11 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
         cell.median_abs_z = [float(v) for v in cons.median_abs_z]
         cell.backfill_err_m = cons.backfill_max_error_m
     return cell
+
+
+def share_cell(share: float) -> str:
+    """'1.23 %' ('–' for NaN)."""
+    return "–" if not np.isfinite(share) else f"{100 * share:.2f} %"
 
 
 def sigma_cells(w: np.ndarray) -> str:
@@ -360,6 +379,7 @@ def _lidar_label(c: Cell) -> str:
     other += [] if not c.extrinsic_translation_error_cm else [
         f"lever arm {c.extrinsic_translation_error_cm:g} cm off"]
     other += [] if not c.imu_scale_error_pct else [f"IMU scales {c.imu_scale_error_pct:g} %"]
+    other += [] if not c.people else [f"{c.people} people"]
     return f"{c.lidar} ({', '.join(other)})" if other else c.lidar
 
 
@@ -430,21 +450,23 @@ def _offset_cell(c: Cell) -> str:
 def summary_table(cells: list[Cell]) -> str:
     lines = [("| scene | start | IMU noise | LiDARs | runs | poses/scans min | ATE mean | "
               "ATE worst | runs > 1 m or failed | init | init after, median (max) | target | "
-              "within 3σ x / y / z |"),
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "within 3σ x / y / z | map off the scene, mean (worst) |"),
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     keys = sorted({(c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz, c.lidar_rate_hz,
                     c.imu_time_offset_ms, c.extrinsic_error_deg, c.extrinsic_translation_error_cm,
-                    c.imu_scale_error_pct)
+                    c.imu_scale_error_pct, c.people)
                    for c in cells},
                   key=lambda k: (k[0], k[1] != "still", k[2], k[3] != "hilti", k[3], -k[4],
-                                 k[5], k[6], k[7], k[8], k[9]))
+                                 k[5], k[6], k[7], k[8], k[9], k[10]))
     for key in keys:
         scene, start, noise = key[:3]
         cs = [c for c in cells
               if (c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz,
                   c.lidar_rate_hz, c.imu_time_offset_ms, c.extrinsic_error_deg,
-                  c.extrinsic_translation_error_cm, c.imu_scale_error_pct) == key]
+                  c.extrinsic_translation_error_cm, c.imu_scale_error_pct, c.people) == key]
         ates = np.array([c.ate_m for c in cs])
+        off = np.array([c.map_off_scene for c in cs])
+        off = off if np.isfinite(off).any() else np.array([0.0]) * np.nan
         on_track = ates[ates <= MAX_ATE_M]  # mean and worst of these
         inits = sorted({c.init or "error" for c in cs})
         ok = all(c.passes() for c in cs)
@@ -456,7 +478,8 @@ def summary_table(cells: list[Cell]) -> str:
             f"{ates.size - on_track.size} | "
             f"{'/'.join(inits)} | {wait_cells(np.array([c.init_wait_s for c in cs]))} | "
             f"{'pass' if ok else 'FAIL'} | "
-            f"{sigma_cells(np.array([c.within_3sigma for c in cs]))} |")
+            f"{sigma_cells(np.array([c.within_3sigma for c in cs]))} | "
+            f"{share_cell(float(np.nanmean(off)))} ({share_cell(float(np.nanmax(off)))}) |")
     return "\n".join(lines)
 
 
@@ -488,6 +511,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="the simulated gyro's and accelerometer's sensitivity errors (scale "
                     "factors and cross-axis), standard deviation per entry in %% (default 0); "
                     "the runs' configs do not say them")
+    ap.add_argument("--people", nargs="+", type=int, default=[0],
+                    help=f"people walking along the route while the rig does (0-{MAX_PEOPLE}, "
+                    "default 0)")
     ap.add_argument("--starts", nargs="+", default=["still", "moving"],
                     choices=["still", "moving"])
     ap.add_argument("--duration", type=float, default=0.0,
@@ -523,6 +549,9 @@ def main(argv: list[str] | None = None) -> int:
         if not 0.0 <= pct <= MAX_IMU_SCALE_ERROR_PCT:
             raise SystemExit(f"error: --imu-scale-errors-pct must be 0-"
                              f"{MAX_IMU_SCALE_ERROR_PCT:g} (got {pct:g})")
+    for n in args.people:
+        if not 0 <= n <= MAX_PEOPLE:
+            raise SystemExit(f"error: --people must be 0-{MAX_PEOPLE} (got {n})")
     duration = args.duration or None
     cells = []
     t0 = time.perf_counter()
@@ -530,8 +559,8 @@ def main(argv: list[str] | None = None) -> int:
           "ms/scan | within 3σ x / y / z | median abs(error) / σ | backfilled, worst error | "
           "IMU time offset found (passes), left | LiDAR-IMU rotation found (passes), left, "
           "final error | LiDAR-IMU translation, lever arm's error | gyro scale found (passes), "
-          "left, final error | error |\n"
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+          "left, final error | map off the scene | error |\n"
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
           flush=True)
     starts = [("still", 0.0)] if "still" in args.starts else []
     starts += [("moving", c) for c in args.cut_s] if "moving" in args.starts else []
@@ -539,14 +568,16 @@ def main(argv: list[str] | None = None) -> int:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for noise in args.imu_noise:
                 for (lidar, mounting, rate, lidar_rate, offset, turn, lever,
-                     scale) in itertools.product(
+                     scale, people) in itertools.product(
                         args.lidars, args.mountings, args.imu_rates, args.lidar_rates,
                         args.imu_time_offsets_ms, args.extrinsic_errors_deg,
-                        args.extrinsic_translation_errors_cm, args.imu_scale_errors_pct):
+                        args.extrinsic_translation_errors_cm, args.imu_scale_errors_pct,
+                        args.people):
                     for start, cut_s in starts:
                         c = run_cell(Cell(scene, seed, noise, lidar, start, cut_s, mounting,
                                           rate, lidar_rate, args.motion_from, offset, turn,
-                                          lever, scale), duration, args.out, overrides)
+                                          lever, scale, people=people), duration, args.out,
+                                     overrides)
                         cells.append(c)
                         label = f"moving {cut_s:g} s" if start == "moving" else start
                         print(f"| {scene} | {seed} | x{noise:g} | {_lidar_label(c)} | {label} | "
@@ -557,7 +588,8 @@ def main(argv: list[str] | None = None) -> int:
                               f"{' / '.join(f'{v:.2f}' for v in c.median_abs_z)} | "
                               f"{c.backfilled} ({cm(c.backfill_err_m)}) | "
                               f"{_offset_cell(c)} | {_rotation_cell(c)} | "
-                              f"{_translation_cell(c)} | {_scale_cell(c)} | {c.error} |",
+                              f"{_translation_cell(c)} | {_scale_cell(c)} | "
+                              f"{share_cell(c.map_off_scene)} | {c.error} |",
                               flush=True)
     print()
     print(summary_table(cells))
