@@ -261,6 +261,33 @@ class MapConfig:
     """With cell_point 'uniform': a cell samples the points of the scans within this many of the
     one that first filled it, then stays fixed (a walking sensor's field-of-view edge crosses a
     0.1-0.2 m cell in 1-7 scans at 10 Hz); 0: never fixed, so the map follows later poses."""
+    remove_moving: bool = True
+    """Keep moving things (people walking by) out of the update and the map, by where the
+    LiDAR has seen through (``lio/moving.py``): a recently inserted map point that a sweep's
+    rays pass is removed, and a sweep's point in space an earlier sweep saw through (or next to
+    a removed map point) takes no part in the update and is not inserted."""
+    moving_margin_m: float = 0.1
+    """remove_moving: a point is in free space only if the rays around it returned farther by
+    more than this plus moving_margin_fraction of its range (metres; about three standard
+    deviations of the point-to-plane noise, filter.laser_point_cov 0.001 m²)."""
+    moving_margin_fraction: float = 0.01
+    """remove_moving: the margin's part proportional to the range (pose and beam width)."""
+    moving_pixel_deg: float = 1.0
+    """remove_moving: pixel of the sweeps' range images, in elevation and azimuth (degrees)."""
+    moving_lookback_s: float = 0.5
+    """remove_moving: a sweep's points are tested against the sweep about this long before
+    (a person walking at 1 m/s has moved half a metre, well beyond the margin)."""
+    moving_window_s: float = 3.0
+    """remove_moving: map points inserted within this long are tested against each sweep."""
+    moving_probation_s: float = 0.3
+    """remove_moving: a scan's points near where a sweep saw through lately (moving_near_m)
+    enter the map this long after the scan, unless a sweep in between saw through them:
+    someone walking at 1 m/s has moved 0.3 m by then, so the scans right after never match
+    their points to the walker's last positions."""
+    moving_near_m: float = 0.5
+    """remove_moving: a scan's points within this of a point a sweep saw through within the
+    last moving_lookback_s wait for their probation (the back of someone walking away, whose
+    last positions are being seen through)."""
 
 
 @dataclass
@@ -664,6 +691,13 @@ RANGES: dict[str, Range] = {
     "map.max_points_per_voxel": AT_LEAST_ONE,
     "map.cell_sample_scans": Range(0),
     "map.map_leaf_m": POSITIVE,
+    "map.moving_margin_m": NON_NEGATIVE,
+    "map.moving_margin_fraction": Range(0.0, 1.0),
+    "map.moving_pixel_deg": Range(0.05, 10.0),
+    "map.moving_lookback_s": POSITIVE,
+    "map.moving_window_s": NON_NEGATIVE,
+    "map.moving_probation_s": NON_NEGATIVE,
+    "map.moving_near_m": NON_NEGATIVE,
     "filter.max_iterations": AT_LEAST_ONE,
     "filter.knn_k": Range(3),
     "filter.min_neighbors": Range(3),

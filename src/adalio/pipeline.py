@@ -171,6 +171,9 @@ class RunResult:
     """:class:`adalio.types.InitReport` of the estimator (None if it never initialized)."""
     local_surface_rows: tuple[int, int] = (0, 0)
     """filter.local_surface_check: (rows dropped, rows matched or dropped) over the run."""
+    moving_points: tuple[int, int, int] = (0, 0, 0)
+    """map.remove_moving: (sweep points kept out of the update and the map, map points and
+    points waiting to enter it seen through, scans with points kept out) over the run."""
     time_offset: Any = None
     """:class:`adalio.lio.time_offset.TimeOffsetEstimate` the IMU time offset check concluded
     on in this run (left after ``sensor.imu_time_offset_s``), or None."""
@@ -838,6 +841,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         held: list[bool] = []
         risky: list[bool] = []
         blind: list[bool] = []
+        moving: list[bool] = []
         risky_extrinsic_m = 0.0
         late = False
         """A backfilled row was written after later ones: the files are sorted at the end."""
@@ -860,6 +864,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
             if risky[-1]:
                 risky_extrinsic_m = max(risky_extrinsic_m, float(stats.sigma_extrinsic_m))
             blind.append(bool(stats.height_blind))
+            moving.append(stats.n_moving > 0)
             if on_estimate is not None:
                 on_estimate(e)
 
@@ -946,6 +951,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         lidar_gaps=[((t - est_t[0]) * 1e-9, gap_s, sigma_m)
                     for t, gap_s, sigma_m in odom.lidar_gaps] if est_t else [],
         local_surface_rows=tuple(getattr(odom, "local_surface_rows", (0, 0))),
+        moving_points=(*odom.moving_points, int(sum(moving))),
         time_offset=getattr(odom, "time_offset", None),
         stopped_for_time_offset=restart and _significant(odom, "time_offset"),
         extrinsic_rotation=getattr(odom, "extrinsic_rotation", None),

@@ -79,6 +79,10 @@ class ScanStats:
     iterations: int = 0
     n_searches: int = 0
     """Map searches (kNN + plane fits) of the update; see filter.research_min_shift_m."""
+    n_moving: int = 0
+    """Points of the sweep kept out of the update and the map as moving (map.remove_moving)."""
+    n_seen_through: int = 0
+    """Map points this sweep saw through, removed from the map (map.remove_moving)."""
     wall_ms: float = 0.0
     eigenvalues: np.ndarray = field(default_factory=lambda: np.zeros(6))
     """Ascending eigenvalues of the 6x6 (rotation, translation) information matrix H^T H / R."""

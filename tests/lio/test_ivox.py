@@ -491,3 +491,48 @@ def test_uniform_cell_point_does_not_layer_a_wall_swept_from_above(window: int) 
         assert kstest(frac["uniform"], "uniform").pvalue > 0.01
     else:
         assert frac["uniform"].mean() < 0.62 and top["uniform"] < 0.5
+
+
+def test_removed_points_leave_knn_points_and_their_cells() -> None:
+    """``remove_points`` against a plain model: the removed points are gone from ``points()``
+    and from every kNN answer (brute force over the rest), the others stay bit for bit, their
+    cells take a new point again, and a point not in the map is reported not found."""
+    rng = np.random.default_rng(5)
+    ivox = IVox(0.5, 18, 10**6, 64, cell_m=0.1, cell_point="first")
+    pts = rng.uniform(-2.0, 2.0, size=(3000, 3))
+    stored = pts[ivox.add_points(pts)]
+    assert 0 < len(stored) <= len(pts)
+    gone = stored[::3]
+    absent = rng.uniform(-2.0, 2.0, size=(5, 3))
+    found = ivox.remove_points(np.vstack([gone, absent]))
+    assert found[: len(gone)].all() and not found[len(gone):].any()
+    rest = np.delete(stored, np.s_[::3], axis=0)
+    np.testing.assert_array_equal(np.array(sorted(map(tuple, ivox.points()))),
+                                  np.array(sorted(map(tuple, rest))))
+    queries = rng.uniform(-2.0, 2.0, size=(200, 3))
+    _, counts, dist2 = ivox.knn(queries, 5, 5.0)
+    expected = brute_knn_in_neighbourhood(rest, queries, 5, 5.0, 0.5, 18)
+    for i, e in enumerate(expected):
+        assert counts[i] == len(e)
+        np.testing.assert_array_equal(dist2[i, : len(e)], e)
+    again = gone + 0.01 * (np.floor(gone / 0.1) * 0.1 + 0.05 - gone)  # the same cells
+    assert ivox.would_store(again).all()
+    assert ivox.add_points(again).all()
+    assert not ivox.would_store(again).any()
+
+
+def test_would_store_is_what_add_points_stores() -> None:
+    """For ``cell_point`` "first", a row ``would_store`` refuses is never stored, and the rows
+    it allows are stored unless an earlier row of the same batch takes their cell."""
+    rng = np.random.default_rng(6)
+    ivox = IVox(0.5, 18, 10**6, 64, cell_m=0.2, cell_point="first")
+    ivox.add_points(rng.uniform(-1.0, 1.0, size=(400, 3)))
+    batch = rng.uniform(-1.5, 1.5, size=(600, 3))
+    allowed = ivox.would_store(batch)
+    assert allowed.any() and not allowed.all()
+    stored = ivox.add_points(batch)
+    assert not (stored & ~allowed).any()
+    first_of_cell = np.unique(np.floor(batch / 0.2).astype(int), axis=0, return_index=True)[1]
+    one_per_cell = np.zeros(len(batch), bool)
+    one_per_cell[first_of_cell] = True
+    np.testing.assert_array_equal(stored, allowed & one_per_cell)

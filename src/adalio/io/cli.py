@@ -462,6 +462,12 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
                   f"sigma grows) in "
                   f"{res.n_height_blind}/{res.n_scans} scans at "
                   f"{_ranges_text(res.height_blind_ranges_s)}", highlight=False, soft_wrap=True)
+    kept_out, seen, n_scans_moving = getattr(res, "moving_points", (0, 0, 0))
+    if kept_out or seen:
+        con.print(f"moving things (map.remove_moving): {kept_out} points of {n_scans_moving} "
+                  f"scans kept out of the update and the map (in space an earlier sweep saw "
+                  f"through; scans.csv n_moving), {seen} map points removed as seen through "
+                  f"(n_seen_through)", highlight=False, soft_wrap=True)
     dropped, rows = getattr(res, "local_surface_rows", (0, 0))
     if rows:
         con.print(f"local-surface check: {dropped}/{rows} rows dropped "

@@ -327,6 +327,7 @@ def _insert_points(
     ostate: np.ndarray,
     uniform: bool,
     sample_batches: int,
+    stored: np.ndarray,
 ) -> int:
     """Sequential, deterministic insertion of world points into their round(p/s) voxels (§7).
 
@@ -339,7 +340,8 @@ def _insert_points(
     must have room for ``len(cell_sizes)`` new cells per row. Stops before a row that might need
     a voxel, table slot or block the arrays do not have, and returns that row (``len(points)``
     when done) so the caller can grow them. ``state`` = [nv, n_points, n_blocks, n_free, seq]
-    is updated in place.
+    is updated in place. ``stored[row]`` is set for each row stored (a new point, or one that
+    took a point's slot in its cell).
     """
     mask = table.shape[0] - 1
     nv = state[_S_NV]
@@ -367,10 +369,12 @@ def _insert_points(
                                     or ostate[1] - okeys[h, 6] < sample_batches):
                         v = _lookup(table, vkeys, kx, ky, kz)
                         if v >= 0:
+                            before = seq
                             seq = _keep_uniform(points[row, 0], points[row, 1], points[row, 2],
                                                 cx, cy, cz, cell_m, h, v, nv, cap, vstamp,
                                                 vtotal, vblocks, pool, cell_sizes, okeys,
                                                 ocount, ostate, seq)
+                            stored[row] = seq > before
                     continue
         h = hash_key3(kx, ky, kz, mask)
         while True:
@@ -414,6 +418,7 @@ def _insert_points(
         vtotal[v] = t + 1
         vstamp[v] = seq
         seq += 1
+        stored[row] = True
     state[_S_NV] = nv
     state[_S_NP] = n_points
     state[_S_NBLOCKS] = n_blocks
@@ -563,10 +568,59 @@ def _gather_points(
     for v in range(nv):
         for j in range(min(vtotal[v], cap)):
             blk, slot = vblocks[v, j >> _BLOCK_SHIFT], j & (BLOCK_POINTS - 1)
+            if np.isnan(pool[blk, slot, 0]):  # removed (remove_points)
+                continue
             for c in range(3):
                 out[w, c] = pool[blk, slot, c]
             w += 1
+    return out[:w]
+
+
+@kernel()
+def _cells_taken(points: np.ndarray, cell_m: float, cell_index: int, okeys: np.ndarray,
+                 ocount: np.ndarray) -> np.ndarray:
+    """(N,) bool: the cell floor(p / cell_m) of each point holds a stored point."""
+    out = np.zeros(points.shape[0], np.bool_)
+    for i in range(points.shape[0]):
+        ok, cx, cy, cz = _cell_of(points[i, 0], points[i, 1], points[i, 2], cell_m)
+        if ok:
+            h = _occ_slot(okeys, cell_index, cx, cy, cz, False)
+            out[i] = h >= 0 and ocount[h] > 0
     return out
+
+
+@kernel()
+def _remove_points(points: np.ndarray, resolution_m: float, cap: int, table: np.ndarray,
+                   vkeys: np.ndarray, vtotal: np.ndarray, vblocks: np.ndarray, pool: np.ndarray,
+                   cell_sizes: np.ndarray, okeys: np.ndarray, ocount: np.ndarray,
+                   ostate: np.ndarray, removed: np.ndarray) -> int:
+    """Remove each stored point equal to a row of ``points``: its slot is left NaN (skipped by
+    kNN, the occupancy recount and ``points()``, and reused by the voxel's ring overwrite) and
+    its cells are counted out, so a later point may fill them. ``removed[i]``: row i was
+    found. Returns how many were."""
+    n = 0
+    for i in range(points.shape[0]):
+        x = points[i, 0]
+        y = points[i, 1]
+        z = points[i, 2]
+        ok, kx, ky, kz = _key_of(x, y, z, resolution_m)
+        if not ok:
+            continue
+        v = _lookup(table, vkeys, kx, ky, kz)
+        if v < 0:
+            continue
+        for j in range(min(vtotal[v], cap)):
+            b = vblocks[v, j >> _BLOCK_SHIFT]
+            s = j & (BLOCK_POINTS - 1)
+            if pool[b, s, 0] == x and pool[b, s, 1] == y and pool[b, s, 2] == z:
+                _occ_add(okeys, ocount, ostate, cell_sizes, x, y, z, -1, v, j)
+                pool[b, s, 0] = np.nan
+                pool[b, s, 1] = np.nan
+                pool[b, s, 2] = np.nan
+                removed[i] = True
+                n += 1
+                break
+    return n
 
 
 def _grow(arr: np.ndarray, n_rows: int) -> np.ndarray:
@@ -656,11 +710,13 @@ class IVox:
 
     @property
     def num_points(self) -> int:
+        """Slots in use: the stored points and the slots of removed ones not yet reused."""
         return int(self._state[_S_NP])
 
-    def add_points(self, points_world: np.ndarray, cell_m: float | None = None) -> None:
+    def add_points(self, points_world: np.ndarray, cell_m: float | None = None) -> np.ndarray:
         """Insert (N,3) world points in row order; non-finite rows are skipped, and with
         ``cell_m > 0`` so is a row whose cell already holds a point (§7, module docstring).
+        Returns (N,) bool: the rows stored.
 
         ``cell_m`` overrides the map's cell edge for this batch (None: ``self.cell_m``).
         """
@@ -669,8 +725,9 @@ class IVox:
             raise InputError(f"add_points cell_m must be >= 0 metres, got {cell_m!r}")
         pts = _as_points(points_world, "points_world")
         n = pts.shape[0]
+        stored = np.zeros(n, np.bool_)
         if n == 0:
-            return
+            return stored
         self._ostate[1] += 1
         if cell > 0.0 and cell not in self._cell_sizes:
             self._cell_sizes = np.append(self._cell_sizes, cell)
@@ -703,6 +760,7 @@ class IVox:
                 self._ostate,
                 self.cell_point == "uniform",
                 self.sample_batches,
+                stored,
             )
         nv = self.num_voxels
         if nv > self.capacity_voxels:
@@ -724,6 +782,7 @@ class IVox:
             )
             if self._cell_sizes.size:
                 self._rebuild_occupancy(0)
+        return stored
 
     def _rebuild_occupancy(self, n_new: int) -> None:
         """Count the stored points per cell afresh, in a table at most half full once ``n_new``
@@ -799,6 +858,27 @@ class IVox:
             counts,
         )
         return nbrs, counts, dist2
+
+    def would_store(self, points_world: np.ndarray, cell_m: float | None = None) -> np.ndarray:
+        """(N,) bool: rows :meth:`add_points` might store now, by their cells alone: with
+        ``cell_point`` "first", a row whose cell holds a point never is."""
+        pts = _as_points(points_world, "points_world")
+        cell = self.cell_m if cell_m is None else float(cell_m)
+        if cell <= 0.0 or self.cell_point != "first" or cell not in self._cell_sizes:
+            return np.ones(pts.shape[0], np.bool_)
+        index = int(np.flatnonzero(self._cell_sizes == cell)[0])
+        return ~_cells_taken(pts, cell, index, self._okeys, self._ocount)
+
+    def remove_points(self, points_world: np.ndarray) -> np.ndarray:
+        """Remove the stored points equal to rows of ``points_world`` (points seen to have
+        moved); returns which rows were found. Their cells are free again."""
+        pts = _as_points(points_world, "points_world")
+        removed = np.zeros(pts.shape[0], np.bool_)
+        if pts.shape[0] and self.num_voxels:
+            _remove_points(pts, self.resolution_m, self.max_points_per_voxel, self._table,
+                           self._vkeys, self._vtotal, self._vblocks, self._pool,
+                           self._cell_sizes, self._okeys, self._ocount, self._ostate, removed)
+        return removed
 
     def points(self) -> np.ndarray:
         """All stored points (P,3) float64, world frame, grouped by voxel in a deterministic order."""

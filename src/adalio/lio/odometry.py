@@ -92,6 +92,7 @@ from adalio.lio.measurement import (
     robust_row_factors,
 )
 from adalio.lio.motion_init import MovingInit, handover_covariance
+from adalio.lio.moving import MovingPoints
 from adalio.lio.state import (
     BG,
     DIM,
@@ -422,6 +423,8 @@ class Odometry:
         self._rest_gate = imu.chi2_quantile(1.0 - config.imu.still_false_alarm, 3)
         """The zero-velocity update's chi-square gate (3 dof at imu.still_false_alarm)."""
         self._ivox = IVox.from_config(config.map)
+        self._movers = MovingPoints.from_config(config.map) if config.map.remove_moving else None
+        """Where the sweeps saw through, to keep moving things out (map.remove_moving)."""
         self._detector = DegeneracyDetector(config.adaptive)
         self._q_diag = imu.process_noise(config.imu)
         self._weak_geometry = False
@@ -589,8 +592,18 @@ class Odometry:
         if self._offset_check is not None:
             self._offset_check.add_imu(t, gyro, acc)
 
+    @property
+    def moving_points(self) -> tuple[int, int]:
+        """map.remove_moving: (sweep points kept out as moving, points seen through) so far."""
+        m = self._movers
+        return (0, 0) if m is None else (m.dropped, m.removed)
+
     def map_points(self) -> np.ndarray:
-        """All map points (M,3) float64, world frame (the backfill's included)."""
+        """All map points (M,3) float64, world frame (the backfill's included; with
+        map.remove_moving, those still on probation enter the map first)."""
+        if self._movers is not None:
+            for held, cell in self._movers.matured():
+                self._movers.stored(held[self._ivox.add_points(held, cell)], self._t_state_ns)
         pts = self._ivox.points()
         return np.vstack([self._backfill_map, pts]) if self._backfill_map.shape[0] else pts
 
@@ -684,6 +697,17 @@ class Odometry:
         if self._t_first_map_ns is None:
             return self._first_map(pts_e, t_e, stats, stage_ms, t_start, t0)
 
+        # 5b. points on moving things out of the map and of this scan (map.remove_moving)
+        image = None
+        if self._movers is not None:
+            image, still = self._drop_moving(pts_e, t_e, stats)
+            if not still.all():
+                pts_e = pts_e[still]
+                if surface is not None:
+                    surface = LocalSurface(pts_all, pts_all_e, ring_all, rows[still],
+                                           cfg.filter.local_surface_window_ring_spacings)
+            t0 = _timer(stage_ms, "moving", t0)
+
         # 6. downsample with the general leaf, degeneracy check, switch parameters (§6.1, §9)
         general = cfg.adaptive.general
         down_general, voxel_of_point = voxel_downsample_with_index(pts_e, general.voxel_size_m)
@@ -742,8 +766,17 @@ class Odometry:
         s = self._state
         p_world = points_to_world(down, s.R, s.p, s.R_LI, s.t_LI)
         inserted = down.shape[0] >= MIN_POINTS_FOR_UPDATE
-        if inserted:
+        if image is not None:  # map.remove_moving: near moving things, points wait
+            self._movers.add_sweep(image, s.R @ s.R_LI, s.R @ s.t_LI + s.p, t_e)
+            for pts, cell in self._movers.matured(t_e):
+                self._movers.stored(pts[self._ivox.add_points(pts, cell)], t_e)
+            if inserted:
+                now = self._movers.admit(p_world[self._ivox.would_store(p_world, cell_m)],
+                                         cell_m, t_e)
+                self._movers.stored(now[self._ivox.add_points(now, cell_m)], t_e)
+        elif inserted:
             self._ivox.add_points(p_world, cell_m)
+        if inserted:
             self._finest_cell_m = min(self._finest_cell_m, cell_m)
         if cfg.filter.map_uncertainty and loc is not None:
             self._W_map = self._provenance.map_covariance(s.p, assoc.nearest[assoc.selected])
@@ -763,6 +796,18 @@ class Odometry:
         return self._emit(stats, stage_ms, t_start, p_world, W_world)
 
     # ------------------------------------------------------------------ stages
+    def _drop_moving(self, pts_e: np.ndarray, t_e: int,
+                     stats: ScanStats) -> tuple[np.ndarray, np.ndarray]:
+        """The sweep's range image, and which of its points are still (``lio/moving.py``): map
+        points it sees through leave the map first, at the predicted pose."""
+        s = self._state
+        R_WL, p_WL = s.R @ s.R_LI, s.R @ s.t_LI + s.p
+        image = self._movers.image(pts_e)
+        stats.n_seen_through = self._movers.carve(self._ivox, image, R_WL, p_WL, t_e)
+        moving = self._movers.moving(points_to_world(pts_e, s.R, s.p, s.R_LI, s.t_LI), t_e)
+        stats.n_moving = int(moving.sum())
+        return image, ~moving
+
     def _preprocess(self, points_lidar, t_ns, ring=None):
         """§6.1 steps 1-2. Returns (points, t_ns, finite count, full): ``full`` is None, or with
         ``filter.local_surface_check`` and a ring per point, (every point in range, their
@@ -813,7 +858,11 @@ class Odometry:
         """The first scan after init goes into the map whole, with no update (§4)."""
         s = self._state
         p_world = points_to_world(pts_e, s.R, s.p, s.R_LI, s.t_LI)
-        self._ivox.add_points(p_world)
+        stored = self._ivox.add_points(p_world)
+        if self._movers is not None:  # the anchor's map is the world: no probation
+            self._movers.add_sweep(self._movers.image(pts_e), s.R @ s.R_LI,
+                                   s.R @ s.t_LI + s.p, t_e)
+            self._movers.stored(p_world[stored], t_e)
         self._t_first_map_ns = t_e
         self._anchor_state = s.copy()
         # This pose anchors the map, so it defines the world: no error relative to it.

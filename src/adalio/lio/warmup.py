@@ -71,6 +71,7 @@ def compile_update_stage() -> None:
         pose_quadratic,
     )
     from adalio.lio.motion_init import preintegrate
+    from adalio.lio.moving import MovingPoints
     from adalio.lio.odometry import _Association, _group_ids
     from adalio.lio.state import State, initial_covariance, pose_covariance_world
     from adalio.lio.voxel import voxel_downsample
@@ -117,6 +118,17 @@ def compile_update_stage() -> None:
     tau = np.linspace(0.0, 0.1, 41)
     preintegrate(tau, rng.normal(0.0, 0.1, (41, 3)), rng.normal(0.0, 0.1, (41, 3)),
                  np.zeros(3), np.array([0.0, 0.05]))
+    if cfg.map.remove_moving:  # where the sweeps saw through (lio/moving.py)
+        movers = MovingPoints.from_config(cfg.map)
+        image = movers.image(pts)
+        movers.add_sweep(image, np.eye(3), np.zeros(3), 0)
+        movers.hold(pts, cell_m, 0)
+        movers.stored(pts, 0)
+        movers.carve(ivox, image, np.eye(3), np.zeros(3), 1)
+        movers.moving(pts, movers.lookback_ns)
+        ivox.add_points(pts, cell_m)
+        ivox.would_store(pts, cell_m)
+        ivox.remove_points(pts[:10])
 
 
 def _update_kernel():

@@ -1,0 +1,311 @@
+"""Points on moving things (people walking by), told by where the LiDAR has seen through.
+
+A spinning LiDAR sees along each ray up to its return: the space in front of it is free at that
+time. A static surface never lies in space a ray has passed through; a moving one does:
+
+* **Seen through (the map)**: a map point that lies in front of the current sweep's returns
+  along the same direction, by more than the margin, is no longer there. It is removed from the
+  map (:meth:`adalio.lio.ivox.IVox.remove_points`), so it neither pulls the next scans nor stays
+  in the map written out. Only the map points inserted in the last ``map.moving_window_s`` are
+  tested (a trail is seen through while its walker is still in view).
+* **In free space (the sweep)**: a point of the current sweep that lies in space an earlier
+  sweep (about ``map.moving_lookback_s`` before) saw through is on something that moved there,
+  as a person walking towards the sensor. It takes no part in the update and is not inserted.
+  So is a point within ``map.moving_near_m`` of a map point the current sweep saw through: the
+  back of someone walking away, whose last positions are the trail just removed.
+
+This is the visibility (ray-casting) principle of free-space carving in occupancy mapping
+(OctoMap), of the offline map cleaners Removert and ERASOR and of M-detector's occlusion tests
+for moving points in LiDAR streams, in its simplest form: one range image per sweep, the
+nearest return per pixel, and a point is in free space only if every non-empty pixel of its
+3x3 neighbourhood returned farther than it by the margin, with returns on all four sides of
+it, so a surface seen at a grazing angle, the edge of the field of view or a rod between two
+rays is not taken for free space.
+
+Frames: a range image is in the LiDAR frame of its sweep's end (the undistorted points); poses
+``(R_WL, p_WL)`` map that frame into the world. Ranges in metres, angles in radians.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from adalio.jit import kernel
+
+
+@kernel(inline="always")
+def _atan2(y: float, x: float) -> float:
+    """atan2 to within 2.1e-4 rad (0.012°, largest at 45°; a cubic in the tangent's square on
+    [0, 1]): pixels of a degree need no more, and images and queries use the same function."""
+    ax = abs(x)
+    ay = abs(y)
+    hi = max(ax, ay)
+    if hi == 0.0:
+        return 0.0
+    a = min(ax, ay) / hi
+    s = a * a
+    r = ((-0.0464964749 * s + 0.15931422) * s - 0.327622764) * s * a + a
+    if ay > ax:
+        r = 0.5 * np.pi - r
+    if x < 0.0:
+        r = np.pi - r
+    if y < 0.0:
+        r = -r
+    return r
+
+
+@kernel(inline="always")
+def _pixel(x: float, y: float, z: float, r: float, pixel: float, n_el: int, n_az: int):
+    """(row, col) of a direction: rows even in the sine of the elevation (within 5 % of even in
+    elevation up to ±18°, 8 % to ±22.5°, where spinning LiDARs look), columns in azimuth."""
+    row = min(max(int((z / r + 1.0) / pixel), 0), n_el - 1)
+    col = min(int((_atan2(y, x) + np.pi) / pixel), n_az - 1)
+    return row, col
+
+
+@kernel()
+def range_image(points_lidar: np.ndarray, pixel_rad: float) -> np.ndarray:
+    """(rows, cols) over the sphere in pixels of about ``pixel_rad``: per pixel, the nearest
+    return among the non-empty pixels of its 3x3 neighbourhood (azimuth wrapping round) where
+    returns bracket it (a non-empty pixel in the row above and below, the column left and
+    right), else 0 (unknown). A point nearer than that value by the margin lies in space the
+    rays all round it passed: free space. The bracket keeps the edge of what the sweep saw (the
+    field of view's top and bottom ring, which graze floor and ceiling, the ends of the returns)
+    unknown: nothing beyond them vouches for it."""
+    n_el = int(np.ceil(2.0 / pixel_rad))
+    n_az = int(np.ceil(2.0 * np.pi / pixel_rad))
+    near = np.zeros((n_el, n_az))
+    lo_row = n_el
+    hi_row = -1
+    for i in range(points_lidar.shape[0]):
+        x = points_lidar[i, 0]
+        y = points_lidar[i, 1]
+        z = points_lidar[i, 2]
+        r = np.sqrt(x * x + y * y + z * z)
+        if not r > 0.0:
+            continue
+        row, col = _pixel(x, y, z, r, pixel_rad, n_el, n_az)
+        lo_row = min(lo_row, row)
+        hi_row = max(hi_row, row)
+        if near[row, col] == 0.0 or r < near[row, col]:
+            near[row, col] = r
+    out = np.zeros((n_el, n_az))
+    for row in range(max(lo_row, 1), min(hi_row + 1, n_el - 1)):
+        for col in range(n_az):
+            low = np.inf
+            below = False
+            above = False
+            left = False
+            right = False
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    v = near[row + dr, (col + dc) % n_az]
+                    if v > 0.0:
+                        low = min(low, v)
+                        below |= dr < 0
+                        above |= dr > 0
+                        left |= dc < 0
+                        right |= dc > 0
+            if below and above and left and right:
+                out[row, col] = low
+    return out
+
+
+@kernel()
+def in_free_space(points_world: np.ndarray, R_WL: np.ndarray, p_WL: np.ndarray,
+                  img: np.ndarray, pixel_rad: float, margin_m: float,
+                  margin_fraction: float) -> np.ndarray:
+    """(N,) bool: each world point lies in space the sweep of ``img`` (:func:`range_image`,
+    taken at ``R_WL, p_WL``) saw through: nearer than every return around its direction by
+    ``margin_m + margin_fraction * range``."""
+    n_el, n_az = img.shape
+    out = np.zeros(points_world.shape[0], np.bool_)
+    for i in range(points_world.shape[0]):
+        dx = points_world[i, 0] - p_WL[0]
+        dy = points_world[i, 1] - p_WL[1]
+        dz = points_world[i, 2] - p_WL[2]
+        x = R_WL[0, 0] * dx + R_WL[1, 0] * dy + R_WL[2, 0] * dz
+        y = R_WL[0, 1] * dx + R_WL[1, 1] * dy + R_WL[2, 1] * dz
+        z = R_WL[0, 2] * dx + R_WL[1, 2] * dy + R_WL[2, 2] * dz
+        r = np.sqrt(x * x + y * y + z * z)
+        if not r > 0.0:
+            continue
+        row, col = _pixel(x, y, z, r, pixel_rad, n_el, n_az)
+        v = img[row, col]
+        out[i] = v > r + margin_m + margin_fraction * r
+    return out
+
+
+@kernel()
+def near_any(points: np.ndarray, others: np.ndarray, radius_m: float) -> np.ndarray:
+    """(N,) bool: each point lies within ``radius_m`` of a row of ``others`` (brute force over
+    ``others`` binned by cells of ``radius_m``: the 27 cells around each point searched)."""
+    out = np.zeros(points.shape[0], np.bool_)
+    m = others.shape[0]
+    if m == 0:
+        return out
+    keys = np.empty(m, np.int64)
+    for j in range(m):
+        keys[j] = _cell_key(others[j, 0], others[j, 1], others[j, 2], radius_m)
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    r2 = radius_m * radius_m
+    for i in range(points.shape[0]):
+        cx = int(np.floor(points[i, 0] / radius_m))
+        cy = int(np.floor(points[i, 1] / radius_m))
+        cz = int(np.floor(points[i, 2] / radius_m))
+        for o in range(27):
+            key = _pack(cx + o // 9 - 1, cy + (o // 3) % 3 - 1, cz + o % 3 - 1)
+            k = np.searchsorted(sorted_keys, key)
+            while k < m and sorted_keys[k] == key:
+                j = order[k]
+                if ((points[i, 0] - others[j, 0]) ** 2 + (points[i, 1] - others[j, 1]) ** 2
+                        + (points[i, 2] - others[j, 2]) ** 2) < r2:
+                    out[i] = True
+                    break
+                k += 1
+            if out[i]:
+                break
+    return out
+
+
+@kernel(inline="always")
+def _pack(cx: int, cy: int, cz: int) -> int:
+    return ((cx & 0x1FFFFF) << 42) | ((cy & 0x1FFFFF) << 21) | (cz & 0x1FFFFF)
+
+
+@kernel(inline="always")
+def _cell_key(x: float, y: float, z: float, cell_m: float) -> int:
+    return _pack(int(np.floor(x / cell_m)), int(np.floor(y / cell_m)),
+                 int(np.floor(z / cell_m)))
+
+
+@dataclass
+class _Sweep:
+    t_ns: int
+    R_WL: np.ndarray
+    p_WL: np.ndarray
+    img: np.ndarray
+
+
+@dataclass
+class MovingPoints:
+    """The sweeps' range images and the map's young points, for one run.
+
+    A sweep's points near where a sweep saw through lately (within ``near_m``, over the last
+    lookback) wait ``probation_ns`` before they enter the map (:meth:`admit`, :meth:`matured`):
+    there something is walking by, and its points have moved on by then, so the map never offers
+    them as neighbours to the sweeps right after (whose rows they would pull along with the
+    walker), and the sweeps in between see through the space they left (:meth:`carve`). Points
+    elsewhere enter at once, as without moving things."""
+
+    pixel_rad: float
+    margin_m: float
+    margin_fraction: float
+    lookback_ns: int
+    window_ns: int
+    probation_ns: int
+    near_m: float
+    _sweeps: deque = field(default_factory=deque)
+    _pending: deque = field(default_factory=deque)
+    """(t_ns, world points, map cell edge) waiting to enter the map."""
+    _recent: deque = field(default_factory=deque)
+    """(t_ns, world points stored in the map at t_ns), over the last window."""
+    _seen: deque = field(default_factory=deque)
+    """(t_ns, points seen through at t_ns), over the last lookback."""
+    removed: int = 0
+    """Points seen through so far: removed from the map or from those waiting to enter it."""
+    dropped: int = 0
+    """Sweep points kept out of the update and the map so far (in free space)."""
+
+    @classmethod
+    def from_config(cls, cfg) -> MovingPoints:
+        """From the ``map`` config section."""
+        return cls(np.radians(cfg.moving_pixel_deg), cfg.moving_margin_m,
+                   cfg.moving_margin_fraction, round(cfg.moving_lookback_s * 1e9),
+                   round(cfg.moving_window_s * 1e9), round(cfg.moving_probation_s * 1e9),
+                   cfg.moving_near_m)
+
+    def image(self, points_lidar: np.ndarray) -> np.ndarray:
+        return range_image(np.ascontiguousarray(points_lidar, dtype=np.float64),
+                           self.pixel_rad)
+
+    def carve(self, ivox, img: np.ndarray, R_WL: np.ndarray, p_WL: np.ndarray,
+              t_ns: int) -> int:
+        """Drop the points waiting to enter the map and remove from ``ivox`` those stored
+        within the window that the sweep ``img`` (at ``R_WL, p_WL``) saw through; returns how
+        many."""
+        while self._recent and self._recent[0][0] < t_ns - self.window_ns:
+            self._recent.popleft()
+        while self._seen and self._seen[0][0] < t_ns - self.lookback_ns:
+            self._seen.popleft()
+        n = 0
+        for queue, in_map in ((self._pending, False), (self._recent, True)):
+            if not queue:
+                continue
+            pts = np.concatenate([q[1] for q in queue])
+            free = in_free_space(pts, R_WL, p_WL, img, self.pixel_rad, self.margin_m,
+                                 self.margin_fraction)
+            if not free.any():
+                continue
+            n += int(free.sum())
+            self._seen.append((int(t_ns), pts[free]))
+            if in_map:
+                ivox.remove_points(pts[free])
+            ends = np.cumsum([len(q[1]) for q in queue])
+            kept = deque((q[0], q[1][~g], *q[2:]) for q, g in
+                         zip(queue, np.split(free, ends[:-1]), strict=True) if not g.all())
+            if in_map:
+                self._recent = kept
+            else:
+                self._pending = kept
+        self.removed += n
+        return n
+
+    def moving(self, points_world: np.ndarray, t_ns: int) -> np.ndarray:
+        """(N,) bool: the sweep's points (world, at its predicted pose) in space the sweep about
+        ``lookback_ns`` earlier saw through."""
+        past = None
+        for s in self._sweeps:
+            if s.t_ns <= t_ns - self.lookback_ns:
+                past = s
+        if past is None:
+            return np.zeros(points_world.shape[0], np.bool_)
+        out = in_free_space(points_world, past.R_WL, past.p_WL, past.img, self.pixel_rad,
+                            self.margin_m, self.margin_fraction)
+        self.dropped += int(out.sum())
+        return out
+
+    def add_sweep(self, img: np.ndarray, R_WL: np.ndarray, p_WL: np.ndarray,
+                  t_ns: int) -> None:
+        """Keep the sweep's image at its updated pose."""
+        self._sweeps.append(_Sweep(int(t_ns), np.array(R_WL), np.array(p_WL), img))
+        while len(self._sweeps) > 1 and self._sweeps[1].t_ns <= t_ns - self.lookback_ns:
+            self._sweeps.popleft()
+
+    def admit(self, points_world: np.ndarray, cell_m: float, t_ns: int) -> np.ndarray:
+        """The points that may enter the map now; those near where a sweep saw through lately
+        wait for their probation (:meth:`matured`)."""
+        if not self._seen or not points_world.shape[0] or not self.near_m > 0.0:
+            return points_world
+        wait = near_any(points_world, np.concatenate([p for _, p in self._seen]), self.near_m)
+        if wait.any():
+            self._pending.append((int(t_ns), np.ascontiguousarray(points_world[wait]), cell_m))
+        return points_world[~wait]
+
+    def matured(self, t_ns: int | None = None) -> list[tuple[np.ndarray, float]]:
+        """(points, cell edge) whose probation is over at ``t_ns`` (None: all of them)."""
+        out = []
+        while self._pending and (t_ns is None
+                                 or self._pending[0][0] <= t_ns - self.probation_ns):
+            _, pts, cell = self._pending.popleft()
+            out.append((pts, cell))
+        return out
+
+    def stored(self, points_world: np.ndarray, t_ns: int) -> None:
+        """Points the map stored at ``t_ns``: seen through within the window, they leave it."""
+        if points_world.shape[0]:
+            self._recent.append((int(t_ns), np.ascontiguousarray(points_world)))
