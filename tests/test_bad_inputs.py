@@ -443,6 +443,9 @@ CASES: list[Case] = [
          lambda b, f: ["simulate", "--scene", "hall", "--out", str(f / "s"),
                        "--imu-scale-error-pct", "20"], "error",
          ("--imu-scale-error-pct must be 0-10 (got 20)",)),
+    Case("simulate_people_too_many",
+         lambda b, f: ["simulate", "--scene", "corridor", "--out", str(f / "s"),
+                       "--people", "30"], "error", ("--people must be an integer 0-20 (got 30)",)),
     # config
     Case("config_missing", lambda b, f: run_args(b, b.bag, f, config=f / "none.yaml"), "error",
          ("none.yaml does not exist",)),
