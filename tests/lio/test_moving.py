@@ -113,6 +113,8 @@ def test_points_near_what_was_seen_through_wait_and_never_enter_if_seen_through(
     t = 200_000_000
     now = movers.admit(np.vstack([walker, wall]), cfg.map_leaf_m, t)
     assert len(now) == len(wall) and np.isin(now, wall).all()
+    (waiting, _), = movers.waiting()
+    np.testing.assert_array_equal(waiting, walker)
     assert not movers.matured(t + movers.probation_ns - 1)
     assert movers.carve(ivox, img, np.eye(3), origin, t + 100_000_000) == len(walker)
     assert not movers.matured(t + movers.probation_ns)
@@ -126,7 +128,7 @@ def test_points_near_what_was_seen_through_wait_and_never_enter_if_seen_through(
     matured = movers.matured(t2 + movers.probation_ns)
     assert len(matured) == 1
     np.testing.assert_array_equal(matured[0][0], on_wall)
-    assert movers.matured(None) == []
+    assert movers.waiting() == []
 
 
 def test_a_point_where_an_earlier_sweep_saw_through_is_moving():

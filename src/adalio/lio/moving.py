@@ -11,8 +11,11 @@ time. A static surface never lies in space a ray has passed through; a moving on
 * **In free space (the sweep)**: a point of the current sweep that lies in space an earlier
   sweep (about ``map.moving_lookback_s`` before) saw through is on something that moved there,
   as a person walking towards the sensor. It takes no part in the update and is not inserted.
-  So is a point within ``map.moving_near_m`` of a map point the current sweep saw through: the
-  back of someone walking away, whose last positions are the trail just removed.
+* **Near what was seen through (probation)**: a point of the sweep within
+  ``map.moving_near_m`` of a point seen through lately (the back of someone walking away, whose
+  last positions are the trail just removed) enters the map ``map.moving_probation_s`` late,
+  unless a sweep sees through it meanwhile (:class:`MovingPoints`). Every other point enters at
+  once: the newest map is what the rows at its leading edge need.
 
 This is the visibility (ray-casting) principle of free-space carving in occupancy mapping
 (OctoMap), of the offline map cleaners Removert and ERASOR and of M-detector's occlusion tests
@@ -296,14 +299,17 @@ class MovingPoints:
             self._pending.append((int(t_ns), np.ascontiguousarray(points_world[wait]), cell_m))
         return points_world[~wait]
 
-    def matured(self, t_ns: int | None = None) -> list[tuple[np.ndarray, float]]:
-        """(points, cell edge) whose probation is over at ``t_ns`` (None: all of them)."""
+    def matured(self, t_ns: int) -> list[tuple[np.ndarray, float]]:
+        """(points, cell edge) whose probation is over at ``t_ns``, no longer waiting."""
         out = []
-        while self._pending and (t_ns is None
-                                 or self._pending[0][0] <= t_ns - self.probation_ns):
+        while self._pending and self._pending[0][0] <= t_ns - self.probation_ns:
             _, pts, cell = self._pending.popleft()
             out.append((pts, cell))
         return out
+
+    def waiting(self) -> list[tuple[np.ndarray, float]]:
+        """(points, cell edge) still on probation."""
+        return [(pts, cell) for _, pts, cell in self._pending]
 
     def stored(self, points_world: np.ndarray, t_ns: int) -> None:
         """Points the map stored at ``t_ns``: seen through within the window, they leave it."""

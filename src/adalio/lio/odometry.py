@@ -124,7 +124,7 @@ ANCHOR_VARIANCE = 1e-12
 """The backfill's hold to the anchor (:meth:`Odometry._hold_to_anchor`): the variance, m² and
 rad², of a position and yaw the world's definition makes exact; not zero only so the update's
 innovation matrix stays invertible."""
-STAGES = ("preprocess", "undistort", "downsample", "degeneracy", "update", "map")
+STAGES = ("preprocess", "undistort", "moving", "downsample", "degeneracy", "update", "map")
 MAX_SCAN_SPAN_NS = 1_000_000_000
 """Per-point times of one sweep spanning more than this are rejected as malformed (units?)."""
 MIN_POINTS_FOR_UPDATE = 5
@@ -600,11 +600,10 @@ class Odometry:
 
     def map_points(self) -> np.ndarray:
         """All map points (M,3) float64, world frame (the backfill's included; with
-        map.remove_moving, those still on probation enter the map first)."""
-        if self._movers is not None:
-            for held, cell in self._movers.matured():
-                self._movers.stored(held[self._ivox.add_points(held, cell)], self._t_state_ns)
+        map.remove_moving, those still waiting to enter it too)."""
         pts = self._ivox.points()
+        if self._movers is not None:
+            pts = np.vstack([pts, *(held for held, _ in self._movers.waiting())])
         return np.vstack([self._backfill_map, pts]) if self._backfill_map.shape[0] else pts
 
     def take_backfill(self) -> list[Estimate]:
