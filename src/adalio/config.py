@@ -263,9 +263,11 @@ class MapConfig:
     0.1-0.2 m cell in 1-7 scans at 10 Hz); 0: never fixed, so the map follows later poses."""
     remove_moving: bool = True
     """Keep moving things (people walking by) out of the update and the map, by where the
-    LiDAR has seen through (``lio/moving.py``): a recently inserted map point that a sweep's
-    rays pass is removed, and a sweep's point in space an earlier sweep saw through (or next to
-    a removed map point) takes no part in the update and is not inserted."""
+    LiDAR has seen through (``lio/moving.py``; README, "Moving things"): a recently inserted map
+    point that a sweep's rays pass is removed, a sweep's point in space an earlier sweep saw
+    through takes no part in the update and is not inserted, and a sweep's point next to what
+    was seen through enters the map moving_probation_s late. False: every point goes in, as
+    Faster-LIO."""
     moving_margin_m: float = 0.1
     """remove_moving: a point is in free space only if the rays around it returned farther by
     more than this plus moving_margin_fraction of its range (metres; about three standard
