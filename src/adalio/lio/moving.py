@@ -35,6 +35,7 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from adalio.jit import kernel
 
@@ -140,50 +141,6 @@ def in_free_space(points_world: np.ndarray, R_WL: np.ndarray, p_WL: np.ndarray,
         v = img[row, col]
         out[i] = v > r + margin_m + margin_fraction * r
     return out
-
-
-@kernel()
-def near_any(points: np.ndarray, others: np.ndarray, radius_m: float) -> np.ndarray:
-    """(N,) bool: each point lies within ``radius_m`` of a row of ``others`` (brute force over
-    ``others`` binned by cells of ``radius_m``: the 27 cells around each point searched)."""
-    out = np.zeros(points.shape[0], np.bool_)
-    m = others.shape[0]
-    if m == 0:
-        return out
-    keys = np.empty(m, np.int64)
-    for j in range(m):
-        keys[j] = _cell_key(others[j, 0], others[j, 1], others[j, 2], radius_m)
-    order = np.argsort(keys)
-    sorted_keys = keys[order]
-    r2 = radius_m * radius_m
-    for i in range(points.shape[0]):
-        cx = int(np.floor(points[i, 0] / radius_m))
-        cy = int(np.floor(points[i, 1] / radius_m))
-        cz = int(np.floor(points[i, 2] / radius_m))
-        for o in range(27):
-            key = _pack(cx + o // 9 - 1, cy + (o // 3) % 3 - 1, cz + o % 3 - 1)
-            k = np.searchsorted(sorted_keys, key)
-            while k < m and sorted_keys[k] == key:
-                j = order[k]
-                if ((points[i, 0] - others[j, 0]) ** 2 + (points[i, 1] - others[j, 1]) ** 2
-                        + (points[i, 2] - others[j, 2]) ** 2) < r2:
-                    out[i] = True
-                    break
-                k += 1
-            if out[i]:
-                break
-    return out
-
-
-@kernel(inline="always")
-def _pack(cx: int, cy: int, cz: int) -> int:
-    return ((cx & 0x1FFFFF) << 42) | ((cy & 0x1FFFFF) << 21) | (cz & 0x1FFFFF)
-
-
-@kernel(inline="always")
-def _cell_key(x: float, y: float, z: float, cell_m: float) -> int:
-    return _pack(int(np.floor(x / cell_m)), int(np.floor(y / cell_m)),
-                 int(np.floor(z / cell_m)))
 
 
 @dataclass
@@ -294,7 +251,8 @@ class MovingPoints:
         wait for their probation (:meth:`matured`)."""
         if not self._seen or not points_world.shape[0] or not self.near_m > 0.0:
             return points_world
-        wait = near_any(points_world, np.concatenate([p for _, p in self._seen]), self.near_m)
+        seen = cKDTree(np.concatenate([p for _, p in self._seen]))
+        wait = seen.query(points_world, distance_upper_bound=self.near_m)[0] < self.near_m
         if wait.any():
             self._pending.append((int(t_ns), np.ascontiguousarray(points_world[wait]), cell_m))
         return points_world[~wait]

@@ -71,7 +71,7 @@ def compile_update_stage() -> None:
         pose_quadratic,
     )
     from adalio.lio.motion_init import preintegrate
-    from adalio.lio.moving import MovingPoints, near_any
+    from adalio.lio.moving import MovingPoints
     from adalio.lio.odometry import _Association, _group_ids
     from adalio.lio.state import State, initial_covariance, pose_covariance_world
     from adalio.lio.voxel import voxel_downsample
@@ -125,7 +125,6 @@ def compile_update_stage() -> None:
         movers.stored(pts, 0)
         movers.carve(ivox, image, np.eye(3), np.zeros(3), 1)
         movers.moving(pts, movers.lookback_ns)
-        near_any(pts, pts[:10], cfg.map.moving_near_m)
         ivox.add_points(pts, cell_m)
         ivox.would_store(pts, cell_m)
         ivox.remove_points(pts[:10])
