@@ -766,7 +766,7 @@ class Odometry:
         p_world = points_to_world(down, s.R, s.p, s.R_LI, s.t_LI)
         inserted = down.shape[0] >= MIN_POINTS_FOR_UPDATE
         if image is not None:  # map.remove_moving: near moving things, points wait
-            self._movers.add_sweep(image, s.R @ s.R_LI, s.R @ s.t_LI + s.p, t_e)
+            self._movers.add_sweep(image, *s.lidar_pose(), t_e)
             for pts, cell in self._movers.matured(t_e):
                 self._movers.stored(pts[self._ivox.add_points(pts, cell)], t_e)
             if inserted:
@@ -800,9 +800,8 @@ class Odometry:
         """The sweep's range image, and which of its points are still (``lio/moving.py``): map
         points it sees through leave the map first, at the predicted pose."""
         s = self._state
-        R_WL, p_WL = s.R @ s.R_LI, s.R @ s.t_LI + s.p
         image = self._movers.image(pts_e)
-        stats.n_seen_through = self._movers.carve(self._ivox, image, R_WL, p_WL, t_e)
+        stats.n_seen_through = self._movers.carve(self._ivox, image, *s.lidar_pose(), t_e)
         moving = self._movers.moving(points_to_world(pts_e, s.R, s.p, s.R_LI, s.t_LI), t_e)
         stats.n_moving = int(moving.sum())
         return image, ~moving
@@ -859,8 +858,7 @@ class Odometry:
         p_world = points_to_world(pts_e, s.R, s.p, s.R_LI, s.t_LI)
         stored = self._ivox.add_points(p_world)
         if self._movers is not None:  # the anchor's map is the world: no probation
-            self._movers.add_sweep(self._movers.image(pts_e), s.R @ s.R_LI,
-                                   s.R @ s.t_LI + s.p, t_e)
+            self._movers.add_sweep(self._movers.image(pts_e), *s.lidar_pose(), t_e)
             self._movers.stored(p_world[stored], t_e)
         self._t_first_map_ns = t_e
         self._anchor_state = s.copy()

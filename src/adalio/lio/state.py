@@ -41,6 +41,10 @@ class State:
     g: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
     g_anchor: np.ndarray = field(default_factory=lambda: so3.anchor_frame([0.0, 0.0, -1.0]))
 
+    def lidar_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(R_WL, p_WL)``: the LiDAR frame's rotation and origin in the world."""
+        return self.R @ self.R_LI, self.R @ self.t_LI + self.p
+
     def copy(self) -> State:
         return State(self.p.copy(), self.R.copy(), self.R_LI.copy(), self.t_LI.copy(),
                      self.v.copy(), self.b_g.copy(), self.b_a.copy(), self.g.copy(),
