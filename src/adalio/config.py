@@ -265,9 +265,9 @@ class MapConfig:
     """Keep moving things (people walking by) out of the update and the map, by where the
     LiDAR has seen through (``lio/moving.py``; README, "Moving things"): a recently inserted map
     point that a sweep's rays pass is removed, a sweep's point in space an earlier sweep saw
-    through takes no part in the update and is not inserted, and a sweep's point next to what
-    was seen through enters the map moving_probation_s late. False: every point goes in, as
-    Faster-LIO."""
+    through takes no part in the update and is not inserted, nor do its points on the same body
+    (moving_body_m), and a sweep's point next to what was seen through enters the map
+    moving_probation_s late. False: every point goes in, as Faster-LIO."""
     moving_margin_m: float = 0.1
     """remove_moving: a point is in free space only if the rays around it returned farther by
     more than this plus moving_margin_fraction of its range (metres; about three standard
@@ -290,6 +290,13 @@ class MapConfig:
     """remove_moving: a scan's points within this of a point a sweep saw through within the
     last moving_lookback_s wait for their probation (the back of someone walking away, whose
     last positions are being seen through)."""
+    moving_body_m: float = 0.3
+    """remove_moving: a sweep's points within this of its own points in free space, or of a
+    point a sweep saw through within the last moving_lookback_s, are on the same moving body
+    (the visibility tests catch a third to two thirds of a walker's points) and are kept out
+    like them, no part in the update and not inserted, unless the map holds a point within
+    moving_margin_m of them (a surface the map already holds: the floor under a walker's feet).
+    About a person's width less a margin; 0: only the points the tests caught."""
 
 
 @dataclass
@@ -700,6 +707,7 @@ RANGES: dict[str, Range] = {
     "map.moving_window_s": NON_NEGATIVE,
     "map.moving_probation_s": NON_NEGATIVE,
     "map.moving_near_m": NON_NEGATIVE,
+    "map.moving_body_m": NON_NEGATIVE,
     "filter.max_iterations": AT_LEAST_ONE,
     "filter.knn_k": Range(3),
     "filter.min_neighbors": Range(3),

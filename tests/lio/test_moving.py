@@ -4,10 +4,12 @@ a box room, its rays cast analytically."""
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from adalio.config import MapConfig
 from adalio.lio.ivox import IVox
-from adalio.lio.moving import MovingPoints, _atan2, in_free_space, range_image
+from adalio.lio.moving import MovingPoints, _atan2, in_free_space, near_any, range_image
+from adalio.sim.people import People
 
 ROOM_LO = np.array([-6.0, -4.0, -1.4])
 ROOM_HI = np.array([9.0, 5.0, 1.6])
@@ -23,14 +25,20 @@ def wall_distance(origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     return np.min(np.where(dirs != 0, t, np.inf), axis=1)
 
 
-def sweep(origin: np.ndarray, columns: int = 512) -> np.ndarray:
-    """Returns (LiDAR frame = world axes at ``origin``) of one noise-free sweep in the room."""
+def sweep(origin: np.ndarray, columns: int = 512, feet: np.ndarray | None = None) -> np.ndarray:
+    """Returns (LiDAR frame = world axes at ``origin``) of one noise-free sweep in the room, with
+    a person (the simulator's upright cylinder) standing at ``feet`` if given."""
     az = np.linspace(-np.pi, np.pi, columns, endpoint=False) + 0.3 * np.pi / columns
     el = np.radians(ELEVATIONS_DEG)
     d = np.stack(np.broadcast_arrays(np.cos(el)[None] * np.cos(az)[:, None],
                                      np.cos(el)[None] * np.sin(az)[:, None],
                                      np.sin(el)[None]), axis=-1).reshape(-1, 3)
-    return d * wall_distance(origin, d)[:, None]
+    r = wall_distance(origin, d)
+    if feet is not None:
+        person = People(np.zeros((2, 3)), np.zeros(1), np.zeros(1), np.zeros(1))
+        origins = np.repeat(origin[None], len(d), axis=0)
+        r = np.minimum(r, person.cast(origins, d, np.broadcast_to(feet, (len(d), 1, 3)))[0])
+    return d * r[:, None]
 
 
 def random_directions(rng: np.random.Generator, n: int, el_deg: tuple[float, float]):
@@ -146,3 +154,75 @@ def test_a_point_where_an_earlier_sweep_saw_through_is_moving():
     t = movers.lookback_ns
     assert movers.moving(appeared, t).mean() > 0.97
     assert not movers.moving(wall, t).any()
+
+
+def test_near_any_is_the_brute_force_distance_test():
+    """``near_any`` against every pairwise distance: clouds of several spreads, radii, sources
+    on cell edges and none at all."""
+    rng = np.random.default_rng(5)
+    for n_src, spread, radius in ((0, 5.0, 0.3), (1, 1.0, 0.3), (40, 3.0, 0.3), (300, 8.0, 0.5),
+                                  (25, 2.0, 0.05)):
+        points = rng.uniform(-spread, spread, (4000, 3))
+        sources = rng.uniform(-spread, spread, (n_src, 3))
+        if n_src:
+            sources[: n_src // 2] = np.round(sources[: n_src // 2] / radius) * radius
+            points[:500] = sources[rng.integers(0, n_src, 500)] + rng.normal(0, radius, (500, 3))
+        dist = np.sqrt(((points[:, None, :] - sources[None, :, :]) ** 2).sum(-1))
+        truth = (dist < radius).any(axis=1) if n_src else np.zeros(len(points), bool)
+        got = near_any(points, sources, radius)
+        np.testing.assert_array_equal(got, truth)
+        if n_src:
+            assert 0 < got.sum() < len(points)
+
+
+def test_someone_walking_away_is_kept_out_by_their_trail():
+    """A person walks away from the sensor at 1.2 m/s. Its points now stand behind where the
+    sweep half a second before saw it, so none is in free space; the map points it left 0.2-0.3 s
+    ago are seen through, and its points now, on the same body, are kept out with them
+    (``map.moving_body_m``): exactly the sweep's points within that of a point in free space
+    or seen through and not within the margin of a map point (the room's walls and floor are
+    in the map), by scipy's exact nearest neighbours; with ``moving_body_m`` 0, none of the person's."""
+    cfg = MapConfig()
+    origin = np.array([0.0, 0.5, 0.2])
+
+    def feet(t_s):
+        return np.array([origin[0] + 6.0 + 1.2 * t_s, origin[1], ROOM_LO[2]])
+
+    def on_person(pts, t_s):
+        f = feet(t_s)
+        return ((np.hypot(pts[:, 0] - f[0], pts[:, 1] - f[1]) < 0.2 + 1e-6)
+                & (pts[:, 2] < f[2] + 1.75 + 1e-6))
+
+    runs = {}
+    for body_m in (cfg.moving_body_m, 0.0):
+        movers = MovingPoints.from_config(cfg)
+        movers.body_m = body_m
+        ivox = IVox.from_config(cfg)
+        room = origin + np.vstack([sweep(origin + [dx, 0.0, 0.0]) + [dx, 0.0, 0.0]
+                                   for dx in (-0.5, 0.0, 0.5)])
+        ivox.add_points(room, 0.1)
+        before = origin + sweep(origin, feet=feet(0.0))
+        movers.add_sweep(movers.image(before - origin), np.eye(3), origin, 0)
+        for t_s in (0.2, 0.3):  # the map points it left (the last sweep's are on probation)
+            left = origin + sweep(origin, feet=feet(t_s))
+            trail = left[on_person(left, t_s)]
+            movers.stored(trail[ivox.add_points(trail, 0.1)], round(t_s * 1e9))
+        now = origin + sweep(origin, feet=feet(0.5))
+        t = 500_000_000
+        assert movers.carve(ivox, movers.image(now - origin), np.eye(3), origin, t) > 20
+        free = in_free_space(now, np.eye(3), origin, movers._sweeps[0].img, movers.pixel_rad,
+                             movers.margin_m, movers.margin_fraction)
+        person = on_person(now, 0.5)
+        assert person.sum() > 50 and not (free & person).any()
+        seen = np.concatenate([p for _, p in movers._seen])
+        runs[body_m] = (movers.moving(now, t, ivox), now, free, seen, person, ivox.points())
+    flags, now, free, seen, person, in_map = runs[cfg.moving_body_m]
+
+    near_body = cKDTree(np.vstack([now[free], seen])).query(now)[0] < cfg.moving_body_m
+    on_map = cKDTree(in_map).query(now)[0] < cfg.moving_margin_m
+    np.testing.assert_array_equal(flags, free | (near_body & ~on_map))
+    assert flags[person].mean() > 0.7  # measured 0.78: one edge column is 0.3 m from the trail
+    assert not flags[~person].any()  # the floor under the feet is in the map
+    assert (near_body & ~person).sum() > 10  # ... and next to the trail
+    flags0, *_ = runs[0.0]
+    assert not flags0[person].any()

@@ -466,7 +466,8 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
     if kept_out or seen:
         con.print(f"moving things (map.remove_moving): {kept_out} points of {n_scans_moving} "
                   f"scans kept out of the update and the map (in space an earlier sweep saw "
-                  f"through; scans.csv n_moving), {seen} map points removed as seen through "
+                  f"through, or on the same body; scans.csv n_moving), {seen} map points "
+                  f"removed as seen through "
                   f"(n_seen_through)", highlight=False, soft_wrap=True)
     dropped, rows = getattr(res, "local_surface_rows", (0, 0))
     if rows:

@@ -129,7 +129,7 @@ def _cell_key(x: float, y: float, z: float, cell_m: float) -> int:
 
 
 @kernel()
-def _cell_keys(points: np.ndarray, cell_m: float) -> np.ndarray:
+def cell_keys(points: np.ndarray, cell_m: float) -> np.ndarray:
     """:func:`_cell_key` of every row."""
     n = points.shape[0]
     keys = np.empty(n, np.int64)
@@ -232,7 +232,7 @@ class MapProvenance:
         return self._n_cells
 
     def _pack(self, points_world: np.ndarray) -> np.ndarray:
-        return _cell_keys(np.ascontiguousarray(points_world, dtype=np.float64), self.cell_m)
+        return cell_keys(np.ascontiguousarray(points_world, dtype=np.float64), self.cell_m)
 
     def owners(self, points_world: np.ndarray) -> np.ndarray:
         """Index of the scan that first filled each point's cell (-1: no scan recorded)."""

@@ -802,7 +802,8 @@ class Odometry:
         s = self._state
         image = self._movers.image(pts_e)
         stats.n_seen_through = self._movers.carve(self._ivox, image, *s.lidar_pose(), t_e)
-        moving = self._movers.moving(points_to_world(pts_e, s.R, s.p, s.R_LI, s.t_LI), t_e)
+        moving = self._movers.moving(points_to_world(pts_e, s.R, s.p, s.R_LI, s.t_LI), t_e,
+                                     self._ivox)
         stats.n_moving = int(moving.sum())
         return image, ~moving
 
