@@ -173,6 +173,10 @@ def test_waits_for_rest_then_initializes_and_emits_first_scan():
     assert st.iterations >= 2 and st.n_matched > 100 and st.n_down <= st.n_raw
     assert st.voxel_size_m == cfg.adaptive.general.voxel_size_m
     assert set(st.stage_ms) == set(STAGES) and st.wall_ms > 0
+    cfg_off = _config()
+    cfg_off.map.remove_moving = False
+    off, _ = _run(cfg_off, 0.75, 300)
+    assert set(off.stage_ms_total) == set(STAGES) - {"moving"}
     assert st.eigenvalues.shape == (6,) and st.eigenvalues[0] > 0
 
 

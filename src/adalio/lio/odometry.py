@@ -408,7 +408,9 @@ class Odometry:
         self._R_LI = T[:3, :3].copy()
         self._t_LI = T[:3, 3].copy()
         self.initialized = False
-        self.stage_ms_total: dict[str, float] = dict.fromkeys(STAGES, 0.0)
+        self._stages = tuple(k for k in STAGES if k != "moving" or config.map.remove_moving)
+        """The stages this run times (STAGES, without 'moving' when map.remove_moving is off)."""
+        self.stage_ms_total: dict[str, float] = dict.fromkeys(self._stages, 0.0)
         self.n_scans = 0
         self.n_skipped_scans = 0
         """Scans ending at or before the previous scan end (out of order): not processed."""
@@ -1127,7 +1129,7 @@ class Odometry:
         rev._backfill_map = np.zeros((0, 3))
         rev._last_gap = rev._warned_gap_ns = rev._units_check = rev._offset_check = None
         rev._scan_intervals_ns, rev.lidar_gaps = [], []
-        rev.stage_ms_total = dict.fromkeys(STAGES, 0.0)
+        rev.stage_ms_total = dict.fromkeys(self._stages, 0.0)
         return rev
 
     def _try_initialize(self, pts: np.ndarray, t_pts: np.ndarray, t_b_ns: int,
