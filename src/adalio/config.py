@@ -295,8 +295,9 @@ class MapConfig:
     point a sweep saw through within the last moving_lookback_s, are on the same moving body
     (the visibility tests catch a third to two thirds of a walker's points) and are kept out
     like them, no part in the update and not inserted, unless the map holds a point within
-    moving_margin_m of them (a surface the map already holds: the floor under a walker's feet).
-    About a person's width less a margin; 0: only the points the tests caught."""
+    moving_margin_m or the map's cell of them, the larger (a surface the map already holds:
+    the floor under a walker's feet). About a person's width less a margin; 0: only the points
+    the tests caught."""
 
 
 @dataclass

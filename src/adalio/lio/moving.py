@@ -15,8 +15,8 @@ time. A static surface never lies in space a ray has passed through; a moving on
   free space, or of a point seen through lately, is on the same moving thing (the tests above
   catch a third to two thirds of a walker's points: those next to nearer floor or wall returns,
   and the back of someone walking away, which stands behind its own trail, stay unjudged), and
-  is kept out as they are, unless the map holds a point within the margin of it: there it is
-  on a surface the map already holds (the floor under the walker's feet, a wall beside them,
+  is kept out as they are, unless the map holds a point within the margin or its cell of it
+  (the larger; a map keeps one point per cell): there it is on a surface the map already holds (the floor under the walker's feet, a wall beside them,
   or a static surface next to a point a sweep saw through by mistake).
 * **Near what was seen through (probation)**: a point of the sweep within
   ``map.moving_near_m`` of a point seen through lately (the back of someone walking away, whose
@@ -258,12 +258,13 @@ class MovingPoints:
         self.removed += n
         return n
 
-    def moving(self, points_world: np.ndarray, t_ns: int, ivox=None) -> np.ndarray:
+    def moving(self, points_world: np.ndarray, t_ns: int, ivox=None,
+               cell_m: float = 0.0) -> np.ndarray:
         """(N,) bool: the sweep's points (world, at its predicted pose) in space the sweep about
         ``lookback_ns`` earlier saw through, and those within ``body_m`` of one of them or of a
         point seen through within the lookback (call :meth:`carve` first), unless the map
-        ``ivox`` holds a point within the margin of them (a surface the map holds: the floor
-        under a walker's feet, a wall beside them)."""
+        ``ivox`` holds a point within the margin or its cell ``cell_m`` of them, the larger (a
+        surface the map holds: the floor under a walker's feet, a wall beside them)."""
         past = None
         for s in self._sweeps:
             if s.t_ns <= t_ns - self.lookback_ns:
@@ -275,9 +276,10 @@ class MovingPoints:
         if self.body_m > 0.0:
             sources = np.concatenate([points_world[out], *(p for _, p in self._seen)])
             body = near_any(points_world, sources, self.body_m) & ~out
-            if ivox is not None and self.margin_m > 0.0 and body.any():
+            on_map_m = max(self.margin_m, cell_m)
+            if ivox is not None and on_map_m > 0.0 and body.any():
                 rows = np.flatnonzero(body)
-                body[rows[ivox.knn(points_world[rows], 1, self.margin_m)[1] > 0]] = False
+                body[rows[ivox.knn(points_world[rows], 1, on_map_m)[1] > 0]] = False
             out |= body
         self.dropped += int(out.sum())
         return out

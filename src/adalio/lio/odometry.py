@@ -450,6 +450,9 @@ class Odometry:
         """The state at ``_t_first_map_ns``: the pose that anchors the map and defines the world
         (the backfill's reversed pass is held to it, :meth:`_hold_to_anchor`)."""
         self._finest_cell_m = config.map.map_leaf_m
+        self._last_cell_m = config.map.map_leaf_m
+        """Map cell of the last scan inserted (a surface the map holds has a point within about
+        one cell of any of its points: map.moving_body_m's test)."""
         """Finest cell any scan has used for insertion: the plane-extent test scales with it,
         since a map densified by degenerate scans holds neighbours that close everywhere."""
         self.init_report: InitReport | None = None
@@ -779,6 +782,7 @@ class Odometry:
             self._ivox.add_points(p_world, cell_m)
         if inserted:
             self._finest_cell_m = min(self._finest_cell_m, cell_m)
+            self._last_cell_m = cell_m
         if cfg.filter.map_uncertainty and loc is not None:
             self._W_map = self._provenance.map_covariance(s.p, assoc.nearest[assoc.selected])
         W_world = self._world_covariance(extrinsic=False)
@@ -805,7 +809,7 @@ class Odometry:
         image = self._movers.image(pts_e)
         stats.n_seen_through = self._movers.carve(self._ivox, image, *s.lidar_pose(), t_e)
         moving = self._movers.moving(points_to_world(pts_e, s.R, s.p, s.R_LI, s.t_LI), t_e,
-                                     self._ivox)
+                                     self._ivox, self._last_cell_m)
         stats.n_moving = int(moving.sum())
         return image, ~moving
 
