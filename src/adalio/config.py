@@ -290,14 +290,15 @@ class MapConfig:
     """remove_moving: a scan's points within this of a point a sweep saw through within the
     last moving_lookback_s wait for their probation (the back of someone walking away, whose
     last positions are being seen through)."""
-    moving_body_m: float = 0.3
+    moving_body_m: float = 0.0
     """remove_moving: a sweep's points within this of its own points in free space, or of a
     point a sweep saw through within the last moving_lookback_s, are on the same moving body
     (the visibility tests catch a third to two thirds of a walker's points) and are kept out
     like them, no part in the update and not inserted, unless the map holds a point within
-    moving_margin_m or the map's cell of them, the larger (a surface the map already holds:
-    the floor under a walker's feet). About a person's width less a margin; 0: only the points
-    the tests caught."""
+    moving_margin_m or the map's cell of them, the larger (the floor under a walker's feet).
+    0.3 m (about a person's width less a margin) holds most corridor walks with people walking
+    by; 0 (the default) for what it costs the floor-blind stairwell, whose drifting height
+    makes the map seen through where nothing moves (README, "Moving things")."""
 
 
 @dataclass

@@ -11,13 +11,14 @@ time. A static surface never lies in space a ray has passed through; a moving on
 * **In free space (the sweep)**: a point of the current sweep that lies in space an earlier
   sweep (about ``map.moving_lookback_s`` before) saw through is on something that moved there,
   as a person walking towards the sensor. It takes no part in the update and is not inserted.
-* **The same body**: a point of the sweep within ``map.moving_body_m`` of one of its points in
-  free space, or of a point seen through lately, is on the same moving thing (the tests above
-  catch a third to two thirds of a walker's points: those next to nearer floor or wall returns,
-  and the back of someone walking away, which stands behind its own trail, stay unjudged), and
-  is kept out as they are, unless the map holds a point within the margin or its cell of it
-  (the larger; a map keeps one point per cell): there it is on a surface the map already holds (the floor under the walker's feet, a wall beside them,
-  or a static surface next to a point a sweep saw through by mistake).
+* **The same body** (``map.moving_body_m``, off by default): a point of the sweep within
+  ``map.moving_body_m`` of one of its points in free space, or of a point seen through lately,
+  is on the same moving thing (the tests above catch a third to two thirds of a walker's
+  points: those next to nearer floor or wall returns, and the back of someone walking away,
+  which stands behind its own trail, stay unjudged), and is kept out as they are, unless the
+  map holds a point within the margin or its cell of it (the larger; a map keeps one point per
+  cell): there it is on a surface the map already holds (the floor under the walker's feet, a
+  wall beside them).
 * **Near what was seen through (probation)**: a point of the sweep within
   ``map.moving_near_m`` of a point seen through lately (the back of someone walking away, whose
   last positions are the trail just removed) enters the map ``map.moving_probation_s`` late,
