@@ -450,11 +450,11 @@ class Odometry:
         """The state at ``_t_first_map_ns``: the pose that anchors the map and defines the world
         (the backfill's reversed pass is held to it, :meth:`_hold_to_anchor`)."""
         self._finest_cell_m = config.map.map_leaf_m
+        """Finest cell any scan has used for insertion: the plane-extent test scales with it,
+        since a map densified by degenerate scans holds neighbours that close everywhere."""
         self._last_cell_m = config.map.map_leaf_m
         """Map cell of the last scan inserted (a surface the map holds has a point within about
         one cell of any of its points: map.moving_body_m's test)."""
-        """Finest cell any scan has used for insertion: the plane-extent test scales with it,
-        since a map densified by degenerate scans holds neighbours that close everywhere."""
         self.init_report: InitReport | None = None
         """How the filter initialized (None until it has)."""
         self._t_first_scan_ns: int | None = None
