@@ -297,8 +297,7 @@ class MovingPoints:
         wait for their probation (:meth:`matured`)."""
         if not self._seen or not points_world.shape[0] or not self.near_m > 0.0:
             return points_world
-        seen = cKDTree(np.concatenate([p for _, p in self._seen]))
-        wait = seen.query(points_world, distance_upper_bound=self.near_m)[0] < self.near_m
+        wait = near_any(points_world, np.concatenate([p for _, p in self._seen]), self.near_m)
         if wait.any():
             self._pending.append((int(t_ns), np.ascontiguousarray(points_world[wait]), cell_m))
         return points_world[~wait]
