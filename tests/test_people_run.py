@@ -20,9 +20,10 @@ def test_people_walking_by_do_not_drag_the_corridor_walk(tmp_path):
     assert on.map.remove_moving
     off = load_config(config_file=sim.config_path, overrides={"map.remove_moving": "false"})
     body = load_config(config_file=sim.config_path, overrides={"map.moving_body_m": "0.3"})
-    runs = {}
+    runs, said = {}, {}
     for name, cfg in (("on", on), ("off", off), ("body", body)):
         res = run_bag(sim.bag_path, cfg, tmp_path / name, progress=False)
+        said[name] = _summary_text(res)
         runs[name] = (float(ate(res.trajectory_path, sim.gt_path)["rmse_m"]),
                       map_off_scene(res.map_path, res.trajectory_path, sim.gt_path,
                                     sim.meta_path),
@@ -39,3 +40,20 @@ def test_people_walking_by_do_not_drag_the_corridor_walk(tmp_path):
     assert off_scene_on < off_scene_off, (off_scene_on, off_scene_off)
     assert scans_on["n_moving"].sum() > 1000 and scans_on["n_seen_through"].sum() > 100
     assert scans_off["n_moving"].sum() == 0 and scans_off["n_seen_through"].sum() == 0
+    # the run summary counts them, and names the same-body rule only where it ran
+    assert "moving things (map.remove_moving)" in said["on"] and "same body" not in said["on"]
+    assert "same body" in said["body"]
+    assert "moving things" not in said["off"]
+
+
+def _summary_text(res) -> str:
+    """What the run summary prints for ``res`` (a wide console, no colour)."""
+    import io
+
+    from rich.console import Console
+
+    from adalio.io.cli import _summary
+
+    buf = io.StringIO()
+    _summary(Console(file=buf, width=400), res, profile=False)
+    return buf.getvalue()

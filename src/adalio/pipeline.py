@@ -174,6 +174,9 @@ class RunResult:
     moving_points: tuple[int, int, int] = (0, 0, 0)
     """map.remove_moving: (sweep points kept out of the update and the map, map points and
     points waiting to enter it seen through, scans with points kept out) over the run."""
+    moving_body: bool = False
+    """map.moving_body_m > 0: the points kept out include those on the same body as a point in
+    free space or one seen through (``lio/moving.py``)."""
     time_offset: Any = None
     """:class:`adalio.lio.time_offset.TimeOffsetEstimate` the IMU time offset check concluded
     on in this run (left after ``sensor.imu_time_offset_s``), or None."""
@@ -952,6 +955,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
                     for t, gap_s, sigma_m in odom.lidar_gaps] if est_t else [],
         local_surface_rows=tuple(getattr(odom, "local_surface_rows", (0, 0))),
         moving_points=(*odom.moving_points, int(sum(moving))),
+        moving_body=cfg.map.remove_moving and cfg.map.moving_body_m > 0.0,
         time_offset=getattr(odom, "time_offset", None),
         stopped_for_time_offset=restart and _significant(odom, "time_offset"),
         extrinsic_rotation=getattr(odom, "extrinsic_rotation", None),

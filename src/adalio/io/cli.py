@@ -464,9 +464,10 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
                   f"{_ranges_text(res.height_blind_ranges_s)}", highlight=False, soft_wrap=True)
     kept_out, seen, n_scans_moving = getattr(res, "moving_points", (0, 0, 0))
     if kept_out or seen:
+        body = ", or on the same body" if getattr(res, "moving_body", False) else ""
         con.print(f"moving things (map.remove_moving): {kept_out} points of {n_scans_moving} "
                   f"scans kept out of the update and the map (in space an earlier sweep saw "
-                  f"through, or on the same body; scans.csv n_moving), {seen} map points "
+                  f"through{body}; scans.csv n_moving), {seen} map points "
                   f"removed as seen through "
                   f"(n_seen_through)", highlight=False, soft_wrap=True)
     dropped, rows = getattr(res, "local_surface_rows", (0, 0))
