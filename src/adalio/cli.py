@@ -97,10 +97,19 @@ def main() -> None:
     click_error = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
     err = console(stderr=True)
     ctrl_c = "[yellow]interrupted[/] (Ctrl-C): outputs written so far are kept"
+    def interrupted() -> bool:
+        # a Ctrl-C that an import swallowed or turned into another error
+        # (_adalio_entry.StickyInterrupt remembers it)
+        return bool(getattr(signal.getsignal(signal.SIGINT), "received", False))
+
     try:
         try:
             code = app(standalone_mode=False)
         except AdalioError as exc:
+            # after a Ctrl-C, an error that says why an import failed (the pipeline's 'the
+            # estimator ... is not available') is the interrupt
+            if interrupted():
+                raise KeyboardInterrupt from None
             err.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False,
                       soft_wrap=True)
             sys.exit(exc.exit_code)
@@ -113,8 +122,8 @@ def main() -> None:
             sys.exit(exc.exit_code)
         except Exception as exc:
             # after a Ctrl-C, an error from a library interrupted mid-import (numpy's C core
-            # raises ImportError) is the interrupt (_adalio_entry.StickyInterrupt remembers it)
-            if getattr(signal.getsignal(signal.SIGINT), "received", False):
+            # raises ImportError) is the interrupt
+            if interrupted():
                 raise KeyboardInterrupt from None
             if not isinstance(exc, OSError):
                 raise
@@ -122,8 +131,8 @@ def main() -> None:
                       soft_wrap=True)
             sys.exit(2)
         code = code if isinstance(code, int) else 0
-        if getattr(signal.getsignal(signal.SIGINT), "received", False):
-            code = 130  # a Ctrl-C that an import swallowed (_adalio_entry.StickyInterrupt)
+        if interrupted():
+            code = 130  # a Ctrl-C that an import swallowed
         if code == 130:  # typer turns a KeyboardInterrupt inside a command into exit 130
             err.print(ctrl_c)
         sys.exit(code)
