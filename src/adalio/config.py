@@ -290,15 +290,22 @@ class MapConfig:
     """remove_moving: a scan's points within this of a point a sweep saw through within the
     last moving_lookback_s wait for their probation (the back of someone walking away, whose
     last positions are being seen through)."""
-    moving_body_m: float = 0.0
+    moving_surface_check: bool = True
+    """remove_moving: a map point a sweep sees through is removed only if no return of the
+    sweep lies within moving_margin_m plus moving_margin_fraction and one pixel
+    (moving_pixel_deg) of its range of it: a point on the edge of a surface the sweep still
+    sees beside it (a stair's nosing, a wall's end, a rail), placed a few centimetres off by the
+    poses in between, has not moved away (README, "Moving things"). False: session 65's test,
+    free space alone."""
+    moving_body_m: float = 0.3
     """remove_moving: a sweep's points within this of its own points in free space, or of a
     point a sweep saw through within the last moving_lookback_s, are on the same moving body
     (the visibility tests catch a third to two thirds of a walker's points) and are kept out
     like them, no part in the update and not inserted, unless the map holds a point within
     moving_margin_m or the map's cell of them, the larger (the floor under a walker's feet).
-    0.3 m (about a person's width less a margin) holds most corridor walks with people walking
-    by; 0 (the default) for what it costs the floor-blind stairwell, whose drifting height
-    makes the map seen through where nothing moves (README, "Moving things")."""
+    0.3 m: about a person's width less a margin (default since session 68, with
+    moving_surface_check; README, "Moving things"); 0: only the points the visibility tests
+    catch."""
 
 
 @dataclass

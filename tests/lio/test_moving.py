@@ -8,7 +8,15 @@ from scipy.spatial import cKDTree
 
 from adalio.config import MapConfig
 from adalio.lio.ivox import IVox
-from adalio.lio.moving import MovingPoints, _atan2, in_free_space, near_any, range_image
+from adalio.lio.moving import (
+    MovingPoints,
+    _atan2,
+    in_free_space,
+    near_any,
+    nearest_image,
+    range_image,
+    seen_through,
+)
 from adalio.sim.people import People
 
 ROOM_LO = np.array([-6.0, -4.0, -1.4])
@@ -16,7 +24,7 @@ ROOM_HI = np.array([9.0, 5.0, 1.6])
 ELEVATIONS_DEG = 15.0 - np.arange(32.0)  # the XT-32's rings
 PIXEL = np.radians(1.0)
 MARGIN_M, FRACTION = 0.1, 0.01
-BODY_M = 0.3  # map.moving_body_m as README's Moving things measures it (off by default)
+BODY_M = 0.3  # map.moving_body_m, the default
 
 
 def wall_distance(origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
@@ -103,6 +111,75 @@ def test_a_thin_gap_between_rays_is_not_free_space():
     assert not in_free_space(nearer, np.eye(3), origin, img, PIXEL, MARGIN_M, FRACTION).any()
 
 
+def panel_sweep(origin: np.ndarray, edge_y: float, columns: int = 512) -> np.ndarray:
+    """As :func:`sweep`, with a panel in the plane x = 3 m from y = -4 m to its edge at
+    ``edge_y``, floor to ceiling (a wall's end, seen with the room's far wall beyond it)."""
+    pts = sweep(origin, columns)
+    d = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    ahead = d[:, 0] > 0
+    t = np.full(len(d), np.inf)
+    t[ahead] = (3.0 - origin[0]) / d[ahead, 0]
+    hit = ahead & (origin[1] + np.where(ahead, t, 0.0) * d[:, 1] < edge_y)
+    hit &= t < np.linalg.norm(pts, axis=1)
+    pts[hit] = d[hit] * t[hit, None]
+    return pts
+
+
+def test_seen_through_is_free_space_with_no_return_next_to_it():
+    """``seen_through`` against brute force: free space (``in_free_space``) and no return kept
+    in ``nearest_image`` (each pixel's nearest, by scipy's exact nearest neighbours) within the
+    margin, its fraction and one pixel of the point's range; points spread through the room,
+    near its walls and the panel's edge, from a turned and moved sensor."""
+    rng = np.random.default_rng(7)
+    origin = np.array([1.0, 0.5, 0.2])
+    pts_l = panel_sweep(origin, 0.3)
+    near = nearest_image(pts_l, PIXEL)
+    img = range_image(pts_l, PIXEL)
+    returns = near[near[..., 3] > 0][:, :3]
+    assert len(returns) > 0.9 * np.unique(np.round(pts_l, 9), axis=0).shape[0] / 2
+    d = random_directions(rng, 20000, (-14.0, 13.0))
+    r_wall = np.linalg.norm(pts_l, axis=1).max()
+    inside = d * rng.uniform(0.3, 1.0, (len(d), 1)) * r_wall
+    # and some just off the returns: beside the panel's edge, in front of the walls
+    close = pts_l[rng.choice(len(pts_l), 4000)] + rng.normal(0.0, 0.15, (4000, 3))
+    cand = np.vstack([inside, close])
+    yaw = -0.4
+    R_WL = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0],
+                     [0.0, 0.0, 1.0]])
+    p_WL = np.array([-2.0, 4.0, 1.0])
+    world = cand @ R_WL.T + p_WL
+    got = seen_through(world, R_WL, p_WL, img, near, PIXEL, MARGIN_M, FRACTION)
+    free = in_free_space(world, R_WL, p_WL, img, PIXEL, MARGIN_M, FRACTION)
+    r = np.linalg.norm(cand, axis=1)
+    reach = MARGIN_M + (FRACTION + PIXEL) * r
+    next_to = cKDTree(returns).query(cand)[0] < reach
+    np.testing.assert_array_equal(got, free & ~next_to)
+    assert got.sum() > 5000 and (free & next_to).sum() > 200
+
+
+def test_a_surface_edge_placed_off_is_not_seen_through():
+    """The end of a wall (a panel's edge), its map points placed 5-12 cm beyond it (the poses
+    in between drifted): the rays beside them pass the edge to the far wall, so they lie in free
+    space, but the panel's returns next to them keep them (``surface_check``); map points half a
+    metre beyond, where nothing of the sweep is, are seen through either way."""
+    cfg = MapConfig()
+    origin = np.array([1.0, 0.5, 0.2])
+    sweep_l = panel_sweep(origin, 0.0)
+    z = np.linspace(-0.4, 0.4, 9)
+    for off_m, kept in ((0.05, True), (0.08, True), (0.12, True), (0.5, False)):
+        edge = np.column_stack([np.full_like(z, 3.0), np.full_like(z, off_m), z])
+        carved = {}
+        for check in (True, False):
+            movers = MovingPoints.from_config(cfg)
+            movers.surface_check = check
+            ivox = IVox.from_config(cfg)
+            movers.stored(edge[ivox.add_points(edge, 0.05)], 0)
+            carved[check] = movers.carve(ivox, movers.image(sweep_l), np.eye(3),
+                                         origin, 100_000_000)
+        assert carved[False] >= len(z) - 2, (off_m, carved)  # measured 8-9 of 9
+        assert carved[True] == (0 if kept else carved[False]), (off_m, carved)
+
+
 def test_points_near_what_was_seen_through_wait_and_never_enter_if_seen_through():
     """A map point a sweep sees through leaves the map. Afterwards, points within ``near_m`` of
     it (a walker's, 0.1-0.4 m on) wait for their probation while points elsewhere (the walls)
@@ -182,7 +259,11 @@ def test_someone_walking_away_is_kept_out_by_their_trail():
     ago are seen through, and its points now, on the same body, are kept out with them
     (``map.moving_body_m`` 0.3 m): exactly the sweep's points within that of a point in free space
     or seen through and not within the margin of a map point (the room's walls and floor are
-    in the map), by scipy's exact nearest neighbours; with ``moving_body_m`` 0, none of the person's."""
+    in the map), by scipy's exact nearest neighbours; with ``moving_body_m`` 0, none of the person's.
+    The trail is carved by free space alone (``surface_check`` off): 0.2-0.3 s behind a walker
+    walking straight away at 6 m, it is within the surface check's reach (0.27 m there) of the
+    walker's back, so with the check it waits until the walker is farther
+    (:func:`test_seen_through_is_free_space_with_no_return_next_to_it`)."""
     cfg = MapConfig()
     origin = np.array([0.0, 0.5, 0.2])
 
@@ -198,6 +279,7 @@ def test_someone_walking_away_is_kept_out_by_their_trail():
     for body_m in (BODY_M, 0.0):
         movers = MovingPoints.from_config(cfg)
         movers.body_m = body_m
+        movers.surface_check = False
         ivox = IVox.from_config(cfg)
         room = origin + np.vstack([sweep(origin + [dx, 0.0, 0.0]) + [dx, 0.0, 0.0]
                                    for dx in (-0.5, 0.0, 0.5)])

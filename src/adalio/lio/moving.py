@@ -7,11 +7,14 @@ time. A static surface never lies in space a ray has passed through; a moving on
   along the same direction, by more than the margin, is no longer there. It is removed from the
   map (:meth:`adalio.lio.ivox.IVox.remove_points`), so it neither pulls the next scans nor stays
   in the map written out. Only the map points inserted in the last ``map.moving_window_s`` are
-  tested (a trail is seen through while its walker is still in view).
+  tested (a trail is seen through while its walker is still in view), and only those no return
+  of the sweep lies next to (``map.moving_surface_check``): a point on the edge of a surface the
+  sweep still sees (a stair's nosing, a wall's end, a rail), placed a few centimetres off by the
+  poses in between, is passed by rays that hit the surface behind it although nothing moved.
 * **In free space (the sweep)**: a point of the current sweep that lies in space an earlier
   sweep (about ``map.moving_lookback_s`` before) saw through is on something that moved there,
   as a person walking towards the sensor. It takes no part in the update and is not inserted.
-* **The same body** (``map.moving_body_m``, off by default): a point of the sweep within
+* **The same body** (``map.moving_body_m``, 0.3 m by default): a point of the sweep within
   ``map.moving_body_m`` of one of its points in free space, or of a point seen through lately,
   is on the same moving thing (the tests above catch a third to two thirds of a walker's
   points: those next to nearer floor or wall returns, and the back of someone walking away,
@@ -41,6 +44,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -80,19 +84,13 @@ def _pixel(x: float, y: float, z: float, r: float, pixel: float, n_el: int, n_az
 
 
 @kernel()
-def range_image(points_lidar: np.ndarray, pixel_rad: float) -> np.ndarray:
-    """(rows, cols) over the sphere in pixels of about ``pixel_rad``: per pixel, the nearest
-    return among the non-empty pixels of its 3x3 neighbourhood (azimuth wrapping round) where
-    returns bracket it (a non-empty pixel in the row above and below, the column left and
-    right), else 0 (unknown). A point nearer than that value by the margin lies in space the
-    rays all round it passed: free space. The bracket keeps the edge of what the sweep saw (the
-    field of view's top and bottom ring, which graze floor and ceiling, the ends of the returns)
-    unknown: nothing beyond them vouches for it."""
+def nearest_image(points_lidar: np.ndarray, pixel_rad: float) -> np.ndarray:
+    """(rows, cols, 4) over the sphere in pixels of about ``pixel_rad`` (:func:`_pixel`): per
+    pixel the nearest return in it, its (x, y, z) in the LiDAR frame and its range (all 0: no
+    return)."""
     n_el = int(np.ceil(2.0 / pixel_rad))
     n_az = int(np.ceil(2.0 * np.pi / pixel_rad))
-    near = np.zeros((n_el, n_az))
-    lo_row = n_el
-    hi_row = -1
+    near = np.zeros((n_el, n_az, 4))
     for i in range(points_lidar.shape[0]):
         x = points_lidar[i, 0]
         y = points_lidar[i, 1]
@@ -101,10 +99,32 @@ def range_image(points_lidar: np.ndarray, pixel_rad: float) -> np.ndarray:
         if not r > 0.0:
             continue
         row, col = _pixel(x, y, z, r, pixel_rad, n_el, n_az)
-        lo_row = min(lo_row, row)
-        hi_row = max(hi_row, row)
-        if near[row, col] == 0.0 or r < near[row, col]:
-            near[row, col] = r
+        if near[row, col, 3] == 0.0 or r < near[row, col, 3]:
+            near[row, col, 0] = x
+            near[row, col, 1] = y
+            near[row, col, 2] = z
+            near[row, col, 3] = r
+    return near
+
+
+@kernel()
+def bracketed_image(near: np.ndarray) -> np.ndarray:
+    """(rows, cols) from :func:`nearest_image`: per pixel, the nearest return among the
+    non-empty pixels of its 3x3 neighbourhood (azimuth wrapping round) where returns bracket it
+    (a non-empty pixel in the row above and below, the column left and right), else 0
+    (unknown). A point nearer than that value by the margin lies in space the rays all round it
+    passed: free space. The bracket keeps the edge of what the sweep saw (the field of view's
+    top and bottom ring, which graze floor and ceiling, the ends of the returns) unknown:
+    nothing beyond them vouches for it."""
+    n_el, n_az = near.shape[0], near.shape[1]
+    lo_row = n_el
+    hi_row = -1
+    for row in range(n_el):
+        for col in range(n_az):
+            if near[row, col, 3] > 0.0:
+                lo_row = min(lo_row, row)
+                hi_row = max(hi_row, row)
+                break
     out = np.zeros((n_el, n_az))
     for row in range(max(lo_row, 1), min(hi_row + 1, n_el - 1)):
         for col in range(n_az):
@@ -115,7 +135,7 @@ def range_image(points_lidar: np.ndarray, pixel_rad: float) -> np.ndarray:
             right = False
             for dr in range(-1, 2):
                 for dc in range(-1, 2):
-                    v = near[row + dr, (col + dc) % n_az]
+                    v = near[row + dr, (col + dc) % n_az, 3]
                     if v > 0.0:
                         low = min(low, v)
                         below |= dr < 0
@@ -125,6 +145,12 @@ def range_image(points_lidar: np.ndarray, pixel_rad: float) -> np.ndarray:
             if below and above and left and right:
                 out[row, col] = low
     return out
+
+
+@kernel()
+def range_image(points_lidar: np.ndarray, pixel_rad: float) -> np.ndarray:
+    """:func:`bracketed_image` of the sweep ``points_lidar`` (LiDAR frame)."""
+    return bracketed_image(nearest_image(points_lidar, pixel_rad))
 
 
 @kernel()
@@ -152,6 +178,56 @@ def in_free_space(points_world: np.ndarray, R_WL: np.ndarray, p_WL: np.ndarray,
     return out
 
 
+@kernel()
+def seen_through(points_world: np.ndarray, R_WL: np.ndarray, p_WL: np.ndarray,
+                 img: np.ndarray, near: np.ndarray, pixel_rad: float, margin_m: float,
+                 margin_fraction: float) -> np.ndarray:
+    """(N,) bool: each world point lies in free space (:func:`in_free_space`, ``img``) and no
+    return of the sweep (``near``, :func:`nearest_image`, the nearest of each pixel) lies
+    within ``margin_m + (margin_fraction + pixel_rad) * range`` of it (the margin, and one
+    pixel's width at its range): a point on the edge of a surface the sweep still sees beside
+    it (a stair's nosing, a wall's end, a rail) that the poses of the scans in between placed a
+    few centimetres off is not taken for something that moved away."""
+    out = in_free_space(points_world, R_WL, p_WL, img, pixel_rad, margin_m, margin_fraction)
+    n_el, n_az = near.shape[0], near.shape[1]
+    for i in range(points_world.shape[0]):
+        if not out[i]:
+            continue
+        dx = points_world[i, 0] - p_WL[0]
+        dy = points_world[i, 1] - p_WL[1]
+        dz = points_world[i, 2] - p_WL[2]
+        x = R_WL[0, 0] * dx + R_WL[1, 0] * dy + R_WL[2, 0] * dz
+        y = R_WL[0, 1] * dx + R_WL[1, 1] * dy + R_WL[2, 1] * dz
+        z = R_WL[0, 2] * dx + R_WL[1, 2] * dy + R_WL[2, 2] * dz
+        r = np.sqrt(x * x + y * y + z * z)
+        row, col = _pixel(x, y, z, r, pixel_rad, n_el, n_az)
+        reach = margin_m + (margin_fraction + pixel_rad) * r
+        # every pixel holding a direction within the reach's angle of the point's: rows are
+        # even in the sine of the elevation, columns narrow with its cosine
+        ang = np.arcsin(min(reach / r, 1.0)) if reach < r else np.pi
+        cos_el = np.sqrt(max(1.0 - (z / r) ** 2, 0.0))
+        h_row = min(int(np.ceil(ang / pixel_rad)) + 1, n_el)
+        h_col = n_az // 2 + 1
+        if ang < 0.5 * np.pi and cos_el > np.sin(ang):
+            # the azimuth half-width of the cone round the point's direction
+            h_col = min(int(np.ceil(np.arcsin(np.sin(ang) / cos_el) / pixel_rad)) + 1, h_col)
+        reach2 = reach * reach
+        for row2 in range(max(row - h_row, 0), min(row + h_row + 1, n_el)):
+            for dc in range(-h_col, h_col + 1):
+                col2 = (col + dc) % n_az
+                if near[row2, col2, 3] == 0.0:
+                    continue
+                ex = near[row2, col2, 0] - x
+                ey = near[row2, col2, 1] - y
+                ez = near[row2, col2, 2] - z
+                if ex * ex + ey * ey + ez * ez < reach2:
+                    out[i] = False
+                    break
+            if not out[i]:
+                break
+    return out
+
+
 _CELL_OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)],
                          dtype=np.float64)
 
@@ -173,6 +249,15 @@ def near_any(points: np.ndarray, sources: np.ndarray, radius_m: float) -> np.nda
         dist = cKDTree(sources).query(points[idx], distance_upper_bound=radius_m)[0]
         out[idx] = dist < radius_m
     return out
+
+
+class SweepImage(NamedTuple):
+    """A sweep's range images (LiDAR frame of its end)."""
+
+    free: np.ndarray
+    """:func:`bracketed_image`: where its rays passed."""
+    nearest: np.ndarray
+    """:func:`nearest_image`: its nearest return per pixel."""
 
 
 @dataclass
@@ -202,6 +287,8 @@ class MovingPoints:
     probation_ns: int
     near_m: float
     body_m: float = 0.0
+    surface_check: bool = True
+    """Carve only points no return of the sweep lies next to (:func:`seen_through`)."""
     _sweeps: deque = field(default_factory=deque)
     _pending: deque = field(default_factory=deque)
     """(t_ns, world points, map cell edge) waiting to enter the map."""
@@ -221,17 +308,19 @@ class MovingPoints:
         return cls(np.radians(cfg.moving_pixel_deg), cfg.moving_margin_m,
                    cfg.moving_margin_fraction, round(cfg.moving_lookback_s * 1e9),
                    round(cfg.moving_window_s * 1e9), round(cfg.moving_probation_s * 1e9),
-                   cfg.moving_near_m, cfg.moving_body_m)
+                   cfg.moving_near_m, cfg.moving_body_m, cfg.moving_surface_check)
 
-    def image(self, points_lidar: np.ndarray) -> np.ndarray:
-        return range_image(np.ascontiguousarray(points_lidar, dtype=np.float64),
-                           self.pixel_rad)
+    def image(self, points_lidar: np.ndarray) -> SweepImage:
+        near = nearest_image(np.ascontiguousarray(points_lidar, dtype=np.float64),
+                             self.pixel_rad)
+        return SweepImage(bracketed_image(near), near)
 
-    def carve(self, ivox, img: np.ndarray, R_WL: np.ndarray, p_WL: np.ndarray,
+    def carve(self, ivox, img: SweepImage, R_WL: np.ndarray, p_WL: np.ndarray,
               t_ns: int) -> int:
         """Drop the points waiting to enter the map and remove from ``ivox`` those stored
-        within the window that the sweep ``img`` (at ``R_WL, p_WL``) saw through; returns how
-        many."""
+        within the window that the sweep ``img`` (at ``R_WL, p_WL``) saw through
+        (:func:`seen_through`; with ``surface_check`` off, :func:`in_free_space` alone);
+        returns how many."""
         while self._recent and self._recent[0][0] < t_ns - self.window_ns:
             self._recent.popleft()
         while self._seen and self._seen[0][0] < t_ns - self.lookback_ns:
@@ -241,8 +330,12 @@ class MovingPoints:
             if not queue:
                 continue
             pts = np.concatenate([q[1] for q in queue])
-            free = in_free_space(pts, R_WL, p_WL, img, self.pixel_rad, self.margin_m,
-                                 self.margin_fraction)
+            if self.surface_check:
+                free = seen_through(pts, R_WL, p_WL, img.free, img.nearest, self.pixel_rad,
+                                    self.margin_m, self.margin_fraction)
+            else:
+                free = in_free_space(pts, R_WL, p_WL, img.free, self.pixel_rad,
+                                     self.margin_m, self.margin_fraction)
             if not free.any():
                 continue
             n += int(free.sum())
@@ -285,10 +378,10 @@ class MovingPoints:
         self.dropped += int(out.sum())
         return out
 
-    def add_sweep(self, img: np.ndarray, R_WL: np.ndarray, p_WL: np.ndarray,
+    def add_sweep(self, img: SweepImage, R_WL: np.ndarray, p_WL: np.ndarray,
                   t_ns: int) -> None:
-        """Keep the sweep's image at its updated pose."""
-        self._sweeps.append(_Sweep(int(t_ns), np.array(R_WL), np.array(p_WL), img))
+        """Keep the sweep's image (where its rays passed) at its updated pose."""
+        self._sweeps.append(_Sweep(int(t_ns), np.array(R_WL), np.array(p_WL), img.free))
         while len(self._sweeps) > 1 and self._sweeps[1].t_ns <= t_ns - self.lookback_ns:
             self._sweeps.popleft()
 

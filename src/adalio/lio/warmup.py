@@ -124,8 +124,9 @@ def compile_update_stage() -> None:
         movers.add_sweep(image, np.eye(3), np.zeros(3), 0)
         movers.stored(pts, 0)
         movers.carve(ivox, image, np.eye(3), np.zeros(3), 1)
-        movers.moving(pts, movers.lookback_ns)
+        movers.moving(pts, movers.lookback_ns, ivox, cell_m)
         ivox.add_points(pts, cell_m)
+        ivox.knn(pts[:8].copy(), 1, max(cfg.map.moving_margin_m, cell_m))  # the body's map test
         ivox.would_store(pts, cell_m)
         ivox.remove_points(pts[:10])
 
