@@ -83,6 +83,17 @@ def _pixel(x: float, y: float, z: float, r: float, pixel: float, n_el: int, n_az
     return row, col
 
 
+@kernel(inline="always")
+def _in_lidar(points_world: np.ndarray, i: int, R_WL: np.ndarray, p_WL: np.ndarray):
+    """Row ``i`` of ``points_world`` in the LiDAR frame of the pose ``(R_WL, p_WL)``."""
+    dx = points_world[i, 0] - p_WL[0]
+    dy = points_world[i, 1] - p_WL[1]
+    dz = points_world[i, 2] - p_WL[2]
+    return (R_WL[0, 0] * dx + R_WL[1, 0] * dy + R_WL[2, 0] * dz,
+            R_WL[0, 1] * dx + R_WL[1, 1] * dy + R_WL[2, 1] * dz,
+            R_WL[0, 2] * dx + R_WL[1, 2] * dy + R_WL[2, 2] * dz)
+
+
 @kernel()
 def nearest_image(points_lidar: np.ndarray, pixel_rad: float) -> np.ndarray:
     """(rows, cols, 4) over the sphere in pixels of about ``pixel_rad`` (:func:`_pixel`): per
@@ -163,12 +174,7 @@ def in_free_space(points_world: np.ndarray, R_WL: np.ndarray, p_WL: np.ndarray,
     n_el, n_az = img.shape
     out = np.zeros(points_world.shape[0], np.bool_)
     for i in range(points_world.shape[0]):
-        dx = points_world[i, 0] - p_WL[0]
-        dy = points_world[i, 1] - p_WL[1]
-        dz = points_world[i, 2] - p_WL[2]
-        x = R_WL[0, 0] * dx + R_WL[1, 0] * dy + R_WL[2, 0] * dz
-        y = R_WL[0, 1] * dx + R_WL[1, 1] * dy + R_WL[2, 1] * dz
-        z = R_WL[0, 2] * dx + R_WL[1, 2] * dy + R_WL[2, 2] * dz
+        x, y, z = _in_lidar(points_world, i, R_WL, p_WL)
         r = np.sqrt(x * x + y * y + z * z)
         if not r > 0.0:
             continue
@@ -193,12 +199,7 @@ def seen_through(points_world: np.ndarray, R_WL: np.ndarray, p_WL: np.ndarray,
     for i in range(points_world.shape[0]):
         if not out[i]:
             continue
-        dx = points_world[i, 0] - p_WL[0]
-        dy = points_world[i, 1] - p_WL[1]
-        dz = points_world[i, 2] - p_WL[2]
-        x = R_WL[0, 0] * dx + R_WL[1, 0] * dy + R_WL[2, 0] * dz
-        y = R_WL[0, 1] * dx + R_WL[1, 1] * dy + R_WL[2, 1] * dz
-        z = R_WL[0, 2] * dx + R_WL[1, 2] * dy + R_WL[2, 2] * dz
+        x, y, z = _in_lidar(points_world, i, R_WL, p_WL)
         r = np.sqrt(x * x + y * y + z * z)
         row, col = _pixel(x, y, z, r, pixel_rad, n_el, n_az)
         reach = margin_m + (margin_fraction + pixel_rad) * r
