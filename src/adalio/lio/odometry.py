@@ -701,9 +701,13 @@ class Odometry:
         if self._t_first_map_ns is None:
             return self._first_map(pts_e, t_e, stats, stage_ms, t_start, t0)
 
-        # 5b. points on moving things out of the map and of this scan (map.remove_moving)
+        # 5b. points on moving things out of the map and of this scan (map.remove_moving); not
+        # after a gap, whose prediction may be decimetres off: seen from there, the whole map
+        # would look seen through and the sweep in free space
         image = None
-        if self._movers is not None:
+        if self._movers is not None and self._after_gap(stats):
+            image = self._movers.image(pts_e)
+        elif self._movers is not None:
             image, still = self._drop_moving(pts_e, t_e, stats)
             if not still.all():
                 pts_e = pts_e[still]
