@@ -92,7 +92,7 @@ from adalio.lio.measurement import (
     robust_row_factors,
 )
 from adalio.lio.motion_init import MovingInit, handover_covariance
-from adalio.lio.moving import MovingPoints
+from adalio.lio.moving import MovingPoints, SweepImage
 from adalio.lio.state import (
     BG,
     DIM,
@@ -701,13 +701,9 @@ class Odometry:
         if self._t_first_map_ns is None:
             return self._first_map(pts_e, t_e, stats, stage_ms, t_start, t0)
 
-        # 5b. points on moving things out of the map and of this scan (map.remove_moving); not
-        # after a gap, whose prediction may be decimetres off: seen from there, the whole map
-        # would look seen through and the sweep in free space
+        # 5b. points on moving things out of the map and of this scan (map.remove_moving)
         image = None
-        if self._movers is not None and self._after_gap(stats):
-            image = self._movers.image(pts_e)
-        elif self._movers is not None:
+        if self._movers is not None:
             image, still = self._drop_moving(pts_e, t_e, stats)
             if not still.all():
                 pts_e = pts_e[still]
@@ -806,11 +802,15 @@ class Odometry:
 
     # ------------------------------------------------------------------ stages
     def _drop_moving(self, pts_e: np.ndarray, t_e: int,
-                     stats: ScanStats) -> tuple[np.ndarray, np.ndarray]:
-        """The sweep's range image, and which of its points are still (``lio/moving.py``): map
-        points it sees through leave the map first, at the predicted pose."""
+                     stats: ScanStats) -> tuple[SweepImage, np.ndarray]:
+        """The sweep's range images, and which of its points are still (``lio/moving.py``): map
+        points it sees through leave the map first, at the predicted pose. Not after a gap,
+        whose prediction may be decimetres off: seen from there the whole map would look seen
+        through and the sweep in free space; every point is still."""
         s = self._state
         image = self._movers.image(pts_e)
+        if self._after_gap(stats):
+            return image, np.ones(pts_e.shape[0], np.bool_)
         stats.n_seen_through = self._movers.carve(self._ivox, image, *s.lidar_pose(), t_e)
         moving = self._movers.moving(points_to_world(pts_e, s.R, s.p, s.R_LI, s.t_LI), t_e,
                                      self._ivox, self._last_cell_m)
