@@ -1116,6 +1116,10 @@ class Odometry:
         for name in ("_ivox", "_detector", "_provenance"):  # what add_scan changes in place
             setattr(rev, name, copy.deepcopy(getattr(self, name)))
         cfg = self.cfg
+        if self._movers is not None:  # its own sweeps and young map points, in mirrored time:
+            # shared, they would reach the forward run's next scans (its sweep at a mirrored
+            # time taken for the one a lookback earlier, its points for the map's)
+            rev._movers = MovingPoints.from_config(cfg.map)
         rev.cfg = replace(cfg, preprocess=replace(cfg.preprocess, point_filter_num=1),
                           imu=replace(cfg.imu, backfill_s=0.0))
         x = self._state
