@@ -95,7 +95,6 @@ def test_the_forward_run_is_the_same_with_or_without_the_backfill(tmp_path):
     keeps every pose it has without the backfill (before session 69 the two shared that state,
     and the forward poses after the backfill moved: 5 m on a corridor walk). The backfill
     runs 3 s after the initialization here, with walkers in view."""
-    from adalio.io.writers import read_tum
     from adalio.sim import cached_sequence
 
     sim = cached_sequence("corridor", seed=0, duration_s=12.0, columns=512, people=4)
