@@ -107,6 +107,9 @@ def test_the_forward_run_is_the_same_with_or_without_the_backfill(tmp_path):
         scans = read_scans_csv(res.scans_csv_path)
         keep = ~scans["backfill"].astype(bool)
         poses[backfill_s], rows[backfill_s] = (t_ns[keep], T[keep]), scans
+        # the run's counts are what its scans.csv sums to, the backfilled rows included
+        assert res.moving_points == (scans["n_moving"].sum(), scans["n_seen_through"].sum(),
+                                     (scans["n_moving"] > 0).sum()), res.moving_points
     assert rows["60"]["backfill"].sum() >= 3 and not rows["0"]["backfill"].any()
     assert rows["0"]["n_moving"].sum() > 1000  # walkers were kept out after the backfill too
     np.testing.assert_array_equal(poses["60"][0], poses["0"][0])

@@ -173,7 +173,10 @@ class RunResult:
     """filter.local_surface_check: (rows dropped, rows matched or dropped) over the run."""
     moving_points: tuple[int, int, int] = (0, 0, 0)
     """map.remove_moving: (sweep points kept out of the update and the map, map points and
-    points waiting to enter it seen through, scans with points kept out) over the run."""
+    points waiting to enter it seen through, scans with points kept out) over the rows written:
+    the sums of scans.csv's ``n_moving`` and ``n_seen_through`` and its rows with ``n_moving``
+    above 0, the backfilled rows included (not the backfill's re-registration of scans the
+    forward run had posed, whose rows it does not write)."""
     moving_body: bool = False
     """map.moving_body_m > 0: the points kept out include those on the same body as a point in
     free space or one seen through (``lio/moving.py``)."""
@@ -845,6 +848,8 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         risky: list[bool] = []
         blind: list[bool] = []
         moving: list[bool] = []
+        moved = [0, 0]
+        """Sums of the written rows' n_moving and n_seen_through."""
         risky_extrinsic_m = 0.0
         late = False
         """A backfilled row was written after later ones: the files are sorted at the end."""
@@ -868,6 +873,8 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
                 risky_extrinsic_m = max(risky_extrinsic_m, float(stats.sigma_extrinsic_m))
             blind.append(bool(stats.height_blind))
             moving.append(stats.n_moving > 0)
+            moved[0] += int(stats.n_moving)
+            moved[1] += int(stats.n_seen_through)
             if on_estimate is not None:
                 on_estimate(e)
 
@@ -954,7 +961,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         lidar_gaps=[((t - est_t[0]) * 1e-9, gap_s, sigma_m)
                     for t, gap_s, sigma_m in odom.lidar_gaps] if est_t else [],
         local_surface_rows=tuple(getattr(odom, "local_surface_rows", (0, 0))),
-        moving_points=(*odom.moving_points, int(sum(moving))),
+        moving_points=(*moved, int(sum(moving))),
         moving_body=cfg.map.remove_moving and cfg.map.moving_body_m > 0.0,
         time_offset=getattr(odom, "time_offset", None),
         stopped_for_time_offset=restart and _significant(odom, "time_offset"),

@@ -599,7 +599,9 @@ class Odometry:
 
     @property
     def moving_points(self) -> tuple[int, int]:
-        """map.remove_moving: (sweep points kept out as moving, points seen through) so far."""
+        """map.remove_moving: (sweep points kept out as moving, points seen through) so far, by
+        the forward filter (the backfill's reverse pass keeps its own; the backfilled scans'
+        figures are in their ``stats.n_moving``, ``stats.n_seen_through``)."""
         m = self._movers
         return (0, 0) if m is None else (m.dropped, m.removed)
 
