@@ -847,9 +847,9 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         held: list[bool] = []
         risky: list[bool] = []
         blind: list[bool] = []
-        moving: list[bool] = []
-        moved = [0, 0]
-        """Sums of the written rows' n_moving and n_seen_through."""
+        moved = [0, 0, 0]
+        """Over the written rows: the sums of n_moving and n_seen_through, and the rows with
+        n_moving above 0 (RunResult.moving_points)."""
         risky_extrinsic_m = 0.0
         late = False
         """A backfilled row was written after later ones: the files are sorted at the end."""
@@ -872,9 +872,9 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
             if risky[-1]:
                 risky_extrinsic_m = max(risky_extrinsic_m, float(stats.sigma_extrinsic_m))
             blind.append(bool(stats.height_blind))
-            moving.append(stats.n_moving > 0)
             moved[0] += int(stats.n_moving)
             moved[1] += int(stats.n_seen_through)
+            moved[2] += int(stats.n_moving > 0)
             if on_estimate is not None:
                 on_estimate(e)
 
@@ -961,7 +961,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         lidar_gaps=[((t - est_t[0]) * 1e-9, gap_s, sigma_m)
                     for t, gap_s, sigma_m in odom.lidar_gaps] if est_t else [],
         local_surface_rows=tuple(getattr(odom, "local_surface_rows", (0, 0))),
-        moving_points=(*moved, int(sum(moving))),
+        moving_points=tuple(moved),
         moving_body=cfg.map.remove_moving and cfg.map.moving_body_m > 0.0,
         time_offset=getattr(odom, "time_offset", None),
         stopped_for_time_offset=restart and _significant(odom, "time_offset"),
