@@ -8,9 +8,11 @@ time. A static surface never lies in space a ray has passed through; a moving on
   map (:meth:`adalio.lio.ivox.IVox.remove_points`), so it neither pulls the next scans nor stays
   in the map written out. Only the map points inserted in the last ``map.moving_window_s`` are
   tested (a trail is seen through while its walker is still in view), and only those no return
-  of the sweep lies next to (``map.moving_surface_check``): a point on the edge of a surface the
-  sweep still sees (a stair's nosing, a wall's end, a rail), placed a few centimetres off by the
-  poses in between, is passed by rays that hit the surface behind it although nothing moved.
+  of the sweep lies next to, beside or in front of them (``map.moving_surface_check``): a point
+  on the edge of a surface the sweep still sees (a stair's nosing, a wall's end, a rail), placed
+  a few centimetres off by the poses in between, is passed by rays that hit the surface behind
+  it although nothing moved. Returns behind a point do not keep it (the back of someone walking
+  away stands behind the trail they left).
 * **In free space (the sweep)**: a point of the current sweep that lies in space an earlier
   sweep (about ``map.moving_lookback_s`` before) saw through is on something that moved there,
   as a person walking towards the sensor. It takes no part in the update and is not inserted.
@@ -189,11 +191,14 @@ def seen_through(points_world: np.ndarray, R_WL: np.ndarray, p_WL: np.ndarray,
                  img: np.ndarray, near: np.ndarray, pixel_rad: float, margin_m: float,
                  margin_fraction: float) -> np.ndarray:
     """(N,) bool: each world point lies in free space (:func:`in_free_space`, ``img``) and no
-    return of the sweep (``near``, :func:`nearest_image`, the nearest of each pixel) lies
-    within ``margin_m + (margin_fraction + pixel_rad) * range`` of it (the margin, and one
-    pixel's width at its range): a point on the edge of a surface the sweep still sees beside
-    it (a stair's nosing, a wall's end, a rail) that the poses of the scans in between placed a
-    few centimetres off is not taken for something that moved away."""
+    return of the sweep (``near``, :func:`nearest_image`, the nearest of each pixel) beside or
+    in front of it (its range at most the point's plus ``margin_m``) lies within
+    ``margin_m + (margin_fraction + pixel_rad) * range`` of it (the margin, and one pixel's
+    width at its range): a point on the edge of a surface the sweep still sees beside it (a
+    stair's nosing, a wall's end, a rail) that the poses of the scans in between placed a few
+    centimetres off is not taken for something that moved away. Returns behind the point along
+    its ray do not keep it: they are what the rays through it hit (the back of someone walking
+    away stands behind the trail they left)."""
     out = in_free_space(points_world, R_WL, p_WL, img, pixel_rad, margin_m, margin_fraction)
     n_el, n_az = near.shape[0], near.shape[1]
     for i in range(points_world.shape[0]):
@@ -216,7 +221,8 @@ def seen_through(points_world: np.ndarray, R_WL: np.ndarray, p_WL: np.ndarray,
         for row2 in range(max(row - h_row, 0), min(row + h_row + 1, n_el)):
             for dc in range(-h_col, h_col + 1):
                 col2 = (col + dc) % n_az
-                if near[row2, col2, 3] == 0.0:
+                rn = near[row2, col2, 3]
+                if rn == 0.0 or rn > r + margin_m:  # none, or behind the point along its ray
                     continue
                 ex = near[row2, col2, 0] - x
                 ey = near[row2, col2, 1] - y
