@@ -292,11 +292,17 @@ class MapConfig:
     last positions are being seen through)."""
     moving_surface_check: bool = True
     """remove_moving: a map point a sweep sees through is removed only if no return of the
-    sweep beside or in front of it (not farther than it by more than moving_margin_m) lies
-    within moving_margin_m plus moving_margin_fraction and one pixel (moving_pixel_deg) of its
-    range of it: a point on the edge of a surface the sweep still sees beside it (a stair's
-    nosing, a wall's end, a rail), placed a few centimetres off by the poses in between, has not
-    moved away (README, "Moving things"). False: session 65's test, free space alone."""
+    sweep lies within moving_margin_m plus moving_margin_fraction and one pixel
+    (moving_pixel_deg) of its range of it: a point on the edge of a surface the sweep still
+    sees beside it (a stair's nosing, a wall's end, a rail), placed a few centimetres off by the
+    poses in between, has not moved away (README, "Moving things"). False: session 65's test,
+    free space alone."""
+    moving_surface_check_behind: bool = True
+    """moving_surface_check: the returns behind the map point along its ray (farther than it
+    by more than moving_margin_m) keep it too. False: only those beside or in front of it, so
+    the trail of someone walking away ahead is carved although their back is within the
+    check's reach behind it: the corridor with people loses fewer walks, the spiral shaft
+    loses some centimetres (README, "Moving things", session 71)."""
     moving_body_m: float = 0.3
     """remove_moving: a sweep's points within this of its own points in free space, or of a
     point a sweep saw through within the last moving_lookback_s, are on the same moving body

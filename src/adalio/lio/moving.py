@@ -8,11 +8,12 @@ time. A static surface never lies in space a ray has passed through; a moving on
   map (:meth:`adalio.lio.ivox.IVox.remove_points`), so it neither pulls the next scans nor stays
   in the map written out. Only the map points inserted in the last ``map.moving_window_s`` are
   tested (a trail is seen through while its walker is still in view), and only those no return
-  of the sweep lies next to, beside or in front of them (``map.moving_surface_check``): a point
-  on the edge of a surface the sweep still sees (a stair's nosing, a wall's end, a rail), placed
-  a few centimetres off by the poses in between, is passed by rays that hit the surface behind
-  it although nothing moved. Returns behind a point do not keep it (the back of someone walking
-  away stands behind the trail they left).
+  of the sweep lies next to (``map.moving_surface_check``): a point on the edge of a surface the
+  sweep still sees (a stair's nosing, a wall's end, a rail), placed a few centimetres off by the
+  poses in between, is passed by rays that hit the surface behind it although nothing moved.
+  With ``map.moving_surface_check_behind`` off, returns behind a point along its ray do not keep
+  it, only those beside or in front of it: the back of someone walking away stands behind the
+  trail they left, which is then carved (the corridor with people gains, the shaft loses).
 * **In free space (the sweep)**: a point of the current sweep that lies in space an earlier
   sweep (about ``map.moving_lookback_s`` before) saw through is on something that moved there,
   as a person walking towards the sensor. It takes no part in the update and is not inserted.
@@ -189,16 +190,16 @@ def in_free_space(points_world: np.ndarray, R_WL: np.ndarray, p_WL: np.ndarray,
 @kernel()
 def seen_through(points_world: np.ndarray, R_WL: np.ndarray, p_WL: np.ndarray,
                  img: np.ndarray, near: np.ndarray, pixel_rad: float, margin_m: float,
-                 margin_fraction: float) -> np.ndarray:
+                 margin_fraction: float, behind: bool) -> np.ndarray:
     """(N,) bool: each world point lies in free space (:func:`in_free_space`, ``img``) and no
-    return of the sweep (``near``, :func:`nearest_image`, the nearest of each pixel) beside or
-    in front of it (its range at most the point's plus ``margin_m``) lies within
-    ``margin_m + (margin_fraction + pixel_rad) * range`` of it (the margin, and one pixel's
-    width at its range): a point on the edge of a surface the sweep still sees beside it (a
-    stair's nosing, a wall's end, a rail) that the poses of the scans in between placed a few
-    centimetres off is not taken for something that moved away. Returns behind the point along
-    its ray do not keep it: they are what the rays through it hit (the back of someone walking
-    away stands behind the trail they left)."""
+    return of the sweep (``near``, :func:`nearest_image`, the nearest of each pixel) lies
+    within ``margin_m + (margin_fraction + pixel_rad) * range`` of it (the margin, and one
+    pixel's width at its range): a point on the edge of a surface the sweep still sees beside
+    it (a stair's nosing, a wall's end, a rail) that the poses of the scans in between placed a
+    few centimetres off is not taken for something that moved away. With ``behind`` false only
+    the returns beside or in front of the point count (their range at most the point's plus
+    ``margin_m``), not those behind it along its ray, which are what the rays through it hit
+    (the back of someone walking away stands behind the trail they left)."""
     out = in_free_space(points_world, R_WL, p_WL, img, pixel_rad, margin_m, margin_fraction)
     n_el, n_az = near.shape[0], near.shape[1]
     for i in range(points_world.shape[0]):
@@ -222,7 +223,7 @@ def seen_through(points_world: np.ndarray, R_WL: np.ndarray, p_WL: np.ndarray,
             for dc in range(-h_col, h_col + 1):
                 col2 = (col + dc) % n_az
                 rn = near[row2, col2, 3]
-                if rn == 0.0 or rn > r + margin_m:  # none, or behind the point along its ray
+                if rn == 0.0 or (not behind and rn > r + margin_m):  # none; behind the point
                     continue
                 ex = near[row2, col2, 0] - x
                 ey = near[row2, col2, 1] - y
@@ -296,6 +297,9 @@ class MovingPoints:
     body_m: float = 0.0
     surface_check: bool = True
     """Carve only points no return of the sweep lies next to (:func:`seen_through`)."""
+    surface_check_behind: bool = True
+    """With ``surface_check``: returns behind a point along its ray count too (False: only
+    those beside or in front of it)."""
     _sweeps: deque = field(default_factory=deque)
     _pending: deque = field(default_factory=deque)
     """(t_ns, world points, map cell edge) waiting to enter the map."""
@@ -315,7 +319,8 @@ class MovingPoints:
         return cls(np.radians(cfg.moving_pixel_deg), cfg.moving_margin_m,
                    cfg.moving_margin_fraction, round(cfg.moving_lookback_s * 1e9),
                    round(cfg.moving_window_s * 1e9), round(cfg.moving_probation_s * 1e9),
-                   cfg.moving_near_m, cfg.moving_body_m, cfg.moving_surface_check)
+                   cfg.moving_near_m, cfg.moving_body_m, cfg.moving_surface_check,
+                   cfg.moving_surface_check_behind)
 
     def image(self, points_lidar: np.ndarray) -> SweepImage:
         near = nearest_image(np.ascontiguousarray(points_lidar, dtype=np.float64),
@@ -339,7 +344,8 @@ class MovingPoints:
             pts = np.concatenate([q[1] for q in queue])
             if self.surface_check:
                 free = seen_through(pts, R_WL, p_WL, img.free, img.nearest, self.pixel_rad,
-                                    self.margin_m, self.margin_fraction)
+                                    self.margin_m, self.margin_fraction,
+                                    self.surface_check_behind)
             else:
                 free = in_free_space(pts, R_WL, p_WL, img.free, self.pixel_rad,
                                      self.margin_m, self.margin_fraction)
