@@ -21,8 +21,7 @@ The summary gives, per scene, start and noise level, the mean and worst ATE of t
 stayed within 1 m, the count of the others (over 1 m, or no result), the count of the runs
 whose largest error after aligning the filter's first scan is over 1 m (issue #14's divergence
 test; the README's *runs over 1 m*; each run's in ``cells.json``, ``max_error_first_m``), and
-checks the issue's
-targets: poses >= 95 % of scans (still) / >= 90 % (moving); hall ATE <= 1 cm (still) / <= 2 cm
+checks the issue's targets: poses >= 95 % of scans (still) / >= 90 % (moving); hall ATE <= 1 cm (still) / <= 2 cm
 (moving); and no run over 1 m ATE in any scene.
 
 With ``--mountings`` the sequences are also simulated with other IMU-LiDAR mountings
@@ -457,7 +456,8 @@ def _offset_cell(c: Cell) -> str:
 
 def summary_table(cells: list[Cell]) -> str:
     lines = [("| scene | start | IMU noise | LiDARs | runs | poses/scans min | ATE mean | "
-              "ATE worst | runs > 1 m or failed | largest error > 1 m (first pose) or failed | init | init after, median (max) | target | "
+              "ATE worst | runs > 1 m or failed | largest error > 1 m (first pose) or failed | "
+              "init | init after, median (max) | target | "
               "within 3σ x / y / z | map off the scene, mean (worst) |"),
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     keys = sorted({(c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz, c.lidar_rate_hz,

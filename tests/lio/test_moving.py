@@ -289,16 +289,28 @@ def test_someone_walking_away_is_kept_out_by_their_trail():
         return ((np.hypot(pts[:, 0] - f[0], pts[:, 1] - f[1]) < 0.2 + 1e-6)
                 & (pts[:, 2] < f[2] + 1.75 + 1e-6))
 
-    def carved(check: bool, behind: bool) -> int:
-        """How many of the trail's map points the sweep now carves."""
+    def trail_in_map(check: bool, behind: bool, body_m: float = BODY_M,
+                     room: bool = False) -> tuple[MovingPoints, IVox]:
+        """The sweep at 0 s kept, and the map points the walker left at 0.2 and 0.3 s stored
+        (the last sweep's are on probation), with the room's walls and floor in the map first
+        if ``room``."""
         movers = MovingPoints.from_config(cfg)
+        movers.body_m = body_m
         movers.surface_check, movers.surface_check_behind = check, behind
         ivox = IVox.from_config(cfg)
+        if room:
+            ivox.add_points(origin + np.vstack([sweep(origin + [dx, 0.0, 0.0]) + [dx, 0.0, 0.0]
+                                                for dx in (-0.5, 0.0, 0.5)]), 0.1)
         movers.add_sweep(movers.image(sweep(origin, feet=feet(0.0))), np.eye(3), origin, 0)
         for t_s in (0.2, 0.3):
             left = origin + sweep(origin, feet=feet(t_s))
             trail = left[on_person(left, t_s)]
             movers.stored(trail[ivox.add_points(trail, 0.1)], round(t_s * 1e9))
+        return movers, ivox
+
+    def carved(check: bool, behind: bool) -> int:
+        """How many of the trail's map points the sweep now carves."""
+        movers, ivox = trail_in_map(check, behind)
         return movers.carve(ivox, movers.image(sweep(origin, feet=feet(0.5))), np.eye(3),
                             origin, 500_000_000)
 
@@ -311,19 +323,7 @@ def test_someone_walking_away_is_kept_out_by_their_trail():
 
     runs = {}
     for body_m in (BODY_M, 0.0):
-        movers = MovingPoints.from_config(cfg)
-        movers.body_m = body_m
-        movers.surface_check = False
-        ivox = IVox.from_config(cfg)
-        room = origin + np.vstack([sweep(origin + [dx, 0.0, 0.0]) + [dx, 0.0, 0.0]
-                                   for dx in (-0.5, 0.0, 0.5)])
-        ivox.add_points(room, 0.1)
-        before = origin + sweep(origin, feet=feet(0.0))
-        movers.add_sweep(movers.image(before - origin), np.eye(3), origin, 0)
-        for t_s in (0.2, 0.3):  # the map points it left (the last sweep's are on probation)
-            left = origin + sweep(origin, feet=feet(t_s))
-            trail = left[on_person(left, t_s)]
-            movers.stored(trail[ivox.add_points(trail, 0.1)], round(t_s * 1e9))
+        movers, ivox = trail_in_map(False, True, body_m, room=True)
         now = origin + sweep(origin, feet=feet(0.5))
         t = 500_000_000
         assert movers.carve(ivox, movers.image(now - origin), np.eye(3), origin, t) > 20
