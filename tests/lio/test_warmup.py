@@ -94,6 +94,10 @@ def test_a_run_after_the_helper_compiles_none_of_the_helper_s_kernels_again(
     assert again == [], [c for c in run["compiled"] if c[0] in again]
     assert all(hits >= 1 for hits in run["loaded"].values()), run["loaded"]
     assert len(run["compiled"]) > 10  # the run compiled its own stages (a cold cache indeed)
+    # a constant passed from kernel to kernel compiles the callee once more, for the constant's
+    # literal type (adalio.jit): a fresh install would pay for it
+    literal = [c for c in helper["compiled"] + run["compiled"] if "Literal[" in c[1]]
+    assert literal == [], literal
 
 
 def test_the_helper_is_not_wanted_when_switched_off_or_when_the_cache_is_warm(

@@ -105,7 +105,7 @@ def _associate_row(i, queries, k, max_d2, resolution_m, offsets, cap, store, min
     bound = max_d2
     if warm and prev_counts[i] == k:
         bound = _warm_bound(queries, prev_queries, prev_nbrs, i, k, max_d2, resolution_m)
-    c = _knn_row(0, queries[i:i + 1], k, bound, resolution_m, offsets, cap, store, nb, d2)
+    c = _knn_row(np.int64(0), queries[i:i + 1], k, bound, resolution_m, offsets, cap, store, nb, d2)
     if out_nbrs.shape[0]:
         for j in range(k):
             out_nbrs[i, j, 0] = nb[0, j, 0]

@@ -493,7 +493,7 @@ def propagate_scan(p, R, v, b_g, b_a, g, g_anchor, P, imu_tau, gyro, accel, tau_
     rec_w = np.empty((m_max, 3))
     rec_a = np.empty((m_max, 3))
     tau = tau_start
-    m = 0
+    m = np.int64(0)
     gyro_in = gyro[n - 1].copy()
     acc_in = accel[n - 1].copy()
     gap = False

@@ -77,7 +77,7 @@ _HASH_Y = _as_int64(0xC2B2AE3D27D4EB4F)
 _HASH_Z = _as_int64(0x165667B19E3779F9)
 
 
-@kernel(inline="always")
+@kernel()
 def hash_key3(kx: int, ky: int, kz: int, mask: int) -> int:
     """Slot of an integer voxel key in a power-of-two open-addressing table (§7 "Hash")."""
     h = kx * _HASH_X + ky * _HASH_Y + kz * _HASH_Z
@@ -100,7 +100,7 @@ def nearby_offsets(nearby_type: int) -> np.ndarray:
     return np.ascontiguousarray(np.array(offs[:n], dtype=np.int64))
 
 
-@kernel(inline="always")
+@kernel()
 def _key_of(x: float, y: float, z: float, resolution_m: float):
     """(ok, kx, ky, kz) = floor(p / s + 1/2), i.e. round(p / s) half up (§7 "Key")."""
     fx = np.floor(x / resolution_m + 0.5)
@@ -112,7 +112,7 @@ def _key_of(x: float, y: float, z: float, resolution_m: float):
     return True, np.int64(fx), np.int64(fy), np.int64(fz)
 
 
-@kernel(inline="always")
+@kernel()
 def _lookup(table: np.ndarray, vkeys: np.ndarray, kx: int, ky: int, kz: int) -> int:
     """Voxel id of a key by linear probing, or -1 if absent."""
     mask = table.shape[0] - 1
@@ -137,7 +137,7 @@ def _rebuild_table(table: np.ndarray, vkeys: np.ndarray, nv: int) -> None:
         table[h] = v
 
 
-@kernel(inline="always")
+@kernel()
 def _occ_slot(okeys: np.ndarray, si: int, kx: int, ky: int, kz: int, insert: bool) -> int:
     """Slot of cell (kx, ky, kz) of edge number ``si`` in the occupancy table (linear probing;
     an empty slot has ``okeys[slot, 0] == -1``); -1 when absent and not ``insert``."""
@@ -157,7 +157,7 @@ def _occ_slot(okeys: np.ndarray, si: int, kx: int, ky: int, kz: int, insert: boo
         h = (h + 1) & mask
 
 
-@kernel(inline="always")
+@kernel()
 def _cell_of(x: float, y: float, z: float, cell_m: float):
     """(ok, cx, cy, cz): the cell floor(p / cell_m) of p; not ok beyond ±_MAX_ABS_KEY cells."""
     cx = np.floor(x / cell_m)
@@ -168,7 +168,7 @@ def _cell_of(x: float, y: float, z: float, cell_m: float):
     return True, np.int64(cx), np.int64(cy), np.int64(cz)
 
 
-@kernel(inline="always")
+@kernel()
 def _occ_add(okeys: np.ndarray, ocount: np.ndarray, ostate: np.ndarray, cell_sizes: np.ndarray,
              x: float, y: float, z: float, delta: int, v: int, j: int) -> None:
     """Count a stored point in (``delta`` = 1) or out of (-1) its cell of every tracked edge; a
@@ -205,7 +205,7 @@ def _occ_rebuild(okeys: np.ndarray, ocount: np.ndarray, ostate: np.ndarray,
             b = vblocks[v, j >> _BLOCK_SHIFT]
             s = j & (BLOCK_POINTS - 1)
             _occ_add(okeys, ocount, ostate, cell_sizes, pool[b, s, 0], pool[b, s, 1],
-                     pool[b, s, 2], 1, v, j)
+                     pool[b, s, 2], np.int64(1), v, j)
     for h in range(okeys.shape[0]):  # until _copy_stamps restores a counted cell's stamp
         okeys[h, 6] = _FIXED
 
@@ -231,11 +231,11 @@ _FIXED = -(1 << 60)
 """Insertion stamp of a cell whose sampling window is over."""
 
 
-@kernel(inline="always")
+@kernel()
 def _priority(x: float, y: float, z: float) -> int:
     return hash_key3(np.int64(np.floor(x * _PRIORITY_SCALE)),
                      np.int64(np.floor(y * _PRIORITY_SCALE)),
-                     np.int64(np.floor(z * _PRIORITY_SCALE)), _PRIORITY_MASK)
+                     np.int64(np.floor(z * _PRIORITY_SCALE)), np.int64(_PRIORITY_MASK))
 
 
 @kernel()
@@ -252,7 +252,7 @@ def cell_priority(points_world: np.ndarray) -> np.ndarray:
     return _priorities(_as_points(points_world, "points_world"))
 
 
-@kernel(inline="always")
+@kernel()
 def _in_cell(pool: np.ndarray, vblocks: np.ndarray, v: int, j: int, cx: int, cy: int, cz: int,
              cell_m: float) -> bool:
     b = vblocks[v, j >> _BLOCK_SHIFT]
@@ -261,7 +261,7 @@ def _in_cell(pool: np.ndarray, vblocks: np.ndarray, v: int, j: int, cx: int, cy:
     return ok and qx == cx and qy == cy and qz == cz
 
 
-@kernel(inline="always")
+@kernel()
 def _keep_uniform(x: float, y: float, z: float, cx: int, cy: int, cz: int, cell_m: float, h: int,
                   v: int, nv: int, cap: int, vstamp: np.ndarray, vtotal: np.ndarray,
                   vblocks: np.ndarray, pool: np.ndarray, cell_sizes: np.ndarray,
@@ -295,9 +295,9 @@ def _keep_uniform(x: float, y: float, z: float, cx: int, cy: int, cz: int, cell_
         return seq
     b = vblocks[v, best >> _BLOCK_SHIFT]
     s = best & (BLOCK_POINTS - 1)
-    _occ_add(okeys, ocount, ostate, cell_sizes, pool[b, s, 0], pool[b, s, 1], pool[b, s, 2], -1,
-             v, best)
-    _occ_add(okeys, ocount, ostate, cell_sizes, x, y, z, 1, v, best)
+    _occ_add(okeys, ocount, ostate, cell_sizes, pool[b, s, 0], pool[b, s, 1], pool[b, s, 2],
+             np.int64(-1), v, best)
+    _occ_add(okeys, ocount, ostate, cell_sizes, x, y, z, np.int64(1), v, best)
     pool[b, s, 0] = x
     pool[b, s, 1] = y
     pool[b, s, 2] = z
@@ -363,7 +363,7 @@ def _insert_points(
         if cell_m > 0.0:
             ok, cx, cy, cz = _cell_of(points[row, 0], points[row, 1], points[row, 2], cell_m)
             if ok:
-                h = _occ_slot(okeys, cell_index, cx, cy, cz, False)
+                h = _occ_slot(okeys, cell_index, cx, cy, cz, np.bool_(False))
                 if h >= 0 and ocount[h] > 0:
                     if uniform and (sample_batches <= 0
                                     or ostate[1] - okeys[h, 6] < sample_batches):
@@ -409,9 +409,9 @@ def _insert_points(
         j = slot & (BLOCK_POINTS - 1)
         if t >= cap:  # the oldest point of the voxel leaves its cells
             _occ_add(okeys, ocount, ostate, cell_sizes, pool[b, j, 0], pool[b, j, 1],
-                     pool[b, j, 2], -1, v, slot)
+                     pool[b, j, 2], np.int64(-1), v, slot)
         _occ_add(okeys, ocount, ostate, cell_sizes, points[row, 0], points[row, 1],
-                 points[row, 2], 1, v, slot)
+                 points[row, 2], np.int64(1), v, slot)
         pool[b, j, 0] = points[row, 0]
         pool[b, j, 1] = points[row, 1]
         pool[b, j, 2] = points[row, 2]
@@ -584,7 +584,7 @@ def _cells_taken(points: np.ndarray, cell_m: float, cell_index: int, okeys: np.n
     for i in range(points.shape[0]):
         ok, cx, cy, cz = _cell_of(points[i, 0], points[i, 1], points[i, 2], cell_m)
         if ok:
-            h = _occ_slot(okeys, cell_index, cx, cy, cz, False)
+            h = _occ_slot(okeys, cell_index, cx, cy, cz, np.bool_(False))
             out[i] = h >= 0 and ocount[h] > 0
     return out
 
@@ -613,7 +613,7 @@ def _remove_points(points: np.ndarray, resolution_m: float, cap: int, table: np.
             b = vblocks[v, j >> _BLOCK_SHIFT]
             s = j & (BLOCK_POINTS - 1)
             if pool[b, s, 0] == x and pool[b, s, 1] == y and pool[b, s, 2] == z:
-                _occ_add(okeys, ocount, ostate, cell_sizes, x, y, z, -1, v, j)
+                _occ_add(okeys, ocount, ostate, cell_sizes, x, y, z, np.int64(-1), v, j)
                 pool[b, s, 0] = np.nan
                 pool[b, s, 1] = np.nan
                 pool[b, s, 2] = np.nan

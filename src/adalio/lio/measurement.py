@@ -71,7 +71,7 @@ def pose_quadratic(H_pose, P_pose):
     return out
 
 
-@kernel(inline="always")
+@kernel()
 def _world_point(points_lidar, i, M, t):
     """``M p_L + t`` of row i, with ``M = R R_LI`` and ``t = R t_LI + p`` (§1)."""
     x, y, z = points_lidar[i, 0], points_lidar[i, 1], points_lidar[i, 2]
@@ -92,7 +92,7 @@ def points_to_world(points_lidar, R, p, R_LI, t_LI):
     return out
 
 
-@kernel(inline="always")
+@kernel()
 def _body_and_normal(points_lidar, i, R, R_LI, t_LI, normals):
     """``p_I = R_LI p_L + t_LI`` and ``c = Rᵀ n`` of row i (the body-frame point and normal)."""
     nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
@@ -105,7 +105,7 @@ def _body_and_normal(points_lidar, i, R, R_LI, t_LI, normals):
             R[0, 2] * nx + R[1, 2] * ny + R[2, 2] * nz)
 
 
-@kernel(inline="always")
+@kernel()
 def _pose_row_variance(points_lidar, i, R, R_LI, t_LI, normals, P_pose):
     """``h P_pose hᵀ``: the variance the pose covariance ``P_pose`` ([δp, δθ]) gives row i's
     residual, with ``h = [nᵀ, ([p_I]× c)ᵀ]`` its pose columns."""
@@ -244,7 +244,7 @@ def normal_noise_information(points_lidar, accepted, R, R_LI, t_LI, normals, nei
     claims nothing real: its whole ``w² h hᵀ`` is returned.
     """
     F, _ = normal_noise_terms(points_lidar, accepted, R, np.zeros(3), R_LI, t_LI, normals,
-                              np.empty((0, 3)), neighbours, counts, w, 1.0, False)
+                              np.empty((0, 3)), neighbours, counts, w, 1.0, np.bool_(False))
     return F
 
 

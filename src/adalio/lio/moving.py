@@ -56,7 +56,7 @@ from adalio.jit import kernel
 from adalio.lio.map_uncertainty import cell_keys
 
 
-@kernel(inline="always")
+@kernel()
 def _atan2(y: float, x: float) -> float:
     """atan2 to within 2.1e-4 rad (0.012°, largest at 45°; a cubic in the tangent's square on
     [0, 1]): pixels of a degree need no more, and images and queries use the same function."""
@@ -77,7 +77,7 @@ def _atan2(y: float, x: float) -> float:
     return r
 
 
-@kernel(inline="always")
+@kernel()
 def _pixel(x: float, y: float, z: float, r: float, pixel: float, n_el: int, n_az: int):
     """(row, col) of a direction: rows even in the sine of the elevation (within 5 % of even in
     elevation up to ±18°, 8 % to ±22.5°, where spinning LiDARs look), columns in azimuth."""
@@ -86,7 +86,7 @@ def _pixel(x: float, y: float, z: float, r: float, pixel: float, n_el: int, n_az
     return row, col
 
 
-@kernel(inline="always")
+@kernel()
 def _in_lidar(points_world: np.ndarray, i: int, R_WL: np.ndarray, p_WL: np.ndarray):
     """Row ``i`` of ``points_world`` in the LiDAR frame of the pose ``(R_WL, p_WL)``."""
     dx = points_world[i, 0] - p_WL[0]
