@@ -97,6 +97,7 @@ from adalio.sim.lidar import lidar_model
 from adalio.sim.people import MAX_PEOPLE
 
 LIDARS = {"xt32-512": ("xt32", 512), "xt32-2000": ("xt32", 2000), "os1-64": ("ouster64", None),
+          "os0-128": ("ouster128", None),
           "vlp16": ("vlp16", None), "xt32-1000": ("xt32", 1000)}
 """Name -> (simulator model, columns per sweep; None the model's). ``xt32-1000`` is the XT-32 at
 its 20 Hz setting (``--lidar-rates 20``: 1000 columns a sweep, the firing rate of its 2000 at

@@ -42,7 +42,7 @@ def _read_all(res):
 
 
 @pytest.mark.parametrize("fmt,lidar", [("ros1", "xt32"), ("ros2", "xt32"), ("mcap", "ouster64"),
-                                       ("ros1", "vlp16")])
+                                       ("ros1", "vlp16"), ("ros1", "ouster128")])
 def test_bag_reads_back_with_the_right_counts(tmp_path, fmt, lidar):
     res = simulate("corridor", tmp_path, duration_s=1.6, lidar=lidar, fmt=fmt, columns=90,
                    seed=2)
@@ -52,10 +52,10 @@ def test_bag_reads_back_with_the_right_counts(tmp_path, fmt, lidar):
     assert meta["n_scans"] == 16 and meta["n_imu"] == int(1.6 * 400) + 1
     assert len(scans) == meta["n_scans"]
     assert sum(len(b) for b in imus) == meta["n_imu"]
-    channels = {"xt32": 32, "ouster64": 64, "vlp16": 16}[lidar]
+    channels = {"xt32": 32, "ouster64": 64, "ouster128": 128, "vlp16": 16}[lidar]
     valid = [np.count_nonzero(np.linalg.norm(s.points_lidar, axis=1) > 0) for s in scans]
     assert 0.7 * 90 * channels < np.mean(valid) <= 90 * channels
-    if lidar != "ouster64":  # unorganized clouds of valid returns
+    if not lidar.startswith("ouster"):  # unorganized clouds of valid returns
         assert sum(len(s) for s in scans) == meta["n_points"]
     for k, s in enumerate(scans):
         stamp = meta["start_time_ns"] + k * 100_000_000
@@ -65,20 +65,26 @@ def test_bag_reads_back_with_the_right_counts(tmp_path, fmt, lidar):
     np.testing.assert_allclose(cfg.T_imu_lidar(), np.asarray(meta["T_imu_lidar"]))
     assert cfg.sensor.lidar_topic == meta["topics"]["lidar"]
     assert cfg.sensor.imu_topic == meta["topics"]["imu"]
-    if lidar == "ouster64":
+    if lidar.startswith("ouster"):
         from rosbags.highlevel import AnyReader
 
         with AnyReader([res.bag_path]) as reader:
             conn = next(c for c in reader.connections if c.topic == "/ouster/points")
             msg = reader.deserialize(next(reader.messages([conn]))[2], conn.msgtype)
-        assert (msg.height, msg.width, msg.point_step) == (64, 90, 48)
+        assert (msg.height, msg.width, msg.point_step) == (channels, 90, 48)
         fields = {f.name: (f.offset, f.datatype) for f in msg.fields}
         assert fields["t"] == (20, 6) and fields["ring"] == (26, 4)
         rec = np.frombuffer(msg.data.tobytes(), dtype=np.dtype(
-            {"names": ["x", "t", "ring"], "formats": ["<f4", "<u4", "<u2"],
-             "offsets": [0, 20, 26], "itemsize": 48})).reshape(64, 90)
+            {"names": ["x", "y", "z", "t", "ring"], "formats": ["<f4"] * 3 + ["<u4", "<u2"],
+             "offsets": [0, 4, 8, 20, 26], "itemsize": 48})).reshape(channels, 90)
         assert np.all(np.diff(rec["t"].astype(np.int64), axis=1) > 0)
-        assert rec["t"].max() < 100_000_000 and np.all(rec["ring"] == np.arange(64)[:, None])
+        assert rec["t"].max() < 100_000_000 and np.all(rec["ring"] == np.arange(channels)[:, None])
+        # the beams' elevations, top ring first: +-22.5 deg (OS1-64), +-45 deg (OS0-128)
+        top = {"ouster64": 22.5, "ouster128": 45.0}[lidar]
+        for ring, want in ((0, top), (channels - 1, -top)):
+            x, y, z = (rec[c][ring].astype(np.float64) for c in "xyz")
+            ok = np.hypot(x, y) > 0
+            assert abs(np.median(np.degrees(np.arctan2(z[ok], np.hypot(x[ok], y[ok])))) - want) < 0.5
     if lidar == "vlp16":
         from rosbags.highlevel import AnyReader
 

@@ -116,7 +116,7 @@ class SimBagWriter:
 
     def write_sweep(self, sweep: SweepPoints, stamp_ns: int, record_ns: int) -> int:
         """Write one sweep; returns the number of points in the message."""
-        if self.model.name == "ouster64":
+        if self.model.driver == "ouster":
             C, K = self.model.columns, self.model.channels
             order = np.arange(C * K).reshape(C, K).T.ravel()
             v = sweep.valid[order]
@@ -135,7 +135,7 @@ class SimBagWriter:
                     "z": sweep.xyz_lidar_m[v, 2], "intensity": sweep.intensity[v],
                     "ring": sweep.ring[v]}
             layout, height, width, dense = XT32_LAYOUT, 1, int(v.sum()), True
-            if self.model.name == "vlp16":
+            if self.model.driver == "velodyne":
                 cols["ring"] = (self.model.channels - 1 - sweep.ring[v]).astype(np.uint16)
                 cols["time"] = ((sweep.t_ns[v] - stamp_ns) * 1e-9).astype(np.float32)
                 layout = VELODYNE_LAYOUT

@@ -158,7 +158,7 @@ def mesh_distance_m(caster: RayCaster, points: np.ndarray, n_dirs: int = 256) ->
     return out
 
 
-def _config_dict(model_name: str, model, T_imu_lidar: np.ndarray, imu_rate_hz: float) -> dict:
+def _config_dict(model, T_imu_lidar: np.ndarray, imu_rate_hz: float) -> dict:
     """The sequence's ``config.yaml``: the LiDAR's preset with the rig's topics, extrinsic and
     point time. Every model is simulated with the same IMU, the HILTI BMI085, so every config
     describes it as ``hilti2022`` does (its ``imu`` section): the generic presets' IMU values are
@@ -168,10 +168,10 @@ def _config_dict(model_name: str, model, T_imu_lidar: np.ndarray, imu_rate_hz: f
               "T_imu_lidar": np.asarray(T_imu_lidar).tolist(), "extrinsic_source": "config",
               "imu_rate_hz": float(imu_rate_hz), "lidar_rate_hz": model.rate_hz}
     imu = preset_dict("hilti2022")["imu"]
-    if model_name == "ouster64":
+    if model.driver == "ouster":
         sensor.update(point_time_field="t", point_time_unit="ns", point_time_reference="relative")
         return {"preset": "ouster", "sensor": sensor, "imu": imu}
-    if model_name == "vlp16":
+    if model.driver == "velodyne":
         sensor.update(point_time_field="time", point_time_unit="s", point_time_reference="relative")
         return {"preset": "velodyne", "sensor": sensor, "imu": imu}
     sensor.update(point_time_field="timestamp", point_time_unit="s",
@@ -361,7 +361,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     meta_path = out_dir / "meta.json"
     meta_path.write_text(json.dumps(meta, indent=2) + "\n")
     config_path = out_dir / "config.yaml"
-    config = _config_dict(model.name, model, T_il, rate_hz)
+    config = _config_dict(model, T_il, rate_hz)
     config_path.write_text(yaml.safe_dump(config, sort_keys=False, default_flow_style=None))
     return SimResult(bag_path=bag_path, gt_path=gt_path, meta_path=meta_path,
                      config_path=config_path)

@@ -44,6 +44,10 @@ class LidarModel:
     imu_topic: str = "/alphasense/imu"
     lidar_frame: str = "pandar"
     imu_frame: str = "imu"
+    driver: str = "hesai"
+    """Whose driver's cloud layout and config the sequence gets: ``hesai`` (unorganized, absolute
+    ``timestamp`` in s), ``ouster`` (organized rings x columns, relative ``t`` in ns) or
+    ``velodyne`` (unorganized, relative ``time`` in s)."""
 
     @property
     def channels(self) -> int:
@@ -60,17 +64,22 @@ XT32 = LidarModel(name="xt32", elevations_deg=tuple(15.0 - np.arange(32.0)), col
 OUSTER64 = LidarModel(name="ouster64", elevations_deg=tuple(np.linspace(22.5, -22.5, 64)),
                       columns=1024, azimuth0_deg=180.0, max_range_m=100.0,
                       range_noise_m=0.012, lidar_topic="/ouster/points", imu_topic="/ouster/imu",
-                      lidar_frame="os_lidar", imu_frame="os_imu")
+                      lidar_frame="os_lidar", imu_frame="os_imu", driver="ouster")
 """Ouster OS0/OS1-64-like: 64 beams +-22.5 deg, 1024 columns, 10 Hz."""
+
+OUSTER128 = replace(OUSTER64, name="ouster128", elevations_deg=tuple(np.linspace(45.0, -45.0, 128)),
+                    max_range_m=50.0, range_noise_m=0.015)
+"""Ouster OS0-128-like: the wide field of view, 128 beams +-45 deg (0.7 deg apart), 1024
+columns, 10 Hz, 50 m range, 1.5 cm range noise; the OS1-64's driver layout and topics."""
 
 VLP16 = LidarModel(name="vlp16", elevations_deg=tuple(np.linspace(15.0, -15.0, 16)),
                    columns=1800, azimuth0_deg=0.0, max_range_m=100.0, range_noise_m=0.02,
                    lidar_topic="/velodyne_points", imu_topic="/imu/data",
-                   lidar_frame="velodyne", imu_frame="imu_link")
+                   lidar_frame="velodyne", imu_frame="imu_link", driver="velodyne")
 """Velodyne VLP-16 (Puck): 16 beams +-15 deg every 2 deg, 1800 columns (0.2 deg) at 10 Hz, range
 accuracy +-3 cm (2σ). A handheld rig adds its own IMU (here the same BMI085 model)."""
 
-LIDAR_MODELS = {"xt32": XT32, "ouster64": OUSTER64, "vlp16": VLP16}
+LIDAR_MODELS = {"xt32": XT32, "ouster64": OUSTER64, "ouster128": OUSTER128, "vlp16": VLP16}
 
 
 MIN_LIDAR_RATE_HZ = 2.0
