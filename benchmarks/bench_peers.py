@@ -78,6 +78,7 @@ from adalio.io.bag import Bag
 from adalio.io.sequencer import Sequencer
 from adalio.io.writers import TumWriter
 from adalio.sim import SCENES, cached_sequence
+from adalio.sim.lidar import LIDAR_MODELS
 from adalio.types import ImuBatch, Scan
 
 SYSTEMS = ("adalio", "rko-lio", "kiss-icp", "genz-icp")
@@ -93,6 +94,8 @@ class Sequence:
 
     scene: str
     columns: int
+    lidar: str
+    """The simulator's LiDAR model (``xt32``, ``ouster64``, ``ouster128``, ``vlp16``)."""
     gt_path: Path
     bag_path: Path
     config: Config
@@ -145,6 +148,7 @@ class Row:
 class Result:
     scene: str
     columns: int
+    lidar: str
     n_scans: int
     pts_per_scan: float
     window: tuple[int, int]
@@ -159,11 +163,11 @@ class Result:
 
 
 def load_sequence(scene: str, seed: int, duration_s: float | None, columns: int,
-                  mode: str | None) -> Sequence:
+                  mode: str | None, lidar: str = "xt32") -> Sequence:
     """Generate (or reuse) the sequence and decode its bag once, as ``run_bag`` does."""
     from adalio.pipeline import resolve_extrinsic
 
-    sim = cached_sequence(scene, seed=seed, duration_s=duration_s, lidar="xt32", fmt="mcap",
+    sim = cached_sequence(scene, seed=seed, duration_s=duration_s, lidar=lidar, fmt="mcap",
                           columns=columns)
     overrides = {"adaptive.mode": mode} if mode else None
     cfg = load_config(config_file=sim.config_path, overrides=overrides)
@@ -183,7 +187,7 @@ def load_sequence(scene: str, seed: int, duration_s: float | None, columns: int,
     scans = [it for it in items if isinstance(it, Scan)]
     imu = [it for it in items if isinstance(it, ImuBatch)]
     return Sequence(
-        scene=scene, columns=columns, gt_path=sim.gt_path, bag_path=sim.bag_path, config=cfg,
+        scene=scene, columns=columns, lidar=lidar, gt_path=sim.gt_path, bag_path=sim.bag_path, config=cfg,
         T_imu_lidar=np.asarray(T_imu_lidar, dtype=np.float64), items=items, scans=scans,
         imu_t_ns=np.concatenate([b.t_ns for b in imu]).astype(np.int64),
         imu_gyro_rad_s=np.concatenate([b.gyro_rad_s for b in imu]),
@@ -537,7 +541,7 @@ def bench_sequence(seq: Sequence, names: list[str], args: argparse.Namespace,
         floor = floor_pass(seq, args, window)
         log(f"{seq.scene} c{seq.columns} adalio floor pass: kernels {floor.kernels_ms:.2f} of "
             f"{floor.wall_ms:.2f} ms/scan")
-    return Result(scene=seq.scene, columns=seq.columns, n_scans=len(seq.scans),
+    return Result(scene=seq.scene, columns=seq.columns, lidar=seq.lidar, n_scans=len(seq.scans),
                   pts_per_scan=float(np.median([len(s) for s in seq.scans])), window=window,
                   decode_s=seq.decode_s, rows=list(rows.values()),
                   run_ms_per_scan=float(np.median(run_ms)) if run_ms else float("nan"),
@@ -708,8 +712,14 @@ def fmt(v: float, spec: str = ".1f", unit: str = "") -> str:
     return "–" if not np.isfinite(v) else format(v, spec) + unit
 
 
+def _sensor(res: Result) -> str:
+    """``512 columns``, or with another LiDAR than the XT-32 ``ouster128, 1024 columns``."""
+    return (f"{res.columns} columns" if res.lidar == "xt32"
+            else f"{res.lidar}, {res.columns} columns")
+
+
 def sequence_table(res: Result) -> str:
-    title = (f"### {res.scene}, {res.columns} columns: {res.n_scans} scans, "
+    title = (f"### {res.scene}, {_sensor(res)}: {res.n_scans} scans, "
              f"{res.pts_per_scan:.0f} points/scan, timed scans {res.window[0]}.."
              f"{res.window[1] - 1}")
     head = ("| system | median ms | p90 ms | mean ms | ATE cm | max err cm | poses/scans | "
@@ -759,7 +769,7 @@ def summary_table(results: list[Result], names: list[str]) -> str:
               for n in names]
         ates = [fmt(by[n].ate_cm, ".2f") + ("" if by[n].usable else f" ({by[n].status})")
                 for n in names]
-        cells = ([res.scene, str(res.columns)] + ms
+        cells = ([res.scene, _sensor(res).removesuffix(" columns")] + ms
                  + [f"{fmt(to_fast, '.2f', 'x')} ({fastest or '–'})", fmt(to_rko, ".2f", "x"),
                     fmt(res.run_ms_per_scan)] + ates)
         lines.append("| " + " | ".join(cells) + " |")
@@ -780,7 +790,10 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=["hall", "spiral"], choices=list(SCENES))
     ap.add_argument("--columns", nargs="+", type=int, default=[512, 2000],
-                    help="XT-32 azimuth columns per sweep (2000 = the real sensor)")
+                    help="azimuth columns per sweep (the XT-32's 2000 = the real sensor; the "
+                         "Ouster models' 1024)")
+    ap.add_argument("--lidar", default="xt32", choices=list(LIDAR_MODELS),
+                    help="the simulator's LiDAR model (default the XT-32)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--duration", type=float, default=None,
                     help="sequence length in seconds (default: the full route)")
@@ -819,7 +832,8 @@ def main(argv: list[str] | None = None) -> int:
     for scene in args.scenes:
         for columns in args.columns:
             try:
-                seq = load_sequence(scene, args.seed, args.duration, columns, args.mode)
+                seq = load_sequence(scene, args.seed, args.duration, columns, args.mode,
+                                    args.lidar)
             except Exception as exc:  # noqa: BLE001
                 log(f"{scene} c{columns}: sequence failed: {exc}")
                 continue
