@@ -187,7 +187,8 @@ def load_sequence(scene: str, seed: int, duration_s: float | None, columns: int,
     scans = [it for it in items if isinstance(it, Scan)]
     imu = [it for it in items if isinstance(it, ImuBatch)]
     return Sequence(
-        scene=scene, columns=columns, lidar=lidar, gt_path=sim.gt_path, bag_path=sim.bag_path, config=cfg,
+        scene=scene, columns=columns, lidar=lidar, gt_path=sim.gt_path, bag_path=sim.bag_path,
+        config=cfg,
         T_imu_lidar=np.asarray(T_imu_lidar, dtype=np.float64), items=items, scans=scans,
         imu_t_ns=np.concatenate([b.t_ns for b in imu]).astype(np.int64),
         imu_gyro_rad_s=np.concatenate([b.gyro_rad_s for b in imu]),

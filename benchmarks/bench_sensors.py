@@ -21,8 +21,8 @@ The summary gives, per scene, start and noise level, the mean and worst ATE of t
 stayed within 1 m, the count of the others (over 1 m, or no result), the count of the runs
 whose largest error after aligning the filter's first scan is over 1 m (issue #14's divergence
 test; the README's *runs over 1 m*; each run's in ``cells.json``, ``max_error_first_m``), and
-checks the issue's targets: poses >= 95 % of scans (still) / >= 90 % (moving); hall ATE <= 1 cm (still) / <= 2 cm
-(moving); and no run over 1 m ATE in any scene.
+checks the issue's targets: poses >= 95 % of scans (still) / >= 90 % (moving); hall ATE <= 1 cm
+(still) / <= 2 cm (moving); and no run over 1 m ATE in any scene.
 
 With ``--mountings`` the sequences are also simulated with other IMU-LiDAR mountings
 (:data:`MOUNTINGS`; the simulator keeps the LiDAR level and turns the IMU, so a mounting is how

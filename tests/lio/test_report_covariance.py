@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from adalio.config import load_config
@@ -14,6 +16,16 @@ from adalio.sim import cached_sequence
 
 SIGMAS = ("sigma_x_m", "sigma_y_m", "sigma_z_m", "sigma_roll_deg", "sigma_pitch_deg",
           "sigma_yaw_deg")
+
+
+@functools.cache
+def _height_evidence(lidar: str) -> tuple[np.ndarray, np.ndarray]:
+    """``adalio.sim.evidence.height_evidence`` of the stairwell, seed 0, 512 columns (sweep start
+    times in s, their height-evidence returns), ray-cast once for the tests that share it."""
+    from adalio.sim.evidence import height_evidence
+
+    t_s, counts, _, _ = height_evidence("stairs_garage", 0, 0.1, 1.0, lidar, 512)
+    return t_s, counts
 
 
 def test_real_information_stays_between_nothing_and_the_claim():
@@ -249,7 +261,6 @@ def test_height_blind_column_flags_every_sweep_without_height_evidence(tmp_path)
     such returns is flagged, so the sigmas take no height from it; of the sweeps with 300 or
     more (the garage floor in view), at most one in ten is. In between the flag is
     conservative (it also takes sweeps whose few treads the normals' noise outweighs)."""
-    from adalio.sim.evidence import height_evidence
     from adalio.sim.generate import START_NS
 
     sim = cached_sequence("stairs_garage", seed=0, duration_s=40.0, columns=512)
@@ -258,7 +269,7 @@ def test_height_blind_column_flags_every_sweep_without_height_evidence(tmp_path)
     scans = read_scans_csv(out / "scans.csv")
     t_sweep_s = np.asarray(scans["t_s"], dtype=np.float64) - START_NS * 1e-9 - 0.1
     flagged = np.asarray(scans["height_blind"]) == 1
-    t_s, counts, _, _ = height_evidence("stairs_garage", 0, 0.1, 1.0, "xt32", 512)
+    t_s, counts = _height_evidence("xt32")
     k = np.round(t_sweep_s / 0.1).astype(int)
     ok = (k >= 5) & (k < len(t_s)) & (np.abs(t_sweep_s - 0.1 * k) < 0.01)  # from 0.5 s on
     flagged, evidence = flagged[ok], counts[k[ok]]
@@ -280,11 +291,10 @@ def test_a_wide_field_of_view_gives_the_flights_their_height(tmp_path):
     to the truth. This is the field-of-view account of the stairwell (README, *Where adalio
     stands*) measured on one walk."""
     from adalio.eval.metrics import ate
-    from adalio.sim.evidence import height_evidence
 
     runs = {}
     for lidar in ("xt32", "ouster128"):
-        t_s, counts, _, _ = height_evidence("stairs_garage", 0, 0.1, 1.0, lidar, 512)
+        t_s, counts = _height_evidence(lidar)
         walk = (t_s >= 0.5) & (t_s < 39.9)
         sim = cached_sequence("stairs_garage", seed=0, duration_s=40.0, columns=512,
                               lidar=lidar)

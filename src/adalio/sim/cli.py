@@ -19,7 +19,8 @@ def register(app: typer.Typer) -> None:
         seed: Annotated[int, typer.Option("--seed", help="Seed of clutter, motion, noise.")] = 0,
         duration: Annotated[float | None, typer.Option(
             "--duration", help="Seconds (default: the whole route).")] = None,
-        lidar: Annotated[str, typer.Option("--lidar", help="xt32, ouster64, ouster128 or vlp16")] = "xt32",
+        lidar: Annotated[str, typer.Option(
+            "--lidar", help="xt32, ouster64, ouster128 or vlp16")] = "xt32",
         fmt: Annotated[str, typer.Option("--format", help="ros1, ros2 (sqlite3) or mcap")] = "ros1",
         columns: Annotated[int | None, typer.Option(
             "--columns", help="Columns per sweep (default: the model's).")] = None,
