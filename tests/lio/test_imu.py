@@ -457,3 +457,46 @@ def test_rest_velocity_update_is_the_kalman_update_of_a_zero_velocity_and_gates_
     S_wide = wide[12:15, 12:15] + var_v * np.eye(3)
     assert out_wide[2] == pytest.approx(float(x.v @ np.linalg.solve(S_wide, x.v)), rel=1e-9)
     assert np.allclose(out_wide[0], dx) and np.allclose(out_wide[1], P1)
+
+
+def test_chi2_quantile_is_scipy_stats_to_the_bit():
+    """The stillness test's chi-square quantile equals ``scipy.stats.chi2.ppf`` bit for bit
+    (the window sizes it sees, and the false-alarm levels a config may give)."""
+    from scipy.stats import chi2
+
+    for q in (0.5, 0.9, 0.99, 0.997, 1 - 1e-6, 0.01):
+        for dof in (*range(1, 40), 199, 200, 399, 1200, 2999):
+            assert imu.chi2_quantile(q, dof) == float(chi2.ppf(q, dof)), (q, dof)
+
+
+def test_a_run_starts_without_importing_scipy_stats(tmp_path):
+    """A run through the initialization and its stillness tests imports no scipy.stats (0.35-0.5
+    s of every run's start before session 73), in a fresh interpreter."""
+    import subprocess
+    import sys
+
+    from adalio.sim import cached_sequence
+
+    sim = cached_sequence("hall", seed=1, duration_s=6.0, columns=500)
+    code = f"""
+import sys
+from adalio import Bag, ImuBatch, Odometry, Sequencer, load_config
+cfg = load_config(config_file={str(sim.config_path)!r})
+odom = Odometry(cfg)
+n = 0
+with Bag({str(sim.bag_path)!r}) as bag:
+    for item in Sequencer(bag, cfg.sensor.lidar_topic, cfg.sensor.imu_topic, cfg.sensor):
+        if isinstance(item, ImuBatch):
+            odom.add_imu(item.t_ns, item.gyro_rad_s, item.accel_m_s2)
+        else:
+            n += odom.add_scan(item.points_lidar, item.t_ns) is not None
+            if n >= 5:
+                break
+print(n, odom.init_report is not None, "scipy.stats" in sys.modules)
+"""
+    out = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True,
+                         text=True, cwd=tmp_path, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    n, initialized, imported = out.stdout.split()
+    assert int(n) >= 5 and initialized == "True"
+    assert imported == "False"
