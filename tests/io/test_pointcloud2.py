@@ -227,6 +227,43 @@ def test_time_unit_and_reference_detection(real, unit, kind, ref):
     assert (spec.unit, spec.reference) == (unit, ref)
 
 
+@pytest.mark.parametrize("stamp_s", [0.0, 0.08, 0.25])
+@pytest.mark.parametrize("ref", ["relative", "absolute"])
+def test_clock_near_zero_reads_each_cloud_as_written(real, stamp_s, ref):
+    """A simulator's clock starts near 0, where a cloud's times read as relative and as
+    absolute both fit. Each cloud of a 1 s stretch, written one way, decodes to the times it
+    was written with (truth: the header stamp plus the real scan's offsets)."""
+    valid = real.ret
+    cols = {k: getattr(real, k)[valid] for k in ("x", "y", "z", "intensity", "ring")}
+    dt = real.t[valid] - real.t[valid].min()
+    dec = CloudDecoder(SensorConfig(lidar_rate_hz=10.0), "/hesai")
+    for k in range(10):
+        stamp_ns = round((stamp_s + 0.1 * k) * 1e9)
+        cols["timestamp"] = dt + (stamp_ns * 1e-9 if ref == "absolute" else 0.0)
+        scan = dec.decode(msg_from(cols, *HESAI, stamp_ns))
+        err_ns = scan.t_ns - (stamp_ns + np.rint(dt * 1e9))
+        assert np.abs(err_ns).max() <= 1_000, (k, dec.time_spec)
+    assert dec.time_spec.reference == ref and not dec.time_spec.ambiguous
+
+
+def test_clock_near_zero_contradicted_is_an_error(real):
+    """A cloud read one way near the clock's zero, where its header stamp is more than the
+    tie's 1 ms, and a later cloud that can only be read the other way: an error naming the
+    setting, not times off by the stamp. The first cloud's header is mid-sweep, which the
+    ends rule reads as relative (it prefers a stamp at an end of the sweep)."""
+    valid = real.ret
+    cols = {k: getattr(real, k)[valid] for k in ("x", "y", "z", "intensity", "ring")}
+    dt = real.t[valid] - real.t[valid].min()
+    dec = CloudDecoder(SensorConfig(lidar_rate_hz=10.0), "/hesai")
+    stamp_ns = 80_000_000
+    cols["timestamp"] = dt + 0.08 - 0.05  # absolute, the header stamp mid-sweep
+    dec.decode(msg_from(cols, *HESAI, stamp_ns))
+    assert dec.time_spec.ambiguous and dec.time_spec.reference == "relative"
+    cols["timestamp"] = dt + 1.0 - 0.05
+    with pytest.raises(BagError, match="point_time_reference: absolute"):
+        dec.decode(msg_from(cols, *HESAI, 1_000_000_000))
+
+
 def test_config_override_wins(real):
     values = (real.t * 1e3).astype(np.float32)
     spec = detect_time_spec(values, 7, "t", real.stamp_ns,

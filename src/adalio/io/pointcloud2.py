@@ -51,6 +51,10 @@ MAX_SPAN_SWEEPS = 5.0
 MAX_STAMP_OFFSET_S = 3600.0
 """A configured time unit/reference putting points further than this from the header stamp is
 refused (a clock offset that large is a unit or reference mismatch)."""
+AMBIGUOUS_END_S = 1e-3
+"""Relative and absolute readings of a cloud near the clock's zero (:func:`detect_time_spec`)
+that put the header stamp within this of each other's sweep end are not told apart; a cloud
+read either way then has its times within this of each other."""
 TURN_RATE_INTERVALS = 10
 """Clouds without time field: after this many header-stamp intervals their rate is compared
 with ``sensor.lidar_rate_hz`` once (:meth:`CloudDecoder._check_turn_rate`)."""
@@ -216,6 +220,10 @@ class TimeSpec:
     reference: str = "relative"
     detected: bool = True
     """False when every part came from the config."""
+    ambiguous: bool = False
+    """Detected on a cloud whose header stamp lies so near the clock's zero (a simulator's
+    clock) that its times read as relative and as absolute both fit; :class:`CloudDecoder`
+    then detects again on the next cloud, until one tells them apart."""
 
     def describe(self) -> str:
         if self.field is None:
@@ -254,7 +262,10 @@ def detect_time_spec(values: np.ndarray, datatype: int, field: str, stamp_ns: in
     within two sweeps (sweep = 1/lidar_rate_hz) and their span is between MIN_SPAN_SWEEPS (when
     the cloud has at least MIN_POINTS_FOR_SPAN points) and 2.5 sweeps; the one
     whose span is closest to one sweep (log ratio) wins, floats preferring s and integers ns on
-    ties.
+    ties. Where both references fit the winning unit (a header stamp within a few sweeps of the
+    clock's zero), the one that puts the header stamp nearer an end of the sweep wins (a driver
+    stamps a sweep's start or end), relative when that does not tell them apart either; the
+    spec is then marked ``ambiguous``.
     """
     units = [sensor.point_time_unit] if sensor.point_time_unit != "auto" else list(UNIT_TO_NS)
     refs = [sensor.point_time_reference] if sensor.point_time_reference != "auto" \
@@ -272,6 +283,7 @@ def detect_time_spec(values: np.ndarray, datatype: int, field: str, stamp_ns: in
     vmin, vmax = float(v.min()), float(v.max())
     preferred = "s" if _is_float(datatype) else "ns"
     best: tuple[float, str, str] | None = None
+    ends: dict[tuple[str, str], float] = {}
     for unit in units:
         scale = UNIT_TO_NS[unit] * 1e-9
         span_s = (vmax - vmin) * scale
@@ -283,6 +295,7 @@ def detect_time_spec(values: np.ndarray, datatype: int, field: str, stamp_ns: in
             lo, hi = vmin * scale - base, vmax * scale - base
             if lo < -2.0 * sweep_s or hi > 2.0 * sweep_s:
                 continue
+            ends[unit, ref] = min(abs(lo), abs(hi))
             score = abs(np.log(max(span_s, 1e-12) / sweep_s))
             score += 0.0 if unit == preferred else 1e-3
             score += 0.0 if ref == "relative" else 1e-4
@@ -292,7 +305,13 @@ def detect_time_spec(values: np.ndarray, datatype: int, field: str, stamp_ns: in
         raise BagError(f"{where}: cannot tell its unit/reference (values {vmin:.6g}..{vmax:.6g}, "
                        f"header stamp {stamp_s:.9f} s); set sensor.point_time_unit and "
                        "sensor.point_time_reference")
-    return TimeSpec(field, best[1], best[2])
+    unit, ref = best[1], best[2]
+    if (unit, "relative") in ends and (unit, "absolute") in ends:
+        rel, ab = ends[unit, "relative"], ends[unit, "absolute"]
+        if abs(rel - ab) > AMBIGUOUS_END_S:
+            ref = "relative" if rel < ab else "absolute"
+        return TimeSpec(field, unit, ref, ambiguous=True)
+    return TimeSpec(field, unit, ref)
 
 
 def times_to_ns(values: np.ndarray, spec: TimeSpec, stamp_ns: int) -> np.ndarray:
@@ -425,6 +444,8 @@ class CloudDecoder:
         self._turn_checked = False
         self._constant_fields: set[str] = set()
         self._spec_checked = False
+        self._ambiguous_reads: list[tuple[str, int]] = []
+        """(reference, header stamp ns) of each cloud read with an ambiguous detection."""
         self.stats = DecodeStats()
 
     def decode(self, msg: Any) -> Scan:
@@ -467,7 +488,8 @@ class CloudDecoder:
         t_ns = None
         if tfield is not None and tfield not in self._constant_fields:
             raw_t = cols[tfield]
-            if self.time_spec is None or self.time_spec.field != tfield:
+            if (self.time_spec is None or self.time_spec.field != tfield
+                    or self.time_spec.ambiguous):
                 finite = raw_t[ok & np.isfinite(raw_t)] if raw_t.dtype.kind == "f" else raw_t
                 if (self.sensor.point_time_field == "auto" and finite.size >= MIN_POINTS_FOR_SPAN
                         and finite.min() == finite.max()):
@@ -475,6 +497,7 @@ class CloudDecoder:
                 elif finite.size:
                     self.time_spec = detect_time_spec(finite, layout.find(tfield)[2], tfield,
                                                       stamp_ns, self.sensor, self.topic)
+                    self._settle_reference(self.time_spec, int(stamp_ns))
             if tfield not in self._constant_fields:
                 spec = self.time_spec
                 if spec is None:
@@ -514,6 +537,25 @@ class CloudDecoder:
             ring = np.clip(r, 0, 65535).astype(np.uint16) if r.dtype.kind in "iu" else None
         return Scan(points_lidar=pts, t_ns=t_ns, stamp_ns=int(stamp_ns), intensity=intensity,
                     ring=ring)
+
+    def _settle_reference(self, spec: TimeSpec, stamp_ns: int) -> None:
+        """Near the clock's zero each cloud is read with the reference detected on it
+        (:attr:`TimeSpec.ambiguous`). A BagError if the first cloud that tells relative from
+        absolute apart contradicts how an earlier one was read where the two readings differ
+        by more than :data:`AMBIGUOUS_END_S` (they differ by the header stamp)."""
+        if spec.ambiguous:
+            self._ambiguous_reads.append((spec.reference, stamp_ns))
+            return
+        wrong = [t for ref, t in self._ambiguous_reads
+                 if ref != spec.reference and abs(t) * 1e-9 > AMBIGUOUS_END_S]
+        self._ambiguous_reads = []
+        if wrong:
+            raise BagError(
+                f"PointCloud2 on {self.topic or '?'}: time field '{spec.field}' reads as "
+                f"{spec.unit}, {spec.reference} from the cloud stamped {stamp_ns * 1e-9:.3f} s "
+                f"on, but the cloud stamped {wrong[0] * 1e-9:.3f} s, near the clock's zero where "
+                "relative and absolute times look alike, was read the other way; set "
+                f"sensor.point_time_reference: {spec.reference}")
 
     def _check_turn_rate(self, t_ns: np.ndarray, stamp_ns: int) -> None:
         """Azimuth times assume one turn per ``1 / sensor.lidar_rate_hz``. Once, after
