@@ -21,7 +21,7 @@ import pytest
 import adalio
 from adalio.batch import find_bags, find_gt, process_bag, run_batch, unique_names
 from adalio.config import load_config
-from adalio.errors import InputError
+from adalio.errors import ConfigError, InputError
 from adalio.eval.metrics import ate
 from adalio.pipeline import run_bag
 
@@ -153,6 +153,21 @@ def test_force_reruns_a_finished_bag(local_batch, fleet: Path, config_file: Path
     assert not res.rows[0].skipped and res.rows[0].status == "ok"
 
 
+def test_a_set_mode_is_the_mode_the_bags_run(fleet: Path, config_file: Path,
+                                             tmp_path: Path) -> None:
+    """``--set adaptive.mode=...`` without ``--mode`` is the mode each bag's written
+    config.yaml says it ran (it was replaced by ``adaptive`` before), and a mode that does not
+    exist is refused like any other bad setting."""
+    res = run_batch([fleet / "hall" / "hall.bag"], tmp_path / "o", config_file=config_file,
+                    workers=1, overrides={"adaptive.mode": "fixed"})
+    assert res.rows[0].status == "ok"
+    written = load_config(None, tmp_path / "o" / "hall" / "config.yaml")
+    assert written.adaptive.mode == "fixed"
+    with pytest.raises(ConfigError, match="adaptive.mode"):
+        run_batch([fleet / "hall" / "hall.bag"], tmp_path / "o2", config_file=config_file,
+                  workers=1, overrides={"adaptive.mode": "turbo"})
+
+
 def _wait_for(predicate, what: str, procs: list[subprocess.Popen]) -> None:
     deadline = time.monotonic() + TIMEOUT_S
     while not predicate():
@@ -263,6 +278,9 @@ def test_unreachable_scheduler_is_an_input_error(fleet: Path, tmp_path: Path,
     with pytest.raises(InputError, match="cannot reach the Dask scheduler"):
         run_batch([fleet / "hall" / "hall.bag"], tmp_path / "o",
                   scheduler=f"tcp://127.0.0.1:{port}")
+    for address in ("foo", "tcp://127.0.0.1", "http://127.0.0.1:8786"):
+        with pytest.raises(InputError, match="is not a scheduler address"):
+            run_batch([fleet / "hall" / "hall.bag"], tmp_path / "o", scheduler=address)
 
 
 def test_finding_bags_names_and_ground_truth(tmp_path: Path) -> None:

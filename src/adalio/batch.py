@@ -308,6 +308,9 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
     if scheduler:
         try:
             client = Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
+        except ValueError as exc:  # distributed's address parsing
+            raise InputError(f"--scheduler {scheduler} is not a scheduler address "
+                             f"({one_line(exc)}): give tcp://HOST:PORT") from None
         except (OSError, TimeoutError) as exc:
             raise InputError(f"cannot reach the Dask scheduler at {scheduler} "
                              f"({one_line(exc)}): start it with 'dask scheduler' and check "
@@ -542,7 +545,8 @@ def run_batch(inputs: Sequence[str | Path], out_dir: str | Path, *, preset: str 
     """
     from adalio.config import load_config
 
-    cfg = load_config(preset, config_file, {**(overrides or {}), "adaptive.mode": mode})
+    cfg = load_config(preset, config_file,
+                      {**(overrides or {}), **({} if mode is None else {"adaptive.mode": mode})})
     bags = find_bags(inputs)
     out = Path(out_dir).expanduser().resolve()
     jobs = [BagJob(name=name, bag_path=bag, config=cfg, out_dir=out,
