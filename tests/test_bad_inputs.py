@@ -169,6 +169,15 @@ def config_case(text: str, *extra: str) -> Callable[[Base, Path], list[str]]:
     return make
 
 
+def config_bytes_case(data: bytes) -> Callable[[Base, Path], list[str]]:
+    """A case running the clean bag with a config file of these bytes."""
+    def make(base: Base, folder: Path) -> list[str]:
+        cfg = folder / "bad.yaml"
+        cfg.write_bytes(data)
+        return run_args(base, base.bag, folder, config=cfg)
+    return make
+
+
 def flag_case(*extra: str) -> Callable[[Base, Path], list[str]]:
     """A case running the clean bag and its config with extra flags."""
     return lambda base, folder: run_args(base, base.bag, folder, *extra)
@@ -447,7 +456,14 @@ CASES: list[Case] = [
     Case("simulate_people_too_many",
          lambda b, f: ["simulate", "--scene", "corridor", "--out", str(f / "s"),
                        "--people", "30"], "error", ("--people must be an integer 0-20 (got 30)",)),
+    Case("simulate_seed_negative",
+         lambda b, f: ["simulate", "--scene", "hall", "--out", str(f / "s"), "--seed", "-1"],
+         "error", ("--seed must be >= 0 (got -1)",)),
+    Case("rrd_is_folder", lambda b, f: run_args(b, b.bag, f, "--rrd", str(f)), "error",
+         ("is a folder", "--rrd")),
     # config
+    Case("config_not_utf8", config_bytes_case(b"# calibraci\xf3n\npreset: hilti2022\n"),
+         "error", ("bad.yaml is not UTF-8 text",)),
     Case("config_missing", lambda b, f: run_args(b, b.bag, f, config=f / "none.yaml"), "error",
          ("none.yaml does not exist",)),
     Case("config_yaml_syntax", config_case("sensor: [unclosed\n"), "error",

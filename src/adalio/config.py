@@ -960,7 +960,13 @@ def load_config(preset: str | None = None, config_file: str | Path | None = None
         path = Path(config_file)
         if not path.is_file():
             raise ConfigError(f"config file {path} does not exist: check the path")
-        file_data = _read_yaml(path.read_text(), f"config file {path}")
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError as exc:
+            raise ConfigError(f"config file {path} is not UTF-8 text (byte {exc.start}): give "
+                              "a YAML config such as a run's config.yaml, saved as UTF-8") \
+                from None
+        file_data = _read_yaml(text, f"config file {path}")
         file_preset = file_data.pop("preset", None)
         if preset is None and file_preset is not None:
             preset = str(file_preset)

@@ -219,6 +219,9 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
         raise InputError(f"ground truth {gt} does not exist: check --gt")
     out_dir = out if out is not None else default_out_dir(bag)
     check_out_dir(out_dir)
+    if rrd is not None and rrd.is_dir():
+        raise InputError(f"--rrd {rrd} is a folder: give a file name for the recording, e.g. "
+                         f"{rrd / 'run.rrd'}")
     con = console(stderr=True)
     viewer = None
     try:

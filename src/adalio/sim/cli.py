@@ -71,6 +71,10 @@ def register(app: typer.Typer) -> None:
         from adalio.sim import simulate as run_simulation
         from adalio.term import console
 
+        from adalio.errors import InputError
+
+        if seed < 0:
+            raise InputError(f"--seed must be >= 0 (got {seed})")
         T_imu_lidar = None if extrinsic is None else transform_from_xyz_quat(extrinsic)
         check_out_dir(out)
         t0 = time.perf_counter()
