@@ -66,12 +66,10 @@ def register(app: typer.Typer) -> None:
         import time
 
         from adalio.config import transform_from_xyz_quat
-        from adalio.errors import writing_to
+        from adalio.errors import InputError, writing_to
         from adalio.io.cli import check_out_dir
         from adalio.sim import simulate as run_simulation
         from adalio.term import console
-
-        from adalio.errors import InputError
 
         if seed < 0:
             raise InputError(f"--seed must be >= 0 (got {seed})")
