@@ -169,11 +169,11 @@ def decode_fields(data: Any, layout: CloudLayout, names: list[str],
                        f"({n_rows}x{width} points of {step} bytes); the message is truncated")
     if row_step == row_bytes:
         block = buf[: n_points * step]
-    else:
-        if buf.size < n_rows * row_step:  # the last row's padding may be left out
-            buf = np.concatenate([buf[:need], np.zeros(n_rows * row_step - need, np.uint8)])
-        block = np.ascontiguousarray(
-            buf[: n_rows * row_step].reshape(n_rows, row_step)[:, :row_bytes]).reshape(-1)
+    else:  # each row's points, read in place: the padding is never copied (the last row's
+        # may be left out, and a corrupted row_step must not size an allocation)
+        rows = np.lib.stride_tricks.as_strided(buf, shape=(n_rows, row_bytes),
+                                               strides=(row_step, 1), writeable=False)
+        block = np.ascontiguousarray(rows).reshape(-1)
     out: dict[str, np.ndarray] = {}
     for name, fmt, off in zip(names, fmts, offs, strict=True):
         dtype = np.dtype({"names": ["v"], "formats": [fmt], "offsets": [off], "itemsize": step})
