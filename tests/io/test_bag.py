@@ -139,3 +139,44 @@ def test_damaged_bags_are_bag_errors(tmp_path, content, match):
         path.write_bytes(content)
     with pytest.raises(BagError, match=match), Bag(path) as bag:
         list(bag.messages([t.name for t in bag.topics()]))
+
+
+@pytest.mark.parametrize("fmt,name", FORMATS)
+def test_a_bad_unrelated_transform_and_a_silent_topic_do_not_stop_a_bag(tmp_path, fmt, name):
+    """A /tf_static transform to a camera with a zero quaternion is left out with a warning
+    naming it (the LiDAR-IMU chain still gives the written extrinsic), and an advertised IMU
+    topic that never published is not a second candidate (``ros2 bag record -a``)."""
+    T_il = random_T(7)
+    path = tmp_path / name
+    sweep_ns = 100_000_000
+    pts, t_rel, ring = bf.box_scan(columns=30, sweep_ns=sweep_ns)
+    with BagWriter(path, fmt) as w:
+        w.add_tf_static([("imu", "lidar", T_il)], bf.T0_NS)
+        T = w._types()
+        bad = T["geometry_msgs/msg/TransformStamped"](
+            header=w._header(bf.T0_NS, "imu"), child_frame_id="cam0",
+            transform=T["geometry_msgs/msg/Transform"](
+                translation=T["geometry_msgs/msg/Vector3"](0.0, 0.0, 0.0),
+                rotation=T["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 0.0)))
+        w.write_msg("/tf_static", "tf2_msgs/msg/TFMessage",
+                    T["tf2_msgs/msg/TFMessage"](transforms=[bad]), bf.T0_NS + 1)
+        w._conn("/imu_silent", "sensor_msgs/msg/Imu")
+        for k in range(60):
+            w.add_imu("/imu", bf.T0_NS + k * 5_000_000, [0.0, 0.0, 0.0], [0.0, 0.0, 9.81],
+                      frame_id="imu")
+        for k in range(2):
+            cols = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2],
+                    "intensity": np.ones(len(pts)), "t": t_rel, "ring": ring}
+            w.add_cloud("/points", bf.T0_NS + k * sweep_ns, cols, bf.OUSTER_LAYOUT,
+                        bf.OUSTER_STEP, frame_id="lidar",
+                        t_recv_ns=bf.T0_NS + (k + 1) * sweep_ns)
+    with Bag(path) as bag:
+        assert {t.name: t.count for t in bag.topics()}.get("/imu_silent", 0) == 0
+        assert bag.select_topics(SensorConfig()) == ("/points", "/imu")
+        with pytest.warns(UserWarning, match="imu -> cam0: the transform has a zero"):
+            edges = bag.static_transforms()
+        assert [(p, c) for p, c, _ in edges] == [("imu", "lidar")]
+        with pytest.warns(UserWarning, match="cam0"):
+            T_found, src = resolve_extrinsic(bag, "/points", "/imu", Config())
+        assert "tf_static" in src
+        np.testing.assert_allclose(T_found, T_il, atol=1e-9)

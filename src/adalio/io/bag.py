@@ -10,6 +10,7 @@ underlying reader becomes a one-line :class:`~adalio.errors.BagError`.
 from __future__ import annotations
 
 import contextlib
+import warnings
 from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -190,6 +191,9 @@ class Bag:
         if not found:
             raise BagError(f"{self.path} has no {what} topic; record one or pick a bag "
                            f"that has it")
+        counts = {t.name: t.count for t in self.topics()}
+        if len(found) > 1 and any(counts[t] > 0 for t in found):
+            found = [t for t in found if counts[t] > 0]  # advertised, never published
         if len(found) > 1:
             raise BagError(f"{self.path} has several {what} topics ({', '.join(found)}): "
                            f"choose one with {flag}")
@@ -251,8 +255,14 @@ class Bag:
         out = []
         for _, _, msg in self.messages([topic]):
             for tr in getattr(msg, "transforms", []):
-                out.append((tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/"),
-                            transform_to_matrix(tr.transform)))
+                parent, child = tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/")
+                try:
+                    T = transform_to_matrix(tr.transform)
+                except BagError as exc:  # one bad transform does not spoil the others
+                    warnings.warn(f"{topic} in {self.path}: {parent} -> {child}: {exc}; "
+                                  "ignored", stacklevel=2)
+                    continue
+                out.append((parent, child, T))
         return out
 
 
@@ -263,7 +273,7 @@ def transform_to_matrix(tr: Any) -> np.ndarray:
     q = np.array([tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w], dtype=float)
     n = np.linalg.norm(q)
     if not np.isfinite(n) or n < 1e-9:
-        raise BagError("a /tf_static transform has a zero or non-finite quaternion")
+        raise BagError("the transform has a zero or non-finite quaternion")
     T = np.eye(4)
     T[:3, :3] = Rotation.from_quat(q / n).as_matrix()
     T[:3, 3] = [tr.translation.x, tr.translation.y, tr.translation.z]
