@@ -396,6 +396,23 @@ def _no_pose_reason(odom: Any, n_in: int, lidar_topic: str, imu_topic: str, out:
             f"(partial outputs in {out})")
 
 
+def remove_stale_outputs(out: Path, map_format: str) -> list[Path]:
+    """Remove what an earlier run left in ``out`` that this one does not overwrite: the map in
+    the other format, and a report (``report.md``, ``metrics.json``, its figures), which would
+    otherwise describe the earlier run beside this one's files. Nothing else in the folder is
+    touched. Returns the removed paths."""
+    from adalio.eval.report import REPORT_FILES
+
+    names = [f"map.{f}" for f in ("ply", "pcd") if f != map_format] + list(REPORT_FILES)
+    removed = []
+    for name in names:
+        path = out / name
+        if path.is_file():
+            path.unlink()
+            removed.append(path)
+    return removed
+
+
 def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
             progress: bool = True, max_scans: int | None = None,
             map_format: str | None = None, on_scan: Callable[[int], None] | None = None,
@@ -832,6 +849,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         n_clouds = next((t.count for t in bag.topics() if t.name == lidar_topic), 0)
         total = min(n_clouds, max_scans) if max_scans else n_clouds
         out.mkdir(parents=True, exist_ok=True)
+        remove_stale_outputs(out, cfg.output.map_format)
         paths = {"trajectory": out / "trajectory.tum", "scans": out / "scans.csv",
                      "map": out / f"map.{cfg.output.map_format}", "config": out / "config.yaml"}
         paths["config"].write_text(cfg.to_yaml())
