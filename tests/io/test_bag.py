@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -180,3 +181,34 @@ def test_a_bad_unrelated_transform_and_a_silent_topic_do_not_stop_a_bag(tmp_path
             T_found, src = resolve_extrinsic(bag, "/points", "/imu", Config())
         assert "tf_static" in src
         np.testing.assert_allclose(T_found, T_il, atol=1e-9)
+
+
+@pytest.mark.parametrize("unit,start", [("m_s2", 0.0), ("g", np.nan)])
+def test_accel_unit_is_told_by_samples_that_can_tell_it(tmp_path, unit, start):
+    """A driver's first samples may be zeros or NaN placeholders; the unit is told by the
+    samples after them: an IMU in m/s² with 45 zero samples first is not taken for g (it was:
+    every sample x 9.81), and one in g with 60 NaN samples first is (it was not)."""
+    scale = 1.0 / 9.80665 if unit == "g" else 1.0
+    n_start = 45 if unit == "m_s2" else 60
+    path = tmp_path / "a.bag"
+    sweep_ns = 100_000_000
+    pts, t_rel, ring = bf.box_scan(columns=30, sweep_ns=sweep_ns)
+    with BagWriter(path, "ros1") as w:
+        for k in range(300):
+            a = [start] * 3 if k < n_start else [0.0, 0.0, 9.80665 * scale]
+            w.add_imu("/imu", bf.T0_NS + k * 5_000_000, [0.0, 0.0, 0.0], a)
+        for k in range(12):
+            cols = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2],
+                    "intensity": np.ones(len(pts)), "t": t_rel, "ring": ring}
+            w.add_cloud("/points", bf.T0_NS + k * sweep_ns, cols, bf.OUSTER_LAYOUT,
+                        bf.OUSTER_STEP, frame_id="lidar",
+                        t_recv_ns=bf.T0_NS + (k + 1) * sweep_ns)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with Bag(path) as bag:
+            seq = Sequencer(bag, "/points", "/imu")
+            acc = np.concatenate([i.accel_m_s2 for i in seq if isinstance(i, ImuBatch)])
+    assert seq.stats.accel_in_g == (unit == "g")
+    assert any("reports in g" in str(c.message) for c in caught) == (unit == "g")
+    moving = np.any(acc != 0.0, axis=1)
+    np.testing.assert_allclose(acc[moving, 2], 9.80665, rtol=1e-6)

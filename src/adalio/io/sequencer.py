@@ -261,9 +261,16 @@ def _inverse_unless_identity(S: list[list[float]]) -> np.ndarray | None:
     return None if np.array_equal(M, np.eye(3)) else np.linalg.inv(M)
 
 
+def usable_accel(accel: np.ndarray) -> np.ndarray:
+    """The samples that can tell the accelerometer's unit: finite and not all zero (a driver's
+    start-up placeholders, as NaN samples are)."""
+    return accel[np.isfinite(accel).all(axis=1) & np.any(accel != 0.0, axis=1)]
+
+
 def accel_is_in_g(accel: np.ndarray) -> bool:
-    """True if the mean accelerometer norm of (static-ish) samples is near 1 (units of g)."""
-    accel = accel[np.isfinite(accel).all(axis=1)] if accel.ndim == 2 else accel
+    """True if the mean accelerometer norm of (static-ish) samples is near 1 (units of g);
+    non-finite and all-zero samples do not count (:func:`usable_accel`)."""
+    accel = usable_accel(accel) if accel.ndim == 2 else accel
     if accel.shape[0] == 0:
         return False
     norm = float(np.linalg.norm(np.mean(accel, axis=0)))
@@ -328,9 +335,9 @@ class Sequencer:
             return item
 
         def decide(force: bool) -> Iterator[ImuBatch | Scan]:
-            n = sum(len(h) for h in held if isinstance(h, ImuBatch))
+            acc = [usable_accel(h.accel_m_s2) for h in held if isinstance(h, ImuBatch)]
+            n = sum(len(a) for a in acc)
             if self._accel_scale is None and (n >= ACCEL_UNIT_SAMPLES or force):
-                acc = [h.accel_m_s2 for h in held if isinstance(h, ImuBatch)]
                 in_g = accel_is_in_g(np.concatenate(acc)[:ACCEL_UNIT_SAMPLES]) if acc else False
                 self._accel_scale = G_TO_M_S2 if in_g else 1.0
                 self.stats.accel_in_g = in_g
