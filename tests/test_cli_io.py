@@ -94,6 +94,11 @@ def test_missing_and_ambiguous_topics(monkeypatch, capsys, tmp_path, rig):
     code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--imu-topic", "/points")
     assert_one_line_error(code, err, "/points", "is sensor_msgs/msg/PointCloud2, not "
                           "sensor_msgs/Imu")
+    # info lists the topics, and refuses a named one as run does
+    code, out, err = run_cli(monkeypatch, capsys, "info", rig, "--imu-topic", "/points")
+    assert_one_line_error(code, err, "/points", "is sensor_msgs/msg/PointCloud2, not "
+                          "sensor_msgs/Imu")
+    assert "/points" in out and "/imu" in out
     two = tmp_path / "two.bag"
     pts, t_rel, _ = bf.box_scan(columns=10)
     cols = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "t": t_rel}

@@ -100,6 +100,8 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
         try:
             lidar, imu = b.select_topics(cfg.sensor)
         except BagError as exc:
+            if cfg.sensor.lidar_topic or cfg.sensor.imu_topic:
+                raise  # a topic named (flag, config or preset) that a run would refuse
             out.print(f"[yellow]topics:[/] {exc}", highlight=False, soft_wrap=True)
             return
         out.print(f"would use: lidar [bold]{lidar}[/], imu [bold]{imu}[/]")
