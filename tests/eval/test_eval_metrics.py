@@ -365,3 +365,18 @@ def test_sigma_consistency_aligns_on_the_filter_s_first_scan_not_the_backfill(tm
     c0 = sigma_consistency(est, gt, scans)
     assert np.isnan(c0.backfill_max_error_m)
     np.testing.assert_allclose(c0.errors_world_m, drift - drift[0], atol=1e-6)
+
+
+@pytest.mark.parametrize("motion", ["rest", "line"])
+def test_se3_on_a_degenerate_stretch_says_what_it_is(tmp_path, motion):
+    """A ground truth at rest (a still start cut short) or on an exact line cannot fix an SE(3)
+    alignment: the error says which, and offers the first-pose alignment, which works."""
+    t = np.arange(20) * 0.1
+    xyz = np.zeros((20, 3)) if motion == "rest" else np.c_[t, 0.0 * t, 0.0 * t]
+    rot = Rotation.identity(20)
+    gt = write_tum(tmp_path / "gt.tum", t, xyz, rot)
+    est = write_tum(tmp_path / "est.tum", t, xyz + 0.001, rot)
+    what = "does not move" if motion == "rest" else "lie on a line"
+    with pytest.raises(InputError, match=f"{what}.*--align first"):
+        align_pair(est, gt, "se3")
+    assert ate(est, gt, align="first")["rmse_m"] < 1e-9

@@ -141,8 +141,14 @@ def align_pair(est: TrajectoryLike, gt: TrajectoryLike, align: str = "se3",
         try:
             r, t, _ = est_a.align(gt_s, correct_scale=False)
         except Exception as exc:  # noqa: BLE001 - evo GeometryException on degenerate input
-            raise InputError(f"se3 alignment failed ({exc}); the associated positions are "
-                             "degenerate (all on a line?): use --align first") from None
+            pos = gt_s.positions_xyz
+            spread = float(np.max(np.linalg.norm(pos - pos.mean(axis=0), axis=1)))
+            what = (f"the ground truth does not move over the {gt_s.num_poses} associated poses "
+                    f"(within {spread:.3g} m: a stretch at rest)" if spread < 0.01 else
+                    "the associated ground-truth positions lie on a line")
+            raise InputError(f"se3 alignment failed ({exc}): {what}; evaluate a longer "
+                             "stretch, or align on the first pose (adalio eval EST GT --align "
+                             "first)") from None
         T[:3, :3] = r
         T[:3, 3] = t
     elif align == "first":
