@@ -141,7 +141,7 @@ def _print_compare(console: Console, result) -> None:
 
 
 def compare_command(
-    bag: Annotated[Path, typer.Argument(help="ROS1 .bag file or ROS2 bag folder.")],
+    bag: Annotated[Path, typer.Argument(help="ROS1 .bag file, ROS2 bag folder or .mcap file.")],
     modes: Annotated[str, typer.Option(help="Comma-separated modes to run.")
                      ] = "fixed,adaptive,adaptive+",
     gt: Annotated[Path | None, typer.Option(help="Ground-truth TUM trajectory.")] = None,
