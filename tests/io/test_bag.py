@@ -212,3 +212,14 @@ def test_accel_unit_is_told_by_samples_that_can_tell_it(tmp_path, unit, start):
     assert any("reports in g" in str(c.message) for c in caught) == (unit == "g")
     moving = np.any(acc != 0.0, axis=1)
     np.testing.assert_allclose(acc[moving, 2], 9.80665, rtol=1e-6)
+
+
+def test_an_upper_case_suffix_is_named_with_the_fix(tmp_path):
+    """rosbags tells a ROS1 bag by a lower-case '.bag': 'HALL.BAG' is one error that says to
+    rename it, and the renamed file reads."""
+    path = bf.write_static_rig(tmp_path / "rig.bag", duration_s=0.3, columns=30)
+    upper = path.rename(tmp_path / "RIG.BAG")
+    with pytest.raises(BagError, match="rename the file to RIG.bag"):
+        Bag(upper).__enter__()
+    with Bag(upper.rename(tmp_path / "RIG.bag")) as bag:
+        assert {t.name for t in bag.topics()} == {"/points", "/imu"}

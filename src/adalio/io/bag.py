@@ -77,6 +77,9 @@ def resolve_bag_paths(path: str | Path) -> tuple[list[Path], bool]:
         raise BagError(f"{p} is a folder but neither a ROS2 bag (no metadata.yaml) nor a folder "
                        "of ROS1 .bag files: point to the bag itself")
     suffix = p.suffix.lower()
+    if suffix in (".bag", ".mcap", ".db3") and p.suffix != suffix:
+        raise BagError(f"{p}: the bag reader takes only a lower-case '{suffix}' suffix; rename "
+                       f"the file to {p.with_suffix(suffix).name}")
     if suffix == ".bag":
         return [p], False
     if suffix in (".mcap", ".db3"):
