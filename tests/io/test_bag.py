@@ -223,3 +223,29 @@ def test_an_upper_case_suffix_is_named_with_the_fix(tmp_path):
         Bag(upper).__enter__()
     with Bag(upper.rename(tmp_path / "RIG.bag")) as bag:
         assert {t.name for t in bag.topics()} == {"/points", "/imu"}
+
+
+def test_a_topic_with_an_empty_definition_is_named_as_such(tmp_path):
+    """A ROS1 bag with one topic recorded with an empty message definition (a driver's packet
+    topic): rosbags refuses the bag, and the error says why and how to get the rest, not that
+    the bag is truncated. An encoding the reader does not know is named too."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from adalio.io.bag import _open_failure
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    _, md5 = store.generate_msgdef("std_msgs/msg/UInt8MultiArray")
+    path = tmp_path / "p.bag"
+    with Writer(path) as w:
+        c = w.add_connection("/rslidar_packets", "std_msgs/msg/UInt8MultiArray", msgdef="",
+                             md5sum=md5)
+        msg = store.types["std_msgs/msg/UInt8MultiArray"](
+            layout=store.types["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0),
+            data=np.zeros(4, np.uint8))
+        w.write(c, bf.T0_NS, store.serialize_ros1(msg, "std_msgs/msg/UInt8MultiArray"))
+    with pytest.raises(BagError, match="empty one.*rosbag filter") as info:
+        Bag(path).open()
+    assert "truncated" not in str(info.value)
+    text = _open_failure(Path("x.mcap"), KeyError("ros1msg"))
+    assert "ros1msg" in text and "does not read" in text and "truncated" not in text

@@ -106,6 +106,24 @@ def _reason(exc: BaseException) -> str:
     return text.splitlines()[0][:200] if text else type(exc).__name__
 
 
+def _open_failure(path: Path, exc: BaseException) -> str:
+    """What the bag reader's refusal to open ``path`` means, and what to do."""
+    reason = _reason(exc)
+    if "hash mismatch" in reason:
+        return (f"cannot read bag {path}: {reason}: a topic was recorded with a message "
+                "definition that does not match its type's checksum (an empty one, as some "
+                "drivers' packet topics and rosserial record), and the bag reader (rosbags) "
+                "refuses the whole bag; copy the bag without that topic (e.g. rosbag filter IN "
+                "OUT \"topic != '/the_topic'\")")
+    if isinstance(exc, KeyError):
+        return (f"cannot read bag {path}: it holds a channel whose message encoding or schema "
+                f"the bag reader (rosbags) does not read ({reason}; adalio reads ROS1 bags, and "
+                "ROS2 bags and .mcap files of ROS2 messages): convert it to a ROS2 bag of the "
+                "LiDAR and IMU topics (e.g. rosbags-convert)")
+    return (f"cannot read bag {path}: {reason}; it may be truncated or corrupted (re-copy it, "
+            "or reindex a ROS1 bag)")
+
+
 class Bag:
     """A bag opened for reading. Use as a context manager.
 
@@ -129,8 +147,7 @@ class Bag:
             reader = AnyReader(self.paths, default_typestore=store)
             reader.open()
         except Exception as exc:  # noqa: BLE001  (rosbags raises many types on damaged files)
-            raise BagError(f"cannot read bag {self.path}: {_reason(exc)}; it may be truncated "
-                           "or corrupted (re-copy it, or reindex a ROS1 bag)") from None
+            raise BagError(_open_failure(self.path, exc)) from None
         self._reader = reader
         return self
 
