@@ -286,6 +286,22 @@ def test_a_huge_row_step_reads_the_rows_without_copying_the_padding(real, height
             dec.decode(msg)
 
 
+@pytest.mark.parametrize("configured", [False, True])
+def test_header_stamps_never_set_with_absolute_times(real, configured):
+    """A driver that leaves the header stamp 0 but writes absolute per-point times: the times
+    are read as written, detected or configured (the header anchors nothing there)."""
+    valid = real.ret
+    cols = {k: getattr(real, k)[valid] for k in ("x", "y", "z", "intensity", "ring")}
+    cols["timestamp"] = real.t[valid] + real.stamp_sec
+    sensor = SensorConfig(lidar_rate_hz=10.0, point_time_unit="s" if configured else "auto",
+                          point_time_reference="absolute" if configured else "auto")
+    dec = CloudDecoder(sensor, "/hesai")
+    for _ in range(3):
+        scan = dec.decode(msg_from(cols, *HESAI, 0))
+        np.testing.assert_array_equal(scan.t_ns, exact_ns(cols["timestamp"]))
+    assert dec.time_spec.unit == "s"
+
+
 def test_config_override_wins(real):
     values = (real.t * 1e3).astype(np.float32)
     spec = detect_time_spec(values, 7, "t", real.stamp_ns,

@@ -265,7 +265,9 @@ def detect_time_spec(values: np.ndarray, datatype: int, field: str, stamp_ns: in
     ties. Where both references fit the winning unit (a header stamp within a few sweeps of the
     clock's zero), the one that puts the header stamp nearer an end of the sweep wins (a driver
     stamps a sweep's start or end), relative when that does not tell them apart either; the
-    spec is then marked ``ambiguous``.
+    spec is then marked ``ambiguous``. A header stamp of 0 is one a driver never set: it
+    anchors nothing, so only the span tells the unit (read relative to 0 or as absolute, the
+    times are then the same).
     """
     units = [sensor.point_time_unit] if sensor.point_time_unit != "auto" else list(UNIT_TO_NS)
     refs = [sensor.point_time_reference] if sensor.point_time_reference != "auto" \
@@ -293,7 +295,7 @@ def detect_time_spec(values: np.ndarray, datatype: int, field: str, stamp_ns: in
         for ref in refs:
             base = stamp_s if ref == "absolute" else 0.0
             lo, hi = vmin * scale - base, vmax * scale - base
-            if lo < -2.0 * sweep_s or hi > 2.0 * sweep_s:
+            if stamp_ns != 0 and (lo < -2.0 * sweep_s or hi > 2.0 * sweep_s):
                 continue
             ends[unit, ref] = min(abs(lo), abs(hi))
             score = abs(np.log(max(span_s, 1e-12) / sweep_s))
@@ -370,8 +372,8 @@ def check_time_spec(values: np.ndarray, datatype: int, spec: TimeSpec, stamp_ns:
     lo, hi = vmin * scale - base, vmax * scale - base
     if span_s > MAX_SPAN_SWEEPS * sweep_s:
         what = f"one cloud spanning {span_s:.4g} s ({sensor.lidar_rate_hz:g} Hz LiDAR)"
-    elif max(abs(lo), abs(hi)) > MAX_STAMP_OFFSET_S or max(abs(vmin), abs(vmax)) * \
-            UNIT_TO_NS[spec.unit] > 9.2e18:
+    elif (stamp_ns != 0 and max(abs(lo), abs(hi)) > MAX_STAMP_OFFSET_S) or \
+            max(abs(vmin), abs(vmax)) * UNIT_TO_NS[spec.unit] > 9.2e18:  # stamp 0: never set
         what = f"points {lo:.4g}..{hi:.4g} s away from the header stamp"
     else:
         return
