@@ -533,3 +533,22 @@ def test_compare_in_which_no_mode_poses_is_an_error(monkeypatch, capsys, tmp_pat
     assert_one_line_error(code, err, "no mode produced a usable trajectory", "no pose from 3")
     assert not [w for w in caught if "legend" in str(w.message)], [str(w.message) for w in caught]
     assert (tmp_path / "c" / "compare.md").is_file()
+
+
+def test_no_pose_reasons_name_the_start_beyond_the_bag_and_late_clouds(monkeypatch, capsys,
+                                                                       tmp_path, rig):
+    """A run with no pose says why when it is neither the topic nor the initialization:
+    ``--start-s`` past the bag's end (a run), or clouds whose receive times lag the IMU's by
+    more than the sequencer's IMU window, each skipped (the reason's wording)."""
+    code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--out", tmp_path / "a",
+                           "--start-s", "100")
+    assert_one_line_error(code, err, "--start-s 100 is at or beyond the end of the bag",
+                          "s long")
+    from types import SimpleNamespace
+
+    from adalio.pipeline import _no_pose_reason
+
+    never = SimpleNamespace(initialized=False, init_failure=lambda: "no still window")
+    for n_in in (0, 20):
+        text = _no_pose_reason(never, n_in, "/points", "/imu", tmp_path, n_late=100)
+        assert "100 scans of /points arrived more than 2 s after their IMU samples" in text

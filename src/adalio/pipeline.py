@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 from adalio.config import RANGES, Config, validate_sensitivity, validate_transform
 from adalio.errors import AdalioError, BagError, ConfigError, InputError
 from adalio.io.bag import Bag, chain_transform
-from adalio.io.sequencer import Sequencer, SequencerStats
+from adalio.io.sequencer import IMU_WINDOW_NS, Sequencer, SequencerStats
 from adalio.io.writers import ScansCsvWriter, TumWriter, sort_rows_by_time, write_map
 from adalio.types import Estimate, ImuBatch
 
@@ -381,11 +381,24 @@ def _config_text(cfg: Config, odom: Any) -> str:
     return text
 
 
-def _no_pose_reason(odom: Any, n_in: int, lidar_topic: str, imu_topic: str, out: Path) -> str:
-    """One line for a run that produced no pose: what was seen and what to change."""
+def _no_pose_reason(odom: Any, n_in: int, lidar_topic: str, imu_topic: str, out: Path,
+                    n_late: int = 0, start_s: float = 0.0,
+                    bag_s: float = float("inf")) -> str:
+    """One line for a run that produced no pose: what was seen and what to change.
+    ``n_late``: scans the sequencer skipped as arriving after the IMU window; ``start_s``,
+    ``bag_s``: where the run started in the bag, and the bag's length."""
+    late = (f"; {n_late} scans of {lidar_topic} arrived more than "
+            f"{IMU_WINDOW_NS * 1e-9:g} s after their IMU samples and were skipped (the bag's "
+            "receive times of the clouds lag the IMU's)") if n_late else ""
+    if n_in == 0 and start_s > 0 and start_s >= bag_s:
+        return (f"no pose: --start-s {start_s:g} is at or beyond the end of the bag "
+                f"({bag_s:.1f} s long) (partial outputs in {out})")
     if n_in == 0:
-        return (f"no pose: no scan of {lidar_topic} reached the estimator; check the topic with "
-                f"'adalio info' (partial outputs in {out})")
+        return (f"no pose: no scan of {lidar_topic} reached the estimator{late}; check the topic "
+                f"with 'adalio info' (partial outputs in {out})")
+    if late and not odom.initialized:
+        return (f"no pose from {n_in} scans: the estimator never initialized{late} (partial "
+                f"outputs in {out})")
     if not odom.initialized:
         return (f"no pose from {n_in} scans: the estimator never initialized: "
                 f"{odom.init_failure()}. Check {imu_topic} (rate, units, stamps); a still start "
@@ -844,6 +857,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
     helper = warmup.start() if parallel_compile and compiled else warmup.Warmup(None)
     try:
         lidar_topic, imu_topic = bag.select_topics(cfg.sensor)
+        bag_s = bag.duration_s
         T_imu_lidar, ext_source = resolve_extrinsic(bag, lidar_topic, imu_topic, cfg)
         cfg.sensor.T_imu_lidar = T_imu_lidar.tolist()
         n_clouds = next((t.count for t in bag.topics() if t.name == lidar_topic), 0)
@@ -995,5 +1009,6 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         extrinsic_translation=getattr(odom, "extrinsic_translation", None),
         extrinsic_translation_unsettled=getattr(odom, "extrinsic_translation_unsettled", None))
     if not est_t and not interrupted and not (restart_on_offset and _calibration_off(odom)):
-        raise InputError(_no_pose_reason(odom, n_in, lidar_topic, imu_topic, out))
+        raise InputError(_no_pose_reason(odom, n_in, lidar_topic, imu_topic, out,
+                                         seq.stats.scans_late, start_s, bag_s))
     return result
