@@ -652,7 +652,11 @@ class Range:
         except (TypeError, ValueError):
             ok = False
         if not ok:
-            raise ConfigError(f"{key} must be {self.describe()} (got {value!r})")
+            finite = isinstance(value, (int, float)) and not isinstance(value, bool) \
+                and not np.isfinite(float(value))
+            need = f"finite and {self.describe()}" if finite and self.describe() != "finite" \
+                else self.describe()
+            raise ConfigError(f"{key} must be {need} (got {value!r})")
 
 
 POSITIVE = Range(0.0, lo_open=True)
@@ -958,6 +962,9 @@ def load_config(preset: str | None = None, config_file: str | Path | None = None
     file_data: dict[str, Any] = {}
     if config_file is not None:
         path = Path(config_file)
+        if path.is_dir():
+            raise ConfigError(f"config file {path} is a folder: give the YAML file in it (e.g. "
+                              f"{path / 'config.yaml'})")
         if not path.is_file():
             raise ConfigError(f"config file {path} does not exist: check the path")
         try:

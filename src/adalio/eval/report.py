@@ -126,6 +126,8 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
     the file (identity quaternions, >= 1 s between poses: control points).
     """
     run_dir = Path(run_dir)
+    if run_dir.is_file():
+        raise InputError(f"run directory {run_dir} is a file: give the --out folder of a run")
     if not run_dir.is_dir():
         raise InputError(f"run directory {run_dir} does not exist: give the --out of a run")
     est_path = run_dir / "trajectory.tum"

@@ -1,0 +1,46 @@
+"""Inputs that are almost right get an error that says what they are (session 74)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from adalio.config import load_config
+from adalio.errors import ConfigError, InputError
+from adalio.eval.report import make_report
+
+
+def test_a_config_folder_is_named_a_folder(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"is a folder: give the YAML file in it"):
+        load_config(config_file=tmp_path)
+
+
+@pytest.mark.parametrize("value", [".inf", "-.inf", ".nan"])
+def test_a_non_finite_setting_says_finite(tmp_path: Path, value: str) -> None:
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"preprocess:\n  blind_m: {value}\n")
+    with pytest.raises(ConfigError, match=r"preprocess.blind_m must be finite and >= 0"):
+        load_config(config_file=cfg)
+
+
+def test_report_on_a_file_says_it_is_a_file(tmp_path: Path) -> None:
+    bag = tmp_path / "hall.bag"
+    bag.write_bytes(b"#ROSBAG V2.0\n")
+    with pytest.raises(InputError, match="is a file: give the --out folder of a run"):
+        make_report(bag)
+
+
+@pytest.mark.parametrize("value", ["inf", "nan", "0", "-1"])
+def test_eval_max_diff_must_be_finite_and_positive(tmp_path: Path, value: str) -> None:
+    from typer.testing import CliRunner
+
+    from adalio.cli import app
+
+    tum = tmp_path / "a.tum"
+    t = np.arange(10) * 0.1
+    tum.write_text("".join(f"{x:.1f} {x:.1f} 0 0 0 0 0 1\n" for x in t))
+    res = CliRunner().invoke(app, ["eval", str(tum), str(tum), "--max-diff", value])
+    assert isinstance(res.exception, InputError), res.output  # cli.main: one error line, exit 2
+    assert "--max-diff must be a finite number of seconds > 0" in str(res.exception)
