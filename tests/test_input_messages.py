@@ -44,3 +44,22 @@ def test_eval_max_diff_must_be_finite_and_positive(tmp_path: Path, value: str) -
     res = CliRunner().invoke(app, ["eval", str(tum), str(tum), "--max-diff", value])
     assert isinstance(res.exception, InputError), res.output  # cli.main: one error line, exit 2
     assert "--max-diff must be a finite number of seconds > 0" in str(res.exception)
+
+
+def test_eval_hilti_on_a_dense_ground_truth_warns(tmp_path: Path) -> None:
+    """A dense trajectory given to --hilti is scored (the rule is the rule) with a warning that
+    it is not control points; control points (identity orientations, 1 s apart) are not."""
+    from typer.testing import CliRunner
+
+    from adalio.cli import app
+
+    est, dense, points = tmp_path / "e.tum", tmp_path / "d.tum", tmp_path / "p.tum"
+    t = np.arange(0.0, 10.0, 0.1)
+    rows = [f"{x:.1f} {x:.2f} {np.sin(x):.4f} 0 0 0 0 1\n" for x in t]
+    est.write_text("".join(rows))
+    dense.write_text("".join(rows))
+    points.write_text("".join(rows[::20]))
+    for gt, warned in ((dense, True), (points, False)):
+        res = CliRunner().invoke(app, ["eval", str(est), str(gt), "--hilti"])
+        assert res.exit_code == 0, res.output
+        assert ("does not look like HILTI control points" in res.stderr) == warned

@@ -63,12 +63,19 @@ def eval_command(
     if max_diff is not None and not (0.0 < max_diff < float("inf")):
         raise InputError(f"--max-diff must be a finite number of seconds > 0 (got {max_diff})")
     if hilti:
-        from adalio.eval.hilti import MAX_DIFF_S, hilti_score
+        from adalio.eval.hilti import MAX_DIFF_S, hilti_score, looks_like_control_points
 
         if align != "se3":
             raise InputError("--hilti always aligns with se3 (the official rule): drop --align")
 
-        res = hilti_score(est, gt, max_diff_s=max_diff if max_diff is not None else MAX_DIFF_S)
+        diff = max_diff if max_diff is not None else MAX_DIFF_S
+        res = hilti_score(est, gt, max_diff_s=diff)
+        if not looks_like_control_points(gt):
+            term_console(stderr=True).print(
+                f"warning: {gt} does not look like HILTI control points (identity orientations "
+                "at least 1 s apart): the score pairs each of its poses with an estimate up to "
+                f"{diff:g} s away; for a dense ground truth use "
+                "eval without --hilti", highlight=False, soft_wrap=True)
         if json_out:
             print(json.dumps(res))
             return
