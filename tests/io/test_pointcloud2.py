@@ -302,6 +302,34 @@ def test_header_stamps_never_set_with_absolute_times(real, configured):
     assert dec.time_spec.unit == "s"
 
 
+def test_a_partial_first_sweep_is_skipped_not_fatal(real):
+    """A driver started mid-turn: its first cloud is the last 1 % of a sweep, too short to tell
+    the time unit. It is skipped with a warning and the next clouds are read as written; five
+    undecidable clouds in a row stay an error."""
+    valid = real.ret
+    cols = {k: getattr(real, k)[valid] for k in ("x", "y", "z", "intensity", "ring")}
+    dt = real.t[valid] - real.t[valid].min()
+    tail = dt >= np.quantile(dt, 0.99)
+    dec = CloudDecoder(SensorConfig(lidar_rate_hz=10.0), "/hesai")
+    part = {k: v[tail] for k, v in cols.items()}
+    part["timestamp"] = dt[tail] + real.stamp_sec
+    with pytest.warns(UserWarning, match="cannot tell the unit of time field 'timestamp'"):
+        assert len(dec.decode(msg_from(part, *HESAI, real.stamp_ns))) == 0
+    for k in range(1, 3):
+        stamp_ns = real.stamp_ns + k * 100_000_000
+        cols["timestamp"] = dt + stamp_ns * 1e-9
+        scan = dec.decode(msg_from(cols, *HESAI, stamp_ns))
+        assert np.abs(scan.t_ns - (stamp_ns + np.rint(dt * 1e9))).max() <= 1_000
+    assert (dec.time_spec.unit, dec.time_spec.reference) == ("s", "absolute")
+    dec = CloudDecoder(SensorConfig(lidar_rate_hz=10.0), "/hesai")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for _ in range(4):
+            dec.decode(msg_from(part, *HESAI, real.stamp_ns))
+        with pytest.raises(BagError, match="cannot tell its unit/reference"):
+            dec.decode(msg_from(part, *HESAI, real.stamp_ns))
+
+
 def test_config_override_wins(real):
     values = (real.t * 1e3).astype(np.float32)
     spec = detect_time_spec(values, 7, "t", real.stamp_ns,

@@ -51,6 +51,9 @@ MAX_SPAN_SWEEPS = 5.0
 MAX_STAMP_OFFSET_S = 3600.0
 """A configured time unit/reference putting points further than this from the header stamp is
 refused (a clock offset that large is a unit or reference mismatch)."""
+UNDECIDED_CLOUDS = 5
+"""Clouds on which detection cannot tell the time field's unit/reference (a driver's partial
+first sweep) are skipped, up to this many; then it is an error."""
 AMBIGUOUS_END_S = 1e-3
 """Relative and absolute readings of a cloud near the clock's zero (:func:`detect_time_spec`)
 that put the header stamp within this of each other's sweep end are not told apart; a cloud
@@ -447,6 +450,8 @@ class CloudDecoder:
         self._constant_fields: set[str] = set()
         self._spec_checked = False
         self._ambiguous_reads: list[tuple[str, int]] = []
+        self._undecided = 0
+        """Clouds skipped so far because detection could not tell their times' unit."""
         """(reference, header stamp ns) of each cloud read with an ambiguous detection."""
         self.stats = DecodeStats()
 
@@ -497,9 +502,28 @@ class CloudDecoder:
                         and finite.min() == finite.max()):
                     self._constant_fields.add(tfield)
                 elif finite.size:
-                    self.time_spec = detect_time_spec(finite, layout.find(tfield)[2], tfield,
-                                                      stamp_ns, self.sensor, self.topic)
-                    self._settle_reference(self.time_spec, int(stamp_ns))
+                    try:
+                        spec = detect_time_spec(finite, layout.find(tfield)[2], tfield,
+                                                stamp_ns, self.sensor, self.topic)
+                    except BagError:
+                        if self.time_spec is not None and self.time_spec.field == tfield:
+                            spec = self.time_spec  # ambiguous so far: this cloud tells nothing
+                        else:
+                            spec = None
+                            self._undecided += 1
+                            if self._undecided >= UNDECIDED_CLOUDS:
+                                raise
+                    if spec is None:
+                        warnings.warn(f"PointCloud2 on {self.topic or '?'}: cannot tell the "
+                                      f"unit of time field '{tfield}' on the cloud stamped "
+                                      f"{stamp_ns * 1e-9:.3f} s ({finite.size} points; a partial "
+                                      "sweep?): skipped, detecting on the next", stacklevel=2)
+                        self.stats.add(int(pts.shape[0]), 0, 0, int(pts.shape[0]), 0)
+                        return Scan(points_lidar=pts[:0], t_ns=np.zeros(0, np.int64),
+                                    stamp_ns=int(stamp_ns))
+                    if spec is not self.time_spec:
+                        self.time_spec = spec
+                        self._settle_reference(spec, int(stamp_ns))
             if tfield not in self._constant_fields:
                 spec = self.time_spec
                 if spec is None:
