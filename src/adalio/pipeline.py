@@ -29,7 +29,13 @@ from adalio.config import RANGES, Config, validate_sensitivity, validate_transfo
 from adalio.errors import AdalioError, BagError, ConfigError, InputError
 from adalio.io.bag import Bag, chain_transform
 from adalio.io.sequencer import IMU_WINDOW_NS, Sequencer, SequencerStats
-from adalio.io.writers import ScansCsvWriter, TumWriter, sort_rows_by_time, write_map
+from adalio.io.writers import (
+    REPORT_FILES,
+    ScansCsvWriter,
+    TumWriter,
+    sort_rows_by_time,
+    write_map,
+)
 from adalio.types import Estimate, ImuBatch
 
 DEFAULT_SIGMA_WARN_M = 0.10
@@ -414,8 +420,6 @@ def remove_stale_outputs(out: Path, map_format: str) -> list[Path]:
     the other format, and a report (``report.md``, ``metrics.json``, its figures), which would
     otherwise describe the earlier run beside this one's files. Nothing else in the folder is
     touched. Returns the removed paths."""
-    from adalio.eval.report import REPORT_FILES
-
     names = [f"map.{f}" for f in ("ply", "pcd") if f != map_format] + list(REPORT_FILES)
     removed = []
     for name in names:

@@ -29,11 +29,9 @@ from adalio.eval.metrics import (
     rpe,
     sigma_consistency,
 )
+from adalio.io.writers import REPORT_FILES
 
-REPORT_NAME = "report.md"
-REPORT_FILES = (REPORT_NAME, "metrics.json", "trajectory_top.png", "trajectory_side.png",
-                "error.png", "error_sigma.png", "degeneracy.png", "map_top.png")
-"""What a report writes into a run folder (a run into the folder removes an earlier run's)."""
+REPORT_NAME = REPORT_FILES[0]
 
 
 def read_run_config(run_dir: Path) -> dict[str, Any]:

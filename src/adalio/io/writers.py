@@ -15,6 +15,11 @@ import numpy as np
 
 from adalio.types import ScanStats
 
+REPORT_FILES = ("report.md", "metrics.json", "trajectory_top.png", "trajectory_side.png",
+                "error.png", "error_sigma.png", "degeneracy.png", "map_top.png")
+"""What ``adalio report`` (``eval.report.make_report``) writes into a run folder; a run into the
+folder removes an earlier run's (``pipeline.remove_stale_outputs``)."""
+
 SCANS_CSV_COLUMNS: tuple[str, ...] = (
     "t_s", "n_raw", "n_down", "n_down_general", "n_near", "degenerate", "trigger",
     "voxel_size_m", "search_radius_m", "plane_margin_m", "n_matched", "iterations", "wall_ms",
