@@ -169,6 +169,15 @@ def config_case(text: str, *extra: str) -> Callable[[Base, Path], list[str]]:
     return make
 
 
+def simulate_into_sequence(base: Base, folder: Path) -> list[str]:
+    """``simulate --scene corridor`` into a folder that holds the hall's sequence."""
+    seq = folder / "seq"
+    seq.mkdir()
+    for name in ("gt.tum", "meta.json"):
+        (seq / name).write_text("{}\n" if name.endswith(".json") else "")
+    return ["simulate", "--scene", "corridor", "--out", str(seq)]
+
+
 def config_bytes_case(data: bytes) -> Callable[[Base, Path], list[str]]:
     """A case running the clean bag with a config file of these bytes."""
     def make(base: Base, folder: Path) -> list[str]:
@@ -456,6 +465,8 @@ CASES: list[Case] = [
     Case("simulate_people_too_many",
          lambda b, f: ["simulate", "--scene", "corridor", "--out", str(f / "s"),
                        "--people", "30"], "error", ("--people must be an integer 0-20 (got 30)",)),
+    Case("simulate_out_holds_sequence", simulate_into_sequence, "error",
+         ("already holds a simulated sequence (gt.tum, meta.json)",)),
     Case("simulate_seed_negative",
          lambda b, f: ["simulate", "--scene", "hall", "--out", str(f / "s"), "--seed", "-1"],
          "error", ("--seed must be >= 0 (got -1)",)),

@@ -73,6 +73,10 @@ def register(app: typer.Typer) -> None:
 
         if seed < 0:
             raise InputError(f"--seed must be >= 0 (got {seed})")
+        held = [n for n in ("gt.tum", "meta.json") if (out / n).exists()]
+        if held:  # its gt.tum would be replaced beside the other sequence's bag
+            raise InputError(f"--out {out} already holds a simulated sequence ({', '.join(held)})"
+                             ": choose another folder, or delete that one first")
         T_imu_lidar = None if extrinsic is None else transform_from_xyz_quat(extrinsic)
         check_out_dir(out)
         t0 = time.perf_counter()
