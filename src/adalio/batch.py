@@ -23,6 +23,7 @@ import json
 import math
 import os
 import time
+import urllib.parse
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, fields
@@ -297,6 +298,20 @@ def finished_row(job: BagJob) -> BagRow | None:
 
 
 # ------------------------------------------------------------------------------ the cluster
+def check_scheduler_address(address: str) -> None:
+    """InputError unless ``address`` is ``[tcp://|tls://]HOST:PORT``. Checked before a client
+    is made: distributed, given a malformed address, raises from a background event loop, and
+    after a cluster ran in the same process its client could hang."""
+    url = urllib.parse.urlsplit(address if "://" in address else f"tcp://{address}")
+    try:
+        port = url.port
+    except ValueError:
+        port = None
+    if url.scheme not in ("tcp", "tls") or not url.hostname or port is None:
+        raise InputError(f"--scheduler {address} is not a scheduler address: give "
+                         "tcp://HOST:PORT (or HOST:PORT)")
+
+
 @contextlib.contextmanager
 def dask_client(workers: int | None = None, scheduler: str | None = None) -> Iterator[Any]:
     """A ``distributed.Client``: on an embedded LocalCluster of ``workers`` single-threaded
@@ -306,11 +321,9 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
     from distributed import Client, LocalCluster
 
     if scheduler:
+        check_scheduler_address(scheduler)
         try:
             client = Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
-        except ValueError as exc:  # distributed's address parsing
-            raise InputError(f"--scheduler {scheduler} is not a scheduler address "
-                             f"({one_line(exc)}): give tcp://HOST:PORT") from None
         except (OSError, TimeoutError) as exc:
             raise InputError(f"cannot reach the Dask scheduler at {scheduler} "
                              f"({one_line(exc)}): start it with 'dask scheduler' and check "
