@@ -142,6 +142,16 @@ def test_damaged_bags_are_bag_errors(tmp_path, content, match):
         list(bag.messages([t.name for t in bag.topics()]))
 
 
+def add_box_clouds(w: BagWriter, n: int, sweep_ns: int) -> None:
+    """``n`` sweeps of the factory's box (30 columns) on /points, each received at its end."""
+    pts, t_rel, ring = bf.box_scan(columns=30, sweep_ns=sweep_ns)
+    cols = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "intensity": np.ones(len(pts)),
+            "t": t_rel, "ring": ring}
+    for k in range(n):
+        w.add_cloud("/points", bf.T0_NS + k * sweep_ns, cols, bf.OUSTER_LAYOUT, bf.OUSTER_STEP,
+                    frame_id="lidar", t_recv_ns=bf.T0_NS + (k + 1) * sweep_ns)
+
+
 @pytest.mark.parametrize("fmt,name", FORMATS)
 def test_a_bad_unrelated_transform_and_a_silent_topic_do_not_stop_a_bag(tmp_path, fmt, name):
     """A /tf_static transform to a camera with a zero quaternion is left out with a warning
@@ -150,7 +160,6 @@ def test_a_bad_unrelated_transform_and_a_silent_topic_do_not_stop_a_bag(tmp_path
     T_il = random_T(7)
     path = tmp_path / name
     sweep_ns = 100_000_000
-    pts, t_rel, ring = bf.box_scan(columns=30, sweep_ns=sweep_ns)
     with BagWriter(path, fmt) as w:
         w.add_tf_static([("imu", "lidar", T_il)], bf.T0_NS)
         T = w._types()
@@ -165,12 +174,7 @@ def test_a_bad_unrelated_transform_and_a_silent_topic_do_not_stop_a_bag(tmp_path
         for k in range(60):
             w.add_imu("/imu", bf.T0_NS + k * 5_000_000, [0.0, 0.0, 0.0], [0.0, 0.0, 9.81],
                       frame_id="imu")
-        for k in range(2):
-            cols = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2],
-                    "intensity": np.ones(len(pts)), "t": t_rel, "ring": ring}
-            w.add_cloud("/points", bf.T0_NS + k * sweep_ns, cols, bf.OUSTER_LAYOUT,
-                        bf.OUSTER_STEP, frame_id="lidar",
-                        t_recv_ns=bf.T0_NS + (k + 1) * sweep_ns)
+        add_box_clouds(w, 2, sweep_ns)
     with Bag(path) as bag:
         assert {t.name: t.count for t in bag.topics()}.get("/imu_silent", 0) == 0
         assert bag.select_topics(SensorConfig()) == ("/points", "/imu")
@@ -192,17 +196,11 @@ def test_accel_unit_is_told_by_samples_that_can_tell_it(tmp_path, unit, start):
     n_start = 45 if unit == "m_s2" else 60
     path = tmp_path / "a.bag"
     sweep_ns = 100_000_000
-    pts, t_rel, ring = bf.box_scan(columns=30, sweep_ns=sweep_ns)
     with BagWriter(path, "ros1") as w:
         for k in range(300):
             a = [start] * 3 if k < n_start else [0.0, 0.0, 9.80665 * scale]
             w.add_imu("/imu", bf.T0_NS + k * 5_000_000, [0.0, 0.0, 0.0], a)
-        for k in range(12):
-            cols = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2],
-                    "intensity": np.ones(len(pts)), "t": t_rel, "ring": ring}
-            w.add_cloud("/points", bf.T0_NS + k * sweep_ns, cols, bf.OUSTER_LAYOUT,
-                        bf.OUSTER_STEP, frame_id="lidar",
-                        t_recv_ns=bf.T0_NS + (k + 1) * sweep_ns)
+        add_box_clouds(w, 12, sweep_ns)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         with Bag(path) as bag:
