@@ -450,9 +450,10 @@ class CloudDecoder:
         self._constant_fields: set[str] = set()
         self._spec_checked = False
         self._ambiguous_reads: list[tuple[str, int]] = []
+        """(reference, header stamp ns) of each cloud read with an ambiguous detection where
+        the two readings differ (a header stamp further than AMBIGUOUS_END_S from 0)."""
         self._undecided = 0
         """Clouds skipped so far because detection could not tell their times' unit."""
-        """(reference, header stamp ns) of each cloud read with an ambiguous detection."""
         self.stats = DecodeStats()
 
     def decode(self, msg: Any) -> Scan:
@@ -570,10 +571,10 @@ class CloudDecoder:
         absolute apart contradicts how an earlier one was read where the two readings differ
         by more than :data:`AMBIGUOUS_END_S` (they differ by the header stamp)."""
         if spec.ambiguous:
-            self._ambiguous_reads.append((spec.reference, stamp_ns))
+            if abs(stamp_ns) * 1e-9 > AMBIGUOUS_END_S:  # stamps of 0 read alike both ways
+                self._ambiguous_reads.append((spec.reference, stamp_ns))
             return
-        wrong = [t for ref, t in self._ambiguous_reads
-                 if ref != spec.reference and abs(t) * 1e-9 > AMBIGUOUS_END_S]
+        wrong = [t for ref, t in self._ambiguous_reads if ref != spec.reference]
         self._ambiguous_reads = []
         if wrong:
             raise BagError(
