@@ -328,6 +328,12 @@ def test_input_validation_raises_input_error():
         odom.add_scan(np.zeros((5, 3)), np.zeros(4, np.int64))
     with pytest.raises(InputError):
         odom.add_scan(np.zeros((5, 3)), np.zeros(5))
+    # a narrower integer cannot hold nanosecond stamps (epoch ns wrap in int32)
+    for dtype in (np.int32, np.uint32, np.int16):
+        with pytest.raises(InputError, match="narrower integer"):
+            odom.add_imu(np.array([40, 50], dtype), np.zeros((2, 3)), np.zeros((2, 3)))
+        with pytest.raises(InputError, match="narrower integer"):
+            odom.add_scan(np.zeros((5, 3)), np.arange(5, dtype=dtype))
     with pytest.raises(InputError):
         odom.add_scan(np.ones((5, 3)), np.array([0, 1, 2, 3, 2_000_000_000], np.int64))
 

@@ -571,9 +571,9 @@ class Odometry:
             if np.size(gyro_rad_s) % 3 == 0 else None
         acc = np.asarray(accel_m_s2, dtype=np.float64).reshape(-1, 3) \
             if np.size(accel_m_s2) % 3 == 0 else None
-        if t.ndim != 1 or not np.issubdtype(t.dtype, np.integer):
+        if t.ndim != 1 or not np.issubdtype(t.dtype, np.integer) or t.dtype.itemsize < 8:
             raise InputError(f"add_imu: t_ns must be int64 nanoseconds, got dtype {t.dtype} "
-                             f"shape {t.shape}")
+                             f"shape {t.shape} (a narrower integer cannot hold them)")
         if gyro is None or acc is None or gyro.shape[0] != t.size or acc.shape[0] != t.size:
             raise InputError(f"add_imu: expected gyro/accel of shape ({t.size}, 3), got "
                              f"{np.shape(gyro_rad_s)} and {np.shape(accel_m_s2)}")
@@ -827,9 +827,11 @@ class Odometry:
         t = np.asarray(t_ns)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise InputError(f"add_scan: points_lidar must have shape (N, 3), got {pts.shape}")
-        if t.shape != (pts.shape[0],) or not np.issubdtype(t.dtype, np.integer):
+        if (t.shape != (pts.shape[0],) or not np.issubdtype(t.dtype, np.integer)
+                or t.dtype.itemsize < 8):
             raise InputError(f"add_scan: t_ns must be (N,) int64 absolute nanoseconds matching "
-                             f"the {pts.shape[0]} points, got dtype {t.dtype} shape {t.shape}")
+                             f"the {pts.shape[0]} points, got dtype {t.dtype} shape {t.shape} "
+                             "(a narrower integer cannot hold them)")
         pre = self.cfg.preprocess
         pts = np.ascontiguousarray(pts, dtype=np.float64)
         t = np.ascontiguousarray(t, dtype=np.int64)
