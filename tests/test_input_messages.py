@@ -41,9 +41,10 @@ def test_eval_max_diff_must_be_finite_and_positive(tmp_path: Path, value: str) -
     tum = tmp_path / "a.tum"
     t = np.arange(10) * 0.1
     tum.write_text("".join(f"{x:.1f} {x:.1f} 0 0 0 0 0 1\n" for x in t))
-    res = CliRunner().invoke(app, ["eval", str(tum), str(tum), "--max-diff", value])
-    assert isinstance(res.exception, InputError), res.output  # cli.main: one error line, exit 2
-    assert "--max-diff must be a finite number of seconds > 0" in str(res.exception)
+    for hilti in ([], ["--hilti"]):  # the ATE's association and the HILTI score's matching
+        res = CliRunner().invoke(app, ["eval", str(tum), str(tum), "--max-diff", value, *hilti])
+        assert isinstance(res.exception, InputError), res.output  # cli.main: one line, exit 2
+        assert "--max-diff must be a finite number of seconds > 0" in str(res.exception)
 
 
 def test_eval_hilti_on_a_dense_ground_truth_warns(tmp_path: Path) -> None:

@@ -27,6 +27,7 @@ from evo.core import sync
 
 from adalio.errors import InputError
 from adalio.eval.files import TrajectoryLike, read_trajectory
+from adalio.eval.metrics import check_max_diff
 
 T_IMU_TIP = np.array([[1.0, 0.0, 0.0, 0.059],
                       [0.0, 1.0, 0.0, -0.00855],
@@ -70,6 +71,7 @@ def hilti_score(est_tum: TrajectoryLike, gt_tum: TrajectoryLike, *, tip_offset: 
     Raises InputError when fewer than 3 control points have an estimate within ``max_diff_s``
     (the SE(3) alignment is then undefined).
     """
+    check_max_diff(max_diff_s)
     est = read_trajectory(est_tum, "estimate")
     gt = read_trajectory(gt_tum, "control-point")
     if tip_offset:

@@ -61,13 +61,18 @@ class AlignedPair:
         return np.asarray(self.gt.timestamps, dtype=np.float64)
 
 
+def check_max_diff(max_diff_s: float) -> None:
+    """InputError unless the association's time gap is a finite number of seconds > 0."""
+    if not 0.0 < max_diff_s < float("inf"):
+        raise InputError(f"--max-diff must be a finite number of seconds > 0 (got {max_diff_s})")
+
+
 def associate(est: TrajectoryLike, gt: TrajectoryLike, max_diff_s: float = DEFAULT_MAX_DIFF_S,
               interpolate: bool = True) -> tuple[PoseTrajectory3D, PoseTrajectory3D]:
     """Return ``(gt_sync, est_sync)`` with equal length, via evo's associate_trajectories; with
     ``interpolate`` the GT poses are interpolated at the estimate's stamps where the GT brackets
     them within ``max_diff_s`` (:func:`interpolate_gt`)."""
-    if not max_diff_s > 0:
-        raise InputError(f"--max-diff must be > 0 s (got {max_diff_s})")
+    check_max_diff(max_diff_s)
     est_t = read_trajectory(est, "estimate")
     gt_t = read_trajectory(gt, "ground-truth")
     try:
