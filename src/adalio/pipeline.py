@@ -415,19 +415,14 @@ def _no_pose_reason(odom: Any, n_in: int, lidar_topic: str, imu_topic: str, out:
             f"(partial outputs in {out})")
 
 
-def remove_stale_outputs(out: Path, map_format: str) -> list[Path]:
+def remove_stale_outputs(out: Path, map_format: str) -> None:
     """Remove what an earlier run left in ``out`` that this one does not overwrite: the map in
     the other format, and a report (``report.md``, ``metrics.json``, its figures), which would
     otherwise describe the earlier run beside this one's files. Nothing else in the folder is
-    touched. Returns the removed paths."""
-    names = [f"map.{f}" for f in ("ply", "pcd") if f != map_format] + list(REPORT_FILES)
-    removed = []
-    for name in names:
-        path = out / name
-        if path.is_file():
-            path.unlink()
-            removed.append(path)
-    return removed
+    touched."""
+    for name in [f"map.{f}" for f in ("ply", "pcd") if f != map_format] + list(REPORT_FILES):
+        if (out / name).is_file():
+            (out / name).unlink()
 
 
 def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,

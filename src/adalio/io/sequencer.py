@@ -335,8 +335,9 @@ class Sequencer:
             return item
 
         def decide(force: bool) -> Iterator[ImuBatch | Scan]:
-            acc = [usable_accel(h.accel_m_s2) for h in held if isinstance(h, ImuBatch)]
-            n = sum(len(a) for a in acc)
+            if self._accel_scale is None:  # the samples that can tell the unit, until decided
+                acc = [usable_accel(h.accel_m_s2) for h in held if isinstance(h, ImuBatch)]
+                n = sum(len(a) for a in acc)
             if self._accel_scale is None and (n >= ACCEL_UNIT_SAMPLES or force):
                 in_g = accel_is_in_g(np.concatenate(acc)[:ACCEL_UNIT_SAMPLES]) if acc else False
                 self._accel_scale = G_TO_M_S2 if in_g else 1.0
