@@ -160,11 +160,15 @@ def bag_case(edit: Edit, *extra: str, config: dict | None = None,
     return make
 
 
-def config_case(text: str, *extra: str) -> Callable[[Base, Path], list[str]]:
-    """A case running the clean bag with a config file of ``text`` (may say 'preset:')."""
+def config_case(text: str | bytes, *extra: str) -> Callable[[Base, Path], list[str]]:
+    """A case running the clean bag with a config file of ``text`` (may say 'preset:'; bytes
+    are written as they are)."""
     def make(base: Base, folder: Path) -> list[str]:
         cfg = folder / "bad.yaml"
-        cfg.write_text(text)
+        if isinstance(text, bytes):
+            cfg.write_bytes(text)
+        else:
+            cfg.write_text(text)
         return run_args(base, base.bag, folder, *extra, config=cfg)
     return make
 
@@ -176,15 +180,6 @@ def simulate_into_sequence(base: Base, folder: Path) -> list[str]:
     for name in ("gt.tum", "meta.json"):
         (seq / name).write_text("{}\n" if name.endswith(".json") else "")
     return ["simulate", "--scene", "corridor", "--out", str(seq)]
-
-
-def config_bytes_case(data: bytes) -> Callable[[Base, Path], list[str]]:
-    """A case running the clean bag with a config file of these bytes."""
-    def make(base: Base, folder: Path) -> list[str]:
-        cfg = folder / "bad.yaml"
-        cfg.write_bytes(data)
-        return run_args(base, base.bag, folder, config=cfg)
-    return make
 
 
 def flag_case(*extra: str) -> Callable[[Base, Path], list[str]]:
@@ -473,7 +468,7 @@ CASES: list[Case] = [
     Case("rrd_is_folder", lambda b, f: run_args(b, b.bag, f, "--rrd", str(f)), "error",
          ("is a folder", "--rrd")),
     # config
-    Case("config_not_utf8", config_bytes_case(b"# calibraci\xf3n\npreset: hilti2022\n"),
+    Case("config_not_utf8", config_case(b"# calibraci\xf3n\npreset: hilti2022\n"),
          "error", ("bad.yaml is not UTF-8 text",)),
     Case("config_missing", lambda b, f: run_args(b, b.bag, f, config=f / "none.yaml"), "error",
          ("none.yaml does not exist",)),
