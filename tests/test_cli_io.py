@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from adalio import cli
 from adalio.config import config_from_dict, load_config
 from adalio.io.bagwrite import BagWriter
 from adalio.io.writers import SCANS_CSV_COLUMNS, read_ply_points, read_tum
+from adalio.pipeline import _no_pose_reason
 
 
 def run_cli(monkeypatch, capsys, *argv: str) -> tuple[int, str, str]:
@@ -544,10 +546,6 @@ def test_no_pose_reasons_name_the_start_beyond_the_bag_and_late_clouds(monkeypat
                            "--start-s", "100")
     assert_one_line_error(code, err, "--start-s 100 is at or beyond the end of the bag",
                           "s long")
-    from types import SimpleNamespace
-
-    from adalio.pipeline import _no_pose_reason
-
     never = SimpleNamespace(initialized=False, init_failure=lambda: "no still window")
     for n_in in (0, 20):
         text = _no_pose_reason(never, n_in, "/points", "/imu", tmp_path, n_late=100)
