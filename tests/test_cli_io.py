@@ -550,3 +550,19 @@ def test_no_pose_reasons_name_the_start_beyond_the_bag_and_late_clouds(monkeypat
     for n_in in (0, 20):
         text = _no_pose_reason(never, n_in, "/points", "/imu", tmp_path, n_late=100)
         assert "100 scans of /points arrived more than 2 s after their IMU samples" in text
+
+
+def test_simulate_prints_a_run_command_a_shell_can_take(monkeypatch, capsys, tmp_path):
+    """The ``run:`` line simulate prints is a command a shell splits into the bag and the config
+    it wrote, also where the output folder has a space in its name."""
+    import shlex
+
+    out = tmp_path / "my sims" / "hall 1"
+    code, stdout, err = run_cli(monkeypatch, capsys, "simulate", "--scene", "hall", "--duration",
+                                "1", "--columns", "64", "--out", out)
+    assert code == 0, err
+    line = next(ln for ln in stdout.splitlines() if ln.startswith("run: "))
+    argv = shlex.split(line[len("run: "):])
+    assert argv[:2] == ["adalio", "run"] and argv[3] == "--config"
+    assert Path(argv[2]).parent == out and Path(argv[2]).exists()
+    assert Path(argv[4]) == out / "config.yaml" and Path(argv[4]).exists()

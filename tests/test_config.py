@@ -22,8 +22,23 @@ def test_hilti_extrinsic_matches_calibration_quaternion():
 
 
 def test_unknown_key_suggests_nearest():
-    with pytest.raises(ConfigError, match="did you mean 'voxel_size_m'"):
+    with pytest.raises(ConfigError, match=r"did you mean 'adaptive\.general\.voxel_size_m'\?$"):
         load_config(overrides={"adaptive.general.voxel_sze_m": 0.3})
+    with pytest.raises(ConfigError, match=r"'adaptive\.mdoe'; did you mean 'adaptive\.mode'\?$"):
+        load_config(overrides={"adaptive.mdoe": "fixed"})
+
+
+def test_unknown_key_at_the_wrong_level_names_the_dotted_key():
+    """A setting written without its section (or in another one) is suggested with its whole
+    dotted key, every section that has it named; a close misspelling too."""
+    with pytest.raises(ConfigError, match=r"unknown config key 'voxel_size_m'; did you mean "
+                                          r"'adaptive\.general\.voxel_size_m'\? \(or "
+                                          r"adaptive\.degenerate\.voxel_size_m\)$"):
+        load_config(overrides={"voxel_size_m": 0.3})
+    with pytest.raises(ConfigError, match=r"'map\.gate_sigma'; did you mean 'filter\.gate_sigmas'"):
+        load_config(overrides={"map.gate_sigma": 3.0})
+    with pytest.raises(ConfigError, match=r"'imu\.zzzq'; valid keys: imu\.gyro_cov, "):
+        load_config(overrides={"imu.zzzq": 1})
 
 
 def test_a_config_file_given_as_the_preset_names_config_file(tmp_path):

@@ -841,6 +841,26 @@ OUTPUT_ONLY_KEYS = ("measured",)
 calibration measured at initialization); ignored when the file is read back."""
 
 
+def _key_hint(key: str, prefix: str, names: Any) -> str:
+    """The '; did you mean ...' of an unknown key, as a dotted key: a close name in the same
+    section first, else a setting of that name (or close to it) in another section (a key at
+    the wrong level: ``voxel_size_m`` at the top), else the section's valid keys."""
+    dotted = (prefix + ".") if prefix else ""
+    close = difflib.get_close_matches(key, list(names), n=1, cutoff=0.5)
+    if close:
+        return f"; did you mean '{dotted}{close[0]}'?"
+    leaves = list(_leaf_values(Config()))
+    same = [k for k in leaves if k.rsplit(".", 1)[-1] == key]
+    if not same:
+        near = difflib.get_close_matches(key, [k.rsplit(".", 1)[-1] for k in leaves], n=1,
+                                         cutoff=0.8)
+        same = [k for k in leaves if near and k.rsplit(".", 1)[-1] == near[0]]
+    if same:
+        return f"; did you mean '{same[0]}'?" + (f" (or {', '.join(same[1:4])})"
+                                                 if len(same) > 1 else "")
+    return f"; valid keys: {', '.join(dotted + n for n in names)}"
+
+
 def _merge_into(obj: Any, data: dict[str, Any], prefix: str) -> None:
     if not isinstance(data, dict):
         raise ConfigError(f"{prefix or 'config'} must be a mapping of keys to values")
@@ -855,11 +875,7 @@ def _merge_into(obj: Any, data: dict[str, Any], prefix: str) -> None:
                               stacklevel=2)
             continue
         if key not in names:
-            where = f"{prefix}.{key}" if prefix else str(key)
-            close = difflib.get_close_matches(str(key), list(names), n=1, cutoff=0.5)
-            hint = f"; did you mean '{close[0]}'?" if close else \
-                f"; valid keys: {', '.join(names)}"
-            raise ConfigError(f"unknown config key '{where}'{hint}")
+            raise ConfigError(f"unknown config key '{full}'{_key_hint(str(key), prefix, names)}")
         current = getattr(obj, key)
         path = f"{prefix}.{key}" if prefix else key
         if dataclasses.is_dataclass(current):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 from typing import Annotated
 
@@ -94,4 +95,5 @@ def register(app: typer.Typer) -> None:
             f"[green]wrote[/] {res.bag_path} ({meta['n_scans']} sweeps, {meta['n_imu']} IMU, "
             f"{meta['duration_s']:.1f} s) in {time.perf_counter() - t0:.1f} s\n"
             f"ground truth {res.gt_path}, config {res.config_path}\n"
-            f"run: adalio run {res.bag_path} --config {res.config_path}", highlight=False)
+            f"run: adalio run {shlex.quote(str(res.bag_path))} "
+            f"--config {shlex.quote(str(res.config_path))}", highlight=False)
