@@ -200,6 +200,33 @@ def test_info_reports_topics_and_time_format(monkeypatch, capsys, rig):
     assert "warning: no extrinsic in the preset, the config or /tf_static" in err
 
 
+def test_info_samples_each_message_once(monkeypatch, capsys, rig):
+    """``--sample`` more than the bag's clouds reports as many as it has (not the same cloud
+    over again), the IMU's sampled messages are distinct too, and ``--sample 0`` is refused."""
+    from adalio.io.bag import Bag
+
+    with Bag(rig) as b:
+        counts = {t.name: t.count for t in b.topics()}
+    code, out, err = run_cli(monkeypatch, capsys, "info", rig, "--sample", 1000)
+    assert code == 0, err
+    assert f"points per scan ({counts['/points']} sampled)" in out
+    assert f"over {counts['/imu']} sampled messages" in out
+    code, _, err = run_cli(monkeypatch, capsys, "info", rig, "--sample", 0)
+    assert_one_line_error(code, err, "--sample must be >= 1 (got 0)")
+
+
+def test_info_rate_is_each_topics_own(monkeypatch, capsys, tmp_path):
+    """A topic's rate is its count over its own span: an IMU recorded 3 s before the LiDAR
+    starts reads 200 Hz and the LiDAR 10 Hz (over the bag's 5 s they read 80 and 3.6 Hz)."""
+    bag = bf.write_static_rig(tmp_path / "late_lidar.bag", duration_s=2.0, imu_rate_hz=200.0,
+                              imu_offset_s=-3.0, columns=90)
+    code, out, err = run_cli(monkeypatch, capsys, "info", bag)
+    assert code == 0, err
+    rows = {ln.split()[1]: ln.split() for ln in out.splitlines() if ln.split()[1:2] in
+            (["/imu"], ["/points"])}
+    assert rows["/imu"][-2] == "200.0" and rows["/points"][-2] == "10.0", out
+
+
 def test_config_show_roundtrips(monkeypatch, capsys):
     code, out, _ = run_cli(monkeypatch, capsys, "config", "show", "hilti2022")
     assert code == 0

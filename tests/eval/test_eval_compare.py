@@ -99,3 +99,21 @@ def test_compare_keeps_going_when_the_gt_does_not_cover_the_run(tmp_path):
     data = json.loads((tmp_path / "cmp" / "compare.json").read_text())
     assert data["figures_up"] is None and data["rows"][0]["aborted"]
     assert "--gt" in res.failure() and str(gt) in res.failure()
+
+
+def test_compare_keeps_an_aborted_modes_whole_reason(tmp_path, monkeypatch):
+    """A mode whose run stops is reported with the whole first line of why (it named a file and
+    a setting past 200 characters, and was cut mid-word there); later lines are left out."""
+    import adalio.eval.compare as cmp
+    from adalio.errors import AdalioError
+
+    reason = "the run stopped at scan 3: " + "x" * 220 + " set filter.some_setting to fix it"
+
+    def stops(*args, **kwargs):
+        raise AdalioError(reason + "\nsecond line")
+
+    monkeypatch.setattr("adalio.pipeline.run_bag", stops)
+    res = cmp.compare_modes(tmp_path / "any.bag", ["fixed"], tmp_path / "cmp", progress=False)
+    assert res.rows[0].aborted == f"AdalioError: {reason}"
+    data = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert data["rows"][0]["aborted"].endswith("set filter.some_setting to fix it")

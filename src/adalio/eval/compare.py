@@ -125,7 +125,7 @@ def compare_modes(bag_path: str | Path, modes: list[str], out_dir: str | Path, *
         except (BagError, ConfigError):
             raise
         except (AdalioError, FloatingPointError, np.linalg.LinAlgError, ValueError) as exc:
-            row.aborted = f"{type(exc).__name__}: {exc}".splitlines()[0][:200]
+            row.aborted = f"{type(exc).__name__}: {exc}".splitlines()[0]
             row.diverged = True
             rows.append(row)
             continue

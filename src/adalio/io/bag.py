@@ -57,7 +57,6 @@ class TopicInfo:
     name: str
     msgtype: str
     count: int
-    rate_hz: float
 
 
 def resolve_bag_paths(path: str | Path) -> tuple[list[Path], bool]:
@@ -188,9 +187,26 @@ class Bag:
         for c in self.reader.connections:
             entry = counts.setdefault(c.topic, [_normtype(c.msgtype), 0])
             entry[1] += int(c.msgcount)
-        dur = self.duration_s
-        return [TopicInfo(name, t, n, (n - 1) / dur if dur > 0 and n > 1 else 0.0)
-                for name, (t, n) in sorted(counts.items())]
+        return [TopicInfo(name, t, n) for name, (t, n) in sorted(counts.items())]
+
+    def topic_span_ns(self, topic: str) -> tuple[int, int] | None:
+        """Receive times of ``topic``'s first and last messages (None: it has none). Reads the
+        first message, then the bag's end in windows doubling from 1 s back until one holds the
+        topic: a topic's rate is its own count over its own span, not over the bag's, which
+        the other topics may stretch."""
+        conns = [c for c in self.reader.connections if c.topic == topic]
+        first = next((int(t) for _, t, _ in self.reader.messages(connections=conns)), None)
+        if first is None:
+            return None
+        back = 1_000_000_000
+        while True:
+            start = max(self.end_ns - back, first)
+            last = None
+            for _, t, _ in self.reader.messages(connections=conns, start=start):
+                last = int(t)
+            if last is not None:
+                return first, last
+            back *= 2
 
     def topics_of_type(self, types: tuple[str, ...]) -> list[str]:
         norm = {_normtype(t) for t in types}

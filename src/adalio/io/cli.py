@@ -84,6 +84,8 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
     from adalio.io.pointcloud2 import CloudDecoder
     from adalio.io.sequencer import accel_is_in_g, imu_msg_arrays
 
+    if sample < 1:
+        raise InputError(f"--sample must be >= 1 (got {sample})")
     cfg = _build_config(preset, config, lidar_topic, imu_topic, None, None, None)
     out = console()
     err = console(stderr=True)
@@ -93,7 +95,10 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
         for col in ("topic", "type", "count", "rate (Hz)"):
             table.add_column(col, justify="right" if col in ("count", "rate (Hz)") else "left")
         for t in b.topics():
-            table.add_row(t.name, t.msgtype, str(t.count), f"{t.rate_hz:.1f}")
+            span = b.topic_span_ns(t.name) if t.count > 1 else None
+            rate = (t.count - 1) / ((span[1] - span[0]) * 1e-9) \
+                if span is not None and span[1] > span[0] else 0.0
+            table.add_row(t.name, t.msgtype, str(t.count), f"{rate:.1f}")
         out.print(table)
         out.print(f"duration: {b.duration_s:.3f} s  "
                   f"({b.start_ns * 1e-9:.3f} .. {b.end_ns * 1e-9:.3f})")
@@ -108,12 +113,16 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
         dec = CloudDecoder(cfg.sensor, lidar)
         counts = []
         layout = ""
-        n_sample = max(sample, 1)
+        n_sample = sample
         span = b.end_ns - b.start_ns
         frame = ""
+        seen: set[tuple[int, int, int]] = set()  # a short bag's starts can meet one cloud
         for k in range(n_sample):
             start = b.start_ns + span * k // n_sample
-            for _, _, msg in b.messages([lidar], limit=1, start_ns=start):
+            for _, t_ns, msg in b.messages([lidar], limit=1, start_ns=start):
+                if _msg_key(t_ns, msg) in seen:
+                    continue
+                seen.add(_msg_key(t_ns, msg))
                 if not layout:
                     layout = ", ".join(f"{f.name}@{f.offset}:{f.datatype}" for f in msg.fields) \
                         + f" (point_step {msg.point_step}, {msg.height}x{msg.width}, " \
@@ -126,14 +135,17 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
         if counts:
             out.print(f"points per scan ({len(counts)} sampled): min {min(counts)}, "
                       f"median {statistics.median(counts):.0f}, max {max(counts)}")
-        imu_msgs = [m for _, _, m in b.messages([imu], limit=50)]
-        if imu_msgs:
-            batch = imu_msg_arrays(imu_msgs)
+        imu_by_t = {_msg_key(t, m): m for _, t, m in b.messages([imu], limit=50)}
+        if imu_by_t:
+            batch = imu_msg_arrays(list(imu_by_t.values()))
             unit = "g (converted)" if accel_is_in_g(batch.accel_m_s2) else "m/s^2"
-            out.print(f"imu frame '{imu_msgs[0].header.frame_id}', accelerometer in {unit}")
+            first = next(iter(imu_by_t.values()))
+            out.print(f"imu frame '{first.header.frame_id}', accelerometer in {unit}")
             for k in range(1, n_sample):
                 start = b.start_ns + span * k // n_sample
-                imu_msgs += [m for _, _, m in b.messages([imu], limit=50, start_ns=start)]
+                imu_by_t.update((_msg_key(t, m), m)
+                                for _, t, m in b.messages([imu], limit=50, start_ns=start))
+            imu_msgs = list(imu_by_t.values())
             gyro = imu_msg_arrays(imu_msgs).gyro_rad_s
             finite = np.isfinite(gyro).all(axis=1)
             w = float(np.linalg.norm(gyro[finite], axis=1).max()) if finite.any() else np.nan
@@ -157,6 +169,11 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
                       "a run would treat the LiDAR frame as the IMU frame; give --preset, "
                       "--config or run --extrinsic 'tx ty tz qx qy qz qw'", highlight=False,
                       soft_wrap=True)
+
+
+def _msg_key(receive_ns: int, msg: Any) -> tuple[int, int, int]:
+    """A message met twice by ``info``'s sampling (receive time and header stamp)."""
+    return receive_ns, int(msg.header.stamp.sec), int(msg.header.stamp.nanosec)
 
 
 def _extrinsic_origin(preset: str | None, config_file: Path | None) -> str:
