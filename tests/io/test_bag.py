@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import warnings
 from pathlib import Path
@@ -223,27 +224,63 @@ def test_an_upper_case_suffix_is_named_with_the_fix(tmp_path):
         assert {t.name for t in bag.topics()} == {"/points", "/imu"}
 
 
-def test_a_topic_with_an_empty_definition_is_named_as_such(tmp_path):
-    """A ROS1 bag with one topic recorded with an empty message definition (a driver's packet
-    topic): rosbags refuses the bag, and the error says why and how to get the rest, not that
-    the bag is truncated. An encoding the reader does not know is named too."""
+def _packet_topic_bag(path: Path, rig: Path | None) -> Path:
+    """A copy of ``rig`` (or nothing) plus a topic recorded with an empty definition (a driver's
+    packet topic, rosserial)."""
+    from rosbags.highlevel import AnyReader
     from rosbags.rosbag1 import Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from adalio.io.bag import _open_failure
-
     store = get_typestore(Stores.ROS1_NOETIC)
     _, md5 = store.generate_msgdef("std_msgs/msg/UInt8MultiArray")
-    path = tmp_path / "p.bag"
+    msg = store.types["std_msgs/msg/UInt8MultiArray"](
+        layout=store.types["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0),
+        data=np.zeros(4, np.uint8))
     with Writer(path) as w:
         c = w.add_connection("/rslidar_packets", "std_msgs/msg/UInt8MultiArray", msgdef="",
                              md5sum=md5)
-        msg = store.types["std_msgs/msg/UInt8MultiArray"](
-            layout=store.types["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0),
-            data=np.zeros(4, np.uint8))
         w.write(c, bf.T0_NS, store.serialize_ros1(msg, "std_msgs/msg/UInt8MultiArray"))
-    with pytest.raises(BagError, match="empty one.*rosbag filter") as info:
-        Bag(path).open()
-    assert "truncated" not in str(info.value)
+        if rig is not None:
+            with AnyReader([rig]) as r:
+                out = {x.id: w.add_connection(x.topic, x.msgtype, msgdef=x.msgdef.data,
+                                              md5sum=x.digest) for x in r.connections}
+                for x, t, raw in r.messages():
+                    w.write(out[x.id], t, raw)
+    return path
+
+
+def test_a_topic_with_an_empty_definition_is_left_out_and_the_rest_read(tmp_path):
+    """A ROS1 bag with one topic recorded with an empty message definition (a driver's packet
+    topic, rosserial): rosbags refuses the whole bag; adalio reads the other topics with its own
+    ROS1 types, message for message as in the bag without that topic, and warns naming it. A
+    bag with nothing else has no LiDAR topic (the usual error); a damaged one is still an
+    error. An mcap encoding the reader does not know is named too."""
+    from adalio.io.bag import _open_failure
+
+    rig = bf.write_static_rig(tmp_path / "rig.bag", duration_s=0.5, columns=30)
+    path = _packet_topic_bag(tmp_path / "p.bag", rig)
+    with Bag(rig) as bag:
+        want = [(t, s, m.header.stamp.sec, m.header.stamp.nanosec)
+                for t, s, m in bag.messages(["/points", "/imu"])]
+        clouds = [m.data.tobytes() for _, _, m in bag.messages(["/points"])]
+    with pytest.warns(UserWarning, match=r"refuses its message definitions "
+                                         r"\(/rslidar_packets: empty or not matching the type"):
+        bag = Bag(path).open()
+    with contextlib.closing(bag):
+        assert bag.select_topics(SensorConfig()) == ("/points", "/imu")
+        got = [(t, s, m.header.stamp.sec, m.header.stamp.nanosec)
+               for t, s, m in bag.messages(["/points", "/imu"])]
+        assert got == want and len(want) > 100
+        assert [m.data.tobytes() for _, _, m in bag.messages(["/points"])] == clouds
+        assert bag.topic_span_ns("/points") == (want[[w[0] for w in want].index("/points")][1],
+                                                [w for w in want if w[0] == "/points"][-1][1])
+    with pytest.warns(UserWarning, match="refuses its message definitions"):
+        bag = Bag(_packet_topic_bag(tmp_path / "only.bag", None)).open()
+    with contextlib.closing(bag), pytest.raises(BagError, match="PointCloud2"):
+        bag.select_topics(SensorConfig())
+    damaged = tmp_path / "damaged.bag"
+    damaged.write_bytes(path.read_bytes()[:-200])
+    with pytest.raises(BagError, match="cannot read bag"):
+        Bag(damaged).open()
     text = _open_failure(Path("x.mcap"), KeyError("ros1msg"))
     assert "ros1msg" in text and "does not read" in text and "truncated" not in text

@@ -123,6 +123,49 @@ def _open_failure(path: Path, exc: BaseException) -> str:
             "or reindex a ROS1 bag)")
 
 
+class _Ros1OwnTypes:
+    """ROS1 bag files read with adalio's ROS1 message types, for a bag whose embedded message
+    definitions rosbags' ``AnyReader`` refuses as a whole (a topic recorded with an empty or
+    mismatched definition: rosserial, some drivers' packet topics). Only connections whose
+    type adalio's typestore holds with the bag's MD5 sum are read. The part of ``AnyReader``'s
+    interface :class:`Bag` uses."""
+
+    def __init__(self, paths: list[Path], store: Any) -> None:
+        from rosbags.rosbag1 import Reader
+
+        self.store = store
+        self.readers = [Reader(p) for p in paths]
+        self._stack = contextlib.ExitStack()
+        for r in self.readers:
+            self._stack.enter_context(r)
+        every = [c for r in self.readers for c in r.connections]
+        md5 = {t: store.generate_msgdef(t)[1] for t in {c.msgtype for c in every}
+               if t in store.types}
+        self.connections = [c for c in every if md5.get(c.msgtype) == c.digest]
+        self.refused = sorted({c.topic for c in every if not c.msgdef.data or
+                               (c.msgtype in md5 and md5[c.msgtype] != c.digest)})
+        """Topics with an empty definition or a standard type's name under another MD5 sum."""
+        self.unread = sorted({c.topic for c in every} - {c.topic for c in self.connections})
+        """Topics not read: types adalio's typestore does not hold, or another MD5 sum."""
+        self.start_time = min(r.start_time for r in self.readers)
+        self.end_time = max(r.end_time for r in self.readers)
+
+    def messages(self, connections: Any = (), start: int | None = None,
+                 stop: int | None = None) -> Iterator[tuple[Any, int, bytes]]:
+        import heapq
+
+        conns = list(connections) or self.connections
+        gens = [r.messages(connections=[c for c in conns if c.owner is r], start=start,
+                           stop=stop) for r in self.readers if any(c.owner is r for c in conns)]
+        yield from heapq.merge(*gens, key=lambda x: x[1])
+
+    def deserialize(self, raw: bytes, msgtype: str) -> Any:
+        return self.store.deserialize_ros1(raw, msgtype)
+
+    def close(self) -> None:
+        self._stack.close()
+
+
 class Bag:
     """A bag opened for reading. Use as a context manager.
 
@@ -146,9 +189,29 @@ class Bag:
             reader = AnyReader(self.paths, default_typestore=store)
             reader.open()
         except Exception as exc:  # noqa: BLE001  (rosbags raises many types on damaged files)
-            raise BagError(_open_failure(self.path, exc)) from None
+            reader = None if self.is_ros2 else self._open_own_types(store)
+            if reader is None:
+                raise BagError(_open_failure(self.path, exc)) from None
         self._reader = reader
         return self
+
+    def _open_own_types(self, store: Any) -> _Ros1OwnTypes | None:
+        """A ROS1 bag whose files read but whose embedded definitions rosbags refuses, read
+        with adalio's own types (a warning names the topics left out); None if the files do
+        not read either, or no topic is left."""
+        try:
+            reader = _Ros1OwnTypes(self.paths, store)
+        except Exception:  # noqa: BLE001  (damaged files: the caller's error says so)
+            return None
+        if not reader.connections:
+            reader.close()
+            return None
+        unread = f"; not read: {', '.join(reader.unread)}" if reader.unread else ""
+        warnings.warn(f"bag {self.path}: the bag reader (rosbags) refuses its message "
+                      f"definitions ({', '.join(reader.refused) or 'one'}: empty or not matching "
+                      "the type, as rosserial and some drivers' packet topics record); read with "
+                      f"the standard ROS1 message types instead{unread}", stacklevel=3)
+        return reader
 
     def close(self) -> None:
         if self._reader is not None:
