@@ -284,3 +284,38 @@ def test_a_topic_with_an_empty_definition_is_left_out_and_the_rest_read(tmp_path
         Bag(damaged).open()
     text = _open_failure(Path("x.mcap"), KeyError("ros1msg"))
     assert "ros1msg" in text and "does not read" in text and "truncated" not in text
+
+
+def test_split_and_unfinished_recordings_are_named(tmp_path):
+    """One part of a split recording given alone reads that part with a warning to give the
+    folder (ROS1 x_0.bag beside x_1.bag; a ROS2 file beside its metadata.yaml and other parts); a
+    folder of ROS2 files without metadata.yaml says to reindex it; an unfinished ROS1 recording
+    (.bag.active) says to reindex it, not that it is no bag."""
+    import shutil
+
+    (tmp_path / "ros1").mkdir()
+    part = bf.write_static_rig(tmp_path / "ros1" / "x_0.bag", duration_s=0.3, columns=30)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # alone in its folder: no warning
+        Bag(part).open().close()
+    shutil.copy(part, part.with_name("x_1.bag"))
+    with pytest.warns(UserWarning, match=r"x_0\.bag is one part of a split recording \(1 more "
+                                         r"beside it, e\.g\. x_1\.bag\): only this part is read"):
+        Bag(part)
+    r2 = bf.write_static_rig(tmp_path / "r2", "ros2", duration_s=0.3, columns=30)
+    files = sorted(p for p in r2.iterdir() if p.suffix in (".db3", ".mcap"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the bag's one file: no warning
+        Bag(files[0])
+    shutil.copy(files[0], files[0].with_name("extra_1" + files[0].suffix))
+    with pytest.warns(UserWarning, match="is one file of the ROS2 bag .*give the folder"):
+        Bag(files[0])
+    (r2 / "metadata.yaml").unlink()
+    with pytest.raises(BagError, match=r"holds 2 ROS2 bag files .* but no metadata\.yaml: .*"
+                                       r"'ros2 bag reindex "):
+        Bag(r2)
+    active = tmp_path / "y.bag.active"
+    active.write_bytes(part.read_bytes())
+    with pytest.raises(BagError, match=r"unfinished ROS1 recording .*'rosbag reindex .*rename "
+                                       r"it to y\.bag"):
+        Bag(active)

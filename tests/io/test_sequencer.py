@@ -109,7 +109,8 @@ def test_empty_and_uncovered_scans_are_counted():
     st = SequencerStats()
     items = [imu(range(0, 10**9, 5_000_000)), Scan(np.zeros((0, 3)), np.zeros(0, np.int64), 0),
              scan(10**8, 2 * 10**8), scan(2 * 10**9, 2 * 10**9 + 10**8)]
-    with pytest.warns(UserWarning, match="empty scan"):
+    with pytest.warns(UserWarning, match="empty scan"), \
+            pytest.warns(UserWarning, match="1.10 s before the last scan"):
         out = list(merge(items, st))
     assert sum(isinstance(o, Scan) for o in out) == 1
     assert (st.scans_empty, st.scans_after_imu, st.scans_out) == (1, 1, 1)
@@ -155,3 +156,85 @@ def test_scans_before_first_imu_are_skipped():
                       scan(3 * 10**8, 4 * 10**8)], st))
     assert [o.t_end_ns for o in out if isinstance(o, Scan)] == [4 * 10**8]
     assert st.scans_before_imu == 1
+
+
+def test_imu_samples_stamped_alike_with_other_values_are_warned_and_counted():
+    """A driver that stamps a burst of 4 samples with one read time: the first of each stamp is
+    kept (as for exact duplicates, which stay silent), and a warning plus the summary say how
+    many samples with their own values were dropped."""
+    t = np.repeat(np.arange(10**9, 10**9 + 200 * 10_000_000, 10_000_000), 4)  # 800 samples
+    rng = np.random.default_rng(0)
+    burst = ImuBatch(t, rng.normal(size=(t.size, 3)), rng.normal(size=(t.size, 3)))
+    st = SequencerStats()
+    with pytest.warns(UserWarning, match=r"share a stamp with other values \(first at "
+                                         r"1\.000000000 s\)"):
+        out = list(merge([burst, scan(10**9 + 1, 10**9 + 10**8)], st, imu_topic="/imu"))
+    got = np.concatenate([o.t_ns for o in out if isinstance(o, ImuBatch)])
+    assert got.tolist() == np.unique(t).tolist()
+    assert st.imu_conflicting == 600 and st.imu_duplicates == 600
+    assert "dropped 600 of 800 IMU samples on /imu (75 %)" in " ".join(st.messages)
+    st = SequencerStats()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # exact copies are dropped without a word
+        list(merge([imu(t), scan(10**9 + 1, 10**9 + 10**8)], st))
+    assert st.imu_duplicates == 600 and st.imu_conflicting == 0
+
+
+def test_an_imu_ending_long_before_the_lidar_is_a_warning():
+    """Scans past the IMU's last sample are not posed: a note when it is the usual last scan, a
+    warning naming the span when the IMU stopped more than half a second early."""
+    items = [imu(range(0, 10**9, 5_000_000))]
+    items += [scan(k * 10**8 + 1, (k + 1) * 10**8) for k in range(30)]
+    st = SequencerStats()
+    with pytest.warns(UserWarning, match=r"the IMU on /imu ends at 0\.995 s, 2\.01 s before "
+                                         r"the last scan on /pts: its last 21 scans are not posed"):
+        out = list(merge(items, st, imu_topic="/imu", lidar_topic="/pts"))
+    assert sum(isinstance(o, Scan) for o in out) == 9 and st.scans_after_imu == 21
+    st = SequencerStats()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        list(merge([imu(range(0, 10**9, 5_000_000)), scan(1, 10**8),
+                    scan(9 * 10**8, 10**9 + 10**7)], st))
+    assert st.scans_after_imu == 1
+
+
+def _imu_msgs(n, frame="imu", gyro=(0.01, -0.02, 0.03), gyro_cov0=0.0, accel_cov0=0.0,
+              accel=(0.0, 0.0, 9.81)):
+    from types import SimpleNamespace as NS
+
+    def vec(v):
+        return NS(x=v[0], y=v[1], z=v[2])
+
+    return [NS(header=NS(stamp=NS(sec=1, nanosec=k * 2_500_000), frame_id=frame),
+               angular_velocity=vec(gyro), linear_acceleration=vec(accel),
+               angular_velocity_covariance=np.r_[gyro_cov0, np.zeros(8)],
+               linear_acceleration_covariance=np.r_[accel_cov0, np.zeros(8)])
+            for k in range(n)]
+
+
+def test_an_imu_that_says_it_has_no_gyro_or_two_frames_is_an_error():
+    """ROS REP 145's 'not provided' (covariance element 0 = -1) with zero values, in four chunks
+    in a row, is an error naming the field; start-up chunks that say so and then real values
+    pass, as does -1 with real values. Two frames on one topic (two IMUs) is an error naming
+    them; an empty frame id beside one named frame is not."""
+    from adalio.io.sequencer import NOT_PROVIDED_CHUNKS, check_imu_messages, imu_msg_arrays
+
+    def feed(chunks, topic="/imu"):
+        seen: dict = {}
+        for msgs in chunks:
+            check_imu_messages(msgs, imu_msg_arrays(msgs), topic, seen)
+
+    no_gyro = _imu_msgs(64, gyro=(0.0, 0.0, 0.0), gyro_cov0=-1.0)
+    with pytest.raises(InputError, match=r"the IMU on /imu provides no gyro: its messages set "
+                                         r"angular_velocity_covariance\[0\] = -1"):
+        feed([no_gyro] * NOT_PROVIDED_CHUNKS)
+    feed([no_gyro] * (NOT_PROVIDED_CHUNKS - 1) + [_imu_msgs(64)] + [no_gyro] * 9)
+    feed([_imu_msgs(64, gyro_cov0=-1.0)] * 9)  # -1 beside real values: read
+    no_accel = _imu_msgs(64, accel=(0.0, 0.0, 0.0), accel_cov0=-1.0)
+    with pytest.raises(InputError, match=r"provides no accelerometer: its messages set "
+                                         r"linear_acceleration_covariance\[0\] = -1"):
+        feed([no_accel] * NOT_PROVIDED_CHUNKS)
+    with pytest.raises(InputError, match=r"IMU messages on /imu come from more than one frame "
+                                         r"\('cam_imu', 'imu'\): two IMUs publish on the topic"):
+        feed([_imu_msgs(64), _imu_msgs(32) + _imu_msgs(32, frame="cam_imu")])
+    feed([_imu_msgs(64, frame=""), _imu_msgs(64), _imu_msgs(64, frame="")])

@@ -73,17 +73,44 @@ def resolve_bag_paths(path: str | Path) -> tuple[list[Path], bool]:
         mcaps = sorted(p.glob("*.mcap"))
         if len(mcaps) == 1:
             return mcaps, True
+        parts = mcaps + sorted(p.glob("*.db3"))
+        if parts:
+            raise BagError(f"{p} holds {len(parts)} ROS2 bag files ({parts[0].name}, ...) but no "
+                           "metadata.yaml: a recording stopped before it wrote one? Write it "
+                           f"with 'ros2 bag reindex {p}', then give the folder")
         raise BagError(f"{p} is a folder but neither a ROS2 bag (no metadata.yaml) nor a folder "
                        "of ROS1 .bag files: point to the bag itself")
     suffix = p.suffix.lower()
     if suffix in (".bag", ".mcap", ".db3") and p.suffix != suffix:
         raise BagError(f"{p}: the bag reader takes only a lower-case '{suffix}' suffix; rename "
                        f"the file to {p.with_suffix(suffix).name}")
-    if suffix == ".bag":
-        return [p], False
-    if suffix in (".mcap", ".db3"):
-        return [p], True
+    if suffix == ".active" and p.name.lower().endswith(".bag.active"):
+        raise BagError(f"{p} is an unfinished ROS1 recording (rosbag record stopped before it "
+                       f"closed the file): repair it with 'rosbag reindex {p}', rename it to "
+                       f"{p.name[:-len('.active')]} and give that")
+    if suffix in (".bag", ".mcap", ".db3"):
+        _warn_if_split_part(p)
+        return [p], suffix != ".bag"
     raise BagError(f"{p} is not a bag (expected a .bag, .mcap or .db3 file or a ROS2 bag folder)")
+
+
+def _warn_if_split_part(p: Path) -> None:
+    """A warning when ``p`` is one part of a split recording (``x_0.bag`` beside ``x_1.bag``;
+    a ROS2 bag file beside its ``metadata.yaml``): only that part would be read."""
+    if (p.parent / "metadata.yaml").is_file() and p.suffix in (".mcap", ".db3"):
+        if any(q != p for q in p.parent.glob(f"*{p.suffix}")):
+            warnings.warn(f"{p.name} is one file of the ROS2 bag {p.parent} (metadata.yaml and "
+                          "other parts beside it): only this file is read; give the folder to "
+                          "read the whole recording", stacklevel=4)
+        return
+    stem, sep, index = p.stem.rpartition("_")
+    if sep and index.isdigit():
+        others = [q for q in p.parent.glob(f"{stem}_*{p.suffix}")
+                  if q != p and q.stem.rpartition("_")[2].isdigit()]
+        if others:
+            warnings.warn(f"{p.name} is one part of a split recording ({len(others)} more beside "
+                          f"it, e.g. {min(others).name}): only this part is read; give "
+                          "the folder to read them all in time order", stacklevel=4)
 
 
 def _sniff(paths: list[Path], is2: bool) -> None:

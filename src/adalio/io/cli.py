@@ -503,7 +503,7 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
                   f"{_ranges_text(res.held_ranges_s)}", highlight=False, soft_wrap=True)
     if res.sequencer is not None:
         for msg in res.sequencer.messages:
-            if msg.startswith(("skipped", "re-sorted")):
+            if msg.startswith(("skipped", "re-sorted", "dropped")):
                 con.print(f"[yellow]note:[/] {msg}", highlight=False, soft_wrap=True)
     if res.stage_ms:
         n = max(res.n_scans_in, 1)

@@ -31,6 +31,8 @@ IMU_LOOKAHEAD_NS = 10_000_000
 """A scan is released once an IMU sample this much later than its end has been read."""
 IMU_WINDOW_NS = 2_000_000_000
 """IMU samples older than the newest one by more than this are released even without a scan."""
+IMU_ENDS_EARLY_NS = 500_000_000
+"""Scans left after the IMU's last sample by more than this are warned about (a note below)."""
 ACCEL_UNIT_SAMPLES = 50
 """IMU samples averaged to decide whether the accelerometer reports in g."""
 G_TO_M_S2 = 9.80665
@@ -45,6 +47,9 @@ class SequencerStats:
     """IMU samples dropped for a NaN/inf gyro or accel value."""
     imu_first_nonfinite_ns: int | None = None
     imu_duplicates: int = 0
+    imu_conflicting: int = 0
+    """Of ``imu_duplicates``: samples whose stamp another sample had, with other values (a
+    driver that stamps a burst of samples with one read time); only the first is used."""
     imu_reordered: int = 0
     scans_in: int = 0
     scans_out: int = 0
@@ -111,8 +116,19 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
             t, g, a = t[order], g[order], a[order]
         if t.size > 1:
             keep = np.r_[True, np.diff(t) > 0]
-            st.imu_duplicates += int(np.count_nonzero(~keep))
-            t, g, a = t[keep], g[keep], a[keep]
+            if not keep.all():
+                st.imu_duplicates += int(np.count_nonzero(~keep))
+                first = np.maximum.accumulate(np.where(keep, np.arange(t.size), 0))
+                differ = ~keep & (np.any(g != g[first], axis=1) | np.any(a != a[first], axis=1))
+                if differ.any():
+                    if not st.imu_conflicting:
+                        note(f"IMU samples on {imu_topic} share a stamp with other values (first "
+                             f"at {_fmt_s(int(t[differ][0]), 9)} s): the driver stamps several "
+                             "samples with one time (a burst read at once?); only the first of "
+                             "each stamp is used, the others are dropped and counted (fix the "
+                             "driver's stamps to keep them)")
+                    st.imu_conflicting += int(np.count_nonzero(differ))
+                t, g, a = t[keep], g[keep], a[keep]
         k = int(np.searchsorted(t, upto_ns, side="right"))
         imu_t, imu_g, imu_a = [t[k:]], [g[k:]], [a[k:]]
         if k == 0:
@@ -210,6 +226,11 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
     yield from release(final=True)
     if pending:
         st.scans_after_imu += len(pending)
+        if st.scans_out and pending[-1].t_end_ns - (max_imu_t or 0) > IMU_ENDS_EARLY_NS:
+            st.warn(f"the IMU on {imu_topic} ends at {_fmt_s(max_imu_t)} s, "
+                    f"{(pending[-1].t_end_ns - (max_imu_t or 0)) * 1e-9:.2f} s before the last "
+                    f"scan on {lidar_topic}: its last {len(pending)} scans are not posed (no "
+                    "IMU to predict them)")
         pending.clear()
     batch = take_imu(max_imu_t) if max_imu_t is not None else None
     if batch is not None:
@@ -242,6 +263,11 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
                            f"{imu_topic} (first at {_fmt_s(st.imu_first_nonfinite_ns, 3)} s)")
     if st.imu_reordered:
         st.messages.append(f"re-sorted {st.imu_reordered} out-of-order IMU samples on {imu_topic}")
+    if st.imu_conflicting:
+        total = st.imu_samples  # counted as read, before duplicates are dropped
+        st.messages.append(f"dropped {st.imu_conflicting} of {total} IMU samples on {imu_topic} "
+                           f"({100.0 * st.imu_conflicting / max(total, 1):.0f} %): stamped at "
+                           "the time of another sample with other values")
 
 
 def imu_msg_arrays(msgs: list[Any]) -> ImuBatch:
@@ -252,6 +278,44 @@ def imu_msg_arrays(msgs: list[Any]) -> ImuBatch:
     a = np.array([[m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z]
                   for m in msgs], dtype=np.float64).reshape(-1, 3)
     return ImuBatch(t, g, a)
+
+
+NOT_PROVIDED_CHUNKS = 4
+"""IMU chunks in a row whose gyro (or accelerometer) says 'not provided' before that is an error
+(a driver's start-up samples may say so for a while)."""
+
+
+def check_imu_messages(msgs: list[Any], batch: ImuBatch, topic: str, seen: dict) -> None:
+    """InputError for IMU messages adalio cannot use as one IMU: a gyro or accelerometer the
+    messages say they do not provide (ROS REP 145: element 0 of its covariance -1) with all
+    values zero, over ``NOT_PROVIDED_CHUNKS`` chunks in a row before any real value; or samples
+    from more than one (named) frame on the topic: two IMUs publishing on it, which merged would
+    read as one at twice the rate. ``seen`` carries the state between calls."""
+    for what, cov, values in (("gyro", "angular_velocity_covariance", batch.gyro_rad_s),
+                              ("accelerometer", "linear_acceleration_covariance",
+                               batch.accel_m_s2)):
+        if seen.get(what) == -1:
+            continue  # it has given values
+        c = getattr(msgs[0], cov, None)
+        if c is not None and len(c) and float(c[0]) == -1.0 and not np.any(values):
+            seen[what] = seen.get(what, 0) + 1
+            if seen[what] >= NOT_PROVIDED_CHUNKS:
+                raise InputError(f"the IMU on {topic} provides no {what}: its messages set "
+                                 f"{cov}[0] = -1 (ROS: not provided) and the values are zero; "
+                                 "adalio needs a 6-axis IMU (gyro and accelerometer): give "
+                                 "another IMU topic (--imu-topic)")
+        else:
+            seen[what] = -1
+    frames = seen.setdefault("frames", set())
+    new = {m.header.frame_id for m in msgs} - frames - {""}
+    if new:
+        frames |= new
+        if len(frames) > 1:
+            names = ", ".join(f"'{f}'" for f in sorted(frames))
+            raise InputError(f"IMU messages on {topic} come from more than one frame ({names}): "
+                             "two IMUs publish on the topic, and merged they would read as one "
+                             "at twice the rate; record one IMU per topic, or copy the bag with "
+                             "only one of them")
 
 
 def _inverse_unless_identity(S: list[list[float]]) -> np.ndarray | None:
@@ -304,6 +368,7 @@ class Sequencer:
         """Decoded scans and IMU batches in receive order; IMU stamps moved onto the LiDAR's
         clock by ``sensor.imu_time_offset_s``."""
         imu_msgs: list[Any] = []
+        imu_seen: dict = {}
         held: list[ImuBatch | Scan] = []
         offset_ns = round(self.sensor.imu_time_offset_s * 1e9)
 
@@ -314,6 +379,7 @@ class Sequencer:
                 batch = imu_msg_arrays(imu_msgs)
             except (AttributeError, TypeError, ValueError):
                 raise BagError(f"messages on {self.imu_topic} are not sensor_msgs/Imu") from None
+            check_imu_messages(imu_msgs, batch, self.imu_topic, imu_seen)
             imu_msgs.clear()
             if offset_ns:
                 batch.t_ns = batch.t_ns - offset_ns
