@@ -114,3 +114,40 @@ def test_the_forward_run_is_the_same_with_or_without_the_backfill(tmp_path):
     assert rows["0"]["n_moving"].sum() > 1000  # walkers were kept out after the backfill too
     np.testing.assert_array_equal(poses["60"][0], poses["0"][0])
     np.testing.assert_array_equal(poses["60"][1], poses["0"][1])
+
+
+def test_a_run_stopped_by_its_input_keeps_the_backfilled_poses(hall, tmp_path):
+    """A moving start, then an IMU gap longer than imu.max_gap_s: the run stops with its error,
+    and the scans held for the backfill still get their poses (from the state before the gap),
+    written in time order before the forward ones, as in the run of the same bag cut before
+    the gap. (Before session 75 the error skipped the backfill: the trajectory began 2 s late.)"""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag1 import Writer
+
+    from adalio.errors import InputError
+
+    with AnyReader([hall.bag_path]) as r:
+        t0 = r.start_time
+        gap = (t0 + int(6.0e9), t0 + int(7.6e9))
+        cut = tmp_path / "gap.bag"
+        with Writer(cut) as w:
+            conns = {c.id: w.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data,
+                                            md5sum=c.digest) for c in r.connections}
+            for c, t, raw in r.messages():
+                if not (c.msgtype.endswith("Imu") and gap[0] <= t < gap[1]):
+                    w.write(conns[c.id], t, raw)
+    cfg = load_config(config_file=hall.config_path, overrides={"imu.max_gap_s": "1"})
+    with pytest.raises(InputError, match="longer than imu.max_gap_s"):
+        run_bag(cut, cfg, tmp_path / "out", progress=False, start_s=3.0)
+    rows = read_scans_csv(tmp_path / "out" / "scans.csv")
+    t_ns, _ = read_tum(tmp_path / "out" / "trajectory.tum")
+    assert np.all(np.diff(t_ns) > 0) and len(t_ns) == len(rows["t_s"])
+    assert rows["backfill"].sum() >= 5 and np.all(np.diff(rows["backfill"]) <= 0)
+    ok = run_bag(hall.bag_path, cfg, tmp_path / "ok", progress=False, start_s=3.0)
+    t_ok, _ = read_tum(ok.trajectory_path)
+    assert t_ns[0] == t_ok[0] and t_ns[-1] > hall_t(6.0, t0)
+    assert float(ate(tmp_path / "out" / "trajectory.tum", hall.gt_path)["rmse_m"]) < 0.03
+
+
+def hall_t(s: float, t0_ns: int) -> int:
+    return t0_ns + int(s * 1e9)

@@ -949,6 +949,14 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
                         write(e, 0.0)
         except KeyboardInterrupt:
             interrupted = True
+        except (BagError, InputError):
+            # the input stops the run: the scans held for the backfill still get their poses
+            # (from the state before the fault), as at the data's end; the error is raised as is
+            with contextlib.suppress(Exception):
+                odom.finish()
+                for e in odom.take_backfill():
+                    write(e, 0.0)
+            raise
         finally:
             tum.close()
             csvw.close()
