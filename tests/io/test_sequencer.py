@@ -238,3 +238,84 @@ def test_an_imu_that_says_it_has_no_gyro_or_two_frames_is_an_error():
                                          r"\('cam_imu', 'imu'\): two IMUs publish on the topic"):
         feed([_imu_msgs(64), _imu_msgs(32) + _imu_msgs(32, frame="cam_imu")])
     feed([_imu_msgs(64, frame=""), _imu_msgs(64), _imu_msgs(64, frame="")])
+
+
+def _clock(d_lidar_s, d_imu_s, n=(10, 200), spread_s=0.0):
+    """A ClockCheck fed stamps minus receive times (seconds), receive times spread as given."""
+    from adalio.io.sequencer import ClockCheck
+
+    c = ClockCheck("/pts", "/imu")
+    rng = np.random.default_rng(1)
+    for k in range(n[1]):
+        t = 10**18 + k * 2_500_000
+        c.add_imu(t + int(rng.uniform(0, spread_s) * 1e9), t + int(d_imu_s * 1e9))
+    for k in range(n[0]):
+        t = 10**18 + k * 100_000_000
+        c.add_scan(t + int(rng.uniform(0, spread_s) * 1e9), t + int(d_lidar_s * 1e9))
+    c.check()
+    return c
+
+
+def test_clock_check_tells_a_clock_ahead_from_its_receive_times():
+    """Stamps ahead of their receive times on one topic only: that clock runs ahead (an error
+    with the setting that moves the IMU onto the LiDAR's clock, or a re-stamp beyond 1 s). Both
+    ahead alike, ordinary latencies, or receive times that spread (one time for the whole bag)
+    say nothing. Scans received long after their end while the IMU is not: a warning, as late
+    delivery cannot be told from a LiDAR clock behind."""
+    with pytest.raises(InputError, match=r"the stamps on /pts run 0\.500 s ahead of the times "
+                                         r"the bag received them, and those on /imu -0\.002 s: "
+                                         r"the LiDAR's clock runs about 0\.50 s ahead of the "
+                                         r"IMU's.*sensor\.imu_time_offset_s: -0\.502"):
+        _clock(0.5, -0.002)
+    with pytest.raises(InputError, match=r"the IMU's clock runs about 0\.33 s ahead of the "
+                                         r"LiDAR's.*sensor\.imu_time_offset_s: 0\.330"):
+        _clock(-0.03, 0.3)
+    with pytest.raises(InputError, match=r"re-stamp the bag \(sensor\.imu_time_offset_s "
+                                         r"reaches 1 s\)"):
+        _clock(1.5, 0.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _clock(0.7, 0.7)  # both clocks ahead of the recorder's alike
+        _clock(-0.08, -0.004)  # a driver's latency
+        _clock(0.8, 0.0, spread_s=5.0)  # receive times that tell nothing
+        _clock(0.2, 0.0)  # within the margin
+    with pytest.warns(UserWarning, match=r"scans on /pts end 1\.00 s before the bag received "
+                                         r"them, IMU samples on /imu 0\.00 s: either the clouds "
+                                         r"came 1\.00 s late \(harmless\), or the LiDAR's clock "
+                                         r"runs 1\.00 s behind.*imu_time_offset_s: 1\.000"):
+        _clock(-1.0, 0.0)
+    with pytest.warns(UserWarning, match=r"behind the IMU's.*\(then re-stamp the bag\)"):
+        _clock(-1.5, 0.0)
+
+
+def test_a_lidar_clock_ahead_stops_the_sequencer_reading_a_bag(tmp_path):
+    """The receive times reach the check through a real bag: the static rig with its clouds'
+    header stamps moved 0.5 s ahead (their per-point times are relative) is an error naming
+    both topics; the rig as written reads without one."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag1 import Writer
+
+    import bagfactory as bf
+    from adalio.config import SensorConfig
+    from adalio.io.bag import Bag, ros1_typestore
+    from adalio.io.sequencer import Sequencer
+
+    rig = bf.write_static_rig(tmp_path / "rig.bag", duration_s=3.0, columns=60)
+    ahead = tmp_path / "ahead.bag"
+    store = ros1_typestore()
+    with AnyReader([rig], default_typestore=store) as r, Writer(ahead) as w:
+        conns = {c.id: w.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data,
+                                        md5sum=c.digest) for c in r.connections}
+        for c, t, raw in r.messages():
+            if c.topic == "/points":
+                msg = r.deserialize(raw, c.msgtype)
+                ns = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec + 500_000_000
+                msg.header.stamp = type(msg.header.stamp)(sec=ns // 10**9, nanosec=ns % 10**9)
+                raw = store.serialize_ros1(msg, c.msgtype)
+            w.write(conns[c.id], t, raw)
+    with Bag(rig) as b, warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert sum(isinstance(i, Scan) for i in Sequencer(b, "/points", "/imu", SensorConfig()))
+    with Bag(ahead) as b, pytest.raises(InputError, match=r"the stamps on /points run 0\.4\d\d s "
+                                                          r"ahead .* those on /imu \+0\.000 s"):
+        list(Sequencer(b, "/points", "/imu", SensorConfig()))

@@ -14,6 +14,7 @@ naming the topic and the first bad stamp. Times are int64 ns; IMU in rad/s and m
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -245,6 +246,13 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
         raise InputError(f"all {st.imu_nonfinite} IMU samples on {imu_topic} have NaN/inf "
                          f"values (first at {_fmt_s(st.imu_first_nonfinite_ns, 9)} s); check "
                          "the IMU topic (--imu-topic) and its driver")
+    if usable and st.scans_out == 0 and st.scans_late:
+        raise InputError(f"{st.scans_late} of {usable} scans on {lidar_topic} arrived more than "
+                         f"{window_ns * 1e-9:.1f} s after the IMU samples on {imu_topic} of their "
+                         "time, and were skipped: their stamps run behind the IMU's (a LiDAR "
+                         "clock behind the IMU's, or clouds recorded that late); set "
+                         "sensor.imu_time_offset_s (the IMU's stamps minus the LiDAR's) or "
+                         "re-stamp the bag")
     if usable and st.scans_out == 0:
         raise InputError(f"IMU on {imu_topic} ({_fmt_s(st.imu_first_ns)}..{_fmt_s(st.imu_last_ns)}"
                          f" s, {st.imu_samples} samples) does not cover any scan on {lidar_topic} "
@@ -280,6 +288,17 @@ def imu_msg_arrays(msgs: list[Any]) -> ImuBatch:
     return ImuBatch(t, g, a)
 
 
+CLOCK_AHEAD_S = 0.25
+"""A topic whose stamps run this far ahead of the times the bag received its messages, while
+the other topic's do not, is on another clock (:class:`ClockCheck`)."""
+CLOCK_BEHIND_S = 0.5
+"""Scans received this much later after their end than IMU samples after their stamps are
+warned about: late clouds, or a LiDAR clock behind the IMU's (:class:`ClockCheck`)."""
+CLOCK_CHECK_COUNTS = (10, 200)
+"""Scans and IMU samples whose stamps are compared with their receive times."""
+CLOCK_SPREAD_S = 0.1
+"""Receive times whose offsets from the stamps spread more than this (median absolute
+deviation; a bag written with one receive time for all) tell nothing: the check is skipped."""
 NOT_PROVIDED_CHUNKS = 4
 """IMU chunks in a row whose gyro (or accelerometer) says 'not provided' before that is an error
 (a driver's start-up samples may say so for a while)."""
@@ -316,6 +335,74 @@ def check_imu_messages(msgs: list[Any], batch: ImuBatch, topic: str, seen: dict)
                              "two IMUs publish on the topic, and merged they would read as one "
                              "at twice the rate; record one IMU per topic, or copy the bag with "
                              "only one of them")
+
+
+class ClockCheck:
+    """Whether the LiDAR's and the IMU's stamps are on one clock, from the bag's receive times.
+
+    A message cannot be received before the instant its stamp names, so stamps that run ahead
+    of their receive times by over ``CLOCK_AHEAD_S`` on one topic but not on the other mean
+    that topic's clock runs ahead of the other's (a LiDAR on its own or PTP time, an IMU on the
+    recorder's). adalio pairs the two by their stamps, so that would be a silent error (the 8 s
+    hall 12.8 cm off at 0.5 s). Stamps that run behind their receive times are not told apart
+    from late delivery, which is harmless, and are left to the sequencer's other checks. The
+    LiDAR's offset is its scans' end (the last point's time) minus the receive time; the IMU's
+    is its stamp, moved by ``sensor.imu_time_offset_s``, minus the receive time."""
+
+    def __init__(self, lidar_topic: str, imu_topic: str) -> None:
+        self.lidar_topic, self.imu_topic = lidar_topic, imu_topic
+        self.d_lidar: list[int] = []
+        self.d_imu: list[int] = []
+        self.done = False
+
+    def add_imu(self, recv_ns: int, stamp_ns: int) -> None:
+        if len(self.d_imu) < CLOCK_CHECK_COUNTS[1]:
+            self.d_imu.append(stamp_ns - recv_ns)
+
+    def add_scan(self, recv_ns: int, end_ns: int) -> None:
+        if len(self.d_lidar) < CLOCK_CHECK_COUNTS[0]:
+            self.d_lidar.append(end_ns - recv_ns)
+        if (len(self.d_lidar), len(self.d_imu)) >= CLOCK_CHECK_COUNTS:
+            self.check()
+
+    def check(self) -> None:
+        """InputError if one topic's stamps run ahead of the other's (see the class)."""
+        if self.done or not self.d_lidar or not self.d_imu:
+            return
+        self.done = True
+        d = {}
+        for name, vals in (("lidar", self.d_lidar), ("imu", self.d_imu)):
+            v = np.asarray(vals, dtype=np.float64) * 1e-9
+            med = float(np.median(v))
+            if float(np.median(np.abs(v - med))) > CLOCK_SPREAD_S:
+                return
+            d[name] = med
+        for ahead, other in (("lidar", "imu"), ("imu", "lidar")):
+            lead = d[ahead] - d[other]
+            if d[ahead] > CLOCK_AHEAD_S and lead > CLOCK_AHEAD_S:
+                topic = {"lidar": self.lidar_topic, "imu": self.imu_topic}
+                fix = -lead if ahead == "lidar" else lead
+                how = (f"set sensor.imu_time_offset_s: {fix:.3f} (the IMU's stamps minus the "
+                       "LiDAR's) or re-stamp the bag" if abs(fix) <= 1.0 else
+                       "re-stamp the bag (sensor.imu_time_offset_s reaches 1 s)")
+                raise InputError(
+                    f"the stamps on {topic[ahead]} run {d[ahead]:.3f} s ahead of the times the "
+                    f"bag received them, and those on {topic[other]} "
+                    f"{round(d[other], 3) + 0.0:+.3f} s: the "
+                    f"{'LiDAR' if ahead == 'lidar' else 'IMU'}'s clock runs about {lead:.2f} s "
+                    f"ahead of the {'IMU' if ahead == 'lidar' else 'LiDAR'}'s, and adalio pairs "
+                    f"the two by their stamps; {how}")
+        lag = d["imu"] - d["lidar"]
+        if lag > CLOCK_BEHIND_S:
+            fix = (f"set sensor.imu_time_offset_s: {lag:.3f}, the IMU's stamps minus the "
+                   "LiDAR's, or re-stamp the bag" if lag <= 1.0 else "re-stamp the bag")
+            warnings.warn(
+                f"scans on {self.lidar_topic} end {round(-d['lidar'], 2) + 0.0:.2f} s before "
+                f"the bag received them, IMU samples on {self.imu_topic} "
+                f"{round(-d['imu'], 2) + 0.0:.2f} s: either the clouds came {lag:.2f} s late "
+                f"(harmless), or the LiDAR's clock runs {lag:.2f} s behind the IMU's, which "
+                "adalio cannot tell from the bag and which would pair each scan with the wrong "
+                f"IMU samples (then {fix})", stacklevel=2)
 
 
 def _inverse_unless_identity(S: list[list[float]]) -> np.ndarray | None:
@@ -417,10 +504,14 @@ class Sequencer:
                     yield scaled(h)
                 held.clear()
 
-        for topic, _, msg in self.bag.messages([self.lidar_topic, self.imu_topic],
-                                               start_ns=self.start_ns):
+        clock = ClockCheck(self.lidar_topic, self.imu_topic)
+        for topic, t_recv, msg in self.bag.messages([self.lidar_topic, self.imu_topic],
+                                                    start_ns=self.start_ns):
             if topic == self.imu_topic:
                 imu_msgs.append(msg)
+                if not clock.done:
+                    with contextlib.suppress(AttributeError, TypeError, ValueError):
+                        clock.add_imu(t_recv, stamp_to_ns(msg.header.stamp) - offset_ns)
                 if len(imu_msgs) >= self.imu_chunk:
                     held.append(flush_imu())
                     yield from decide(False)
@@ -434,7 +525,10 @@ class Sequencer:
                     raise BagError(f"messages on {self.lidar_topic} are not "
                                    "sensor_msgs/PointCloud2") from None
                 held.append(scan)
+                if not clock.done and len(scan):
+                    clock.add_scan(t_recv, scan.t_end_ns)
                 yield from decide(False)
+        clock.check()
         batch = flush_imu()
         if batch is not None:
             held.append(batch)
