@@ -133,7 +133,10 @@ def test_imu_not_covering_scans(monkeypatch, capsys, tmp_path):
     assert_one_line_error(code, err, "IMU on /imu", "does not cover any scan on /points")
 
 
-def test_non_monotonic_imu_stamps(monkeypatch, capsys, tmp_path):
+@pytest.mark.parametrize("n_back", [1, 3])
+def test_non_monotonic_imu_stamps(monkeypatch, capsys, tmp_path, n_back):
+    """IMU samples stamped 3 s back: one is a stamp glitch, dropped with a warning, and the run
+    completes; three in a row are the clock going back, one error line (no glitch warning)."""
     path = tmp_path / "backwards.bag"
     pts, t_rel, _ = bf.box_scan(columns=30)
     cols = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "t": t_rel}
@@ -141,14 +144,20 @@ def test_non_monotonic_imu_stamps(monkeypatch, capsys, tmp_path):
     with BagWriter(path) as w:
         for k in range(1000):
             t = bf.T0_NS + k * 5_000_000
-            stamp = t - 3_000_000_000 if k == 800 else t
+            stamp = t - 3_000_000_000 if 800 <= k < 800 + n_back else t
             w.add_imu("/imu", stamp, [0, 0, 0], [0, 0, 9.81], t_recv_ns=t)
             if k % 20 == 0 and k:
                 w.add_cloud("/points", t - 100_000_000, cols, layout, 16, t_recv_ns=t + 1)
     code, _, err = run_cli(monkeypatch, capsys, "run", path, "--out", tmp_path / "o",
                            "--no-progress")
-    assert_one_line_error(code, err, "IMU stamps on /imu go backwards: 1700000001.000000000 s",
-                          "re-stamp")
+    if n_back == 1:
+        assert code == 0, err
+        assert "IMU sample on /imu stamped 1700000001.000000000 s, 2.795 s before samples " \
+               "already used (a stamp glitch?)" in err
+        assert "dropped 1 IMU samples on /imu stamped before samples already used" in err
+    else:
+        assert_one_line_error(code, err, "IMU stamps on /imu go backwards: 1700000001.00",
+                              "over 3 samples in a row", "re-stamp")
 
 
 def test_non_monotonic_scan_stamps(monkeypatch, capsys, tmp_path):
@@ -161,7 +170,7 @@ def test_non_monotonic_scan_stamps(monkeypatch, capsys, tmp_path):
             t = bf.T0_NS + k * 5_000_000
             w.add_imu("/imu", t, [0, 0, 0], [0, 0, 9.81])
             if k % 20 == 0 and k:
-                stamp = t - 100_000_000 - (500_000_000 if k == 400 else 0)
+                stamp = t - 100_000_000 - (2_500_000_000 if k == 400 else 0)
                 w.add_cloud("/points", stamp, cols, layout, 16, t_recv_ns=t + 1)
     code, _, err = run_cli(monkeypatch, capsys, "run", path, "--out", tmp_path / "o",
                            "--no-progress")

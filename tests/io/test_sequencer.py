@@ -68,15 +68,47 @@ def test_small_imu_reordering_is_absorbed():
 
 
 def test_imu_going_backwards_beyond_window_is_error():
-    items = [imu(range(10**9, 12 * 10**8, 5_000_000)), scan(10**9 + 1, 10**9 + 10**8),
-             imu(range(12 * 10**8, 5 * 10**9, 5_000_000)), imu([10**9 + 7])]
-    with pytest.raises(InputError, match=r"IMU stamps on /imu go backwards: 1\.000000007 s"):
-        list(merge(items, imu_topic="/imu"))
+    """IMU samples stamped before samples already used: up to two in a row are a stamp glitch
+    (dropped, a warning once the stream goes on, counted), also split over chunks; three in a
+    row, in one chunk or over several, are the clock going back: an error, and no warning."""
+    head = [imu(range(10**9, 12 * 10**8, 5_000_000)), scan(10**9 + 1, 10**9 + 10**8),
+            imu(range(12 * 10**8, 5 * 10**9, 5_000_000))]
+    with pytest.raises(InputError, match=r"IMU stamps on /imu go backwards: 1\.000000007 s .*"
+                                         r"over 3 samples in a row"):
+        list(merge([*head, imu([10**9 + 7, 10**9 + 8, 10**9 + 9])], imu_topic="/imu"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no glitch warning before the error: it was none
+        with pytest.raises(InputError, match=r"over 3 samples in a row"):
+            list(merge([*head, imu([10**9 + 7, 10**9 + 8]), imu([10**9 + 9, 5 * 10**9])],
+                       imu_topic="/imu"))
+    st = SequencerStats()
+    tail = [imu([10**9 + 7, 5 * 10**9 + 1]), imu([5 * 10**9 + 2, 10**9 + 8]),
+            imu([5 * 10**9 + 3, 5 * 10**9 + 4])]
+    with pytest.warns(UserWarning, match=r"IMU sample on /imu stamped 1\.000000007 s, 1\.995 s "
+                                         r"before samples already used \(a stamp glitch\?\)"):
+        out = list(merge([*head, *tail], st, imu_topic="/imu"))
+    got = np.concatenate([o.t_ns for o in out if isinstance(o, ImuBatch)])
+    assert np.all(np.diff(got) > 0) and st.imu_glitches == 2
+    assert 10**9 + 7 not in got and 5 * 10**9 + 4 in got
 
 
 def test_scan_end_going_backwards_is_error():
+    """A scan ending at or before one already processed: within the IMU window a cloud recorded
+    out of order or twice, skipped with a warning and counted; beyond it an error that points
+    at the time settings."""
     items = [imu(range(0, 3 * 10**8, 5_000_000)), scan(10**8, 2 * 10**8),
-             imu(range(3 * 10**8, 4 * 10**8, 5_000_000)), scan(2 * 10**8 - 10**7, 2 * 10**8 - 10)]
+             imu(range(3 * 10**8, 4 * 10**8, 5_000_000)), scan(2 * 10**8 - 10**7, 2 * 10**8 - 10),
+             scan(10**8, 2 * 10**8), imu(range(4 * 10**8, 6 * 10**8, 5_000_000)),
+             scan(2 * 10**8 + 1, 3 * 10**8)]
+    st = SequencerStats()
+    with pytest.warns(UserWarning, match=r"scan on /pts ending at 0\.199 s arrived after the "
+                                         r"scan ending at 0\.200 s was processed"):
+        out = list(merge(items, st, lidar_topic="/pts"))
+    assert [o.t_end_ns for o in out if isinstance(o, Scan)] == [2 * 10**8, 3 * 10**8]
+    assert st.scans_out_of_order == 2
+    assert "skipped 2 scans arriving after later ones" in " ".join(st.messages)
+    items = [imu(range(0, 3 * 10**9, 5_000_000)), scan(27 * 10**8, 28 * 10**8),
+             imu(range(3 * 10**9, 4 * 10**9, 5_000_000)), scan(5 * 10**8, 6 * 10**8)]
     with pytest.raises(InputError, match="scan end times on /pts go backwards"):
         list(merge(items, lidar_topic="/pts"))
 
@@ -292,10 +324,10 @@ def test_a_lidar_clock_ahead_stops_the_sequencer_reading_a_bag(tmp_path):
     """The receive times reach the check through a real bag: the static rig with its clouds'
     header stamps moved 0.5 s ahead (their per-point times are relative) is an error naming
     both topics; the rig as written reads without one."""
+    import bagfactory as bf
     from rosbags.highlevel import AnyReader
     from rosbags.rosbag1 import Writer
 
-    import bagfactory as bf
     from adalio.config import SensorConfig
     from adalio.io.bag import Bag, ros1_typestore
     from adalio.io.sequencer import Sequencer
@@ -319,3 +351,30 @@ def test_a_lidar_clock_ahead_stops_the_sequencer_reading_a_bag(tmp_path):
     with Bag(ahead) as b, pytest.raises(InputError, match=r"the stamps on /points run 0\.4\d\d s "
                                                           r"ahead .* those on /imu \+0\.000 s"):
         list(Sequencer(b, "/points", "/imu", SensorConfig()))
+
+
+def test_an_imu_clock_stepping_back_is_told_from_reordered_messages():
+    """An IMU clock that steps back 37 ms mid-recording lays two stretches over each other: once
+    sorted, samples follow each other closer than a quarter period, an error that says so and
+    how far it went back. Messages recorded out of order (jittered by up to 30 ms) sort into
+    the regular stamps they had: bridged, every sample kept."""
+    period = 2_500_000
+    t = np.arange(10**9, 10**9 + 1200 * period, period)
+    stepped = np.r_[t[:600], t[600:] - 37_000_000]
+    scans = [scan(int(t[0]) + k * 10**8 + 1, int(t[0]) + (k + 1) * 10**8) for k in range(28)]
+    def recorded(recv, stamps, scan_latency_ns):
+        events = sorted([(int(r), 0, imu([int(s)])) for r, s in zip(recv, stamps, strict=True)] +
+                        [(s.t_end_ns + scan_latency_ns, 1, s) for s in scans],
+                        key=lambda e: e[:2])
+        return [e[2] for e in events]
+
+    with pytest.raises(InputError, match=r"IMU stamps on /imu overlap from .* less than a quarter "
+                                         r"of the IMU's period \(2\.50 ms\).* stepped back by "
+                                         r"about 0\.03\d s"):
+        list(merge(recorded(t, stepped, 5_000_000), imu_topic="/imu"))
+    rng = np.random.default_rng(2)
+    events = recorded(t + rng.integers(0, 30_000_000, t.size), t, 40_000_000)
+    st = SequencerStats()
+    out = list(merge(events, st))
+    got = np.concatenate([o.t_ns for o in out if isinstance(o, ImuBatch)])
+    assert got.tolist() == t.tolist() and st.imu_reordered > 100

@@ -28,8 +28,18 @@ from adalio.io.bag import Bag
 from adalio.io.pointcloud2 import CloudDecoder, stamp_to_ns
 from adalio.types import ImuBatch, Scan
 
-IMU_LOOKAHEAD_NS = 10_000_000
-"""A scan is released once an IMU sample this much later than its end has been read."""
+IMU_LOOKAHEAD_NS = 50_000_000
+"""A scan is released once an IMU sample this much later than its end has been read: IMU
+messages recorded up to this much out of order are sorted in (10 ms before session 75)."""
+IMU_OVERLAP_SAMPLES = 4
+"""Samples that, once a held batch is re-sorted, follow another by less than a quarter of the
+IMU's period (or share its stamp with other values): two stretches laid over each other, the
+IMU's clock stepped back (an error; bag-order jitter leaves the sorted stamps regular)."""
+IMU_PERIOD_SAMPLES = 32
+"""Samples of the first held batch in order that measure the IMU's period."""
+IMU_GLITCH_SAMPLES = 2
+"""IMU samples in a row stamped before samples already used that are dropped as a stamp glitch
+(a seconds/nanoseconds roll-over); more in a row are the clock going back, an error."""
 IMU_WINDOW_NS = 2_000_000_000
 """IMU samples older than the newest one by more than this are released even without a scan."""
 IMU_ENDS_EARLY_NS = 500_000_000
@@ -52,6 +62,12 @@ class SequencerStats:
     """Of ``imu_duplicates``: samples whose stamp another sample had, with other values (a
     driver that stamps a burst of samples with one read time); only the first is used."""
     imu_reordered: int = 0
+    imu_glitches: int = 0
+    """IMU samples dropped for a stamp before samples already used, at most
+    ``IMU_GLITCH_SAMPLES`` in a row."""
+    scans_out_of_order: int = 0
+    """Scans skipped for ending at or before a scan already processed (a cloud recorded out of
+    order, or twice), within the IMU window."""
     scans_in: int = 0
     scans_out: int = 0
     scans_empty: int = 0
@@ -95,6 +111,10 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
     released_scan_end: int | None = None
     max_imu_t: int | None = None
     held: list[str] = []
+    glitch_run = 0
+    glitch_note: list[str] = []
+    imu_period_ns = 0
+    """The IMU's sampling period (median), from the first held batch in order."""
 
     def note(text: str) -> None:
         """Warn once a scan has gone out; until then hold the text, so that a stream that ends
@@ -108,13 +128,34 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
         nonlocal imu_t, imu_g, imu_a, released_imu_t
         if not imu_t:
             return None
+        nonlocal imu_period_ns
         t = np.concatenate(imu_t)
         g = np.concatenate(imu_g)
         a = np.concatenate(imu_a)
+        jump = 0
         if t.size > 1 and np.any(np.diff(t) < 0):
+            jump = int(np.max(np.maximum.accumulate(t)[:-1] - t[1:]))
             order = np.argsort(t, kind="stable")
             st.imu_reordered += int(np.count_nonzero(np.diff(t) < 0))
             t, g, a = t[order], g[order], a[order]
+        if t.size > 1 and jump and imu_period_ns:
+            d = np.diff(t)
+            copy = (d == 0) & np.all(g[1:] == g[:-1], axis=1) & np.all(a[1:] == a[:-1], axis=1)
+            close = (d < imu_period_ns // 4) & ~copy
+            if int(np.count_nonzero(close)) >= IMU_OVERLAP_SAMPLES:
+                t_close = t[1:][close]
+                jump = max(jump, int(t_close[-1] - t_close[0]) + imu_period_ns)
+                raise InputError(f"IMU stamps on {imu_topic} overlap from {_fmt_s(int(t_close[0]))} "
+                                 f"to {_fmt_s(int(t_close[-1]))} s: once sorted, "
+                                 f"{int(np.count_nonzero(close))} samples follow another by less "
+                                 f"than a quarter of the IMU's period "
+                                 f"({imu_period_ns * 1e-6:.2f} ms), as two stretches laid over "
+                                 f"each other: the IMU's clock stepped back by about "
+                                 f"{jump * 1e-9:.3f} s mid-recording (or two IMUs publish on the "
+                                 "topic); re-stamp the bag")
+        elif t.size >= IMU_PERIOD_SAMPLES and not imu_period_ns:
+            d = np.diff(t)
+            imu_period_ns = int(np.median(d[d > 0])) if np.any(d > 0) else 0
         if t.size > 1:
             keep = np.r_[True, np.diff(t) > 0]
             if not keep.all():
@@ -137,6 +178,16 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
         released_imu_t = int(t[k - 1])
         return ImuBatch(t[:k].copy(), g[:k].copy(), a[:k].copy())
 
+    def out_of_order(end: int) -> None:
+        """A scan ending at or before one already processed, within the IMU window: skipped."""
+        st.scans_out_of_order += 1
+        if st.scans_out_of_order == 1:
+            again = "again (the cloud recorded twice?)" if end == released_scan_end else \
+                f"after the scan ending at {_fmt_s(released_scan_end)} s was processed (a cloud " \
+                "recorded out of order?)"
+            note(f"scan on {lidar_topic} ending at {_fmt_s(end)} s arrived {again}: skipped; "
+                 "further ones are counted")
+
     def release(final: bool) -> Iterator[ImuBatch | Scan]:
         nonlocal released_scan_end
         pending.sort(key=lambda s: s.t_end_ns)
@@ -144,6 +195,9 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
                 max_imu_t >= pending[0].t_end_ns + lookahead_ns
                 or (final and max_imu_t >= pending[0].t_end_ns)):
             scan = pending.pop(0)
+            if released_scan_end is not None and scan.t_end_ns <= released_scan_end:
+                out_of_order(scan.t_end_ns)
+                continue
             batch = take_imu(scan.t_end_ns)
             if batch is not None:
                 yield batch
@@ -177,11 +231,35 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
                 item = ImuBatch(t, item.gyro_rad_s[finite], item.accel_m_s2[finite])
                 if t.size == 0:
                     continue
-            if released_imu_t is not None and int(t.min()) < released_imu_t:
-                bad = int(t[t < released_imu_t][0])
-                raise InputError(f"IMU stamps on {imu_topic} go backwards: {_fmt_s(bad, 9)} s "
-                                 f"after {_fmt_s(released_imu_t, 9)} s; the bag is not "
-                                 "time-consistent (re-stamp or sort the IMU topic)")
+            back = t < released_imu_t if released_imu_t is not None else None
+            if back is not None and back.any():
+                run = glitch_run + (back.size if back.all() else int(back.argmin()))
+                glitch_run = run if back.all() else int(back[::-1].argmin()) if back[-1] else 0
+                if int(back.sum()) > IMU_GLITCH_SAMPLES or run > IMU_GLITCH_SAMPLES:
+                    bad = int(t[back][0])
+                    raise InputError(f"IMU stamps on {imu_topic} go backwards: {_fmt_s(bad, 9)} "
+                                     f"s after {_fmt_s(released_imu_t, 9)} s, over "
+                                     f"{max(int(back.sum()), run)} samples in a row (more "
+                                     "than a stamp glitch): the IMU's clock went back, or the "
+                                     "bag is not in time order; re-stamp or sort the IMU topic")
+                if not st.imu_glitches:  # said once the stream goes on (else it is the error)
+                    bad = int(t[back][0])
+                    glitch_note.append(f"IMU sample on {imu_topic} stamped {_fmt_s(bad, 9)} s, "
+                                       f"{(released_imu_t - bad) * 1e-9:.3f} s before samples "
+                                       "already used (a stamp glitch?): dropped; further ones "
+                                       "are counted")
+                st.imu_glitches += int(back.sum())
+                if not back[-1]:
+                    while glitch_note:
+                        note(glitch_note.pop())
+                t = t[~back]
+                item = ImuBatch(t, item.gyro_rad_s[~back], item.accel_m_s2[~back])
+                if t.size == 0:
+                    continue
+            elif back is not None:
+                glitch_run = 0
+                while glitch_note:
+                    note(glitch_note.pop())
             if released_imu_t is not None:
                 dup = t == released_imu_t
                 if dup.any():
@@ -208,6 +286,10 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
                 continue
             end = item.t_end_ns
             st.scan_first_end_ns = end if st.scan_first_end_ns is None else st.scan_first_end_ns
+            if released_scan_end is not None and end <= released_scan_end and \
+                    released_scan_end - end < window_ns:
+                out_of_order(end)
+                continue
             if released_scan_end is not None and end <= released_scan_end:
                 raise InputError(f"scan end times on {lidar_topic} go backwards: "
                                  f"{_fmt_s(end, 9)} s after {_fmt_s(released_scan_end, 9)} s; "
@@ -225,6 +307,8 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
             pending.append(item)
         yield from release(final=False)
     yield from release(final=True)
+    while glitch_note:
+        note(glitch_note.pop())
     if pending:
         st.scans_after_imu += len(pending)
         if st.scans_out and pending[-1].t_end_ns - (max_imu_t or 0) > IMU_ENDS_EARLY_NS:
@@ -263,7 +347,8 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
     for n, what in ((st.scans_empty, "empty scans"),
                     (st.scans_before_imu, "scans before the first IMU sample"),
                     (st.scans_after_imu, "scans after the last IMU sample"),
-                    (st.scans_late, "scans arriving later than the IMU window")):
+                    (st.scans_late, "scans arriving later than the IMU window"),
+                    (st.scans_out_of_order, "scans arriving after later ones (twice?)")):
         if n:
             st.messages.append(f"skipped {n} {what}")
     if st.imu_nonfinite:
@@ -271,6 +356,9 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
                            f"{imu_topic} (first at {_fmt_s(st.imu_first_nonfinite_ns, 3)} s)")
     if st.imu_reordered:
         st.messages.append(f"re-sorted {st.imu_reordered} out-of-order IMU samples on {imu_topic}")
+    if st.imu_glitches:
+        st.messages.append(f"dropped {st.imu_glitches} IMU samples on {imu_topic} stamped before "
+                           "samples already used (stamp glitches)")
     if st.imu_conflicting:
         total = st.imu_samples  # counted as read, before duplicates are dropped
         st.messages.append(f"dropped {st.imu_conflicting} of {total} IMU samples on {imu_topic} "
