@@ -257,6 +257,29 @@ def test_cli_json_and_table(synthetic_pair):
     assert isinstance(out.exception, AdalioError)
 
 
+@pytest.mark.parametrize("text, deltas", [("1 5", (1.0, 5.0)), ("1, 5", (1.0, 5.0)),
+                                           (" 1 ,5 ", (1.0, 5.0)), ("0.5\t2  5", (0.5, 2.0, 5.0))])
+def test_cli_rpe_delta_takes_commas_and_or_spaces(synthetic_pair, text, deltas):
+    import json
+
+    from adalio.cli import app
+
+    p = synthetic_pair
+    out = CliRunner().invoke(app, ["eval", str(p["est"]), str(p["gt"]), "--json",
+                                   "--rpe-delta", text])
+    assert out.exit_code == 0, out.output
+    assert json.loads(out.output)["rpe"] == rpe(p["est"], p["gt"], deltas)
+
+
+def test_cli_rpe_delta_not_numbers_is_an_error(synthetic_pair):
+    from adalio.cli import app
+
+    p = synthetic_pair
+    out = CliRunner().invoke(app, ["eval", str(p["est"]), str(p["gt"]), "--rpe-delta", "1;5"])
+    assert out.exit_code != 0
+    assert isinstance(out.exception, InputError) and "--rpe-delta" in str(out.exception)
+
+
 def test_cli_error_is_one_line(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "adalio.cli", "eval", str(tmp_path / "a.tum"),
                            str(tmp_path / "b.tum")], capture_output=True, text=True, timeout=120,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import time
 from pathlib import Path
 from typing import Annotated
@@ -16,10 +17,12 @@ from adalio.term import console as term_console
 
 
 def _parse_floats(text: str, option: str) -> tuple[float, ...]:
+    """Numbers separated by commas and/or whitespace (``1,5``, ``"1 5"``, ``"1, 5"``)."""
     try:
-        values = tuple(float(v) for v in text.replace(" ", "").split(",") if v)
+        values = tuple(float(v) for v in re.split(r"[,\s]+", text) if v)
     except ValueError:
-        raise InputError(f"{option} must be comma-separated numbers (got {text!r})") from None
+        raise InputError(f"{option} must be numbers separated by commas or spaces "
+                         f"(got {text!r})") from None
     if not values:
         raise InputError(f"{option} is empty (e.g. {option} 1,5)")
     return values
@@ -53,7 +56,7 @@ def eval_command(
         "--max-diff", help="Max time gap (s) to associate poses [default: 0.02, --hilti: 2]")
     ] = None,
     rpe_delta: Annotated[str, typer.Option(
-        "--rpe-delta", help="RPE segment lengths in metres, comma-separated.")] = "1,5",
+        "--rpe-delta", help="RPE segment lengths in metres, separated by commas or spaces.")] = "1,5",
     nearest: Annotated[bool, typer.Option(
         "--nearest", help="Pair each estimate with the nearest GT pose (evo's association) "
                           "instead of the GT interpolated at its time stamp.")] = False,
