@@ -190,6 +190,73 @@ def test_denser_estimate_associates_each_gt(tmp_path):
     assert res["max_m"] < 0.01  # nearest estimate is 3 ms away
 
 
+def test_gt_shorter_than_the_run_pairs_each_estimate_once(tmp_path):
+    """A 100 Hz GT over 0.7 s has fewer poses (70) than a 10 Hz estimate over 20 s (200): each
+    estimate within the GT's reach is still one pair, with the GT interpolated at its stamp."""
+    t_gt = 100.0 + np.arange(70) * 0.01
+
+    def path(t):
+        return np.column_stack([np.sin(t), 0.5 * t, np.cos(2 * t)])
+
+    gt = write_tum(tmp_path / "gt.tum", t_gt, path(t_gt), Rotation.identity(t_gt.size))
+    t_est = 96.0 + np.arange(200) * 0.1 + 0.054
+    rng = np.random.default_rng(3)
+    xyz_est = path(t_est) + rng.normal(0, 0.01, (t_est.size, 3))
+    est = write_tum(tmp_path / "est.tum", t_est, xyz_est, Rotation.identity(t_est.size))
+    t_gt, xyz_gt, _ = _reload(gt)
+    t_est, xyz_est, _ = _reload(est)
+    # brute force: the estimates with a GT stamp within 20 ms; inside the GT's span (every one
+    # here) the GT linearly interpolated at the estimate's stamp
+    near = np.array([np.min(np.abs(t_gt - t)) <= 0.02 for t in t_est])
+    assert np.all((t_est[near] > t_gt[0]) & (t_est[near] < t_gt[-1]))
+    xyz_i = np.column_stack([np.interp(t_est[near], t_gt, xyz_gt[:, k]) for k in range(3)])
+    res = ate(est, gt, align="none")
+    _check(res, _stats(np.linalg.norm(xyz_est[near] - xyz_i, axis=1)))
+    assert res["n"] == 7
+
+
+def test_estimate_side_association_is_evo_s_when_the_gt_is_denser(synthetic_pair):
+    """With no more estimated poses than GT poses, the pairs are evo's associate_trajectories'
+    (the figures of every run against a dense GT stay as they were)."""
+    from evo.core import sync
+
+    from adalio.eval.files import read_trajectory
+    from adalio.eval.metrics import associate, interpolate_gt
+
+    p = synthetic_pair
+    est_t = read_trajectory(p["est"], "estimate")
+    gt_t = read_trajectory(p["gt"], "ground-truth")
+    assert est_t.num_poses < gt_t.num_poses
+    for max_diff in (0.02, 0.003):
+        gt_e, est_e = sync.associate_trajectories(gt_t, est_t, max_diff=max_diff)
+        gt_s, est_s = associate(p["est"], p["gt"], max_diff, interpolate=False)
+        np.testing.assert_array_equal(est_s.timestamps, est_e.timestamps)
+        np.testing.assert_array_equal(gt_s.timestamps, gt_e.timestamps)
+        np.testing.assert_array_equal(gt_s.positions_xyz, gt_e.positions_xyz)
+        gt_s, _ = associate(p["est"], p["gt"], max_diff)
+        gt_i = interpolate_gt(gt_t, gt_e, np.asarray(est_e.timestamps), max_diff)
+        np.testing.assert_array_equal(gt_s.positions_xyz, gt_i.positions_xyz)
+        np.testing.assert_array_equal(gt_s.orientations_quat_wxyz, gt_i.orientations_quat_wxyz)
+
+
+def test_sparse_gt_pose_pairs_with_its_nearest_estimate_only(tmp_path):
+    """A 1 Hz GT against a 100 Hz estimate: several estimates lie within --max-diff of each GT
+    pose; the GT pose (not interpolated) is paired once, with the nearest of them."""
+    t_gt = 10.0 + np.arange(8.0)
+    gt = write_tum(tmp_path / "gt.tum", t_gt, np.column_stack([t_gt, 0 * t_gt, 0 * t_gt]),
+                   Rotation.identity(t_gt.size))
+    t_est = 9.5 + np.arange(900) * 0.01 + 0.0025
+    est = write_tum(tmp_path / "est.tum", t_est, np.column_stack([t_est, 0 * t_est, 0 * t_est]),
+                    Rotation.identity(t_est.size))
+    t_gt, _, _ = _reload(gt)
+    t_est, _, _ = _reload(est)
+    nearest = np.array([np.argmin(np.abs(t_est - t)) for t in t_gt])
+    for interpolate in (True, False):
+        pair = align_pair(est, gt, "none", 0.02, interpolate=interpolate)
+        np.testing.assert_array_equal(pair.est.timestamps, t_est[nearest])
+        np.testing.assert_allclose(pair.errors_m, np.abs(t_est[nearest] - t_gt), atol=1e-9)
+
+
 def test_max_diff_controls_association(tmp_path, synthetic_pair):
     t, xyz, rot = _reload(synthetic_pair["gt"])
     sparse = write_tum(tmp_path / "sparse.tum", t[::50], xyz[::50], rot[::50])  # 2 Hz
