@@ -142,12 +142,15 @@ def _print_table(console: Console, title: str, header, rows) -> None:
 
 
 def _print_compare(console: Console, result) -> None:
-    from adalio.eval.compare import TABLE_HEADER, table_rows
+    from rich.markup import escape
+
+    from adalio.eval.compare import TABLE_HEADER, notes, table_rows
 
     _print_table(console, "adalio mode comparison", TABLE_HEADER, table_rows(result.rows))
     for row in result.rows:
-        if row.aborted:
-            console.print(f"[yellow]{row.mode}[/] aborted: {row.aborted}")
+        for note in notes(row):
+            console.print(escape(note).replace(f"`{row.mode}`", f"[yellow]{row.mode}[/]", 1),
+                          highlight=False)
 
 
 def compare_command(

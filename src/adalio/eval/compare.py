@@ -3,7 +3,9 @@
 Each mode runs through ``adalio.pipeline.run_bag`` into ``OUT/<mode>/`` with the same config
 except ``adaptive.mode``. With a ground truth, every run is scored (ATE after SE(3) alignment,
 max error) and gets its own report; a mode *diverged* if its max error exceeds
-``DIVERGED_MAX_ERROR_M`` or its run aborted. The overlaid trajectories are drawn in the GT frame.
+``DIVERGED_MAX_ERROR_M`` or its run aborted. A run that completed but could not be scored
+against the GT (no stamp within reach: another recording's GT) is an *evaluation failure*,
+neither diverged nor aborted. The overlaid trajectories are drawn in the GT frame.
 Writes ``compare.json``, ``compare.md`` and ``compare_top.png`` / ``compare_side.png`` (and
 ``compare_error.png`` with GT) into ``OUT``. Metres, seconds, milliseconds.
 """
@@ -50,6 +52,8 @@ class ModeResult:
     diverged: bool = False
     aborted: str | None = None
     """Why the run stopped early (exception text, 'interrupted', 'no poses'), else None."""
+    eval_failed: str | None = None
+    """Why its trajectory could not be scored against the ground truth, else None."""
     report: str | None = None
 
 
@@ -67,8 +71,8 @@ class CompareResult:
         (a run that produces no pose, a GT of another recording)."""
         if any(r.report is not None for r in self.rows):
             return None
-        first = next((r for r in self.rows if r.aborted), None)
-        reason = "" if first is None else f" ({first.mode}: {first.aborted})"
+        first = next((r for r in self.rows if r.aborted or r.eval_failed), None)
+        reason = "" if first is None else f" ({first.mode}: {first.aborted or first.eval_failed})"
         where = f"the tables and trajectories written so far are in {self.out_dir}"
         if self.gt is not None and any(r.n_scans > 0 for r in self.rows):
             return (f"--gt {self.gt}: no mode's trajectory could be aligned with this ground "
@@ -149,7 +153,7 @@ def compare_modes(bag_path: str | Path, modes: list[str], out_dir: str | Path, *
             try:
                 pair = align_pair(traj_path, gt, "se3", max_diff_s)
             except InputError as exc:
-                row.aborted = row.aborted or str(exc)
+                row.eval_failed = str(exc)
             else:
                 stats = ate_from_pair(pair, max_diff_s)
                 row.ate_rmse_m = stats["rmse_m"]
@@ -207,11 +211,27 @@ TABLE_HEADER = ("mode", "ATE rmse (m)", "max err (m)", "diverged", "degenerate (
                 "ms/scan", "scans")
 
 
+def _diverged_cell(row: ModeResult) -> str:
+    if row.aborted:
+        return "yes (aborted)"
+    if row.eval_failed:
+        return "- (evaluation failed)"
+    return "yes" if row.diverged else "no"
+
+
 def table_rows(rows: list[ModeResult]) -> list[tuple[str, ...]]:
     """The comparison table as strings, columns as in ``TABLE_HEADER``."""
-    return [(r.mode, _f(r.ate_rmse_m), _f(r.max_error_m),
-             ("yes" if r.diverged else "no") + (" (aborted)" if r.aborted else ""),
+    return [(r.mode, _f(r.ate_rmse_m), _f(r.max_error_m), _diverged_cell(r),
              _f(r.degenerate_pct, 1), _f(r.ms_per_scan, 1), str(r.n_scans)) for r in rows]
+
+
+def notes(row: ModeResult) -> list[str]:
+    """What the table's diverged column abbreviates for one mode, one line each."""
+    out = [f"`{row.mode}` aborted: {row.aborted}"] if row.aborted else []
+    if row.eval_failed:
+        out.append(f"`{row.mode}` evaluation against the ground truth failed (the run "
+                   f"{'stopped early' if row.aborted else 'completed'}): {row.eval_failed}")
+    return out
 
 
 def _markdown(result: CompareResult, gt: str | Path | None) -> str:
@@ -220,8 +240,7 @@ def _markdown(result: CompareResult, gt: str | Path | None) -> str:
              "| " + " | ".join(TABLE_HEADER) + " |", "|" + "---|" * len(TABLE_HEADER)]
     lines += ["| " + " | ".join(cells) + " |" for cells in table_rows(result.rows)]
     for r in result.rows:
-        if r.aborted:
-            lines.append(f"\n- `{r.mode}` aborted: {r.aborted}")
+        lines += [f"\n- {note}" for note in notes(r)]
     lines += ["", "## Figures", ""]
     lines += [f"![{p.stem}]({p.name})\n" for p in result.figures]
     lines += ["## Per-mode reports", ""]
