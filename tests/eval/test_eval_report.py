@@ -240,3 +240,23 @@ def test_figures_keep_the_world_frame_when_the_run_does_not_say_where_up_is(run_
     out, gt = run_dir  # config.yaml without a measured block (a run older than the field)
     make_report(out, gt)
     assert json.loads((out / "metrics.json").read_text())["figures_up"] is None
+
+
+def test_report_hilti_on_a_dense_ground_truth_warns(run_dir, tmp_path):
+    """As `eval --hilti`: a dense GT given to `report --hilti` is scored with a warning that it
+    is not control points, naming the command to run instead; control points (identity
+    orientations, 1 s apart) and a dense GT without --hilti are not warned about."""
+    from adalio.cli import app
+
+    out, gt = run_dir
+    rows = np.loadtxt(gt)[::100]
+    rows[:, 4:8] = [0.0, 0.0, 0.0, 1.0]
+    points = tmp_path / "points.tum"
+    np.savetxt(points, rows, fmt="%.9f")
+    for gt_file, flags, warned in ((gt, ["--hilti"], True), (points, ["--hilti"], False),
+                                   (gt, [], False)):
+        res = CliRunner().invoke(app, ["report", str(out), "--gt", str(gt_file), *flags])
+        assert res.exit_code == 0, res.output
+        assert ("does not look like HILTI control points" in res.stderr) == warned, res.stderr
+        assert ("use report without --hilti" in res.stderr) == warned
+        assert ("hilti" in json.loads((out / "metrics.json").read_text())) == bool(flags)

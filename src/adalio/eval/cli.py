@@ -64,19 +64,17 @@ def eval_command(
     """Accuracy of a trajectory: ATE and RPE (evo), or the HILTI 2022 score."""
     console = term_console()
     if hilti:
-        from adalio.eval.hilti import MAX_DIFF_S, hilti_score, looks_like_control_points
+        from adalio.eval.hilti import MAX_DIFF_S, hilti_score, not_control_points_warning
 
         if align != "se3":
             raise InputError("--hilti always aligns with se3 (the official rule): drop --align")
 
         diff = max_diff if max_diff is not None else MAX_DIFF_S
         res = hilti_score(est, gt, max_diff_s=diff)
-        if not looks_like_control_points(gt):
-            term_console(stderr=True).print(
-                f"warning: {gt} does not look like HILTI control points (identity orientations "
-                "at least 1 s apart): the score pairs each of its poses with an estimate up to "
-                f"{diff:g} s away; for a dense ground truth use "
-                "eval without --hilti", highlight=False, soft_wrap=True)
+        warning = not_control_points_warning(gt, "eval", diff)
+        if warning:
+            term_console(stderr=True).print(warning, highlight=False, soft_wrap=True,
+                                            markup=False)
         if json_out:
             print(json.dumps(res))
             return
@@ -127,6 +125,13 @@ def report_command(
     """Figures (trajectory, error, degeneracy timeline, map) and report.md for a run folder."""
     from adalio.eval.report import make_report
 
+    if hilti and gt is not None:
+        from adalio.eval.hilti import not_control_points_warning
+
+        warning = not_control_points_warning(gt, "report")
+        if warning:
+            term_console(stderr=True).print(warning, highlight=False, soft_wrap=True,
+                                            markup=False)
     path = make_report(run_dir, gt, hilti=hilti)
     term_console().print(f"report written to [bold]{path}[/]")
 
