@@ -260,3 +260,52 @@ def test_report_hilti_on_a_dense_ground_truth_warns(run_dir, tmp_path):
         assert ("does not look like HILTI control points" in res.stderr) == warned, res.stderr
         assert ("use report without --hilti" in res.stderr) == warned
         assert ("hilti" in json.loads((out / "metrics.json").read_text())) == bool(flags)
+
+
+def _with_sigma_columns(out: Path, sigma_m: float = 0.03) -> None:
+    rows = read_scans_csv(out / "scans.csv")
+    csvw = ScansCsvWriter(out / "scans.csv")
+    for t_s in rows["t_s"]:
+        csvw.write(ScanStats(t_ns=round(float(t_s) * 1e9), n_raw=20000, n_down=1500,
+                             n_down_general=1400, n_near=300, voxel_size_m=0.2,
+                             search_radius_m=3.0, plane_margin_m=0.05, n_matched=900,
+                             iterations=3, wall_ms=12.0, eigenvalues=np.geomspace(1e1, 1e5, 6),
+                             sigma_p_world_m=np.full(3, sigma_m),
+                             sigma_rot_world_deg=np.full(3, 0.1)))
+    csvw.close()
+
+
+def test_report_says_where_the_sigma_check_is_anchored_and_warns_off_the_first_scan(tmp_path):
+    """The uncertainty section names the time of the pose the GT is aligned on; a GT that starts
+    6 s into the 12 s run aligns on the first scan it covers (6.00 s after the first scan), which
+    the report must say, with a warning (report.md, metrics.json, stderr), not claim the filter's
+    first scan."""
+    from adalio.cli import app
+
+    out, gt = make_run_dir(tmp_path)
+    _with_sigma_columns(out)
+    text = make_report(out, gt).read_text()
+    sigma = json.loads((out / "metrics.json").read_text())["sigma"]
+    assert sigma["anchor_is_first_scan"] and sigma["anchor_t_s"] == pytest.approx(0.0)
+    assert "aligned on the filter's first scan, at 0.00 s" in text and "Warning" not in text
+    late = tmp_path / "late_gt.tum"
+    rows = np.loadtxt(gt)
+    t_est = np.loadtxt(out / "trajectory.tum")[:, 0]
+    late_rows = rows[rows[:, 0] >= t_est[0] + 6.0 - 1e-6]
+    np.savetxt(late, late_rows, fmt="%.9f")
+    res = CliRunner().invoke(app, ["report", str(out), "--gt", str(late)])
+    assert res.exit_code == 0, res.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    sigma = metrics["sigma"]
+    # the first estimate with a GT pose within 20 ms: the one 6.0 s after the first
+    first_covered = t_est[np.argmax(t_est >= late_rows[0, 0] - 0.02)] - t_est[0]
+    assert first_covered == pytest.approx(6.0, abs=1e-6)
+    assert not sigma["anchor_is_first_scan"]
+    assert sigma["anchor_t_s"] == pytest.approx(first_covered, abs=1e-6)
+    assert sigma["first_scan_t_s"] == pytest.approx(0.0)
+    assert sigma["anchor_sigma_max_m"] == pytest.approx(0.03)
+    text = (out / "report.md").read_text()
+    assert "aligned on the scan at 6.00 s, the first the ground truth covers" in text
+    assert "filter's first scan at 0.00 s" in text and "**Warning:**" in text
+    assert "warning: the ground truth starts after the filter's first scan" in res.stderr
+    assert metrics["warnings"] and "optimistic" in metrics["warnings"][0]

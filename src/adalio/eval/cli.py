@@ -133,6 +133,9 @@ def report_command(
             term_console(stderr=True).print(warning, highlight=False, soft_wrap=True,
                                             markup=False)
     path = make_report(run_dir, gt, hilti=hilti)
+    for warning in json.loads((path.parent / "metrics.json").read_text()).get("warnings", []):
+        term_console(stderr=True).print(f"warning: {warning}", highlight=False, soft_wrap=True,
+                                        markup=False)
     term_console().print(f"report written to [bold]{path}[/]")
 
 

@@ -298,6 +298,19 @@ class SigmaConsistency:
     """The largest position error (m, the same alignment) of the poses the backfill gave
     (``scans.csv`` ``backfill`` 1): how far the scans read before the filter's start lie from
     where the truth, seen from the first forward pose, puts them. NaN without such poses."""
+    anchor_t_s: float = float("nan")
+    """Time (s) of the pose the ground truth is aligned on (see ``errors_world_m``)."""
+    first_scan_t_s: float = float("nan")
+    """Time (s) of the filter's first scan (the first ``scans.csv`` row with ``backfill`` 0, or
+    the first row): the anchor when the ground truth covers the run's start. A later anchor (a
+    GT that starts later) has a sigma above 0 there, and its errors, measured from it, are too
+    small against those sigmas: the three figures come out optimistic."""
+    anchor_sigma_m: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    """(3,) the sigma_x/y/z_m of the anchor's scan (0 at the filter's first scan)."""
+
+    @property
+    def anchor_is_first_scan(self) -> bool:
+        return bool(abs(self.anchor_t_s - self.first_scan_t_s) <= 1e-6)
 
 
 MEDIAN_ABS_Z = 0.6744897501960817
@@ -326,7 +339,9 @@ def sigma_consistency(est_tum: TrajectoryLike, gt_tum: TrajectoryLike,
     ok = np.abs(t_csv[idx] - t_est) <= 1e-6
     anchor = 0
     backfilled = np.zeros(len(t_est), dtype=bool)
+    forward_csv = np.ones(len(t_csv), dtype=bool)
     if "backfill" in scans:
+        forward_csv = np.asarray(scans["backfill"], dtype=np.float64) == 0
         flags = np.asarray(scans["backfill"], dtype=np.float64)[idx]
         forward = ok & (flags == 0)
         backfilled = ok & (flags == 1)
@@ -338,6 +353,8 @@ def sigma_consistency(est_tum: TrajectoryLike, gt_tum: TrajectoryLike,
     bf_max = (float(np.max(np.linalg.norm(err[backfilled], axis=1))) if backfilled.any()
               else float("nan"))
     sig = np.column_stack([np.asarray(scans[c], dtype=np.float64)[idx] for c in SIGMA_COLUMNS])
+    anchor_sigma = sig[anchor].copy() if ok[anchor] else np.full(3, np.nan)
+    first_scan_t = float(np.min(t_csv[forward_csv])) if forward_csv.any() else float("nan")
     ok &= np.all(np.isfinite(sig) & (sig > 0), axis=1)
     if not np.any(ok):
         raise InputError("no trajectory pose has a scans.csv row with finite sigma columns at "
@@ -349,7 +366,8 @@ def sigma_consistency(est_tum: TrajectoryLike, gt_tum: TrajectoryLike,
                             mean_nees=float(np.mean(np.sum(z * z, axis=1))),
                             increment_correlation=increment_correlation(t_est[ok], err),
                             median_abs_z=np.median(np.abs(z), axis=0),
-                            backfill_max_error_m=bf_max)
+                            backfill_max_error_m=bf_max, anchor_t_s=float(t_est[anchor]),
+                            first_scan_t_s=first_scan_t, anchor_sigma_m=anchor_sigma)
 
 
 INCREMENT_S = 1.0
