@@ -27,7 +27,8 @@ def read_trajectory(path: TrajectoryLike, what: str = "trajectory") -> PoseTraje
     """Load a TUM file (or pass an evo trajectory through, copied) and validate it.
 
     Raises InputError if the file is missing, is not TUM, is empty, has non-finite values,
-    zero quaternions or time stamps that go backwards.
+    zero quaternions, time stamps that go backwards or two different poses at one time stamp
+    (a line repeated as it is is read once).
     """
     if isinstance(path, PoseTrajectory3D):
         import copy
@@ -73,6 +74,16 @@ def _trajectory_from_matrix(mat: np.ndarray, path: Path, what: str) -> PoseTraje
     if back.size:
         raise InputError(f"{what} file {path}: time goes backwards at pose {back[0] + 2} "
                          f"({stamps[back[0]]:.6f} -> {stamps[back[0] + 1]:.6f} s); sort it by time")
+    same = np.nonzero(np.diff(stamps) == 0)[0]
+    if same.size:
+        differ = same[np.any(mat[same] != mat[same + 1], axis=1)]
+        if differ.size:
+            k = int(differ[0])
+            raise InputError(f"{what} file {path}: poses {k + 1} and {k + 2} have the same time "
+                             f"stamp ({stamps[k]:.6f} s) but different poses; keep one pose per "
+                             "time stamp")
+        mat = np.delete(mat, same + 1, axis=0)  # lines repeated as they are: read once
+        stamps = mat[:, 0]
     quat_xyzw = mat[:, 4:8]
     norms = np.linalg.norm(quat_xyzw, axis=1)
     if np.any(norms < 1e-9):
