@@ -309,3 +309,26 @@ def test_report_says_where_the_sigma_check_is_anchored_and_warns_off_the_first_s
     assert "filter's first scan at 0.00 s" in text and "**Warning:**" in text
     assert "warning: the ground truth starts after the filter's first scan" in res.stderr
     assert metrics["warnings"] and "optimistic" in metrics["warnings"][0]
+
+
+@pytest.mark.parametrize("base", [(0, 0, -1), (0, 0, 1), (1, 0, 0), (0, -1, 0),
+                                  (0.3, 0.2, -0.93), (0.2, 0.1, 0.97)])
+def test_leveling_turns_up_to_z_with_a_heading_that_moves_as_little_as_up(base):
+    """The figures' leveling takes up to +z, and two ups a fraction of a degree apart (the tilt
+    by which a z-down rig's figures differed) give levelings a fraction of a degree apart: the
+    same walk is drawn in the same heading (the smallest rotation alone turned an up near -z by
+    180 deg about an axis set by that tilt)."""
+    from adalio.eval.report import leveling
+
+    rng = np.random.default_rng(5)
+    base = np.asarray(base, dtype=np.float64) / np.linalg.norm(base)
+    for _ in range(50):
+        ups = [Rotation.from_rotvec(np.radians(0.3) * v / np.linalg.norm(v)).apply(base)
+               for v in rng.normal(size=(2, 3))]
+        R1, R2 = (leveling(u) for u in ups)
+        for R, u in ((R1, ups[0]), (R2, ups[1])):
+            np.testing.assert_allclose(R @ u, [0, 0, 1], atol=1e-9)
+            np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
+            assert np.linalg.det(R) == pytest.approx(1.0)
+        # the two figures' frames differ by less than a degree (ups are <= 0.6 deg apart)
+        assert np.degrees(Rotation.from_matrix(R1 @ R2.T).magnitude()) < 1.0

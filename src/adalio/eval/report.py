@@ -69,13 +69,28 @@ def figures_up(config: dict[str, Any], T_gt_est: Any = None) -> np.ndarray | Non
     return up
 
 
+FLIP_BELOW_Z = -np.sqrt(0.5)
+"""An ``up`` whose z is below this (more than 45 deg below the horizon: a z-down IMU) is first
+turned by 180 deg about x in :func:`leveling`."""
+
+
 def leveling(up: np.ndarray | None) -> np.ndarray:
-    """The smallest rotation taking ``up`` to +z (identity for None): the figures' frame, so a
-    top view looks down and a side view stands up whatever the IMU's mounting."""
+    """The rotation taking ``up`` to +z that the figures use (identity for None), so a top view
+    looks down and a side view stands up whatever the IMU's mounting: the smallest such
+    rotation, except for an ``up`` more than 45 deg below the horizon (a z-down IMU), first
+    turned by 180 deg about x (``diag(1, -1, -1)``) and then by the smallest rotation. The
+    smallest rotation alone is a 180 deg turn about an axis set by the sub-degree tilt of an
+    ``up`` near -z, so one walk came out in headings 100 deg apart in one report's figures; this
+    way the heading moves as little as ``up`` does at every axis-aligned mounting (the switch
+    lies 45 deg below the horizon)."""
     if up is None:
         return np.eye(3)
-    rot, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [up])
-    return rot.as_matrix()
+    up = np.asarray(up, dtype=np.float64).reshape(3)
+    flip = np.eye(3)
+    if up[2] / np.linalg.norm(up) < FLIP_BELOW_Z:
+        flip = np.diag([1.0, -1.0, -1.0])
+    rot, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [flip @ up])
+    return rot.as_matrix() @ flip
 
 
 def _find_map(run_dir: Path) -> Path | None:
