@@ -330,6 +330,44 @@ def test_equal_time_stamps(tmp_path, synthetic_pair):
         ate(tmp_path / "one_stamp.tum", p["gt"], align="first")
 
 
+def test_bad_file_messages_say_what_and_where(tmp_path, synthetic_pair):
+    """A folder is called a folder (not 'does not exist'), naming the run's trajectory.tum when
+    it holds one; a line that is not 8 numbers is named by its number in the file (comments and
+    blank lines counted); coordinates beyond 1e9 m are refused naming the pose, with no numpy
+    warning on stderr (1e200 gave an ATE of inf and exit 0, 1e308 RuntimeWarnings)."""
+    gt = synthetic_pair["gt"]
+    folder = tmp_path / "run"
+    folder.mkdir()
+    with pytest.raises(InputError, match=r"estimate file .*run is a folder, not a TUM "
+                                         r"trajectory: give a TUM file"):
+        ate(folder, gt)
+    (folder / "trajectory.tum").write_text(synthetic_pair["est"].read_text())
+    with pytest.raises(InputError, match=r"is a folder.*run/trajectory\.tum\?"):
+        ate(synthetic_pair["est"], folder)
+    lines = gt.read_text().splitlines()
+    bad = tmp_path / "bad_line.tum"
+    bad.write_text("# t x y z qx qy qz qw\n\n" + "\n".join(lines[:300]) + "\n1000.0 1 2 3\n"
+                   + "\n".join(lines[300:]) + "\n")
+    with pytest.raises(InputError, match=r"line 303 \('1000\.0 1 2 3'\) has 4 numbers"):
+        ate(synthetic_pair["est"], bad)
+    words = tmp_path / "words.tum"
+    words.write_text("\n".join(lines[:5]) + "\n1000.0 1 2 3 0 0 0 one\n")
+    with pytest.raises(InputError, match=r"line 6 .* has text that is not a number"):
+        ate(synthetic_pair["est"], words)
+    for value in ("1e200", "1e308", "-2e9"):
+        far = tmp_path / f"far{value}.tum"
+        rows = [line.split() for line in lines]
+        rows[7][2] = value
+        far.write_text("\n".join(" ".join(r) for r in rows) + "\n")
+        proc = subprocess.run([sys.executable, "-m", "adalio.cli", "eval",
+                               str(synthetic_pair["est"]), str(far)], capture_output=True,
+                              text=True, timeout=120, check=False)
+        assert proc.returncode == 2, proc.stdout
+        expected = (f"error: ground-truth file {far}: pose 8 has a coordinate of "
+                    f"{float(value):g} m, beyond ±1e+09 m: are its x y z in metres?")
+        assert proc.stderr.strip().splitlines() == [expected]
+
+
 def test_cli_json_and_table(synthetic_pair):
     import json
 
