@@ -332,3 +332,61 @@ def test_leveling_turns_up_to_z_with_a_heading_that_moves_as_little_as_up(base):
             assert np.linalg.det(R) == pytest.approx(1.0)
         # the two figures' frames differ by less than a degree (ups are <= 0.6 deg apart)
         assert np.degrees(Rotation.from_matrix(R1 @ R2.T).magnitude()) < 1.0
+
+
+def test_report_with_a_gt_of_the_still_start_only_keeps_the_rest(tmp_path):
+    """A GT that covers only a stretch at rest (the first 2 s, not moving) cannot be
+    SE(3)-aligned: `adalio report` still writes the report and its figures without the
+    ground-truth sections, says why on stderr and in report.md, and its hint names a command
+    that exists (`adalio eval <the run's trajectory> <the GT> --align first`), not options that
+    `report` lacks (was: exit 2, no report, 'use --align first or a larger --max-diff')."""
+    from adalio.cli import app
+
+    out, gt = make_run_dir(tmp_path)
+    rows = np.loadtxt(gt)
+    still = rows[rows[:, 0] <= rows[0, 0] + 2.0].copy()
+    still[:, 1:] = rows[0, 1:]
+    still_gt = tmp_path / "still.tum"
+    np.savetxt(still_gt, still, fmt="%.9f")
+    with pytest.raises(InputError, match="a stretch at rest") as exc:  # the Python default
+        make_report(out, still_gt)
+    est = out / "trajectory.tum"
+    assert f"`adalio eval {est} {still_gt} --align first`" in str(exc.value)
+    assert "use --align" not in str(exc.value)
+    res = CliRunner().invoke(app, ["report", str(out), "--gt", str(still_gt)])
+    assert res.exit_code == 0, res.output + repr(res.exception)
+    assert f"warning: --gt {still_gt} is not used: se3 alignment failed" in res.stderr
+    assert f"`adalio eval {est} {still_gt} --align first`" in res.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert "ate_se3" not in metrics and "a stretch at rest" in metrics["gt_not_used"]
+    text = (out / "report.md").read_text()
+    assert "**not used**" in text and "Absolute trajectory error" not in text
+    for name in ("trajectory_top.png", "trajectory_side.png", "degeneracy.png", "map_top.png"):
+        assert_png_image(out / name)
+        assert f"]({name})" in text
+    # a GT of another clock (no pair at all) stays an error
+    other = tmp_path / "other.tum"
+    rows[:, 0] += 1e5
+    np.savetxt(other, rows, fmt="%.9f")
+    res = CliRunner().invoke(app, ["report", str(out), "--gt", str(other)])
+    assert isinstance(res.exception, InputError) and "no estimate/GT pose pairs" in str(
+        res.exception)
+
+
+def test_too_few_pairs_hint_names_a_command_not_an_option():
+    """Fewer than 3 pairs: the hint is a command the user can run (report, compare and run
+    --gt share the message and have no --align / --max-diff of their own)."""
+    from evo.core.trajectory import PoseTrajectory3D
+
+    from adalio.eval.metrics import align_pair
+
+    t = np.arange(10) * 0.1
+    est = PoseTrajectory3D(positions_xyz=np.column_stack([t, t * 0, t * 0]),
+                           orientations_quat_wxyz=np.tile([1.0, 0, 0, 0], (10, 1)), timestamps=t)
+    gt = PoseTrajectory3D(positions_xyz=np.zeros((2, 3)),
+                          orientations_quat_wxyz=np.tile([1.0, 0, 0, 0], (2, 1)),
+                          timestamps=t[:2].copy())
+    with pytest.raises(InputError, match=r"only 2 associated poses") as exc:
+        align_pair(est, gt)
+    assert "`adalio eval EST GT --align first`" in str(exc.value)
+    assert "use --align" not in str(exc.value)

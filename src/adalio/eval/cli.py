@@ -132,7 +132,7 @@ def report_command(
         if warning:
             term_console(stderr=True).print(warning, highlight=False, soft_wrap=True,
                                             markup=False)
-    path = make_report(run_dir, gt, hilti=hilti)
+    path = make_report(run_dir, gt, hilti=hilti, skip_unalignable_gt=True)
     for warning in json.loads((path.parent / "metrics.json").read_text()).get("warnings", []):
         term_console(stderr=True).print(f"warning: {warning}", highlight=False, soft_wrap=True,
                                         markup=False)

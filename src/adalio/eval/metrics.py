@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from evo.core import metrics as evo_metrics
@@ -44,6 +45,9 @@ from adalio.errors import InputError
 from adalio.eval.files import TrajectoryLike, read_trajectory
 
 ALIGNMENTS = ("se3", "first", "none")
+SCORE_CONTROL_POINTS = "score them with `adalio eval EST GT --hilti`"
+"""The hint of the association's errors for a GT of control points (eval, report, compare and
+``run --gt`` share these messages, so the hints name a command, not an option)."""
 DEFAULT_MAX_DIFF_S = 0.02
 DEFAULT_RPE_DELTAS_M = (1.0, 5.0)
 
@@ -96,8 +100,9 @@ def associate(est: TrajectoryLike, gt: TrajectoryLike, max_diff_s: float = DEFAU
     if i_est.size == 0:
         from adalio.eval.hilti import looks_like_control_points
 
-        hint = " (sparse control points? use --hilti)" if looks_like_control_points(gt_t) else \
-            "; are both in seconds on the same clock?"
+        hint = (f" (sparse control points? {SCORE_CONTROL_POINTS})"
+                if looks_like_control_points(gt_t) else
+                "; are both in seconds on the same clock?")
         raise InputError(
             f"no estimate/GT pose pairs within {max_diff_s} s: the estimate spans "
             f"{_span(est_t)} and the GT {_span(gt_t)}{hint}")
@@ -155,6 +160,16 @@ def _span(traj: PoseTrajectory3D) -> str:
     return f"[{t[0]:.3f}, {t[-1]:.3f}] s"
 
 
+def _eval_command(est: TrajectoryLike, gt: TrajectoryLike) -> str:
+    """``adalio eval EST GT`` with the files' paths where they are files."""
+    import shlex
+
+    def arg(x: TrajectoryLike, name: str) -> str:
+        return shlex.quote(str(x)) if isinstance(x, str | Path) else name
+
+    return f"adalio eval {arg(est, 'EST')} {arg(gt, 'GT')}"
+
+
 def align_pair(est: TrajectoryLike, gt: TrajectoryLike, align: str = "se3",
                max_diff_s: float = DEFAULT_MAX_DIFF_S, interpolate: bool = True) -> AlignedPair:
     """Associate, align the estimate onto the GT (see module docstring) and compute errors."""
@@ -167,8 +182,11 @@ def align_pair(est: TrajectoryLike, gt: TrajectoryLike, align: str = "se3",
         if gt_s.num_poses < 3:
             from adalio.eval.hilti import looks_like_control_points
 
-            hint = "sparse control points? use --hilti" if looks_like_control_points(gt) else \
-                "use --align first or a larger --max-diff"
+            hint = (f"sparse control points? {SCORE_CONTROL_POINTS}"
+                    if looks_like_control_points(gt) else
+                    "the ground truth covers too little of the run; "
+                    f"`{_eval_command(est, gt)} --align first` scores it on the first pose, and "
+                    "`--max-diff S` there pairs poses further apart")
             raise InputError(f"only {gt_s.num_poses} associated poses: se3 alignment needs >= 3 "
                              f"({hint})")
         try:
@@ -180,8 +198,8 @@ def align_pair(est: TrajectoryLike, gt: TrajectoryLike, align: str = "se3",
                     f"(within {spread:.3g} m: a stretch at rest)" if spread < 0.01 else
                     "the associated ground-truth positions lie on a line")
             raise InputError(f"se3 alignment failed ({exc}): {what}; evaluate a longer "
-                             "stretch, or align on the first pose (adalio eval EST GT --align "
-                             "first)") from None
+                             "stretch, or score it on the first pose with "
+                             f"`{_eval_command(est, gt)} --align first`") from None
         T[:3, :3] = r
         T[:3, 3] = t
     elif align == "first":

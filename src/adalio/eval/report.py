@@ -25,6 +25,7 @@ from adalio.eval.metrics import (
     DEFAULT_RPE_DELTAS_M,
     MEDIAN_ABS_Z,
     align_pair,
+    associate,
     ate_from_pair,
     rpe,
     sigma_consistency,
@@ -131,8 +132,14 @@ def _fmt(value: Any, digits: int = 3) -> str:
 def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
                 hilti: bool | None = None,
                 max_diff_s: float = DEFAULT_MAX_DIFF_S,
-                rpe_deltas_m: tuple[float, ...] = DEFAULT_RPE_DELTAS_M) -> Path:
+                rpe_deltas_m: tuple[float, ...] = DEFAULT_RPE_DELTAS_M,
+                skip_unalignable_gt: bool = False) -> Path:
     """Write figures, ``metrics.json`` and ``report.md`` into ``run_dir``; return the report path.
+
+    ``skip_unalignable_gt``: a ground truth that pairs with the run but cannot be SE(3)-aligned
+    to it (fewer than 3 pairs, or a stretch at rest: a GT of the still start only) gives the
+    report without its ground-truth sections, the reason in ``metrics.json``'s ``warnings``,
+    instead of an InputError. A GT with no pose near the run's is an InputError either way.
 
     ``hilti=True`` treats ``gt`` as HILTI 2022 control points and adds the HILTI score
     (:func:`adalio.eval.hilti.hilti_score`) instead of the dense ATE/RPE; ``None`` decides from
@@ -178,12 +185,22 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
             metrics["hilti"] = hilti_score(est_path, gt)
             aligned_xyz = full_aligned_xyz(est_path, np.asarray(metrics["hilti"]["T_gt_est"]))
         else:
-            pair = align_pair(est_path, gt, "se3", max_diff_s)
-            metrics["ate_se3"] = ate_from_pair(pair, max_diff_s)
-            pair_first = align_pair(est_path, gt, "first", max_diff_s)
-            metrics["ate_first"] = ate_from_pair(pair_first, max_diff_s)
-            metrics["rpe"] = rpe(est_path, gt, rpe_deltas_m, max_diff_s)
-            aligned_xyz = full_aligned_xyz(est_path, pair.T_gt_est)
+            try:
+                pair = align_pair(est_path, gt, "se3", max_diff_s)
+            except InputError as exc:
+                if not skip_unalignable_gt:
+                    raise
+                associate(est_path, gt, max_diff_s)  # no pair at all: an error still
+                metrics["gt_not_used"] = str(exc)
+                warnings.append(f"--gt {gt} is not used: {exc}; the report has no "
+                                "ground-truth sections")
+                gt_xyz = None
+            else:
+                metrics["ate_se3"] = ate_from_pair(pair, max_diff_s)
+                pair_first = align_pair(est_path, gt, "first", max_diff_s)
+                metrics["ate_first"] = ate_from_pair(pair_first, max_diff_s)
+                metrics["rpe"] = rpe(est_path, gt, rpe_deltas_m, max_diff_s)
+                aligned_xyz = full_aligned_xyz(est_path, pair.T_gt_est)
     up_world = world_up(config)
     T_gt_est = pair.T_gt_est if pair is not None else metrics.get("hilti", {}).get("T_gt_est")
     up = figures_up(config, T_gt_est)
@@ -196,7 +213,8 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
     top, side = plots.plot_trajectories({label: aligned_xyz}, gt_xyz,
                                         run_dir / "trajectory_top.png",
                                         run_dir / "trajectory_side.png",
-                                        title="trajectory" + (" (SE(3)-aligned)" if gt else ""))
+                                        title="trajectory" + (" (SE(3)-aligned)"
+                                                              if T_gt_est is not None else ""))
     figures += [("Trajectory, top view", top), ("Trajectory, side view", side)]
     degen_series = None
     if scans is not None:
@@ -270,6 +288,8 @@ def _markdown(metrics: dict[str, Any], figures: list[tuple[str, Path]],
     if "map_points" in metrics:
         lines.append(f"- map points: {metrics['map_points']}")
     lines.append(f"- ground truth: `{gt}`" if gt is not None else "- ground truth: none")
+    if "gt_not_used" in metrics:
+        lines.append(f"- **not used**: {metrics['gt_not_used']}")
     lines.append("")
     if "ate_se3" in metrics:
         lines += ["## Absolute trajectory error (translation, m)", "",
