@@ -390,3 +390,21 @@ def test_too_few_pairs_hint_names_a_command_not_an_option():
         align_pair(est, gt)
     assert "`adalio eval EST GT --align first`" in str(exc.value)
     assert "use --align" not in str(exc.value)
+
+
+def test_report_removes_an_earlier_reports_figures_it_does_not_make(tmp_path):
+    """A report with a GT and sigma columns draws error.png and error_sigma.png; a report without
+    a GT into the same folder must not leave them beside a report.md that no longer has a GT.
+    Files that are not a report's stay."""
+    from adalio.io.writers import REPORT_FILES
+
+    out, gt = make_run_dir(tmp_path)
+    _with_sigma_columns(out)
+    (out / "notes.png").write_bytes(b"mine")
+    make_report(out, gt)
+    assert (out / "error.png").is_file() and (out / "error_sigma.png").is_file()
+    text = make_report(out).read_text()
+    pngs = {p.name for p in out.glob("*.png")}
+    linked = {name for name in REPORT_FILES if f"]({name})" in text}
+    assert pngs == linked | {"notes.png"}
+    assert not (out / "error.png").exists() and not (out / "error_sigma.png").exists()

@@ -262,6 +262,10 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
     report = run_dir / REPORT_NAME
     report.write_text(_markdown(metrics, figures, gt))
+    written = {Path(path).name for _, path in figures}
+    for name in REPORT_FILES:  # an earlier report's figures that this one does not make
+        if name.endswith(".png") and name not in written and (run_dir / name).is_file():
+            (run_dir / name).unlink()
     return report
 
 
