@@ -415,6 +415,37 @@ def test_cli_rpe_delta_not_numbers_is_an_error(synthetic_pair):
     assert isinstance(out.exception, InputError) and "--rpe-delta" in str(out.exception)
 
 
+def test_cli_table_says_how_the_gt_poses_were_paired(tmp_path, synthetic_pair):
+    """The ATE table's title says 'GT interpolated' only where the GT was interpolated: a 2 Hz GT
+    keeps the nearest pose (the title said 'GT interpolated' there too), a GT that ends inside
+    the run has the nearest pose past its end; counted by brute force."""
+    import json
+
+    from adalio.cli import app
+
+    p = synthetic_pair
+    t, xyz, rot = _reload(p["gt"])
+    sparse = write_tum(tmp_path / "sparse.tum", t[5::50], xyz[5::50], rot[5::50])
+    cut = write_tum(tmp_path / "cut.tum", t[:1005], xyz[:1005], rot[:1005])
+    t_est = _reload(p["est"])[0]
+    for gt, title in ((p["gt"], "GT interpolated,"), (sparse, "nearest GT pose,"),
+                      (cut, None)):
+        tg = _reload(gt)[0]
+        paired = np.array([np.min(np.abs(tg - x)) <= 0.02 for x in t_est])
+        inside = np.array([np.any((tg < x) & (tg >= x - 0.02)) and np.any((tg >= x) &
+                                                                          (tg <= x + 0.02))
+                           for x in t_est])
+        n, k = int(paired.sum()), int((paired & inside).sum())
+        if title is None:
+            assert 0 < k < n
+            title = f"GT interpolated at {k}, nearest GT pose at {n - k},"
+        res = CliRunner().invoke(app, ["eval", str(p["est"]), str(gt)], terminal_width=300)
+        assert res.exit_code == 0, res.output
+        assert f"{n} pairs within 0.02 s, {title}" in res.output
+        res = CliRunner().invoke(app, ["eval", str(p["est"]), str(gt), "--json"])
+        assert json.loads(res.output)["ate"]["n_interpolated"] == k
+
+
 def test_cli_error_is_one_line(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "adalio.cli", "eval", str(tmp_path / "a.tum"),
                            str(tmp_path / "b.tum")], capture_output=True, text=True, timeout=120,

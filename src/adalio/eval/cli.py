@@ -44,6 +44,15 @@ def _f(value: float | None, digits: int = 3) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
+def _pairing(n: int, n_interpolated: int | None) -> str:
+    """How the table's pairs got their GT pose."""
+    if n_interpolated == n:
+        return "GT interpolated"
+    if not n_interpolated:
+        return "nearest GT pose"
+    return f"GT interpolated at {n_interpolated}, nearest GT pose at {n - n_interpolated}"
+
+
 def eval_command(
     est: Annotated[Path, typer.Argument(help="Estimated trajectory (TUM: t x y z qx qy qz qw).")],
     gt: Annotated[Path, typer.Argument(help="Ground truth (TUM), or HILTI control points.")],
@@ -97,7 +106,7 @@ def eval_command(
     if json_out:
         print(json.dumps({"est": str(est), "gt": str(gt), "ate": a, "rpe": r}))
         return
-    pairing = "nearest GT pose" if nearest else "GT interpolated"
+    pairing = _pairing(a["n"], a["n_interpolated"])
     table = Table(title=f"ATE (translation, align={align}, {a['n']} pairs within {diff} s, "
                         f"{pairing}, "
                         f"{a['duration_s']:.1f} s)")

@@ -63,6 +63,9 @@ class AlignedPair:
     """(4, 4) transform applied to the estimate (identity for 'none')."""
     errors_m: np.ndarray
     """(n,) position error of each associated pair after alignment."""
+    n_interpolated: int | None = None
+    """Of the pairs, those whose GT pose is interpolated at the estimate's stamp (the others
+    are the nearest GT pose); None where not known."""
 
     @property
     def t_s(self) -> np.ndarray:
@@ -77,10 +80,19 @@ def check_max_diff(max_diff_s: float) -> None:
 
 def associate(est: TrajectoryLike, gt: TrajectoryLike, max_diff_s: float = DEFAULT_MAX_DIFF_S,
               interpolate: bool = True) -> tuple[PoseTrajectory3D, PoseTrajectory3D]:
+    """Return ``(gt_sync, est_sync)`` with equal length (:func:`associate_counted`)."""
+    gt_s, est_s, _ = associate_counted(est, gt, max_diff_s, interpolate)
+    return gt_s, est_s
+
+
+def associate_counted(est: TrajectoryLike, gt: TrajectoryLike,
+                      max_diff_s: float = DEFAULT_MAX_DIFF_S, interpolate: bool = True
+                      ) -> tuple[PoseTrajectory3D, PoseTrajectory3D, int]:
     """Return ``(gt_sync, est_sync)`` with equal length: each estimated pose with the nearest GT
     pose within ``max_diff_s`` (see the module docstring); with ``interpolate`` the GT poses are
     interpolated at the estimate's stamps where the GT brackets them within ``max_diff_s``
-    (:func:`interpolate_gt`). A GT pose kept as it is pairs with its nearest estimate only."""
+    (:func:`interpolate_gt`). A GT pose kept as it is pairs with its nearest estimate only.
+    The third value is how many of the pairs have an interpolated GT pose."""
     check_max_diff(max_diff_s)
     est_t = read_trajectory(est, "estimate")
     gt_t = read_trajectory(gt, "ground-truth")
@@ -90,6 +102,7 @@ def associate(est: TrajectoryLike, gt: TrajectoryLike, max_diff_s: float = DEFAU
                    sync.matching_time_indices(t_est, t_gt, max_diff=max_diff_s))
     exact = (_bracketed(t_gt, t_est[i_est], max_diff_s)[0] if interpolate
              else np.zeros(i_est.size, dtype=bool))
+    n_interpolated = int(np.count_nonzero(exact))
     loose = np.nonzero(~exact)[0]
     if loose.size:  # a GT pose not interpolated: only its nearest estimate
         dt = np.abs(t_est[i_est[loose]] - t_gt[i_gt[loose]])
@@ -113,7 +126,7 @@ def associate(est: TrajectoryLike, gt: TrajectoryLike, max_diff_s: float = DEFAU
     if interpolate:
         gt_s = interpolate_gt(gt_t, gt_s, np.asarray(est_s.timestamps, dtype=np.float64),
                               max_diff_s)
-    return gt_s, est_s
+    return gt_s, est_s, n_interpolated
 
 
 def interpolate_gt(gt: PoseTrajectory3D, gt_sync: PoseTrajectory3D, t_s: np.ndarray,
@@ -175,7 +188,7 @@ def align_pair(est: TrajectoryLike, gt: TrajectoryLike, align: str = "se3",
     """Associate, align the estimate onto the GT (see module docstring) and compute errors."""
     if align not in ALIGNMENTS:
         raise InputError(f"--align must be one of {', '.join(ALIGNMENTS)} (got {align!r})")
-    gt_s, est_s = associate(est, gt, max_diff_s, interpolate)
+    gt_s, est_s, n_interpolated = associate_counted(est, gt, max_diff_s, interpolate)
     est_a = copy.deepcopy(est_s)
     T = np.eye(4)
     if align == "se3":
@@ -207,7 +220,8 @@ def align_pair(est: TrajectoryLike, gt: TrajectoryLike, align: str = "se3",
     ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
     ape.process_data((gt_s, est_a))
     return AlignedPair(gt=gt_s, est=est_a, align=align, T_gt_est=np.asarray(T),
-                       errors_m=np.asarray(ape.error, dtype=np.float64))
+                       errors_m=np.asarray(ape.error, dtype=np.float64),
+                       n_interpolated=n_interpolated)
 
 
 def ate(est_tum: TrajectoryLike, gt_tum: TrajectoryLike, align: str = "se3",
@@ -215,7 +229,8 @@ def ate(est_tum: TrajectoryLike, gt_tum: TrajectoryLike, align: str = "se3",
     """Absolute trajectory error (translation) after alignment.
 
     Returns ``dict(rmse_m, mean_m, median_m, std_m, max_m, n, align, max_diff_s,
-    duration_s)`` where ``n`` is the number of associated pose pairs.
+    duration_s, n_interpolated)`` where ``n`` is the number of associated pose pairs and
+    ``n_interpolated`` how many of them have the GT interpolated at the estimate's stamp.
     """
     pair = align_pair(est_tum, gt_tum, align, max_diff_s, interpolate)
     return ate_from_pair(pair, max_diff_s)
@@ -235,6 +250,7 @@ def ate_from_pair(pair: AlignedPair, max_diff_s: float = DEFAULT_MAX_DIFF_S) -> 
         "align": pair.align,
         "max_diff_s": float(max_diff_s),
         "duration_s": float(t[-1] - t[0]),
+        "n_interpolated": pair.n_interpolated,
     }
 
 
