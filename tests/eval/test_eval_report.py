@@ -100,7 +100,7 @@ def test_make_report_with_gt(run_dir):
     assert metrics["map_points"] == 20000
     scans = read_scans_csv(out / "scans.csv")
     assert scans["degenerate"].sum() == 30 and set(scans["trigger"]) == {"", "count"}
-    assert f"{metrics['ate_se3']['rmse_m']:.3f}" in text
+    assert f"{metrics['ate_se3']['rmse_m']:.4f}" in text
 
 
 def test_report_without_gt_and_cli(run_dir):
@@ -408,3 +408,29 @@ def test_report_removes_an_earlier_reports_figures_it_does_not_make(tmp_path):
     linked = {name for name in REPORT_FILES if f"]({name})" in text}
     assert pngs == linked | {"notes.png"}
     assert not (out / "error.png").exists() and not (out / "error_sigma.png").exists()
+
+
+def test_report_tables_show_millimetre_errors(tmp_path):
+    """An estimate 1.5 mm off the GT: the ATE / RPE cells of report.md read back within 0.05 mm
+    of ate() / rpe() (metres to 3 decimals read 1.5 mm as 0.001 or 0.002), and compare's table
+    (same cells) as well."""
+    from adalio.eval.compare import ModeResult, table_rows
+    from adalio.eval.metrics import rpe
+
+    out, gt = make_run_dir(tmp_path)
+    rows = np.loadtxt(gt)[::10]
+    rows[:, 1:4] += np.random.default_rng(2).normal(0, 0.0015 / np.sqrt(3), (len(rows), 3))
+    np.savetxt(out / "trajectory.tum", rows, fmt="%.9f")
+    text = make_report(out, gt).read_text()
+    a = ate(out / "trajectory.tum", gt, "se3")
+    assert 0.0005 < a["rmse_m"] < 0.003
+    cells = next(line for line in text.splitlines() if line.startswith("| se3 |")).split("|")
+    for cell, key in zip(cells[2:6], ("rmse_m", "mean_m", "median_m", "max_m"), strict=True):
+        assert float(cell) == pytest.approx(a[key], abs=5e-5)
+    r = rpe(out / "trajectory.tum", gt)[0]
+    cells = next(line for line in text.splitlines() if line.startswith("| 1 |")).split("|")
+    assert float(cells[2]) == pytest.approx(r["rmse_m"], abs=5e-5)
+    cells = table_rows([ModeResult("fixed", str(out), ate_rmse_m=a["rmse_m"],
+                                   max_error_m=a["max_m"])])[0]
+    assert float(cells[1]) == pytest.approx(a["rmse_m"], abs=5e-5)
+    assert float(cells[2]) == pytest.approx(a["max_m"], abs=5e-5)

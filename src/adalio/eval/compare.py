@@ -221,7 +221,7 @@ def _diverged_cell(row: ModeResult) -> str:
 
 def table_rows(rows: list[ModeResult]) -> list[tuple[str, ...]]:
     """The comparison table as strings, columns as in ``TABLE_HEADER``."""
-    return [(r.mode, _f(r.ate_rmse_m), _f(r.max_error_m), _diverged_cell(r),
+    return [(r.mode, _f(r.ate_rmse_m, 4), _f(r.max_error_m, 4), _diverged_cell(r),
              _f(r.degenerate_pct, 1), _f(r.ms_per_scan, 1), str(r.n_scans)) for r in rows]
 
 

@@ -301,14 +301,14 @@ def _markdown(metrics: dict[str, Any], figures: list[tuple[str, Path]],
                   "|---|---|---|---|---|---|"]
         for key in ("ate_se3", "ate_first"):
             a = metrics[key]
-            lines.append(f"| {a['align']} | {_fmt(a['rmse_m'])} | {_fmt(a['mean_m'])} | "
-                         f"{_fmt(a['median_m'])} | {_fmt(a['max_m'])} | {a['n']} |")
+            lines.append(f"| {a['align']} | {_fmt(a['rmse_m'], 4)} | {_fmt(a['mean_m'], 4)} | "
+                         f"{_fmt(a['median_m'], 4)} | {_fmt(a['max_m'], 4)} | {a['n']} |")
         lines += ["", "## Relative pose error", "",
                   ("| segment (m) | RMSE (m) | mean (m) | max (m) | drift (%) | rot RMSE (deg) "
                   "| pairs |"), "|---|---|---|---|---|---|---|"]
         for r in metrics["rpe"]:
-            lines.append(f"| {r['delta_m']:g} | {_fmt(r['rmse_m'])} | {_fmt(r['mean_m'])} | "
-                         f"{_fmt(r['max_m'])} | {_fmt(r['drift_pct'], 2)} | "
+            lines.append(f"| {r['delta_m']:g} | {_fmt(r['rmse_m'], 4)} | {_fmt(r['mean_m'], 4)} | "
+                         f"{_fmt(r['max_m'], 4)} | {_fmt(r['drift_pct'], 2)} | "
                          f"{_fmt(r['rot_rmse_deg'], 2)} | {r['n']} |")
         lines.append("")
     if "sigma" in metrics:
