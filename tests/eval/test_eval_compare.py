@@ -131,3 +131,27 @@ def test_compare_keeps_an_aborted_modes_whole_reason(tmp_path, monkeypatch):
     assert res.rows[0].aborted == f"AdalioError: {reason}"
     data = json.loads((tmp_path / "cmp" / "compare.json").read_text())
     assert data["rows"][0]["aborted"].endswith("set filter.some_setting to fix it")
+
+
+def test_compare_names_an_earlier_comparisons_mode_folders(tmp_path, monkeypatch):
+    """A mode folder left in --out by an earlier comparison of other modes is named as such in
+    compare.md (and kept: it is the user's), not silently beside this comparison's."""
+    import adalio.eval.compare as cmp
+    from adalio.errors import AdalioError
+
+    def stops(*args, **kwargs):
+        raise AdalioError("stopped")
+
+    monkeypatch.setattr("adalio.pipeline.run_bag", stops)
+    out = tmp_path / "cmp"
+    (out / "adaptive_plus").mkdir(parents=True)
+    (out / "adaptive_plus" / "trajectory.tum").write_text("1 0 0 0 0 0 0 1\n")
+    (out / "fixed").mkdir()
+    (out / "other").mkdir()
+    res = cmp.compare_modes(tmp_path / "any.bag", ["fixed"], out, progress=False)
+    assert res.earlier == ["adaptive_plus"]
+    md = (out / "compare.md").read_text()
+    assert "folders from an earlier comparison, not run now: `adaptive_plus`" in md
+    assert (out / "adaptive_plus" / "trajectory.tum").is_file()
+    res = cmp.compare_modes(tmp_path / "any.bag", ["fixed", "adaptive+"], out, progress=False)
+    assert res.earlier == [] and "earlier comparison" not in (out / "compare.md").read_text()

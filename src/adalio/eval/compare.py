@@ -63,6 +63,8 @@ class CompareResult:
     out_dir: Path
     figures: list[Path] = field(default_factory=list)
     gt: str | None = None
+    earlier: list[str] = field(default_factory=list)
+    """Mode folders in ``out_dir`` of modes not compared now (an earlier comparison's), kept."""
 
     def failure(self) -> str | None:
         """One line saying why the comparison has no result, or None: no mode gave a usable
@@ -82,6 +84,12 @@ class CompareResult:
 
 def mode_dir_name(mode: str) -> str:
     return mode.replace("+", "_plus")
+
+
+def earlier_mode_dirs(out_dir: Path, modes: list[str]) -> list[str]:
+    """Names of ``out_dir``'s sub-folders named after a mode not in ``modes``."""
+    return [mode_dir_name(m) for m in MODES
+            if m not in modes and (out_dir / mode_dir_name(m)).is_dir()]
 
 
 def parse_modes(text: str) -> list[str]:
@@ -173,7 +181,13 @@ def compare_modes(bag_path: str | Path, modes: list[str], out_dir: str | Path, *
         rows.append(row)
         if res.interrupted:
             break
-    result = CompareResult(rows=rows, out_dir=out_dir, gt=None if gt is None else str(gt))
+    result = CompareResult(rows=rows, out_dir=out_dir, gt=None if gt is None else str(gt),
+                           earlier=earlier_mode_dirs(out_dir, modes))
+    if console is not None and result.earlier:
+        console.print(f"note: {', '.join(result.earlier)} in {out_dir} "
+                      f"{'is' if len(result.earlier) == 1 else 'are'} from an earlier comparison "
+                      "(not run now, not in this table; left as they are)", highlight=False,
+                      soft_wrap=True, markup=False)
     gt_xyz = None
     if gt is not None:
         gt_xyz = np.asarray(read_trajectory(gt, "ground-truth").positions_xyz, dtype=np.float64)
@@ -241,6 +255,9 @@ def _markdown(result: CompareResult, gt: str | Path | None) -> str:
     lines += ["| " + " | ".join(cells) + " |" for cells in table_rows(result.rows)]
     for r in result.rows:
         lines += [f"\n- {note}" for note in notes(r)]
+    if result.earlier:
+        lines.append(f"\n- folders from an earlier comparison, not run now: "
+                     f"{', '.join(f'`{d}`' for d in result.earlier)}")
     lines += ["", "## Figures", ""]
     lines += [f"![{p.stem}]({p.name})\n" for p in result.figures]
     lines += ["## Per-mode reports", ""]
