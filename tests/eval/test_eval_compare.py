@@ -82,8 +82,9 @@ def test_compare_cli_on_simulated_run(tmp_path):
 
 def test_compare_keeps_going_when_the_gt_does_not_cover_the_run(tmp_path):
     """A ground truth from another recording (no stamp within reach of the run's) cannot align:
-    each mode is reported as aborted, naming why, and the comparison is still written (no
-    traceback, no figure up taken from a report that was never made)."""
+    each mode's evaluation is reported as failed, naming why (the run itself completed: neither
+    aborted nor diverged), and the comparison is still written (no traceback, no figure up taken
+    from a report that was never made)."""
     from adalio.eval.compare import compare_modes
     from adalio.sim import cached_sequence
 
@@ -95,10 +96,23 @@ def test_compare_keeps_going_when_the_gt_does_not_cover_the_run(tmp_path):
     np.savetxt(gt, rows, fmt="%.9f")
     res = compare_modes(sim.bag_path, ["fixed"], tmp_path / "cmp", gt=gt,
                         config_file=sim.config_path, max_scans=20, progress=False)
-    assert [r.aborted is not None for r in res.rows] == [True]
+    from adalio.eval.compare import table_rows
+
+    row = res.rows[0]
+    assert row.n_scans == 20 and (tmp_path / "cmp" / "fixed" / "trajectory.tum").is_file()
+    assert row.aborted is None and not row.diverged
+    assert "no estimate/GT pose pairs" in row.eval_failed
+    assert table_rows(res.rows)[0][3] == "- (evaluation failed)"
     data = json.loads((tmp_path / "cmp" / "compare.json").read_text())
-    assert data["figures_up"] is None and data["rows"][0]["aborted"]
+    assert data["figures_up"] is None
+    assert data["rows"][0]["aborted"] is None and data["rows"][0]["diverged"] is False
+    assert data["rows"][0]["eval_failed"] == row.eval_failed
+    md = (tmp_path / "cmp" / "compare.md").read_text()
+    assert "aborted" not in md and "yes" not in md
+    assert f"`fixed` evaluation against the ground truth failed (the run completed): " \
+           f"{row.eval_failed}" in md
     assert "--gt" in res.failure() and str(gt) in res.failure()
+    assert row.eval_failed in res.failure()
 
 
 def test_compare_keeps_an_aborted_modes_whole_reason(tmp_path, monkeypatch):
@@ -117,3 +131,27 @@ def test_compare_keeps_an_aborted_modes_whole_reason(tmp_path, monkeypatch):
     assert res.rows[0].aborted == f"AdalioError: {reason}"
     data = json.loads((tmp_path / "cmp" / "compare.json").read_text())
     assert data["rows"][0]["aborted"].endswith("set filter.some_setting to fix it")
+
+
+def test_compare_names_an_earlier_comparisons_mode_folders(tmp_path, monkeypatch):
+    """A mode folder left in --out by an earlier comparison of other modes is named as such in
+    compare.md (and kept: it is the user's), not silently beside this comparison's."""
+    import adalio.eval.compare as cmp
+    from adalio.errors import AdalioError
+
+    def stops(*args, **kwargs):
+        raise AdalioError("stopped")
+
+    monkeypatch.setattr("adalio.pipeline.run_bag", stops)
+    out = tmp_path / "cmp"
+    (out / "adaptive_plus").mkdir(parents=True)
+    (out / "adaptive_plus" / "trajectory.tum").write_text("1 0 0 0 0 0 0 1\n")
+    (out / "fixed").mkdir()
+    (out / "other").mkdir()
+    res = cmp.compare_modes(tmp_path / "any.bag", ["fixed"], out, progress=False)
+    assert res.earlier == ["adaptive_plus"]
+    md = (out / "compare.md").read_text()
+    assert "folders from an earlier comparison, not run now: `adaptive_plus`" in md
+    assert (out / "adaptive_plus" / "trajectory.tum").is_file()
+    res = cmp.compare_modes(tmp_path / "any.bag", ["fixed", "adaptive+"], out, progress=False)
+    assert res.earlier == [] and "earlier comparison" not in (out / "compare.md").read_text()

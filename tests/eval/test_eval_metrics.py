@@ -190,6 +190,73 @@ def test_denser_estimate_associates_each_gt(tmp_path):
     assert res["max_m"] < 0.01  # nearest estimate is 3 ms away
 
 
+def test_gt_shorter_than_the_run_pairs_each_estimate_once(tmp_path):
+    """A 100 Hz GT over 0.7 s has fewer poses (70) than a 10 Hz estimate over 20 s (200): each
+    estimate within the GT's reach is still one pair, with the GT interpolated at its stamp."""
+    t_gt = 100.0 + np.arange(70) * 0.01
+
+    def path(t):
+        return np.column_stack([np.sin(t), 0.5 * t, np.cos(2 * t)])
+
+    gt = write_tum(tmp_path / "gt.tum", t_gt, path(t_gt), Rotation.identity(t_gt.size))
+    t_est = 96.0 + np.arange(200) * 0.1 + 0.054
+    rng = np.random.default_rng(3)
+    xyz_est = path(t_est) + rng.normal(0, 0.01, (t_est.size, 3))
+    est = write_tum(tmp_path / "est.tum", t_est, xyz_est, Rotation.identity(t_est.size))
+    t_gt, xyz_gt, _ = _reload(gt)
+    t_est, xyz_est, _ = _reload(est)
+    # brute force: the estimates with a GT stamp within 20 ms; inside the GT's span (every one
+    # here) the GT linearly interpolated at the estimate's stamp
+    near = np.array([np.min(np.abs(t_gt - t)) <= 0.02 for t in t_est])
+    assert np.all((t_est[near] > t_gt[0]) & (t_est[near] < t_gt[-1]))
+    xyz_i = np.column_stack([np.interp(t_est[near], t_gt, xyz_gt[:, k]) for k in range(3)])
+    res = ate(est, gt, align="none")
+    _check(res, _stats(np.linalg.norm(xyz_est[near] - xyz_i, axis=1)))
+    assert res["n"] == 7
+
+
+def test_estimate_side_association_is_evo_s_when_the_gt_is_denser(synthetic_pair):
+    """With no more estimated poses than GT poses, the pairs are evo's associate_trajectories'
+    (the figures of every run against a dense GT stay as they were)."""
+    from evo.core import sync
+
+    from adalio.eval.files import read_trajectory
+    from adalio.eval.metrics import associate, interpolate_gt
+
+    p = synthetic_pair
+    est_t = read_trajectory(p["est"], "estimate")
+    gt_t = read_trajectory(p["gt"], "ground-truth")
+    assert est_t.num_poses < gt_t.num_poses
+    for max_diff in (0.02, 0.003):
+        gt_e, est_e = sync.associate_trajectories(gt_t, est_t, max_diff=max_diff)
+        gt_s, est_s = associate(p["est"], p["gt"], max_diff, interpolate=False)
+        np.testing.assert_array_equal(est_s.timestamps, est_e.timestamps)
+        np.testing.assert_array_equal(gt_s.timestamps, gt_e.timestamps)
+        np.testing.assert_array_equal(gt_s.positions_xyz, gt_e.positions_xyz)
+        gt_s, _ = associate(p["est"], p["gt"], max_diff)
+        gt_i = interpolate_gt(gt_t, gt_e, np.asarray(est_e.timestamps), max_diff)
+        np.testing.assert_array_equal(gt_s.positions_xyz, gt_i.positions_xyz)
+        np.testing.assert_array_equal(gt_s.orientations_quat_wxyz, gt_i.orientations_quat_wxyz)
+
+
+def test_sparse_gt_pose_pairs_with_its_nearest_estimate_only(tmp_path):
+    """A 1 Hz GT against a 100 Hz estimate: several estimates lie within --max-diff of each GT
+    pose; the GT pose (not interpolated) is paired once, with the nearest of them."""
+    t_gt = 10.0 + np.arange(8.0)
+    gt = write_tum(tmp_path / "gt.tum", t_gt, np.column_stack([t_gt, 0 * t_gt, 0 * t_gt]),
+                   Rotation.identity(t_gt.size))
+    t_est = 9.5 + np.arange(900) * 0.01 + 0.0025
+    est = write_tum(tmp_path / "est.tum", t_est, np.column_stack([t_est, 0 * t_est, 0 * t_est]),
+                    Rotation.identity(t_est.size))
+    t_gt, _, _ = _reload(gt)
+    t_est, _, _ = _reload(est)
+    nearest = np.array([np.argmin(np.abs(t_est - t)) for t in t_gt])
+    for interpolate in (True, False):
+        pair = align_pair(est, gt, "none", 0.02, interpolate=interpolate)
+        np.testing.assert_array_equal(pair.est.timestamps, t_est[nearest])
+        np.testing.assert_allclose(pair.errors_m, np.abs(t_est[nearest] - t_gt), atol=1e-9)
+
+
 def test_max_diff_controls_association(tmp_path, synthetic_pair):
     t, xyz, rot = _reload(synthetic_pair["gt"])
     sparse = write_tum(tmp_path / "sparse.tum", t[::50], xyz[::50], rot[::50])  # 2 Hz
@@ -233,6 +300,74 @@ def test_bad_files(tmp_path, synthetic_pair):
         ate(synthetic_pair["est"], synthetic_pair["gt"], align="sim3")
 
 
+def test_equal_time_stamps(tmp_path, synthetic_pair):
+    """A line repeated as it is is read once (the same ATE as without it); two different poses
+    at one time stamp are an error naming the file and the two poses (the GT with every 10th row
+    repeated 1 m off gave an ATE of 0.21 m for 1.5 mm, an estimate whose rows all carried one
+    stamp was scored)."""
+    p = synthetic_pair
+    lines = p["gt"].read_text().splitlines(keepends=True)
+    repeated, conflict = [], []
+    for k, line in enumerate(lines):
+        repeated.append(line)
+        conflict.append(line)
+        if k % 10 == 0:
+            repeated.append(line)
+            f = line.split()
+            f[1] = f"{float(f[1]) + 1.0:.9f}"
+            conflict.append(" ".join(f) + "\n")
+    (tmp_path / "repeated.tum").write_text("".join(repeated))
+    # from the GT's second line on: its 10th line is pose 10, its 1 m twin pose 11
+    (tmp_path / "conflict.tum").write_text("# t x y z qx qy qz qw\n" + "".join(conflict[2:]))
+    assert ate(p["est"], tmp_path / "repeated.tum") == ate(p["est"], p["gt"])
+    with pytest.raises(InputError, match=r"ground-truth file .*conflict\.tum: poses 10 and 11 "
+                                         r"have the same time stamp"):
+        ate(p["est"], tmp_path / "conflict.tum")
+    est_lines = p["est"].read_text().splitlines()
+    one_stamp = [" ".join(["1005.0", *line.split()[1:]]) for line in est_lines]
+    (tmp_path / "one_stamp.tum").write_text("\n".join(one_stamp) + "\n")
+    with pytest.raises(InputError, match=r"estimate file .*one_stamp\.tum: poses 1 and 2"):
+        ate(tmp_path / "one_stamp.tum", p["gt"], align="first")
+
+
+def test_bad_file_messages_say_what_and_where(tmp_path, synthetic_pair):
+    """A folder is called a folder (not 'does not exist'), naming the run's trajectory.tum when
+    it holds one; a line that is not 8 numbers is named by its number in the file (comments and
+    blank lines counted); coordinates beyond 1e9 m are refused naming the pose, with no numpy
+    warning on stderr (1e200 gave an ATE of inf and exit 0, 1e308 RuntimeWarnings)."""
+    gt = synthetic_pair["gt"]
+    folder = tmp_path / "run"
+    folder.mkdir()
+    with pytest.raises(InputError, match=r"estimate file .*run is a folder, not a TUM "
+                                         r"trajectory: give a TUM file"):
+        ate(folder, gt)
+    (folder / "trajectory.tum").write_text(synthetic_pair["est"].read_text())
+    with pytest.raises(InputError, match=r"is a folder.*run/trajectory\.tum\?"):
+        ate(synthetic_pair["est"], folder)
+    lines = gt.read_text().splitlines()
+    bad = tmp_path / "bad_line.tum"
+    bad.write_text("# t x y z qx qy qz qw\n\n" + "\n".join(lines[:300]) + "\n1000.0 1 2 3\n"
+                   + "\n".join(lines[300:]) + "\n")
+    with pytest.raises(InputError, match=r"line 303 \('1000\.0 1 2 3'\) has 4 numbers"):
+        ate(synthetic_pair["est"], bad)
+    words = tmp_path / "words.tum"
+    words.write_text("\n".join(lines[:5]) + "\n1000.0 1 2 3 0 0 0 one\n")
+    with pytest.raises(InputError, match=r"line 6 .* has text that is not a number"):
+        ate(synthetic_pair["est"], words)
+    for value in ("1e200", "1e308", "-2e9"):
+        far = tmp_path / f"far{value}.tum"
+        rows = [line.split() for line in lines]
+        rows[7][2] = value
+        far.write_text("\n".join(" ".join(r) for r in rows) + "\n")
+        proc = subprocess.run([sys.executable, "-m", "adalio.cli", "eval",
+                               str(synthetic_pair["est"]), str(far)], capture_output=True,
+                              text=True, timeout=120, check=False)
+        assert proc.returncode == 2, proc.stdout
+        expected = (f"error: ground-truth file {far}: pose 8 has a coordinate of "
+                    f"{float(value):g} m, beyond ±1e+09 m: are its x y z in metres?")
+        assert proc.stderr.strip().splitlines() == [expected]
+
+
 def test_cli_json_and_table(synthetic_pair):
     import json
 
@@ -255,6 +390,60 @@ def test_cli_json_and_table(synthetic_pair):
     assert out.exit_code == 0 and "RMSE" in out.output
     out = runner.invoke(app, ["eval", str(p["est"]), "/nonexistent.tum"])
     assert isinstance(out.exception, AdalioError)
+
+
+@pytest.mark.parametrize("text, deltas", [("1 5", (1.0, 5.0)), ("1, 5", (1.0, 5.0)),
+                                           (" 1 ,5 ", (1.0, 5.0)), ("0.5\t2  5", (0.5, 2.0, 5.0))])
+def test_cli_rpe_delta_takes_commas_and_or_spaces(synthetic_pair, text, deltas):
+    import json
+
+    from adalio.cli import app
+
+    p = synthetic_pair
+    out = CliRunner().invoke(app, ["eval", str(p["est"]), str(p["gt"]), "--json",
+                                   "--rpe-delta", text])
+    assert out.exit_code == 0, out.output
+    assert json.loads(out.output)["rpe"] == rpe(p["est"], p["gt"], deltas)
+
+
+def test_cli_rpe_delta_not_numbers_is_an_error(synthetic_pair):
+    from adalio.cli import app
+
+    p = synthetic_pair
+    out = CliRunner().invoke(app, ["eval", str(p["est"]), str(p["gt"]), "--rpe-delta", "1;5"])
+    assert out.exit_code != 0
+    assert isinstance(out.exception, InputError) and "--rpe-delta" in str(out.exception)
+
+
+def test_cli_table_says_how_the_gt_poses_were_paired(tmp_path, synthetic_pair):
+    """The ATE table's title says 'GT interpolated' only where the GT was interpolated: a 2 Hz GT
+    keeps the nearest pose (the title said 'GT interpolated' there too), a GT that ends inside
+    the run has the nearest pose past its end; counted by brute force."""
+    import json
+
+    from adalio.cli import app
+
+    p = synthetic_pair
+    t, xyz, rot = _reload(p["gt"])
+    sparse = write_tum(tmp_path / "sparse.tum", t[5::50], xyz[5::50], rot[5::50])
+    cut = write_tum(tmp_path / "cut.tum", t[:1005], xyz[:1005], rot[:1005])
+    t_est = _reload(p["est"])[0]
+    for gt, title in ((p["gt"], "GT interpolated,"), (sparse, "nearest GT pose,"),
+                      (cut, None)):
+        tg = _reload(gt)[0]
+        paired = np.array([np.min(np.abs(tg - x)) <= 0.02 for x in t_est])
+        inside = np.array([np.any((tg < x) & (tg >= x - 0.02)) and np.any((tg >= x) &
+                                                                          (tg <= x + 0.02))
+                           for x in t_est])
+        n, k = int(paired.sum()), int((paired & inside).sum())
+        if title is None:
+            assert 0 < k < n
+            title = f"GT interpolated at {k}, nearest GT pose at {n - k},"
+        res = CliRunner().invoke(app, ["eval", str(p["est"]), str(gt)], terminal_width=300)
+        assert res.exit_code == 0, res.output
+        assert f"{n} pairs within 0.02 s, {title}" in res.output
+        res = CliRunner().invoke(app, ["eval", str(p["est"]), str(gt), "--json"])
+        assert json.loads(res.output)["ate"]["n_interpolated"] == k
 
 
 def test_cli_error_is_one_line(tmp_path):

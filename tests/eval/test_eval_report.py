@@ -100,7 +100,7 @@ def test_make_report_with_gt(run_dir):
     assert metrics["map_points"] == 20000
     scans = read_scans_csv(out / "scans.csv")
     assert scans["degenerate"].sum() == 30 and set(scans["trigger"]) == {"", "count"}
-    assert f"{metrics['ate_se3']['rmse_m']:.3f}" in text
+    assert f"{metrics['ate_se3']['rmse_m']:.4f}" in text
 
 
 def test_report_without_gt_and_cli(run_dir):
@@ -240,3 +240,197 @@ def test_figures_keep_the_world_frame_when_the_run_does_not_say_where_up_is(run_
     out, gt = run_dir  # config.yaml without a measured block (a run older than the field)
     make_report(out, gt)
     assert json.loads((out / "metrics.json").read_text())["figures_up"] is None
+
+
+def test_report_hilti_on_a_dense_ground_truth_warns(run_dir, tmp_path):
+    """As `eval --hilti`: a dense GT given to `report --hilti` is scored with a warning that it
+    is not control points, naming the command to run instead; control points (identity
+    orientations, 1 s apart) and a dense GT without --hilti are not warned about."""
+    from adalio.cli import app
+
+    out, gt = run_dir
+    rows = np.loadtxt(gt)[::100]
+    rows[:, 4:8] = [0.0, 0.0, 0.0, 1.0]
+    points = tmp_path / "points.tum"
+    np.savetxt(points, rows, fmt="%.9f")
+    for gt_file, flags, warned in ((gt, ["--hilti"], True), (points, ["--hilti"], False),
+                                   (gt, [], False)):
+        res = CliRunner().invoke(app, ["report", str(out), "--gt", str(gt_file), *flags])
+        assert res.exit_code == 0, res.output
+        assert ("does not look like HILTI control points" in res.stderr) == warned, res.stderr
+        assert ("use report without --hilti" in res.stderr) == warned
+        assert ("hilti" in json.loads((out / "metrics.json").read_text())) == bool(flags)
+
+
+def _with_sigma_columns(out: Path, sigma_m: float = 0.03) -> None:
+    rows = read_scans_csv(out / "scans.csv")
+    csvw = ScansCsvWriter(out / "scans.csv")
+    for t_s in rows["t_s"]:
+        csvw.write(ScanStats(t_ns=round(float(t_s) * 1e9), n_raw=20000, n_down=1500,
+                             n_down_general=1400, n_near=300, voxel_size_m=0.2,
+                             search_radius_m=3.0, plane_margin_m=0.05, n_matched=900,
+                             iterations=3, wall_ms=12.0, eigenvalues=np.geomspace(1e1, 1e5, 6),
+                             sigma_p_world_m=np.full(3, sigma_m),
+                             sigma_rot_world_deg=np.full(3, 0.1)))
+    csvw.close()
+
+
+def test_report_says_where_the_sigma_check_is_anchored_and_warns_off_the_first_scan(tmp_path):
+    """The uncertainty section names the time of the pose the GT is aligned on; a GT that starts
+    6 s into the 12 s run aligns on the first scan it covers (6.00 s after the first scan), which
+    the report must say, with a warning (report.md, metrics.json, stderr), not claim the filter's
+    first scan."""
+    from adalio.cli import app
+
+    out, gt = make_run_dir(tmp_path)
+    _with_sigma_columns(out)
+    text = make_report(out, gt).read_text()
+    sigma = json.loads((out / "metrics.json").read_text())["sigma"]
+    assert sigma["anchor_is_first_scan"] and sigma["anchor_t_s"] == pytest.approx(0.0)
+    assert "aligned on the filter's first scan, at 0.00 s" in text and "Warning" not in text
+    late = tmp_path / "late_gt.tum"
+    rows = np.loadtxt(gt)
+    t_est = np.loadtxt(out / "trajectory.tum")[:, 0]
+    late_rows = rows[rows[:, 0] >= t_est[0] + 6.0 - 1e-6]
+    np.savetxt(late, late_rows, fmt="%.9f")
+    res = CliRunner().invoke(app, ["report", str(out), "--gt", str(late)])
+    assert res.exit_code == 0, res.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    sigma = metrics["sigma"]
+    # the first estimate with a GT pose within 20 ms: the one 6.0 s after the first
+    first_covered = t_est[np.argmax(t_est >= late_rows[0, 0] - 0.02)] - t_est[0]
+    assert first_covered == pytest.approx(6.0, abs=1e-6)
+    assert not sigma["anchor_is_first_scan"]
+    assert sigma["anchor_t_s"] == pytest.approx(first_covered, abs=1e-6)
+    assert sigma["first_scan_t_s"] == pytest.approx(0.0)
+    assert sigma["anchor_sigma_max_m"] == pytest.approx(0.03)
+    text = (out / "report.md").read_text()
+    assert "aligned on the scan at 6.00 s, the first the ground truth covers" in text
+    assert "filter's first scan at 0.00 s" in text and "**Warning:**" in text
+    assert "warning: the ground truth starts after the filter's first scan" in res.stderr
+    assert metrics["warnings"] and "optimistic" in metrics["warnings"][0]
+
+
+@pytest.mark.parametrize("base", [(0, 0, -1), (0, 0, 1), (1, 0, 0), (0, -1, 0),
+                                  (0.3, 0.2, -0.93), (0.2, 0.1, 0.97)])
+def test_leveling_turns_up_to_z_with_a_heading_that_moves_as_little_as_up(base):
+    """The figures' leveling takes up to +z, and two ups a fraction of a degree apart (the tilt
+    by which a z-down rig's figures differed) give levelings a fraction of a degree apart: the
+    same walk is drawn in the same heading (the smallest rotation alone turned an up near -z by
+    180 deg about an axis set by that tilt)."""
+    from adalio.eval.report import leveling
+
+    rng = np.random.default_rng(5)
+    base = np.asarray(base, dtype=np.float64) / np.linalg.norm(base)
+    for _ in range(50):
+        ups = [Rotation.from_rotvec(np.radians(0.3) * v / np.linalg.norm(v)).apply(base)
+               for v in rng.normal(size=(2, 3))]
+        R1, R2 = (leveling(u) for u in ups)
+        for R, u in ((R1, ups[0]), (R2, ups[1])):
+            np.testing.assert_allclose(R @ u, [0, 0, 1], atol=1e-9)
+            np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
+            assert np.linalg.det(R) == pytest.approx(1.0)
+        # the two figures' frames differ by less than a degree (ups are <= 0.6 deg apart)
+        assert np.degrees(Rotation.from_matrix(R1 @ R2.T).magnitude()) < 1.0
+
+
+def test_report_with_a_gt_of_the_still_start_only_keeps_the_rest(tmp_path):
+    """A GT that covers only a stretch at rest (the first 2 s, not moving) cannot be
+    SE(3)-aligned: `adalio report` still writes the report and its figures without the
+    ground-truth sections, says why on stderr and in report.md, and its hint names a command
+    that exists (`adalio eval <the run's trajectory> <the GT> --align first`), not options that
+    `report` lacks (was: exit 2, no report, 'use --align first or a larger --max-diff')."""
+    from adalio.cli import app
+
+    out, gt = make_run_dir(tmp_path)
+    rows = np.loadtxt(gt)
+    still = rows[rows[:, 0] <= rows[0, 0] + 2.0].copy()
+    still[:, 1:] = rows[0, 1:]
+    still_gt = tmp_path / "still.tum"
+    np.savetxt(still_gt, still, fmt="%.9f")
+    with pytest.raises(InputError, match="a stretch at rest") as exc:  # the Python default
+        make_report(out, still_gt)
+    est = out / "trajectory.tum"
+    assert f"`adalio eval {est} {still_gt} --align first`" in str(exc.value)
+    assert "use --align" not in str(exc.value)
+    res = CliRunner().invoke(app, ["report", str(out), "--gt", str(still_gt)])
+    assert res.exit_code == 0, res.output + repr(res.exception)
+    assert f"warning: --gt {still_gt} is not used: se3 alignment failed" in res.stderr
+    assert f"`adalio eval {est} {still_gt} --align first`" in res.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert "ate_se3" not in metrics and "a stretch at rest" in metrics["gt_not_used"]
+    text = (out / "report.md").read_text()
+    assert "**not used**" in text and "Absolute trajectory error" not in text
+    for name in ("trajectory_top.png", "trajectory_side.png", "degeneracy.png", "map_top.png"):
+        assert_png_image(out / name)
+        assert f"]({name})" in text
+    # a GT of another clock (no pair at all) stays an error
+    other = tmp_path / "other.tum"
+    rows[:, 0] += 1e5
+    np.savetxt(other, rows, fmt="%.9f")
+    res = CliRunner().invoke(app, ["report", str(out), "--gt", str(other)])
+    assert isinstance(res.exception, InputError) and "no estimate/GT pose pairs" in str(
+        res.exception)
+
+
+def test_too_few_pairs_hint_names_a_command_not_an_option():
+    """Fewer than 3 pairs: the hint is a command the user can run (report, compare and run
+    --gt share the message and have no --align / --max-diff of their own)."""
+    from evo.core.trajectory import PoseTrajectory3D
+
+    from adalio.eval.metrics import align_pair
+
+    t = np.arange(10) * 0.1
+    est = PoseTrajectory3D(positions_xyz=np.column_stack([t, t * 0, t * 0]),
+                           orientations_quat_wxyz=np.tile([1.0, 0, 0, 0], (10, 1)), timestamps=t)
+    gt = PoseTrajectory3D(positions_xyz=np.zeros((2, 3)),
+                          orientations_quat_wxyz=np.tile([1.0, 0, 0, 0], (2, 1)),
+                          timestamps=t[:2].copy())
+    with pytest.raises(InputError, match=r"only 2 associated poses") as exc:
+        align_pair(est, gt)
+    assert "`adalio eval EST GT --align first`" in str(exc.value)
+    assert "use --align" not in str(exc.value)
+
+
+def test_report_removes_an_earlier_reports_figures_it_does_not_make(tmp_path):
+    """A report with a GT and sigma columns draws error.png and error_sigma.png; a report without
+    a GT into the same folder must not leave them beside a report.md that no longer has a GT.
+    Files that are not a report's stay."""
+    from adalio.io.writers import REPORT_FILES
+
+    out, gt = make_run_dir(tmp_path)
+    _with_sigma_columns(out)
+    (out / "notes.png").write_bytes(b"mine")
+    make_report(out, gt)
+    assert (out / "error.png").is_file() and (out / "error_sigma.png").is_file()
+    text = make_report(out).read_text()
+    pngs = {p.name for p in out.glob("*.png")}
+    linked = {name for name in REPORT_FILES if f"]({name})" in text}
+    assert pngs == linked | {"notes.png"}
+    assert not (out / "error.png").exists() and not (out / "error_sigma.png").exists()
+
+
+def test_report_tables_show_millimetre_errors(tmp_path):
+    """An estimate 1.5 mm off the GT: the ATE / RPE cells of report.md read back within 0.05 mm
+    of ate() / rpe() (metres to 3 decimals read 1.5 mm as 0.001 or 0.002), and compare's table
+    (same cells) as well."""
+    from adalio.eval.compare import ModeResult, table_rows
+    from adalio.eval.metrics import rpe
+
+    out, gt = make_run_dir(tmp_path)
+    rows = np.loadtxt(gt)[::10]
+    rows[:, 1:4] += np.random.default_rng(2).normal(0, 0.0015 / np.sqrt(3), (len(rows), 3))
+    np.savetxt(out / "trajectory.tum", rows, fmt="%.9f")
+    text = make_report(out, gt).read_text()
+    a = ate(out / "trajectory.tum", gt, "se3")
+    assert 0.0005 < a["rmse_m"] < 0.003
+    cells = next(line for line in text.splitlines() if line.startswith("| se3 |")).split("|")
+    for cell, key in zip(cells[2:6], ("rmse_m", "mean_m", "median_m", "max_m"), strict=True):
+        assert float(cell) == pytest.approx(a[key], abs=5e-5)
+    r = rpe(out / "trajectory.tum", gt)[0]
+    cells = next(line for line in text.splitlines() if line.startswith("| 1 |")).split("|")
+    assert float(cells[2]) == pytest.approx(r["rmse_m"], abs=5e-5)
+    cells = table_rows([ModeResult("fixed", str(out), ate_rmse_m=a["rmse_m"],
+                                   max_error_m=a["max_m"])])[0]
+    assert float(cells[1]) == pytest.approx(a["rmse_m"], abs=5e-5)
+    assert float(cells[2]) == pytest.approx(a["max_m"], abs=5e-5)

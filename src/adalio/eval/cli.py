@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import time
 from pathlib import Path
 from typing import Annotated
@@ -16,10 +17,12 @@ from adalio.term import console as term_console
 
 
 def _parse_floats(text: str, option: str) -> tuple[float, ...]:
+    """Numbers separated by commas and/or whitespace (``1,5``, ``"1 5"``, ``"1, 5"``)."""
     try:
-        values = tuple(float(v) for v in text.replace(" ", "").split(",") if v)
+        values = tuple(float(v) for v in re.split(r"[,\s]+", text) if v)
     except ValueError:
-        raise InputError(f"{option} must be comma-separated numbers (got {text!r})") from None
+        raise InputError(f"{option} must be numbers separated by commas or spaces "
+                         f"(got {text!r})") from None
     if not values:
         raise InputError(f"{option} is empty (e.g. {option} 1,5)")
     return values
@@ -41,6 +44,15 @@ def _f(value: float | None, digits: int = 3) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
+def _pairing(n: int, n_interpolated: int | None) -> str:
+    """How the table's pairs got their GT pose."""
+    if n_interpolated == n:
+        return "GT interpolated"
+    if not n_interpolated:
+        return "nearest GT pose"
+    return f"GT interpolated at {n_interpolated}, nearest GT pose at {n - n_interpolated}"
+
+
 def eval_command(
     est: Annotated[Path, typer.Argument(help="Estimated trajectory (TUM: t x y z qx qy qz qw).")],
     gt: Annotated[Path, typer.Argument(help="Ground truth (TUM), or HILTI control points.")],
@@ -53,7 +65,7 @@ def eval_command(
         "--max-diff", help="Max time gap (s) to associate poses [default: 0.02, --hilti: 2]")
     ] = None,
     rpe_delta: Annotated[str, typer.Option(
-        "--rpe-delta", help="RPE segment lengths in metres, comma-separated.")] = "1,5",
+        "--rpe-delta", help="RPE segment lengths in metres, separated by commas or spaces.")] = "1,5",
     nearest: Annotated[bool, typer.Option(
         "--nearest", help="Pair each estimate with the nearest GT pose (evo's association) "
                           "instead of the GT interpolated at its time stamp.")] = False,
@@ -61,19 +73,17 @@ def eval_command(
     """Accuracy of a trajectory: ATE and RPE (evo), or the HILTI 2022 score."""
     console = term_console()
     if hilti:
-        from adalio.eval.hilti import MAX_DIFF_S, hilti_score, looks_like_control_points
+        from adalio.eval.hilti import MAX_DIFF_S, hilti_score, not_control_points_warning
 
         if align != "se3":
             raise InputError("--hilti always aligns with se3 (the official rule): drop --align")
 
         diff = max_diff if max_diff is not None else MAX_DIFF_S
         res = hilti_score(est, gt, max_diff_s=diff)
-        if not looks_like_control_points(gt):
-            term_console(stderr=True).print(
-                f"warning: {gt} does not look like HILTI control points (identity orientations "
-                "at least 1 s apart): the score pairs each of its poses with an estimate up to "
-                f"{diff:g} s away; for a dense ground truth use "
-                "eval without --hilti", highlight=False, soft_wrap=True)
+        warning = not_control_points_warning(gt, "eval", diff)
+        if warning:
+            term_console(stderr=True).print(warning, highlight=False, soft_wrap=True,
+                                            markup=False)
         if json_out:
             print(json.dumps(res))
             return
@@ -96,7 +106,7 @@ def eval_command(
     if json_out:
         print(json.dumps({"est": str(est), "gt": str(gt), "ate": a, "rpe": r}))
         return
-    pairing = "nearest GT pose" if nearest else "GT interpolated"
+    pairing = _pairing(a["n"], a["n_interpolated"])
     table = Table(title=f"ATE (translation, align={align}, {a['n']} pairs within {diff} s, "
                         f"{pairing}, "
                         f"{a['duration_s']:.1f} s)")
@@ -124,7 +134,17 @@ def report_command(
     """Figures (trajectory, error, degeneracy timeline, map) and report.md for a run folder."""
     from adalio.eval.report import make_report
 
-    path = make_report(run_dir, gt, hilti=hilti)
+    if hilti and gt is not None:
+        from adalio.eval.hilti import not_control_points_warning
+
+        warning = not_control_points_warning(gt, "report")
+        if warning:
+            term_console(stderr=True).print(warning, highlight=False, soft_wrap=True,
+                                            markup=False)
+    path = make_report(run_dir, gt, hilti=hilti, skip_unalignable_gt=True)
+    for warning in json.loads((path.parent / "metrics.json").read_text()).get("warnings", []):
+        term_console(stderr=True).print(f"warning: {warning}", highlight=False, soft_wrap=True,
+                                        markup=False)
     term_console().print(f"report written to [bold]{path}[/]")
 
 
@@ -139,12 +159,15 @@ def _print_table(console: Console, title: str, header, rows) -> None:
 
 
 def _print_compare(console: Console, result) -> None:
-    from adalio.eval.compare import TABLE_HEADER, table_rows
+    from rich.markup import escape
+
+    from adalio.eval.compare import TABLE_HEADER, notes, table_rows
 
     _print_table(console, "adalio mode comparison", TABLE_HEADER, table_rows(result.rows))
     for row in result.rows:
-        if row.aborted:
-            console.print(f"[yellow]{row.mode}[/] aborted: {row.aborted}")
+        for note in notes(row):
+            console.print(escape(note).replace(f"`{row.mode}`", f"[yellow]{row.mode}[/]", 1),
+                          highlight=False)
 
 
 def compare_command(

@@ -3,7 +3,9 @@
 Each mode runs through ``adalio.pipeline.run_bag`` into ``OUT/<mode>/`` with the same config
 except ``adaptive.mode``. With a ground truth, every run is scored (ATE after SE(3) alignment,
 max error) and gets its own report; a mode *diverged* if its max error exceeds
-``DIVERGED_MAX_ERROR_M`` or its run aborted. The overlaid trajectories are drawn in the GT frame.
+``DIVERGED_MAX_ERROR_M`` or its run aborted. A run that completed but could not be scored
+against the GT (no stamp within reach: another recording's GT) is an *evaluation failure*,
+neither diverged nor aborted. The overlaid trajectories are drawn in the GT frame.
 Writes ``compare.json``, ``compare.md`` and ``compare_top.png`` / ``compare_side.png`` (and
 ``compare_error.png`` with GT) into ``OUT``. Metres, seconds, milliseconds.
 """
@@ -50,6 +52,8 @@ class ModeResult:
     diverged: bool = False
     aborted: str | None = None
     """Why the run stopped early (exception text, 'interrupted', 'no poses'), else None."""
+    eval_failed: str | None = None
+    """Why its trajectory could not be scored against the ground truth, else None."""
     report: str | None = None
 
 
@@ -59,6 +63,8 @@ class CompareResult:
     out_dir: Path
     figures: list[Path] = field(default_factory=list)
     gt: str | None = None
+    earlier: list[str] = field(default_factory=list)
+    """Mode folders in ``out_dir`` of modes not compared now (an earlier comparison's), kept."""
 
     def failure(self) -> str | None:
         """One line saying why the comparison has no result, or None: no mode gave a usable
@@ -67,8 +73,8 @@ class CompareResult:
         (a run that produces no pose, a GT of another recording)."""
         if any(r.report is not None for r in self.rows):
             return None
-        first = next((r for r in self.rows if r.aborted), None)
-        reason = "" if first is None else f" ({first.mode}: {first.aborted})"
+        first = next((r for r in self.rows if r.aborted or r.eval_failed), None)
+        reason = "" if first is None else f" ({first.mode}: {first.aborted or first.eval_failed})"
         where = f"the tables and trajectories written so far are in {self.out_dir}"
         if self.gt is not None and any(r.n_scans > 0 for r in self.rows):
             return (f"--gt {self.gt}: no mode's trajectory could be aligned with this ground "
@@ -78,6 +84,12 @@ class CompareResult:
 
 def mode_dir_name(mode: str) -> str:
     return mode.replace("+", "_plus")
+
+
+def earlier_mode_dirs(out_dir: Path, modes: list[str]) -> list[str]:
+    """Names of ``out_dir``'s sub-folders named after a mode not in ``modes``."""
+    return [mode_dir_name(m) for m in MODES
+            if m not in modes and (out_dir / mode_dir_name(m)).is_dir()]
 
 
 def parse_modes(text: str) -> list[str]:
@@ -149,7 +161,7 @@ def compare_modes(bag_path: str | Path, modes: list[str], out_dir: str | Path, *
             try:
                 pair = align_pair(traj_path, gt, "se3", max_diff_s)
             except InputError as exc:
-                row.aborted = row.aborted or str(exc)
+                row.eval_failed = str(exc)
             else:
                 stats = ate_from_pair(pair, max_diff_s)
                 row.ate_rmse_m = stats["rmse_m"]
@@ -169,7 +181,13 @@ def compare_modes(bag_path: str | Path, modes: list[str], out_dir: str | Path, *
         rows.append(row)
         if res.interrupted:
             break
-    result = CompareResult(rows=rows, out_dir=out_dir, gt=None if gt is None else str(gt))
+    result = CompareResult(rows=rows, out_dir=out_dir, gt=None if gt is None else str(gt),
+                           earlier=earlier_mode_dirs(out_dir, modes))
+    if console is not None and result.earlier:
+        console.print(f"note: {', '.join(result.earlier)} in {out_dir} "
+                      f"{'is' if len(result.earlier) == 1 else 'are'} from an earlier comparison "
+                      "(not run now, not in this table; left as they are)", highlight=False,
+                      soft_wrap=True, markup=False)
     gt_xyz = None
     if gt is not None:
         gt_xyz = np.asarray(read_trajectory(gt, "ground-truth").positions_xyz, dtype=np.float64)
@@ -207,11 +225,27 @@ TABLE_HEADER = ("mode", "ATE rmse (m)", "max err (m)", "diverged", "degenerate (
                 "ms/scan", "scans")
 
 
+def _diverged_cell(row: ModeResult) -> str:
+    if row.aborted:
+        return "yes (aborted)"
+    if row.eval_failed:
+        return "- (evaluation failed)"
+    return "yes" if row.diverged else "no"
+
+
 def table_rows(rows: list[ModeResult]) -> list[tuple[str, ...]]:
     """The comparison table as strings, columns as in ``TABLE_HEADER``."""
-    return [(r.mode, _f(r.ate_rmse_m), _f(r.max_error_m),
-             ("yes" if r.diverged else "no") + (" (aborted)" if r.aborted else ""),
+    return [(r.mode, _f(r.ate_rmse_m, 4), _f(r.max_error_m, 4), _diverged_cell(r),
              _f(r.degenerate_pct, 1), _f(r.ms_per_scan, 1), str(r.n_scans)) for r in rows]
+
+
+def notes(row: ModeResult) -> list[str]:
+    """What the table's diverged column abbreviates for one mode, one line each."""
+    out = [f"`{row.mode}` aborted: {row.aborted}"] if row.aborted else []
+    if row.eval_failed:
+        out.append(f"`{row.mode}` evaluation against the ground truth failed (the run "
+                   f"{'stopped early' if row.aborted else 'completed'}): {row.eval_failed}")
+    return out
 
 
 def _markdown(result: CompareResult, gt: str | Path | None) -> str:
@@ -220,8 +254,10 @@ def _markdown(result: CompareResult, gt: str | Path | None) -> str:
              "| " + " | ".join(TABLE_HEADER) + " |", "|" + "---|" * len(TABLE_HEADER)]
     lines += ["| " + " | ".join(cells) + " |" for cells in table_rows(result.rows)]
     for r in result.rows:
-        if r.aborted:
-            lines.append(f"\n- `{r.mode}` aborted: {r.aborted}")
+        lines += [f"\n- {note}" for note in notes(r)]
+    if result.earlier:
+        lines.append(f"\n- folders from an earlier comparison, not run now: "
+                     f"{', '.join(f'`{d}`' for d in result.earlier)}")
     lines += ["", "## Figures", ""]
     lines += [f"![{p.stem}]({p.name})\n" for p in result.figures]
     lines += ["## Per-mode reports", ""]

@@ -21,19 +21,28 @@ from evo.tools import file_interface
 from adalio.errors import InputError
 
 TrajectoryLike = str | Path | PoseTrajectory3D
+MAX_COORDINATE_M = 1e9
+"""A position coordinate beyond this (metres; 150 times the Earth's radius) is refused: the
+statistics of such numbers overflow (an ATE of inf, numpy warnings)."""
 
 
 def read_trajectory(path: TrajectoryLike, what: str = "trajectory") -> PoseTrajectory3D:
     """Load a TUM file (or pass an evo trajectory through, copied) and validate it.
 
     Raises InputError if the file is missing, is not TUM, is empty, has non-finite values,
-    zero quaternions or time stamps that go backwards.
+    zero quaternions, time stamps that go backwards or two different poses at one time stamp
+    (a line repeated as it is is read once).
     """
     if isinstance(path, PoseTrajectory3D):
         import copy
 
         return copy.deepcopy(path)
     path = Path(path)
+    if path.is_dir():
+        inside = path / "trajectory.tum"
+        hint = (f"the trajectory file in it ({inside}?)" if inside.is_file() else
+                "a TUM file ('t x y z qx qy qz qw' per line)")
+        raise InputError(f"{what} file {path} is a folder, not a TUM trajectory: give {hint}")
     if not path.is_file():
         raise InputError(f"{what} file {path} does not exist: check the path")
     try:
@@ -57,9 +66,33 @@ def _loadtxt_tum(path: Path, what: str) -> np.ndarray:
         raise InputError(f"{what} file {path} has no poses (it is empty or only comments); "
                          "give a trajectory with at least one 't x y z qx qy qz qw' line")
     if mat is None or mat.ndim != 2 or mat.shape[1] != 8:
-        raise InputError(f"{what} file {path} is not a TUM trajectory: expected 8 numbers "
-                         "'t x y z qx qy qz qw' per line")
+        raise InputError(f"{what} file {path} is not a TUM trajectory: {_first_bad_line(path)}"
+                         "expected 8 numbers 't x y z qx qy qz qw' per line")
     return mat
+
+
+def _first_bad_line(path: Path) -> str:
+    """``"line N (...) has ...; "`` for the first line of ``path`` that is not 8 numbers (after
+    removing a ``#`` comment), or ``""`` when the file is not text."""
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError):
+        return "it is not text; "
+    for number, line in enumerate(text.splitlines(), 1):
+        fields = line.split("#", 1)[0].split()
+        if not fields:
+            continue
+        try:
+            [float(f) for f in fields]
+        except ValueError:
+            numeric = False
+        else:
+            numeric = True
+        if not numeric or len(fields) != 8:
+            shown = line.strip() if len(line.strip()) <= 60 else line.strip()[:57] + "..."
+            what = f"{len(fields)} numbers" if numeric else "text that is not a number"
+            return f"line {number} ({shown!r}) has {what}; "
+    return ""
 
 
 def _trajectory_from_matrix(mat: np.ndarray, path: Path, what: str) -> PoseTrajectory3D:
@@ -68,11 +101,27 @@ def _trajectory_from_matrix(mat: np.ndarray, path: Path, what: str) -> PoseTraje
     if not np.all(np.isfinite(mat)):
         row = int(np.nonzero(~np.all(np.isfinite(mat), axis=1))[0][0])
         raise InputError(f"{what} file {path}: pose {row + 1} has a NaN/inf value")
+    far = np.nonzero(np.any(np.abs(mat[:, 1:4]) > MAX_COORDINATE_M, axis=1))[0]
+    if far.size:
+        k = int(far[0])
+        value = float(mat[k, 1 + int(np.argmax(np.abs(mat[k, 1:4])))])
+        raise InputError(f"{what} file {path}: pose {k + 1} has a coordinate of {value:g} m, "
+                         f"beyond ±{MAX_COORDINATE_M:g} m: are its x y z in metres?")
     stamps = mat[:, 0]
     back = np.nonzero(np.diff(stamps) < 0)[0]
     if back.size:
         raise InputError(f"{what} file {path}: time goes backwards at pose {back[0] + 2} "
                          f"({stamps[back[0]]:.6f} -> {stamps[back[0] + 1]:.6f} s); sort it by time")
+    same = np.nonzero(np.diff(stamps) == 0)[0]
+    if same.size:
+        differ = same[np.any(mat[same] != mat[same + 1], axis=1)]
+        if differ.size:
+            k = int(differ[0])
+            raise InputError(f"{what} file {path}: poses {k + 1} and {k + 2} have the same time "
+                             f"stamp ({stamps[k]:.6f} s) but different poses; keep one pose per "
+                             "time stamp")
+        mat = np.delete(mat, same + 1, axis=0)  # lines repeated as they are: read once
+        stamps = mat[:, 0]
     quat_xyzw = mat[:, 4:8]
     norms = np.linalg.norm(quat_xyzw, axis=1)
     if np.any(norms < 1e-9):

@@ -51,6 +51,17 @@ def looks_like_control_points(gt_tum: TrajectoryLike) -> bool:
     return identity and spacing >= 1.0
 
 
+def not_control_points_warning(gt_tum: TrajectoryLike, command: str,
+                               max_diff_s: float = MAX_DIFF_S) -> str | None:
+    """The warning for ``--hilti`` given a ground truth that :func:`looks_like_control_points`
+    refuses (``command``: the adalio command to run without --hilti), else None."""
+    if looks_like_control_points(gt_tum):
+        return None
+    return (f"warning: {gt_tum} does not look like HILTI control points (identity orientations "
+            "at least 1 s apart): the score pairs each of its poses with an estimate up to "
+            f"{max_diff_s:g} s away; for a dense ground truth use {command} without --hilti")
+
+
 def points_for_error(error_m: float) -> int:
     """Points of one control point with position error ``error_m`` (NaN = unmatched -> 0)."""
     if not np.isfinite(error_m):

@@ -1,12 +1,16 @@
 """Trajectory accuracy: absolute (ATE) and relative (RPE) translation errors, via evo.
 
 Both trajectories are TUM files (or evo ``PoseTrajectory3D``) of the IMU pose in their own world
-frame, stamped in seconds on the same clock. Association is evo's
-``sync.associate_trajectories``: starting from the trajectory with fewer poses, every pose is
-paired with the nearest-in-time pose of the other one if they are within ``max_diff_s``. The GT
-pose of a pair is then interpolated at the estimate's time stamp (positions linearly, rotations
-by slerp) wherever the GT has a pose within ``max_diff_s`` on either side of it
-(:func:`interpolate_gt`); elsewhere (a sparse GT, its ends) it stays the nearest GT pose.
+frame, stamped in seconds on the same clock. Association starts from the estimate: every
+estimated pose is paired with the nearest-in-time GT pose if they are within ``max_diff_s``
+(evo's ``sync.matching_time_indices`` with the estimate first, which is what evo's
+``associate_trajectories`` does when the estimate has no more poses than the GT; evo starts from
+the trajectory with fewer poses, so a GT shorter than the run paired one estimate with several
+GT poses). The GT pose of a pair is then interpolated at the estimate's time stamp (positions
+linearly, rotations by slerp) wherever the GT has a pose within ``max_diff_s`` on either side of
+it (:func:`interpolate_gt`); elsewhere (a sparse GT, its ends) it stays the nearest GT pose, and
+such a GT pose is paired with one estimate only, the nearest in time (so a 1 Hz GT against a
+100 Hz estimate counts each GT pose once, as evo does). Each pose enters the errors once.
 Without this a GT at 100 Hz and a LiDAR whose scans end 3.6 ms off its grid (the simulated
 OS1-64) add the 4.5 mm the sensor moves in 3.6 ms at a walk to every error: 0.30 instead of
 0.19 cm of ATE on the hall. ``interpolate=False`` gives evo's nearest pose.
@@ -29,6 +33,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from evo.core import metrics as evo_metrics
@@ -40,6 +45,9 @@ from adalio.errors import InputError
 from adalio.eval.files import TrajectoryLike, read_trajectory
 
 ALIGNMENTS = ("se3", "first", "none")
+SCORE_CONTROL_POINTS = "score them with `adalio eval EST GT --hilti`"
+"""The hint of the association's errors for a GT of control points (eval, report, compare and
+``run --gt`` share these messages, so the hints name a command, not an option)."""
 DEFAULT_MAX_DIFF_S = 0.02
 DEFAULT_RPE_DELTAS_M = (1.0, 5.0)
 
@@ -55,6 +63,9 @@ class AlignedPair:
     """(4, 4) transform applied to the estimate (identity for 'none')."""
     errors_m: np.ndarray
     """(n,) position error of each associated pair after alignment."""
+    n_interpolated: int | None = None
+    """Of the pairs, those whose GT pose is interpolated at the estimate's stamp (the others
+    are the nearest GT pose); None where not known."""
 
     @property
     def t_s(self) -> np.ndarray:
@@ -69,26 +80,53 @@ def check_max_diff(max_diff_s: float) -> None:
 
 def associate(est: TrajectoryLike, gt: TrajectoryLike, max_diff_s: float = DEFAULT_MAX_DIFF_S,
               interpolate: bool = True) -> tuple[PoseTrajectory3D, PoseTrajectory3D]:
-    """Return ``(gt_sync, est_sync)`` with equal length, via evo's associate_trajectories; with
-    ``interpolate`` the GT poses are interpolated at the estimate's stamps where the GT brackets
-    them within ``max_diff_s`` (:func:`interpolate_gt`)."""
+    """Return ``(gt_sync, est_sync)`` with equal length (:func:`associate_counted`)."""
+    gt_s, est_s, _ = associate_counted(est, gt, max_diff_s, interpolate)
+    return gt_s, est_s
+
+
+def associate_counted(est: TrajectoryLike, gt: TrajectoryLike,
+                      max_diff_s: float = DEFAULT_MAX_DIFF_S, interpolate: bool = True
+                      ) -> tuple[PoseTrajectory3D, PoseTrajectory3D, int]:
+    """Return ``(gt_sync, est_sync)`` with equal length: each estimated pose with the nearest GT
+    pose within ``max_diff_s`` (see the module docstring); with ``interpolate`` the GT poses are
+    interpolated at the estimate's stamps where the GT brackets them within ``max_diff_s``
+    (:func:`interpolate_gt`). A GT pose kept as it is pairs with its nearest estimate only.
+    The third value is how many of the pairs have an interpolated GT pose."""
     check_max_diff(max_diff_s)
     est_t = read_trajectory(est, "estimate")
     gt_t = read_trajectory(gt, "ground-truth")
-    try:
-        gt_s, est_s = sync.associate_trajectories(gt_t, est_t, max_diff=max_diff_s)
-    except sync.SyncException:
+    t_est = np.asarray(est_t.timestamps, dtype=np.float64)
+    t_gt = np.asarray(gt_t.timestamps, dtype=np.float64)
+    i_est, i_gt = (np.asarray(i, dtype=np.int64) for i in
+                   sync.matching_time_indices(t_est, t_gt, max_diff=max_diff_s))
+    exact = (_bracketed(t_gt, t_est[i_est], max_diff_s)[0] if interpolate
+             else np.zeros(i_est.size, dtype=bool))
+    n_interpolated = int(np.count_nonzero(exact))
+    loose = np.nonzero(~exact)[0]
+    if loose.size:  # a GT pose not interpolated: only its nearest estimate
+        dt = np.abs(t_est[i_est[loose]] - t_gt[i_gt[loose]])
+        order = np.lexsort((dt, i_gt[loose]))
+        first = order[np.r_[True, np.diff(i_gt[loose][order]) != 0]]
+        exact[loose[first]] = True
+    i_est, i_gt = i_est[exact], i_gt[exact]
+    if i_est.size == 0:
         from adalio.eval.hilti import looks_like_control_points
 
-        hint = " (sparse control points? use --hilti)" if looks_like_control_points(gt_t) else \
-            "; are both in seconds on the same clock?"
+        hint = (f" (sparse control points? {SCORE_CONTROL_POINTS})"
+                if looks_like_control_points(gt_t) else
+                "; are both in seconds on the same clock?")
         raise InputError(
             f"no estimate/GT pose pairs within {max_diff_s} s: the estimate spans "
-            f"{_span(est_t)} and the GT {_span(gt_t)}{hint}") from None
+            f"{_span(est_t)} and the GT {_span(gt_t)}{hint}")
+    est_s = copy.deepcopy(est_t)
+    est_s.reduce_to_ids(i_est)
+    gt_s = copy.deepcopy(gt_t)
+    gt_s.reduce_to_ids(i_gt)
     if interpolate:
         gt_s = interpolate_gt(gt_t, gt_s, np.asarray(est_s.timestamps, dtype=np.float64),
                               max_diff_s)
-    return gt_s, est_s
+    return gt_s, est_s, n_interpolated
 
 
 def interpolate_gt(gt: PoseTrajectory3D, gt_sync: PoseTrajectory3D, t_s: np.ndarray,
@@ -101,11 +139,7 @@ def interpolate_gt(gt: PoseTrajectory3D, gt_sync: PoseTrajectory3D, t_s: np.ndar
     t = np.asarray(t_s, dtype=np.float64)
     pos = np.array(gt_sync.positions_xyz, dtype=np.float64)
     quat = np.array(gt_sync.orientations_quat_wxyz, dtype=np.float64)
-    hi = np.searchsorted(tg, t, side="left")  # tg[hi - 1] < t <= tg[hi]
-    inside = (hi > 0) & (hi < len(tg))
-    lo = np.clip(hi - 1, 0, len(tg) - 1)
-    hi = np.clip(hi, 0, len(tg) - 1)
-    ok = inside & (t - tg[lo] <= max_diff_s) & (tg[hi] - t <= max_diff_s) & (tg[hi] > tg[lo])
+    ok, lo, hi = _bracketed(tg, t, max_diff_s)
     if not np.any(ok):
         return gt_sync
     from scipy.spatial.transform import Rotation
@@ -122,9 +156,31 @@ def interpolate_gt(gt: PoseTrajectory3D, gt_sync: PoseTrajectory3D, t_s: np.ndar
     return PoseTrajectory3D(positions_xyz=pos, orientations_quat_wxyz=quat, timestamps=t.copy())
 
 
+def _bracketed(tg: np.ndarray, t: np.ndarray,
+               max_diff_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(ok, lo, hi)``: ``ok`` where the GT stamps ``tg`` have one at most ``max_diff_s`` before
+    and one at most ``max_diff_s`` after a time of ``t``, ``tg[lo] < t <= tg[hi]``."""
+    hi = np.searchsorted(tg, t, side="left")  # tg[hi - 1] < t <= tg[hi]
+    inside = (hi > 0) & (hi < len(tg))
+    lo = np.clip(hi - 1, 0, len(tg) - 1)
+    hi = np.clip(hi, 0, len(tg) - 1)
+    ok = inside & (t - tg[lo] <= max_diff_s) & (tg[hi] - t <= max_diff_s) & (tg[hi] > tg[lo])
+    return ok, lo, hi
+
+
 def _span(traj: PoseTrajectory3D) -> str:
     t = traj.timestamps
     return f"[{t[0]:.3f}, {t[-1]:.3f}] s"
+
+
+def _eval_command(est: TrajectoryLike, gt: TrajectoryLike) -> str:
+    """``adalio eval EST GT`` with the files' paths where they are files."""
+    import shlex
+
+    def arg(x: TrajectoryLike, name: str) -> str:
+        return shlex.quote(str(x)) if isinstance(x, str | Path) else name
+
+    return f"adalio eval {arg(est, 'EST')} {arg(gt, 'GT')}"
 
 
 def align_pair(est: TrajectoryLike, gt: TrajectoryLike, align: str = "se3",
@@ -132,15 +188,18 @@ def align_pair(est: TrajectoryLike, gt: TrajectoryLike, align: str = "se3",
     """Associate, align the estimate onto the GT (see module docstring) and compute errors."""
     if align not in ALIGNMENTS:
         raise InputError(f"--align must be one of {', '.join(ALIGNMENTS)} (got {align!r})")
-    gt_s, est_s = associate(est, gt, max_diff_s, interpolate)
+    gt_s, est_s, n_interpolated = associate_counted(est, gt, max_diff_s, interpolate)
     est_a = copy.deepcopy(est_s)
     T = np.eye(4)
     if align == "se3":
         if gt_s.num_poses < 3:
             from adalio.eval.hilti import looks_like_control_points
 
-            hint = "sparse control points? use --hilti" if looks_like_control_points(gt) else \
-                "use --align first or a larger --max-diff"
+            hint = (f"sparse control points? {SCORE_CONTROL_POINTS}"
+                    if looks_like_control_points(gt) else
+                    "the ground truth covers too little of the run; "
+                    f"`{_eval_command(est, gt)} --align first` scores it on the first pose, and "
+                    "`--max-diff S` there pairs poses further apart")
             raise InputError(f"only {gt_s.num_poses} associated poses: se3 alignment needs >= 3 "
                              f"({hint})")
         try:
@@ -152,8 +211,8 @@ def align_pair(est: TrajectoryLike, gt: TrajectoryLike, align: str = "se3",
                     f"(within {spread:.3g} m: a stretch at rest)" if spread < 0.01 else
                     "the associated ground-truth positions lie on a line")
             raise InputError(f"se3 alignment failed ({exc}): {what}; evaluate a longer "
-                             "stretch, or align on the first pose (adalio eval EST GT --align "
-                             "first)") from None
+                             "stretch, or score it on the first pose with "
+                             f"`{_eval_command(est, gt)} --align first`") from None
         T[:3, :3] = r
         T[:3, 3] = t
     elif align == "first":
@@ -161,7 +220,8 @@ def align_pair(est: TrajectoryLike, gt: TrajectoryLike, align: str = "se3",
     ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
     ape.process_data((gt_s, est_a))
     return AlignedPair(gt=gt_s, est=est_a, align=align, T_gt_est=np.asarray(T),
-                       errors_m=np.asarray(ape.error, dtype=np.float64))
+                       errors_m=np.asarray(ape.error, dtype=np.float64),
+                       n_interpolated=n_interpolated)
 
 
 def ate(est_tum: TrajectoryLike, gt_tum: TrajectoryLike, align: str = "se3",
@@ -169,7 +229,8 @@ def ate(est_tum: TrajectoryLike, gt_tum: TrajectoryLike, align: str = "se3",
     """Absolute trajectory error (translation) after alignment.
 
     Returns ``dict(rmse_m, mean_m, median_m, std_m, max_m, n, align, max_diff_s,
-    duration_s)`` where ``n`` is the number of associated pose pairs.
+    duration_s, n_interpolated)`` where ``n`` is the number of associated pose pairs and
+    ``n_interpolated`` how many of them have the GT interpolated at the estimate's stamp.
     """
     pair = align_pair(est_tum, gt_tum, align, max_diff_s, interpolate)
     return ate_from_pair(pair, max_diff_s)
@@ -189,6 +250,7 @@ def ate_from_pair(pair: AlignedPair, max_diff_s: float = DEFAULT_MAX_DIFF_S) -> 
         "align": pair.align,
         "max_diff_s": float(max_diff_s),
         "duration_s": float(t[-1] - t[0]),
+        "n_interpolated": pair.n_interpolated,
     }
 
 
@@ -270,6 +332,19 @@ class SigmaConsistency:
     """The largest position error (m, the same alignment) of the poses the backfill gave
     (``scans.csv`` ``backfill`` 1): how far the scans read before the filter's start lie from
     where the truth, seen from the first forward pose, puts them. NaN without such poses."""
+    anchor_t_s: float = float("nan")
+    """Time (s) of the pose the ground truth is aligned on (see ``errors_world_m``)."""
+    first_scan_t_s: float = float("nan")
+    """Time (s) of the filter's first scan (the first ``scans.csv`` row with ``backfill`` 0, or
+    the first row): the anchor when the ground truth covers the run's start. A later anchor (a
+    GT that starts later) has a sigma above 0 there, and its errors, measured from it, are too
+    small against those sigmas: the three figures come out optimistic."""
+    anchor_sigma_m: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    """(3,) the sigma_x/y/z_m of the anchor's scan (0 at the filter's first scan)."""
+
+    @property
+    def anchor_is_first_scan(self) -> bool:
+        return bool(abs(self.anchor_t_s - self.first_scan_t_s) <= 1e-6)
 
 
 MEDIAN_ABS_Z = 0.6744897501960817
@@ -298,7 +373,9 @@ def sigma_consistency(est_tum: TrajectoryLike, gt_tum: TrajectoryLike,
     ok = np.abs(t_csv[idx] - t_est) <= 1e-6
     anchor = 0
     backfilled = np.zeros(len(t_est), dtype=bool)
+    forward_csv = np.ones(len(t_csv), dtype=bool)
     if "backfill" in scans:
+        forward_csv = np.asarray(scans["backfill"], dtype=np.float64) == 0
         flags = np.asarray(scans["backfill"], dtype=np.float64)[idx]
         forward = ok & (flags == 0)
         backfilled = ok & (flags == 1)
@@ -310,6 +387,8 @@ def sigma_consistency(est_tum: TrajectoryLike, gt_tum: TrajectoryLike,
     bf_max = (float(np.max(np.linalg.norm(err[backfilled], axis=1))) if backfilled.any()
               else float("nan"))
     sig = np.column_stack([np.asarray(scans[c], dtype=np.float64)[idx] for c in SIGMA_COLUMNS])
+    anchor_sigma = sig[anchor].copy() if ok[anchor] else np.full(3, np.nan)
+    first_scan_t = float(np.min(t_csv[forward_csv])) if forward_csv.any() else float("nan")
     ok &= np.all(np.isfinite(sig) & (sig > 0), axis=1)
     if not np.any(ok):
         raise InputError("no trajectory pose has a scans.csv row with finite sigma columns at "
@@ -321,7 +400,8 @@ def sigma_consistency(est_tum: TrajectoryLike, gt_tum: TrajectoryLike,
                             mean_nees=float(np.mean(np.sum(z * z, axis=1))),
                             increment_correlation=increment_correlation(t_est[ok], err),
                             median_abs_z=np.median(np.abs(z), axis=0),
-                            backfill_max_error_m=bf_max)
+                            backfill_max_error_m=bf_max, anchor_t_s=float(t_est[anchor]),
+                            first_scan_t_s=first_scan_t, anchor_sigma_m=anchor_sigma)
 
 
 INCREMENT_S = 1.0

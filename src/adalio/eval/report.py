@@ -25,6 +25,7 @@ from adalio.eval.metrics import (
     DEFAULT_RPE_DELTAS_M,
     MEDIAN_ABS_Z,
     align_pair,
+    associate,
     ate_from_pair,
     rpe,
     sigma_consistency,
@@ -69,13 +70,28 @@ def figures_up(config: dict[str, Any], T_gt_est: Any = None) -> np.ndarray | Non
     return up
 
 
+FLIP_BELOW_Z = -np.sqrt(0.5)
+"""An ``up`` whose z is below this (more than 45 deg below the horizon: a z-down IMU) is first
+turned by 180 deg about x in :func:`leveling`."""
+
+
 def leveling(up: np.ndarray | None) -> np.ndarray:
-    """The smallest rotation taking ``up`` to +z (identity for None): the figures' frame, so a
-    top view looks down and a side view stands up whatever the IMU's mounting."""
+    """The rotation taking ``up`` to +z that the figures use (identity for None), so a top view
+    looks down and a side view stands up whatever the IMU's mounting: the smallest such
+    rotation, except for an ``up`` more than 45 deg below the horizon (a z-down IMU), first
+    turned by 180 deg about x (``diag(1, -1, -1)``) and then by the smallest rotation. The
+    smallest rotation alone is a 180 deg turn about an axis set by the sub-degree tilt of an
+    ``up`` near -z, so one walk came out in headings 100 deg apart in one report's figures; this
+    way the heading moves as little as ``up`` does at every axis-aligned mounting (the switch
+    lies 45 deg below the horizon)."""
     if up is None:
         return np.eye(3)
-    rot, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [up])
-    return rot.as_matrix()
+    up = np.asarray(up, dtype=np.float64).reshape(3)
+    flip = np.eye(3)
+    if up[2] / np.linalg.norm(up) < FLIP_BELOW_Z:
+        flip = np.diag([1.0, -1.0, -1.0])
+    rot, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [flip @ up])
+    return rot.as_matrix() @ flip
 
 
 def _find_map(run_dir: Path) -> Path | None:
@@ -116,8 +132,14 @@ def _fmt(value: Any, digits: int = 3) -> str:
 def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
                 hilti: bool | None = None,
                 max_diff_s: float = DEFAULT_MAX_DIFF_S,
-                rpe_deltas_m: tuple[float, ...] = DEFAULT_RPE_DELTAS_M) -> Path:
+                rpe_deltas_m: tuple[float, ...] = DEFAULT_RPE_DELTAS_M,
+                skip_unalignable_gt: bool = False) -> Path:
     """Write figures, ``metrics.json`` and ``report.md`` into ``run_dir``; return the report path.
+
+    ``skip_unalignable_gt``: a ground truth that pairs with the run but cannot be SE(3)-aligned
+    to it (fewer than 3 pairs, or a stretch at rest: a GT of the still start only) gives the
+    report without its ground-truth sections, the reason in ``metrics.json``'s ``warnings``,
+    instead of an InputError. A GT with no pose near the run's is an InputError either way.
 
     ``hilti=True`` treats ``gt`` as HILTI 2022 control points and adds the HILTI score
     (:func:`adalio.eval.hilti.hilti_score`) instead of the dense ATE/RPE; ``None`` decides from
@@ -143,6 +165,8 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
     metrics: dict[str, Any] = {"run_dir": str(run_dir), "mode": mode,
                                "n_poses": int(est.num_poses)}
     figures: list[tuple[str, Path]] = []
+    warnings: list[str] = []
+    metrics["warnings"] = warnings
     gt_xyz = None
     aligned_xyz = est_xyz
     pair = None
@@ -161,12 +185,22 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
             metrics["hilti"] = hilti_score(est_path, gt)
             aligned_xyz = full_aligned_xyz(est_path, np.asarray(metrics["hilti"]["T_gt_est"]))
         else:
-            pair = align_pair(est_path, gt, "se3", max_diff_s)
-            metrics["ate_se3"] = ate_from_pair(pair, max_diff_s)
-            pair_first = align_pair(est_path, gt, "first", max_diff_s)
-            metrics["ate_first"] = ate_from_pair(pair_first, max_diff_s)
-            metrics["rpe"] = rpe(est_path, gt, rpe_deltas_m, max_diff_s)
-            aligned_xyz = full_aligned_xyz(est_path, pair.T_gt_est)
+            try:
+                pair = align_pair(est_path, gt, "se3", max_diff_s)
+            except InputError as exc:
+                if not skip_unalignable_gt:
+                    raise
+                associate(est_path, gt, max_diff_s)  # no pair at all: an error still
+                metrics["gt_not_used"] = str(exc)
+                warnings.append(f"--gt {gt} is not used: {exc}; the report has no "
+                                "ground-truth sections")
+                gt_xyz = None
+            else:
+                metrics["ate_se3"] = ate_from_pair(pair, max_diff_s)
+                pair_first = align_pair(est_path, gt, "first", max_diff_s)
+                metrics["ate_first"] = ate_from_pair(pair_first, max_diff_s)
+                metrics["rpe"] = rpe(est_path, gt, rpe_deltas_m, max_diff_s)
+                aligned_xyz = full_aligned_xyz(est_path, pair.T_gt_est)
     up_world = world_up(config)
     T_gt_est = pair.T_gt_est if pair is not None else metrics.get("hilti", {}).get("T_gt_est")
     up = figures_up(config, T_gt_est)
@@ -179,7 +213,8 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
     top, side = plots.plot_trajectories({label: aligned_xyz}, gt_xyz,
                                         run_dir / "trajectory_top.png",
                                         run_dir / "trajectory_side.png",
-                                        title="trajectory" + (" (SE(3)-aligned)" if gt else ""))
+                                        title="trajectory" + (" (SE(3)-aligned)"
+                                                              if T_gt_est is not None else ""))
     figures += [("Trajectory, top view", top), ("Trajectory, side view", side)]
     degen_series = None
     if scans is not None:
@@ -198,10 +233,17 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
     if cons is not None:
         metrics["sigma"] = {"within_3sigma_xyz": cons.within_3sigma.tolist(),
                             "mean_nees": cons.mean_nees, "n": len(cons.t_s),
+                            "anchor_t_s": cons.anchor_t_s - t0,
+                            "first_scan_t_s": cons.first_scan_t_s - t0,
+                            "anchor_is_first_scan": cons.anchor_is_first_scan,
+                            "anchor_sigma_max_m": float(np.nanmax(cons.anchor_sigma_m))
+                            if np.any(np.isfinite(cons.anchor_sigma_m)) else None,
                             "median_abs_z_xyz": cons.median_abs_z.tolist(),
                             "increment_correlation_xyz": [
                                 float(v) if np.isfinite(v) else None
                                 for v in cons.increment_correlation]}
+        if not cons.anchor_is_first_scan:
+            warnings.append(sigma_anchor_warning(metrics["sigma"]))
         figures.append(("Position error against the filter's ±3σ", plots.plot_error_sigma(
             cons.t_s - t0, cons.errors_world_m, cons.sigma_world_m, run_dir / "error_sigma.png")))
     if scans is not None:
@@ -220,7 +262,22 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
     report = run_dir / REPORT_NAME
     report.write_text(_markdown(metrics, figures, gt))
+    written = {Path(path).name for _, path in figures}
+    for name in REPORT_FILES:  # an earlier report's figures that this one does not make
+        if name.endswith(".png") and name not in written and (run_dir / name).is_file():
+            (run_dir / name).unlink()
     return report
+
+
+def sigma_anchor_warning(sigma: dict[str, Any]) -> str:
+    """Why the uncertainty figures of a GT that starts after the filter's first scan flatter
+    the sigmas (``sigma``: ``metrics.json``'s ``sigma``)."""
+    at = sigma.get("anchor_sigma_max_m")
+    told = "" if at is None else f" (σ up to {100 * at:.1f} cm there)"
+    return (f"the ground truth starts after the filter's first scan ({sigma['first_scan_t_s']:.2f}"
+            f" s), so the uncertainty check aligns it on the scan at {sigma['anchor_t_s']:.2f} s"
+            f"{told}: errors measured from there are small against σ measured from the first "
+            "scan, and the within-3σ share, NEES and median |error| / σ come out optimistic")
 
 
 def _markdown(metrics: dict[str, Any], figures: list[tuple[str, Path]],
@@ -235,6 +292,8 @@ def _markdown(metrics: dict[str, Any], figures: list[tuple[str, Path]],
     if "map_points" in metrics:
         lines.append(f"- map points: {metrics['map_points']}")
     lines.append(f"- ground truth: `{gt}`" if gt is not None else "- ground truth: none")
+    if "gt_not_used" in metrics:
+        lines.append(f"- **not used**: {metrics['gt_not_used']}")
     lines.append("")
     if "ate_se3" in metrics:
         lines += ["## Absolute trajectory error (translation, m)", "",
@@ -242,21 +301,30 @@ def _markdown(metrics: dict[str, Any], figures: list[tuple[str, Path]],
                   "|---|---|---|---|---|---|"]
         for key in ("ate_se3", "ate_first"):
             a = metrics[key]
-            lines.append(f"| {a['align']} | {_fmt(a['rmse_m'])} | {_fmt(a['mean_m'])} | "
-                         f"{_fmt(a['median_m'])} | {_fmt(a['max_m'])} | {a['n']} |")
+            lines.append(f"| {a['align']} | {_fmt(a['rmse_m'], 4)} | {_fmt(a['mean_m'], 4)} | "
+                         f"{_fmt(a['median_m'], 4)} | {_fmt(a['max_m'], 4)} | {a['n']} |")
         lines += ["", "## Relative pose error", "",
                   ("| segment (m) | RMSE (m) | mean (m) | max (m) | drift (%) | rot RMSE (deg) "
                   "| pairs |"), "|---|---|---|---|---|---|---|"]
         for r in metrics["rpe"]:
-            lines.append(f"| {r['delta_m']:g} | {_fmt(r['rmse_m'])} | {_fmt(r['mean_m'])} | "
-                         f"{_fmt(r['max_m'])} | {_fmt(r['drift_pct'], 2)} | "
+            lines.append(f"| {r['delta_m']:g} | {_fmt(r['rmse_m'], 4)} | {_fmt(r['mean_m'], 4)} | "
+                         f"{_fmt(r['max_m'], 4)} | {_fmt(r['drift_pct'], 2)} | "
                          f"{_fmt(r['rot_rmse_deg'], 2)} | {r['n']} |")
         lines.append("")
     if "sigma" in metrics:
         c = metrics["sigma"]
         w = c["within_3sigma_xyz"]
-        lines += ["## Uncertainty (scans.csv sigma columns against the ground truth)", "",
-                  (f"Scans whose error (aligned on the filter's first scan) lies within 3σ: "
+        if c.get("anchor_is_first_scan", True):
+            where = "the filter's first scan"
+            if c.get("anchor_t_s") is not None:
+                where += f", at {c['anchor_t_s']:.2f} s"
+        else:
+            where = (f"the scan at {c['anchor_t_s']:.2f} s, the first the ground truth covers; "
+                     f"not the filter's first scan at {c['first_scan_t_s']:.2f} s")
+        lines += ["## Uncertainty (scans.csv sigma columns against the ground truth)", ""]
+        if not c.get("anchor_is_first_scan", True):
+            lines += [f"**Warning:** {sigma_anchor_warning(c)}", ""]
+        lines += [(f"Scans whose error (aligned on {where}) lies within 3σ: "
                    f"x {100 * w[0]:.1f} %, y {100 * w[1]:.1f} %, z {100 * w[2]:.1f} % "
                    f"(99.7 % if the σ were honest and Gaussian); "
                    f"mean NEES {c['mean_nees']:.1f} (3 if consistent), {c['n']} scans."), ""]
