@@ -602,3 +602,24 @@ def test_simulate_prints_a_run_command_a_shell_can_take(monkeypatch, capsys, tmp
     assert argv[:2] == ["adalio", "run"] and argv[3] == "--config"
     assert Path(argv[2]).parent == out and Path(argv[2]).exists()
     assert Path(argv[4]) == out / "config.yaml" and Path(argv[4]).exists()
+
+
+def test_run_with_a_late_gt_prints_the_reports_warning(monkeypatch, capsys, tmp_path):
+    """`adalio run --gt` with a ground truth that starts 1 s after the run's first scan: the
+    report's warning (its uncertainty figures are aligned on a later scan, so they flatter the
+    sigmas) reaches the terminal as a `warning:` line, as `adalio report` prints it."""
+    from adalio.eval.demo import DEMO_FORMAT, DEMO_SCENE, SHORT_COLUMNS, SHORT_DURATION_S
+    from adalio.sim import cached_sequence
+
+    sim = cached_sequence(DEMO_SCENE, seed=0, duration_s=SHORT_DURATION_S,
+                          columns=SHORT_COLUMNS, fmt=DEMO_FORMAT)
+    rows = np.loadtxt(sim.gt_path)
+    late = tmp_path / "late.tum"
+    np.savetxt(late, rows[rows[:, 0] >= rows[0, 0] + 1.0], fmt="%.9f")
+    code, _, err = run_cli(monkeypatch, capsys, "run", sim.bag_path, "--config",
+                           sim.config_path, "--max-scans", "30", "--gt", late, "--out",
+                           tmp_path / "r")
+    assert code == 0, err
+    warned = [ln for ln in err.splitlines() if ln.startswith("warning: the ground truth starts "
+                                                             "after the filter's first scan")]
+    assert len(warned) == 1, err

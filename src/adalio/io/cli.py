@@ -295,6 +295,9 @@ def _report(con: Console, out_dir: Path, gt: Path) -> None:
         h = metrics["hilti"]
         con.print(f"HILTI 2022 score: {h['score']:.1f} / 100 ({h['n_matched']}/{h['n_gt']} "
                   "control points)", highlight=False, soft_wrap=True)
+    for text in metrics.get("warnings") or []:
+        console(stderr=True).print(f"[yellow]warning:[/] {text}", highlight=False,
+                                   soft_wrap=True)
     con.print(f"report: {report}", highlight=False, soft_wrap=True)
 
 
