@@ -37,6 +37,9 @@ def test_unknown_key_at_the_wrong_level_names_the_dotted_key():
         load_config(overrides={"voxel_size_m": 0.3})
     with pytest.raises(ConfigError, match=r"'map\.gate_sigma'; did you mean 'filter\.gate_sigmas'"):
         load_config(overrides={"map.gate_sigma": 3.0})
+    with pytest.raises(ConfigError, match=r"'filter\.map_voxel_m'; did you mean "
+                                          r"'output\.map_voxel_m'\?$"):  # not filter.map_...
+        load_config(overrides={"filter.map_voxel_m": 0.1})
     with pytest.raises(ConfigError, match=r"'imu\.zzzq'; valid keys: imu\.gyro_cov, "):
         load_config(overrides={"imu.zzzq": 1})
 

@@ -842,15 +842,16 @@ calibration measured at initialization); ignored when the file is read back."""
 
 
 def _key_hint(key: str, prefix: str, names: Any) -> str:
-    """The '; did you mean ...' of an unknown key, as a dotted key: a close name in the same
-    section first, else a setting of that name (or close to it) in another section (a key at
-    the wrong level: ``voxel_size_m`` at the top), else the section's valid keys."""
+    """The '; did you mean ...' of an unknown key, as a dotted key: a setting of that very name
+    in another section first (a key at the wrong level: ``voxel_size_m`` at the top,
+    ``filter.map_voxel_m``), else a close name in the same section, else a close name in
+    another section, else the section's valid keys."""
     dotted = (prefix + ".") if prefix else ""
-    close = difflib.get_close_matches(key, list(names), n=1, cutoff=0.5)
-    if close:
-        return f"; did you mean '{dotted}{close[0]}'?"
     leaves = list(_leaf_values(Config()))
     same = [k for k in leaves if k.rsplit(".", 1)[-1] == key]
+    close = difflib.get_close_matches(key, list(names), n=1, cutoff=0.5)
+    if close and not same:
+        return f"; did you mean '{dotted}{close[0]}'?"
     if not same:
         near = difflib.get_close_matches(key, [k.rsplit(".", 1)[-1] for k in leaves], n=1,
                                          cutoff=0.8)

@@ -231,41 +231,46 @@ def test_an_imu_ending_long_before_the_lidar_is_a_warning():
 
 
 def _imu_msgs(n, frame="imu", gyro=(0.01, -0.02, 0.03), gyro_cov0=0.0, accel_cov0=0.0,
-              accel=(0.0, 0.0, 9.81)):
+              accel=(0.0, 0.0, 9.81), t0_ns=10**9, period_ns=10_000_000):
     from types import SimpleNamespace as NS
 
     def vec(v):
         return NS(x=v[0], y=v[1], z=v[2])
 
-    return [NS(header=NS(stamp=NS(sec=1, nanosec=k * 2_500_000), frame_id=frame),
+    stamps = [t0_ns + k * period_ns for k in range(n)]
+    return [NS(header=NS(stamp=NS(sec=t // 10**9, nanosec=t % 10**9), frame_id=frame),
                angular_velocity=vec(gyro), linear_acceleration=vec(accel),
                angular_velocity_covariance=np.r_[gyro_cov0, np.zeros(8)],
                linear_acceleration_covariance=np.r_[accel_cov0, np.zeros(8)])
-            for k in range(n)]
+            for t in stamps]
 
 
 def test_an_imu_that_says_it_has_no_gyro_or_two_frames_is_an_error():
-    """ROS REP 145's 'not provided' (covariance element 0 = -1) with zero values, in four chunks
-    in a row, is an error naming the field; start-up chunks that say so and then real values
+    """ROS REP 145's 'not provided' (covariance element 0 = -1) with zero values over 2 s of
+    stamps is an error naming the field, whatever the chunks (a 100 Hz IMU beside a 20 Hz
+    LiDAR gives chunks of 5); start-up samples that say so for 1.5 s and then real values
     pass, as does -1 with real values. Two frames on one topic (two IMUs) is an error naming
     them; an empty frame id beside one named frame is not."""
-    from adalio.io.sequencer import NOT_PROVIDED_CHUNKS, check_imu_messages, imu_msg_arrays
+    from adalio.io.sequencer import check_imu_messages, imu_msg_arrays
 
     def feed(chunks, topic="/imu"):
         seen: dict = {}
         for msgs in chunks:
             check_imu_messages(msgs, imu_msg_arrays(msgs), topic, seen)
 
-    no_gyro = _imu_msgs(64, gyro=(0.0, 0.0, 0.0), gyro_cov0=-1.0)
+    def chunks(n_chunks, **kw):  # chunks of 5 samples at 100 Hz, in time order
+        return [_imu_msgs(5, t0_ns=10**9 + 50_000_000 * c, **kw) for c in range(n_chunks)]
+
+    no_gyro = {"gyro": (0.0, 0.0, 0.0), "gyro_cov0": -1.0}
     with pytest.raises(InputError, match=r"the IMU on /imu provides no gyro: its messages set "
-                                         r"angular_velocity_covariance\[0\] = -1"):
-        feed([no_gyro] * NOT_PROVIDED_CHUNKS)
-    feed([no_gyro] * (NOT_PROVIDED_CHUNKS - 1) + [_imu_msgs(64)] + [no_gyro] * 9)
-    feed([_imu_msgs(64, gyro_cov0=-1.0)] * 9)  # -1 beside real values: read
-    no_accel = _imu_msgs(64, accel=(0.0, 0.0, 0.0), accel_cov0=-1.0)
+                                         r"angular_velocity_covariance\[0\] = -1 .* for 2\.0 s"):
+        feed(chunks(41, **no_gyro))
+    feed(chunks(30, **no_gyro) + [_imu_msgs(5, t0_ns=3 * 10**9)] +
+         [_imu_msgs(5, t0_ns=4 * 10**9 + 50_000_000 * c, **no_gyro) for c in range(60)])
+    feed(chunks(60, gyro_cov0=-1.0))  # -1 beside real values: read
     with pytest.raises(InputError, match=r"provides no accelerometer: its messages set "
                                          r"linear_acceleration_covariance\[0\] = -1"):
-        feed([no_accel] * NOT_PROVIDED_CHUNKS)
+        feed(chunks(41, accel=(0.0, 0.0, 0.0), accel_cov0=-1.0))
     with pytest.raises(InputError, match=r"IMU messages on /imu come from more than one frame "
                                          r"\('cam_imu', 'imu'\): two IMUs publish on the topic"):
         feed([_imu_msgs(64), _imu_msgs(32) + _imu_msgs(32, frame="cam_imu")])
@@ -291,9 +296,10 @@ def _clock(d_lidar_s, d_imu_s, n=(10, 200), spread_s=0.0):
 def test_clock_check_tells_a_clock_ahead_from_its_receive_times():
     """Stamps ahead of their receive times on one topic only: that clock runs ahead (an error
     with the setting that moves the IMU onto the LiDAR's clock, or a re-stamp beyond 1 s). Both
-    ahead alike, ordinary latencies, or receive times that spread (one time for the whole bag)
-    say nothing. Scans received long after their end while the IMU is not: a warning, as late
-    delivery cannot be told from a LiDAR clock behind."""
+    ahead of the recorder's clock (the other not within 50 ms of it), ordinary latencies, or
+    receive times that spread (one time for the whole bag) say nothing. Scans received long
+    after their end while the IMU is not: a warning, as late delivery cannot be told from a
+    LiDAR clock behind; beyond the IMU window none (the scans are skipped, and that is said)."""
     with pytest.raises(InputError, match=r"the stamps on /pts run 0\.500 s ahead of the times "
                                          r"the bag received them, and those on /imu -0\.002 s: "
                                          r"the LiDAR's clock runs about 0\.50 s ahead of the "
@@ -308,6 +314,8 @@ def test_clock_check_tells_a_clock_ahead_from_its_receive_times():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         _clock(0.7, 0.7)  # both clocks ahead of the recorder's alike
+        _clock(0.7, 0.4)  # a recorder behind both, the IMU delivered 0.3 s later
+        _clock(-5.0, 0.0)  # beyond the IMU window: the scans are skipped, and that is said
         _clock(-0.08, -0.004)  # a driver's latency
         _clock(0.8, 0.0, spread_s=5.0)  # receive times that tell nothing
         _clock(0.2, 0.0)  # within the margin
@@ -353,28 +361,48 @@ def test_a_lidar_clock_ahead_stops_the_sequencer_reading_a_bag(tmp_path):
         list(Sequencer(b, "/points", "/imu", SensorConfig()))
 
 
-def test_an_imu_clock_stepping_back_is_told_from_reordered_messages():
-    """An IMU clock that steps back 37 ms mid-recording lays two stretches over each other: once
-    sorted, samples follow each other closer than a quarter period, an error that says so and
-    how far it went back. Messages recorded out of order (jittered by up to 30 ms) sort into
-    the regular stamps they had: bridged, every sample kept."""
+@pytest.mark.parametrize("step_ms", [21.25, 37.0, 38.75, 48.75, 61.25, 98.75])
+def test_an_imu_clock_stepping_back_is_told_from_reordered_messages(step_ms):
+    """An IMU clock that steps back mid-recording (by a whole number of periods or between
+    them) lays two stretches over each other: once sorted, a window holds about twice the
+    samples of the IMU's rate, an error that says so and about how far the clock went back.
+    Messages recorded out of order sort into the density they had: bridged, every sample kept,
+    also with a burst-stamping driver, host stamps with noise, after a rate change, and after
+    an IMU gap (which must not lower the rate the density is held to)."""
     period = 2_500_000
     t = np.arange(10**9, 10**9 + 1200 * period, period)
-    stepped = np.r_[t[:600], t[600:] - 37_000_000]
+    stepped = np.r_[t[:600], t[600:] - int(step_ms * 1e6)]
     scans = [scan(int(t[0]) + k * 10**8 + 1, int(t[0]) + (k + 1) * 10**8) for k in range(28)]
+
+    values = np.random.default_rng(0).normal(size=(t.size, 3))  # every sample its own
+
     def recorded(recv, stamps, scan_latency_ns):
-        events = sorted([(int(r), 0, imu([int(s)])) for r, s in zip(recv, stamps, strict=True)] +
+        events = sorted([(int(r), 0, ImuBatch(np.array([int(s)]), values[k:k + 1],
+                                              values[k:k + 1] + [0.0, 0.0, 9.81]))
+                         for k, (r, s) in enumerate(zip(recv, stamps, strict=True))] +
                         [(s.t_end_ns + scan_latency_ns, 1, s) for s in scans],
                         key=lambda e: e[:2])
         return [e[2] for e in events]
 
-    with pytest.raises(InputError, match=r"IMU stamps on /imu overlap from .* less than a quarter "
-                                         r"of the IMU's period \(2\.50 ms\).* stepped back by "
-                                         r"about 0\.03\d s"):
+    with pytest.raises(InputError, match=r"IMU stamps on /imu overlap from .* where the IMU's "
+                                         r"400 Hz gives .* stepped back by about "
+                                         r"(\d\.\d+) s") as info:
         list(merge(recorded(t, stepped, 5_000_000), imu_topic="/imu"))
-    rng = np.random.default_rng(2)
-    events = recorded(t + rng.integers(0, 30_000_000, t.size), t, 40_000_000)
-    st = SequencerStats()
-    out = list(merge(events, st))
-    got = np.concatenate([o.t_ns for o in out if isinstance(o, ImuBatch)])
-    assert got.tolist() == t.tolist() and st.imu_reordered > 100
+    found = float(str(info.value).split("stepped back by about ")[1].split(" s")[0])
+    assert found == pytest.approx(step_ms * 1e-3, abs=0.006)
+    rng = np.random.default_rng(int(step_ms * 100))
+    late = t + 5_000_000
+    late[700] += 14_000_000  # one message recorded 14 ms late, after the next burst
+    late_gap = t + 5_000_000
+    late_gap[440] += 14_000_000  # and in the batch after a 0.3 s IMU gap
+    for stamps, recv in ((t, t + rng.integers(0, 30_000_000, t.size)),  # bag-order jitter
+                         (t - (t - t[0]) % 10_000_000, late),  # bursts of 4 stamped alike
+                         (t + rng.integers(-1_200_000, 1_200_000, t.size), late),  # stamp noise
+                         (np.r_[t[:600:2], t[600:]], np.r_[late[:600:2], late[600:]]),  # rate
+                         (np.r_[t[:300], t[420:]], np.r_[late[:300], late_gap[420:]])):  # gap
+        st = SequencerStats()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the burst stamps' own warning
+            out = list(merge(recorded(recv, stamps, 40_000_000), st))
+        got = np.concatenate([o.t_ns for o in out if isinstance(o, ImuBatch)])
+        assert got.tolist() == np.unique(stamps).tolist() and st.imu_reordered > 0

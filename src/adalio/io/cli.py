@@ -95,9 +95,7 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
         for col in ("topic", "type", "count", "rate (Hz)"):
             table.add_column(col, justify="right" if col in ("count", "rate (Hz)") else "left")
         for t in b.topics():
-            span = b.topic_span_ns(t.name) if t.count > 1 else None
-            rate = (t.count - 1) / ((span[1] - span[0]) * 1e-9) \
-                if span is not None and span[1] > span[0] else 0.0
+            rate = b.topic_rate_hz(t.name, t.count) if t.count > 1 else 0.0
             table.add_row(t.name, t.msgtype, str(t.count), f"{rate:.1f}")
         out.print(table)
         out.print(f"duration: {b.duration_s:.3f} s  "
@@ -289,15 +287,16 @@ def _report(con: Console, out_dir: Path, gt: Path) -> None:
     metrics = json.loads((report.parent / "metrics.json").read_text())
     if "ate_se3" in metrics:
         a = metrics["ate_se3"]
-        con.print(f"ATE (SE(3)-aligned, {a['n']} poses): RMSE {a['rmse_m']:.3f} m, max "
-                  f"{a['max_m']:.3f} m", highlight=False, soft_wrap=True)
+        con.print(f"ATE (SE(3)-aligned, {a['n']} poses): RMSE {a['rmse_m']:.4f} m, max "
+                  f"{a['max_m']:.4f} m", highlight=False, soft_wrap=True)
     elif "hilti" in metrics:
         h = metrics["hilti"]
         con.print(f"HILTI 2022 score: {h['score']:.1f} / 100 ({h['n_matched']}/{h['n_gt']} "
                   "control points)", highlight=False, soft_wrap=True)
+    err = console(stderr=True)
     for text in metrics.get("warnings") or []:
-        console(stderr=True).print(f"[yellow]warning:[/] {text}", highlight=False,
-                                   soft_wrap=True)
+        err.print("[yellow]warning:[/] ", end="", highlight=False)
+        err.print(text, markup=False, highlight=False, soft_wrap=True)
     con.print(f"report: {report}", highlight=False, soft_wrap=True)
 
 

@@ -31,12 +31,14 @@ from adalio.types import ImuBatch, Scan
 IMU_LOOKAHEAD_NS = 50_000_000
 """A scan is released once an IMU sample this much later than its end has been read: IMU
 messages recorded up to this much out of order are sorted in (10 ms before session 75)."""
-IMU_OVERLAP_SAMPLES = 4
-"""Samples that, once a held batch is re-sorted, follow another by less than a quarter of the
-IMU's period (or share its stamp with other values): two stretches laid over each other, the
-IMU's clock stepped back (an error; bag-order jitter leaves the sorted stamps regular)."""
-IMU_PERIOD_SAMPLES = 32
-"""Samples of the first held batch in order that measure the IMU's period."""
+IMU_DENSITY_PERIODS = 8
+IMU_DENSITY_FACTOR = 1.75
+"""A re-sorted held batch with ``IMU_DENSITY_FACTOR`` times the samples of the IMU's rate in a
+window of ``IMU_DENSITY_PERIODS`` periods holds two stretches laid over each other: the IMU's
+clock stepped back (by about 6 periods or more), an error. Bag-order jitter, burst stamps and
+stamp noise leave the density as it was."""
+IMU_RATE_SAMPLES = 32
+"""Samples of a held batch in time order that measure the IMU's rate (samples per second)."""
 IMU_GLITCH_SAMPLES = 2
 """IMU samples in a row stamped before samples already used that are dropped as a stamp glitch
 (a seconds/nanoseconds roll-over); more in a row are the clock going back, an error."""
@@ -94,6 +96,25 @@ def _fmt_s(t_ns: int | None, decimals: int = 3) -> str:
     return text[: len(text) - 9 + decimals]
 
 
+def _rate_hz(t: np.ndarray) -> float:
+    """Samples per second of sorted stamps ``t``, gaps left out (intervals over 10 times the
+    median interval between distinct stamps): a burst-stamping driver's samples count at their
+    rate, and an IMU gap in the batch does not lower it (0.0: no interval to tell)."""
+    d = np.diff(t)
+    pos = d[d > 0]
+    if pos.size == 0:
+        return 0.0
+    inside = d[d <= 10 * np.median(pos)]
+    return inside.size / (float(inside.sum()) * 1e-9) if inside.sum() > 0 else 0.0
+
+
+def _longest_run(mask: np.ndarray) -> int:
+    """The most consecutive True values in a boolean array."""
+    edges = np.diff(np.r_[0, mask.astype(np.int8), 0])
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    return int((ends - starts).max()) if starts.size else 0
+
+
 def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None, *,
           imu_topic: str = "imu", lidar_topic: str = "lidar",
           lookahead_ns: int = IMU_LOOKAHEAD_NS, window_ns: int = IMU_WINDOW_NS,
@@ -113,8 +134,8 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
     held: list[str] = []
     glitch_run = 0
     glitch_note: list[str] = []
-    imu_period_ns = 0
-    """The IMU's sampling period (median), from the first held batch in order."""
+    imu_rate_hz = 0.0
+    """The IMU's samples per second, from the latest held batch in time order."""
 
     def note(text: str) -> None:
         """Warn once a scan has gone out; until then hold the text, so that a stream that ends
@@ -124,38 +145,47 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
         else:
             held.append(text)
 
+    def check_overlap(tu: np.ndarray) -> None:
+        """InputError if a re-sorted held batch (``tu``, exact copies removed) holds, in some
+        window of ``IMU_DENSITY_PERIODS`` periods, ``IMU_DENSITY_FACTOR`` times the samples the
+        IMU's rate gives: two stretches laid over each other, the IMU's clock stepped back.
+        Messages recorded out of order sort back into the density they had."""
+        w_ns = round(IMU_DENSITY_PERIODS / imu_rate_hz * 1e9)
+        n_in = np.searchsorted(tu, tu + w_ns, side="left") - np.arange(tu.size)
+        dense = np.flatnonzero((tu + w_ns <= tu[-1]) &
+                               (n_in >= IMU_DENSITY_FACTOR * IMU_DENSITY_PERIODS))
+        if dense.size:
+            t0, t1 = int(tu[dense[0]]), int(tu[dense[-1]]) + w_ns
+            inside = int(np.count_nonzero((tu >= t0) & (tu < t1)))
+            step_s = (inside - (t1 - t0) * 1e-9 * imu_rate_hz) / imu_rate_hz
+            raise InputError(f"IMU stamps on {imu_topic} overlap from {_fmt_s(t0)} to "
+                             f"{_fmt_s(t1)} s: once sorted, they hold {inside} samples where "
+                             f"the IMU's {imu_rate_hz:.0f} Hz gives "
+                             f"{(t1 - t0) * 1e-9 * imu_rate_hz:.0f}, two stretches laid over each "
+                             f"other: the IMU's clock stepped back by about {step_s:.3f} s "
+                             "mid-recording (or two IMUs publish on the topic); re-stamp the bag")
+
     def take_imu(upto_ns: int) -> ImuBatch | None:
         nonlocal imu_t, imu_g, imu_a, released_imu_t
         if not imu_t:
             return None
-        nonlocal imu_period_ns
+        nonlocal imu_rate_hz
         t = np.concatenate(imu_t)
         g = np.concatenate(imu_g)
         a = np.concatenate(imu_a)
-        jump = 0
-        if t.size > 1 and np.any(np.diff(t) < 0):
-            jump = int(np.max(np.maximum.accumulate(t)[:-1] - t[1:]))
+        resorted = t.size > 1 and bool(np.any(np.diff(t) < 0))
+        if resorted:
             order = np.argsort(t, kind="stable")
             st.imu_reordered += int(np.count_nonzero(np.diff(t) < 0))
             t, g, a = t[order], g[order], a[order]
-        if t.size > 1 and jump and imu_period_ns:
-            d = np.diff(t)
-            copy = (d == 0) & np.all(g[1:] == g[:-1], axis=1) & np.all(a[1:] == a[:-1], axis=1)
-            close = (d < imu_period_ns // 4) & ~copy
-            if int(np.count_nonzero(close)) >= IMU_OVERLAP_SAMPLES:
-                t_close = t[1:][close]
-                jump = max(jump, int(t_close[-1] - t_close[0]) + imu_period_ns)
-                raise InputError(f"IMU stamps on {imu_topic} overlap from {_fmt_s(int(t_close[0]))} "
-                                 f"to {_fmt_s(int(t_close[-1]))} s: once sorted, "
-                                 f"{int(np.count_nonzero(close))} samples follow another by less "
-                                 f"than a quarter of the IMU's period "
-                                 f"({imu_period_ns * 1e-6:.2f} ms), as two stretches laid over "
-                                 f"each other: the IMU's clock stepped back by about "
-                                 f"{jump * 1e-9:.3f} s mid-recording (or two IMUs publish on the "
-                                 "topic); re-stamp the bag")
-        elif t.size >= IMU_PERIOD_SAMPLES and not imu_period_ns:
-            d = np.diff(t)
-            imu_period_ns = int(np.median(d[d > 0])) if np.any(d > 0) else 0
+        if t.size > 1:
+            fresh = np.r_[True, (np.diff(t) != 0) | np.any(g[1:] != g[:-1], axis=1) |
+                          np.any(a[1:] != a[:-1], axis=1)]  # not an exact copy of the one before
+            tu = t[fresh]
+            if resorted and imu_rate_hz:
+                check_overlap(tu)
+            elif not resorted and tu.size >= IMU_RATE_SAMPLES:
+                imu_rate_hz = _rate_hz(tu) or imu_rate_hz
         if t.size > 1:
             keep = np.r_[True, np.diff(t) > 0]
             if not keep.all():
@@ -233,13 +263,14 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
                     continue
             back = t < released_imu_t if released_imu_t is not None else None
             if back is not None and back.any():
-                run = glitch_run + (back.size if back.all() else int(back.argmin()))
+                run = max(glitch_run + (back.size if back.all() else int(back.argmin())),
+                          _longest_run(back))
                 glitch_run = run if back.all() else int(back[::-1].argmin()) if back[-1] else 0
-                if int(back.sum()) > IMU_GLITCH_SAMPLES or run > IMU_GLITCH_SAMPLES:
+                if run > IMU_GLITCH_SAMPLES:
                     bad = int(t[back][0])
                     raise InputError(f"IMU stamps on {imu_topic} go backwards: {_fmt_s(bad, 9)} "
                                      f"s after {_fmt_s(released_imu_t, 9)} s, over "
-                                     f"{max(int(back.sum()), run)} samples in a row (more "
+                                     f"{run} samples in a row (more "
                                      "than a stamp glitch): the IMU's clock went back, or the "
                                      "bag is not in time order; re-stamp or sort the IMU topic")
                 if not st.imu_glitches:  # said once the stream goes on (else it is the error)
@@ -379,6 +410,9 @@ def imu_msg_arrays(msgs: list[Any]) -> ImuBatch:
 CLOCK_AHEAD_S = 0.25
 """A topic whose stamps run this far ahead of the times the bag received its messages, while
 the other topic's do not, is on another clock (:class:`ClockCheck`)."""
+CLOCK_AGREE_S = 0.05
+"""The other topic's stamps at most this far ahead of their receive times: on the recorder's
+clock, so a topic ahead of it by ``CLOCK_AHEAD_S`` is ahead of the other topic too."""
 CLOCK_BEHIND_S = 0.5
 """Scans received this much later after their end than IMU samples after their stamps are
 warned about: late clouds, or a LiDAR clock behind the IMU's (:class:`ClockCheck`)."""
@@ -387,32 +421,33 @@ CLOCK_CHECK_COUNTS = (10, 200)
 CLOCK_SPREAD_S = 0.1
 """Receive times whose offsets from the stamps spread more than this (median absolute
 deviation; a bag written with one receive time for all) tell nothing: the check is skipped."""
-NOT_PROVIDED_CHUNKS = 4
-"""IMU chunks in a row whose gyro (or accelerometer) says 'not provided' before that is an error
-(a driver's start-up samples may say so for a while)."""
+NOT_PROVIDED_S = 2.0
+"""Seconds of IMU stamps whose gyro (or accelerometer) says 'not provided' before that is an
+error (a driver's start-up samples may say so for a while)."""
 
 
 def check_imu_messages(msgs: list[Any], batch: ImuBatch, topic: str, seen: dict) -> None:
     """InputError for IMU messages adalio cannot use as one IMU: a gyro or accelerometer the
     messages say they do not provide (ROS REP 145: element 0 of its covariance -1) with all
-    values zero, over ``NOT_PROVIDED_CHUNKS`` chunks in a row before any real value; or samples
+    values zero, over ``NOT_PROVIDED_S`` of stamps before any real value; or samples
     from more than one (named) frame on the topic: two IMUs publishing on it, which merged would
     read as one at twice the rate. ``seen`` carries the state between calls."""
     for what, cov, values in (("gyro", "angular_velocity_covariance", batch.gyro_rad_s),
                               ("accelerometer", "linear_acceleration_covariance",
                                batch.accel_m_s2)):
-        if seen.get(what) == -1:
+        if seen.get(what) is False:
             continue  # it has given values
         c = getattr(msgs[0], cov, None)
         if c is not None and len(c) and float(c[0]) == -1.0 and not np.any(values):
-            seen[what] = seen.get(what, 0) + 1
-            if seen[what] >= NOT_PROVIDED_CHUNKS:
+            since = seen.setdefault(what, int(batch.t_ns[0]))
+            if int(batch.t_ns[-1]) - since >= NOT_PROVIDED_S * 1e9:
                 raise InputError(f"the IMU on {topic} provides no {what}: its messages set "
-                                 f"{cov}[0] = -1 (ROS: not provided) and the values are zero; "
-                                 "adalio needs a 6-axis IMU (gyro and accelerometer): give "
-                                 "another IMU topic (--imu-topic)")
+                                 f"{cov}[0] = -1 (ROS: not provided) and the values are zero, "
+                                 f"for {(int(batch.t_ns[-1]) - since) * 1e-9:.1f} s; adalio "
+                                 "needs a 6-axis IMU (gyro and accelerometer): give another IMU "
+                                 "topic (--imu-topic)")
         else:
-            seen[what] = -1
+            seen[what] = False
     frames = seen.setdefault("frames", set())
     new = {m.header.frame_id for m in msgs} - frames - {""}
     if new:
@@ -429,16 +464,20 @@ class ClockCheck:
     """Whether the LiDAR's and the IMU's stamps are on one clock, from the bag's receive times.
 
     A message cannot be received before the instant its stamp names, so stamps that run ahead
-    of their receive times by over ``CLOCK_AHEAD_S`` on one topic but not on the other mean
-    that topic's clock runs ahead of the other's (a LiDAR on its own or PTP time, an IMU on the
-    recorder's). adalio pairs the two by their stamps, so that would be a silent error (the 8 s
+    of their receive times by over ``CLOCK_AHEAD_S`` on one topic, while the other topic's are
+    not ahead of theirs (within ``CLOCK_AGREE_S``: on the recorder's clock), mean that topic's
+    clock runs ahead of the other's (a LiDAR on its own or PTP time, an IMU on the recorder's).
+    Both ahead (a recorder whose clock is behind the sensors') says nothing. adalio pairs the two by their stamps, so that would be a silent error (the 8 s
     hall 12.8 cm off at 0.5 s). Stamps that run behind their receive times are not told apart
     from late delivery, which is harmless, and are left to the sequencer's other checks. The
     LiDAR's offset is its scans' end (the last point's time) minus the receive time; the IMU's
     is its stamp, moved by ``sensor.imu_time_offset_s``, minus the receive time."""
 
-    def __init__(self, lidar_topic: str, imu_topic: str) -> None:
+    def __init__(self, lidar_topic: str, imu_topic: str,
+                 warn: Callable[[str], None] | None = None) -> None:
         self.lidar_topic, self.imu_topic = lidar_topic, imu_topic
+        self.warn = warn or (lambda text: warnings.warn(text, stacklevel=3))
+        """Where the warning goes (the sequencer's stats, so the summary has it too)."""
         self.d_lidar: list[int] = []
         self.d_imu: list[int] = []
         self.done = False
@@ -467,7 +506,7 @@ class ClockCheck:
             d[name] = med
         for ahead, other in (("lidar", "imu"), ("imu", "lidar")):
             lead = d[ahead] - d[other]
-            if d[ahead] > CLOCK_AHEAD_S and lead > CLOCK_AHEAD_S:
+            if d[ahead] > CLOCK_AHEAD_S and lead > CLOCK_AHEAD_S and d[other] <= CLOCK_AGREE_S:
                 topic = {"lidar": self.lidar_topic, "imu": self.imu_topic}
                 fix = -lead if ahead == "lidar" else lead
                 how = (f"set sensor.imu_time_offset_s: {fix:.3f} (the IMU's stamps minus the "
@@ -481,16 +520,16 @@ class ClockCheck:
                     f"ahead of the {'IMU' if ahead == 'lidar' else 'LiDAR'}'s, and adalio pairs "
                     f"the two by their stamps; {how}")
         lag = d["imu"] - d["lidar"]
-        if lag > CLOCK_BEHIND_S:
-            fix = (f"set sensor.imu_time_offset_s: {lag:.3f}, the IMU's stamps minus the "
+        if CLOCK_BEHIND_S < lag <= IMU_WINDOW_NS * 1e-9:  # beyond: the scans are skipped, and
+            fix = (f"set sensor.imu_time_offset_s: {lag:.3f}, the IMU's stamps minus the "  # said
                    "LiDAR's, or re-stamp the bag" if lag <= 1.0 else "re-stamp the bag")
-            warnings.warn(
+            self.warn(
                 f"scans on {self.lidar_topic} end {round(-d['lidar'], 2) + 0.0:.2f} s before "
                 f"the bag received them, IMU samples on {self.imu_topic} "
                 f"{round(-d['imu'], 2) + 0.0:.2f} s: either the clouds came {lag:.2f} s late "
                 f"(harmless), or the LiDAR's clock runs {lag:.2f} s behind the IMU's, which "
                 "adalio cannot tell from the bag and which would pair each scan with the wrong "
-                f"IMU samples (then {fix})", stacklevel=2)
+                f"IMU samples (then {fix})")
 
 
 def _inverse_unless_identity(S: list[list[float]]) -> np.ndarray | None:
@@ -592,7 +631,7 @@ class Sequencer:
                     yield scaled(h)
                 held.clear()
 
-        clock = ClockCheck(self.lidar_topic, self.imu_topic)
+        clock = ClockCheck(self.lidar_topic, self.imu_topic, self.stats.warn)
         for topic, t_recv, msg in self.bag.messages([self.lidar_topic, self.imu_topic],
                                                     start_ns=self.start_ns):
             if topic == self.imu_topic:
