@@ -262,15 +262,16 @@ def test_report_hilti_on_a_dense_ground_truth_warns(run_dir, tmp_path):
         assert ("hilti" in json.loads((out / "metrics.json").read_text())) == bool(flags)
 
 
-def _with_sigma_columns(out: Path, sigma_m: float = 0.03) -> None:
+def _with_sigma_columns(out: Path, sigma_m: float = 0.03, growth_m_s: float = 0.0) -> None:
     rows = read_scans_csv(out / "scans.csv")
     csvw = ScansCsvWriter(out / "scans.csv")
     for t_s in rows["t_s"]:
+        sigma = sigma_m + growth_m_s * (float(t_s) - float(rows["t_s"][0]))
         csvw.write(ScanStats(t_ns=round(float(t_s) * 1e9), n_raw=20000, n_down=1500,
                              n_down_general=1400, n_near=300, voxel_size_m=0.2,
                              search_radius_m=3.0, plane_margin_m=0.05, n_matched=900,
                              iterations=3, wall_ms=12.0, eigenvalues=np.geomspace(1e1, 1e5, 6),
-                             sigma_p_world_m=np.full(3, sigma_m),
+                             sigma_p_world_m=np.full(3, sigma),
                              sigma_rot_world_deg=np.full(3, 0.1)))
     csvw.close()
 
@@ -309,6 +310,24 @@ def test_report_says_where_the_sigma_check_is_anchored_and_warns_off_the_first_s
     assert "filter's first scan at 0.00 s" in text and "**Warning:**" in text
     assert "warning: the ground truth starts after the filter's first scan" in res.stderr
     assert metrics["warnings"] and "optimistic" in metrics["warnings"][0]
+
+
+def test_a_gt_one_scan_late_where_sigma_is_small_is_not_warned_about(tmp_path):
+    """The anchor warning is for figures that move: a GT that starts one scan late, where the
+    sigma (0.1 mm, growing 1 cm/s) is a sliver of the run's median, aligns on that scan and
+    says so, without the warning; the same GT with sigmas of 3 cm throughout warns."""
+    out, gt = make_run_dir(tmp_path)
+    rows = np.loadtxt(gt)
+    t_est = np.loadtxt(out / "trajectory.tum")[:, 0]
+    late = tmp_path / "one_scan_late.tum"
+    np.savetxt(late, rows[rows[:, 0] >= t_est[1] - 0.005], fmt="%.9f")
+    _with_sigma_columns(out, sigma_m=1e-4, growth_m_s=0.01)
+    make_report(out, late)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert not metrics["sigma"]["anchor_is_first_scan"] and not metrics["warnings"]
+    _with_sigma_columns(out)
+    make_report(out, late)
+    assert json.loads((out / "metrics.json").read_text())["warnings"]
 
 
 @pytest.mark.parametrize("base", [(0, 0, -1), (0, 0, 1), (1, 0, 0), (0, -1, 0),

@@ -242,7 +242,11 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
                             "increment_correlation_xyz": [
                                 float(v) if np.isfinite(v) else None
                                 for v in cons.increment_correlation]}
-        if not cons.anchor_is_first_scan:
+        at = metrics["sigma"]["anchor_sigma_max_m"]
+        along = np.nanmax(np.asarray(cons.sigma_world_m, dtype=np.float64), axis=1)
+        if not cons.anchor_is_first_scan and (
+                at is None or not np.any(np.isfinite(along)) or
+                at > ANCHOR_SIGMA_SHARE * float(np.nanmedian(along))):
             warnings.append(sigma_anchor_warning(metrics["sigma"]))
         figures.append(("Position error against the filter's ±3σ", plots.plot_error_sigma(
             cons.t_s - t0, cons.errors_world_m, cons.sigma_world_m, run_dir / "error_sigma.png")))
@@ -267,6 +271,12 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, *,
         if name.endswith(".png") and name not in written and (run_dir / name).is_file():
             (run_dir / name).unlink()
     return report
+
+
+ANCHOR_SIGMA_SHARE = 0.25
+"""A GT that starts after the filter's first scan is warned about when the sigma at the scan it
+is aligned on exceeds this share of the run's median sigma (below it, the figures barely move:
+a GT one scan late)."""
 
 
 def sigma_anchor_warning(sigma: dict[str, Any]) -> str:
