@@ -623,3 +623,19 @@ def test_run_with_a_late_gt_prints_the_reports_warning(monkeypatch, capsys, tmp_
     warned = [ln for ln in err.splitlines() if ln.startswith("warning: the ground truth starts "
                                                              "after the filter's first scan")]
     assert len(warned) == 1, err
+
+
+def test_rrd_over_an_input_file_is_refused_and_the_file_kept(monkeypatch, capsys, tmp_path):
+    """`--rrd` naming the bag (or the config, or any file not ending in .rrd) is one error line
+    before anything is written: the recording used to be written over it, and the bag was
+    gone."""
+    rig = bf.write_static_rig(tmp_path / "rig.bag", duration_s=0.5, columns=30)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("preset: hilti2022\n")
+    before = {f: f.read_bytes() for f in (rig, cfg)}
+    for target in (rig, cfg, tmp_path / "new_recording"):
+        code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--config", cfg, "--rrd", target,
+                               "--out", tmp_path / "o")
+        assert_one_line_error(code, err, f"--rrd {target}", "give a name ending in .rrd")
+    assert {f: f.read_bytes() for f in before} == before
+    assert not (tmp_path / "new_recording").exists() and not (tmp_path / "o").exists()

@@ -239,6 +239,10 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
     if rrd is not None and rrd.is_dir():
         raise InputError(f"--rrd {rrd} is a folder: give a file name for the recording, e.g. "
                          f"{rrd / 'run.rrd'}")
+    if rrd is not None and rrd.suffix.lower() != ".rrd":
+        raise InputError(f"--rrd {rrd}: the recording is written over that file, so give a name "
+                         f"ending in .rrd (e.g. {rrd.with_suffix('.rrd').name})"
+                         + ("; this one exists, and is kept" if rrd.exists() else ""))
     con = console(stderr=True)
     viewer = None
     try:
