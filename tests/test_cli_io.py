@@ -639,3 +639,49 @@ def test_rrd_over_an_input_file_is_refused_and_the_file_kept(monkeypatch, capsys
         assert_one_line_error(code, err, f"--rrd {target}", "give a name ending in .rrd")
     assert {f: f.read_bytes() for f in before} == before
     assert not (tmp_path / "new_recording").exists() and not (tmp_path / "o").exists()
+
+
+def test_a_check_unsettled_far_from_the_setting_is_a_warning():
+    """A sensor check that closed unsettled with an estimate 5 or more standard deviations from
+    the configured value (a rotation 10 deg off gave 6.69 +- 0.36 deg, a gyro read in the wrong
+    unit -97 % +- 1.2 %) gives a warning naming the setting; nearer ones, estimates the check
+    does not call significant, estimates too vague for the check (a robot's one-axis turns: a
+    lever arm of 5 m +- 78 cm) and checks without an estimate give none."""
+    from adalio.io.cli import _far_unsettled
+
+    def res(**checks):
+        return SimpleNamespace(**{k: SimpleNamespace(estimate=v) for k, v in checks.items()})
+
+    rot = SimpleNamespace(angle_rad=np.radians(6.69), sigma_rad=np.radians(0.36),
+                          significant=True)
+    texts = _far_unsettled(res(extrinsic_rotation_unsettled=rot))
+    assert len(texts) == 1 and texts[0].startswith(
+        "the LiDAR-IMU rotation check's estimate, 6.69 deg, is 19 standard deviations")
+    assert "check sensor.T_imu_lidar's rotation" in texts[0]
+    scale = SimpleNamespace(largest=0.97, sigma=0.012, significant=True, text=lambda: "-97 %")
+    assert "check sensor.gyro_unit" in _far_unsettled(res(gyro_scale_unsettled=scale))[0]
+    near = SimpleNamespace(offset_s=0.010, sigma_s=0.0025, significant=True)
+    weak = SimpleNamespace(offset_s=0.010, sigma_s=0.0015, significant=False)
+    assert _far_unsettled(res(time_offset_unsettled=near)) == []
+    assert _far_unsettled(res(time_offset_unsettled=weak)) == []
+    assert _far_unsettled(res(time_offset_unsettled=None)) == []
+    vague = SimpleNamespace(length_m=5.23, sigma_m=0.783, significant=True, text=lambda: "5 m")
+    assert _far_unsettled(res(extrinsic_translation_unsettled=vague)) == []  # a robot's
+    assert _far_unsettled(SimpleNamespace()) == []
+
+
+def test_run_names_where_its_extrinsic_came_from(monkeypatch, capsys, tmp_path):
+    """The summary names the extrinsic's origin (it said 'config' for all of them), and a run on
+    the identity fallback (a generic preset, no config, no --extrinsic, no /tf_static) warns as
+    `adalio info` does."""
+    rig = bf.write_static_rig(tmp_path / "rig.bag", duration_s=1.5, columns=60)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("sensor:\n  T_imu_lidar: [[1,0,0,0.1],[0,1,0,0],[0,0,1,0],[0,0,0,1]]\n")
+    for args, origin in (((), "identity (fallback)"), (("--config", cfg), f"config file {cfg}"),
+                         (("--extrinsic", "0 0 0.1 0 0 0 1"), "--extrinsic")):
+        code, _, err = run_cli(monkeypatch, capsys, "run", rig, *args, "--out", tmp_path / "o",
+                               "--no-progress")
+        assert code == 0, err
+        assert f"extrinsic from {origin};" in err
+        warned = "warning: no extrinsic in the preset, the config, --extrinsic or /tf_static" in err
+        assert warned == (origin == "identity (fallback)")

@@ -255,7 +255,9 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
                 res = run_bag(bag, cfg, out_dir, progress=not no_progress and con.is_terminal,
                               max_scans=max_scans, on_estimate=viewer, start_s=start_s,
                               sigma_warn_m=sigma_warn_m, on_compile=lambda: compile_notice(con))
-        _summary(con, res, profile)
+        origin = ("--extrinsic" if extrinsic is not None else
+                  _extrinsic_origin(preset, config) or "identity (fallback)")
+        _summary(con, res, profile, origin)
     except KeyboardInterrupt:
         res = None
     finally:
@@ -427,7 +429,55 @@ def _translation_text(res: Any) -> str:
         "centimetre or two; the part along the rig's vertical is not checked)")
 
 
-def _summary(con: Console, res: Any, profile: bool) -> None:
+FAR_DEVIATIONS = 5.0
+"""A sensor check that closed unsettled with an estimate this many standard deviations from the
+configured value: the value is likely wrong by more than the check can settle (its precision
+rule is for small corrections), a warning."""
+
+
+FAR_PRECISION = 10.0
+"""... and only where its deviation is within this many times the precision at which the check
+concludes on a significant value (an estimate of 5 m +- 78 cm from a robot's one-axis turns is
+the check's own degeneracy, not the rig's)."""
+
+
+def _far_unsettled(res: Any) -> list[str]:
+    """Warnings for the sensor checks that closed unsettled far from the configured value (a
+    rotation off by 10 deg, a lever arm by 20 cm, a gyro read in the wrong unit): the run used
+    the configured value, which its own data contradict."""
+    from adalio.lio import extrinsic_check, gyro_scale, lever_arm, time_offset
+
+    out = []
+    for name, attr, size, precise, setting in (
+            ("IMU time offset", "time_offset_unsettled",
+             lambda e: (abs(e.offset_s), e.sigma_s, f"{e.offset_s * 1e3:+.1f} ms"),
+             time_offset.SIGMA_SIGNIFICANT_S, "sensor.imu_time_offset_s"),
+            ("LiDAR-IMU rotation", "extrinsic_rotation_unsettled",
+             lambda e: (e.angle_rad, e.sigma_rad, f"{np.degrees(e.angle_rad):.2f} deg"),
+             extrinsic_check.SIGMA_SIGNIFICANT_RAD,
+             "sensor.T_imu_lidar's rotation (or the axes' order in a quaternion: x y z w)"),
+            ("gyro scale", "gyro_scale_unsettled",
+             lambda e: (e.largest, e.sigma, e.text()), gyro_scale.SIGMA_SIGNIFICANT,
+             "sensor.gyro_unit and sensor.gyro_sensitivity"),
+            ("LiDAR-IMU translation", "extrinsic_translation_unsettled",
+             lambda e: (e.length_m, e.sigma_m, e.text()), lever_arm.SIGMA_SIGNIFICANT_M,
+             "sensor.T_imu_lidar's translation (in metres)")):
+        check = getattr(res, attr, None)
+        est = getattr(check, "estimate", None)
+        if est is None:
+            continue
+        value, sigma, shown = size(est)
+        if est.significant and 0 < sigma <= FAR_PRECISION * precise and \
+                value >= FAR_DEVIATIONS * sigma:
+            out.append(f"the {name} check's estimate, {shown}, is {value / sigma:.0f} standard "
+                       f"deviations from the configured value: it could not settle it at its "
+                       f"precision, but the data contradict the setting; check {setting}")
+    return out
+
+
+def _summary(con: Console, res: Any, profile: bool, origin: str = "") -> None:
+    """The run's summary; ``origin`` names where a configured extrinsic came from (the preset,
+    the config file, --extrinsic, or 'identity (fallback)', which is warned about)."""
     status = "[yellow]interrupted[/]" if res.interrupted else "[green]done[/]"
     before = getattr(res, "calibration_wall_s", 0.0)
     restarted = (f", after {before:.1f} s on the first run and the passes that found the "
@@ -436,9 +486,17 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
               f"({res.n_scans_in / max(res.wall_s, 1e-9):.1f} scans/s, median "
               f"{res.ms_per_scan_median:.1f} ms/scan{restarted}) → {res.out_dir}",
               highlight=False, soft_wrap=True)
+    source = res.extrinsic_source
+    if source == "config" and origin:
+        source = origin
     con.print(f"topics: {res.lidar_topic} + {res.imu_topic}; extrinsic from "
-              f"{res.extrinsic_source}; point time {res.time_spec}", highlight=False,
+              f"{source}; point time {res.time_spec}", highlight=False,
               soft_wrap=True)
+    if source == "identity (fallback)":
+        con.print("[yellow]warning:[/] no extrinsic in the preset, the config, --extrinsic or "
+                  "/tf_static: the run treated the LiDAR frame as the IMU frame; give "
+                  "sensor.T_imu_lidar in a config or --extrinsic 'tx ty tz qx qy qz qw'",
+                  highlight=False, soft_wrap=True)
     rep = res.init_report
     if rep is not None:
         con.print(f"initialization: {rep.describe()}", highlight=False, soft_wrap=True)
@@ -464,6 +522,9 @@ def _summary(con: Console, res: Any, profile: bool) -> None:
     translation = _translation_text(res)
     if translation:
         con.print(f"LiDAR-IMU translation: {translation}", highlight=False, soft_wrap=True)
+    for text in _far_unsettled(res):
+        con.print("[yellow]warning:[/] ", end="", highlight=False)
+        con.print(text, markup=False, highlight=False, soft_wrap=True)
     ranges = _ranges_text(res.degenerate_ranges_s)
     con.print(f"degenerate scans: {res.n_degenerate}/{res.n_scans}"
               + (f" at {ranges}" if ranges else ""), highlight=False, soft_wrap=True)
