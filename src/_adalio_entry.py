@@ -35,12 +35,24 @@ class StickyInterrupt:
         self._report(report)
 
 
+def as_ctrl_c(signum: int, frame: object) -> None:
+    """SIGTERM handler (``timeout``, a batch system's time limit, ``docker stop``, systemd):
+    a Ctrl-C, delivered to whatever SIGINT handler is installed at the time, so the run stops
+    after its current scan and keeps its outputs (map, scans.csv, config.yaml; a batch's
+    summary) as after Ctrl-C, with exit 130."""
+    import os
+
+    os.kill(os.getpid(), signal.SIGINT)
+
+
 def main() -> None:
     """Run the adalio command line."""
     handler = StickyInterrupt()
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, handler)
         sys.unraisablehook = handler.unraisable
+    if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, as_ctrl_c)
     try:
         from adalio.cli import main as cli_main
     except KeyboardInterrupt:

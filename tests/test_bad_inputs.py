@@ -656,7 +656,8 @@ def _wait_for_numpy(proc: subprocess.Popen, timeout: float = 30.0) -> None:
 
 
 def _interrupt(argv: list[str], cwd: Path, delay_s: float | None,
-               ready: Callable[[], bool] | None = None) -> tuple[int, str]:
+               ready: Callable[[], bool] | None = None,
+               signum: int = signal.SIGINT) -> tuple[int, str]:
     env = {**os.environ, "COLUMNS": "400", "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen([ADALIO, *argv], cwd=cwd, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env)
@@ -667,7 +668,7 @@ def _interrupt(argv: list[str], cwd: Path, delay_s: float | None,
             time.sleep(0.02)
     time.sleep(delay_s or 0.0)
     assert proc.poll() is None, "the command ended before it could be interrupted"
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(signum)
     out, err = proc.communicate(timeout=120)
     return proc.returncode, out + err
 
@@ -781,13 +782,17 @@ def test_ctrl_c_inside_a_weakref_callback_is_one_line(tmp_path: Path) -> None:
 
 
 @pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs Linux /proc")
-def test_ctrl_c_after_first_poses_keeps_outputs(base: Base, tmp_path: Path) -> None:
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_after_first_poses_keeps_outputs(base: Base, tmp_path: Path, signum) -> None:
+    """Ctrl-C, or SIGTERM (timeout, a batch system's time limit, docker stop): the run stops
+    after its scan and keeps its outputs, exit 130 (SIGTERM killed it at once before session
+    75: no map, a config.yaml without its measured block)."""
     tum = tmp_path / "out" / "trajectory.tum"
 
     def ready() -> bool:
         return tum.is_file() and len(tum.read_text().splitlines()) >= 3
 
-    code, text = _interrupt(run_args(base, base.bag, tmp_path), tmp_path, 0.0, ready)
+    code, text = _interrupt(run_args(base, base.bag, tmp_path), tmp_path, 0.0, ready, signum)
     assert code == 130, text
     assert "Traceback" not in text and "interrupted" in text, text
     rows = np.loadtxt(tum, ndmin=2)

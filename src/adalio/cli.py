@@ -96,7 +96,7 @@ def main() -> None:
     # click's base exception, found through typer's public BadParameter (typer may vendor click)
     click_error = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
     err = console(stderr=True)
-    ctrl_c = "[yellow]interrupted[/] (Ctrl-C): outputs written so far are kept"
+    ctrl_c = "[yellow]interrupted[/] (Ctrl-C or SIGTERM): outputs written so far are kept"
     def interrupted() -> bool:
         # a Ctrl-C that an import swallowed or turned into another error
         # (_adalio_entry.StickyInterrupt remembers it)

@@ -882,3 +882,27 @@ def test_zero_velocity_update_refuses_a_cruise_the_imu_cannot_tell_from_rest(mon
     # the filter's world is the IMU frame at the initialization (attitude R0 here)
     v_err = np.array([e.velocity_world_m_s for e in est]) - cruise(t)[2] @ R0
     assert np.abs(v_err[cruising]).max() < 0.05
+
+
+def test_api_misuse_is_refused_with_what_to_do():
+    """Samples given as (3, N) are refused (reshaped they scrambled the axes: 46 cm on the 8 s
+    hall); one sample as (3,) vectors is read; a config edited after load_config is checked as
+    load_config checks it ('Fixed' ran the adaptive mode); a preset name or a dict in the
+    Config's place says what to give."""
+    from adalio.config import load_config
+    from adalio.errors import ConfigError
+
+    odom = Odometry(load_config("hilti2022"))
+    t = np.arange(6, dtype=np.int64) * 2_500_000 + 10**18
+    good = np.tile([0.0, 0.0, 9.81], (6, 1))
+    with pytest.raises(InputError, match=r"expected gyro/accel of shape \(6, 3\), got \(3, 6\)"):
+        odom.add_imu(t, np.zeros((3, 6)), good.T)
+    odom.add_imu(t, np.zeros((6, 3)), good)
+    odom.add_imu(t[-1] + 2_500_000, np.zeros(3), np.array([0.0, 0.0, 9.81]))
+    cfg = load_config("hilti2022")
+    cfg.adaptive.mode = "Fixed"
+    with pytest.raises(ConfigError, match="adaptive.mode must be one of"):
+        Odometry(cfg)
+    for wrong in ("hilti2022", {"adaptive": {"mode": "fixed"}}):
+        with pytest.raises(ConfigError, match=r"Odometry takes a Config \(adalio\.load_config"):
+            Odometry(wrong)

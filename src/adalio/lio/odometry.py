@@ -51,7 +51,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from adalio.config import Config, ImuConfig, imu_noise_is_generic
-from adalio.errors import InputError
+from adalio.errors import ConfigError, InputError
 from adalio.jit import kernel
 from adalio.lio import imu, so3
 from adalio.lio.associate import Correspondences, associate
@@ -403,7 +403,10 @@ class Odometry:
     """
 
     def __init__(self, config: Config) -> None:
-        self.cfg = config
+        if not isinstance(config, Config):
+            raise ConfigError(f"Odometry takes a Config (adalio.load_config(...)), got "
+                              f"{type(config).__name__}")
+        self.cfg = config.validate()  # the checks load_config makes, for a Config edited since
         T = config.T_imu_lidar()
         self._R_LI = T[:3, :3].copy()
         self._t_LI = T[:3, 3].copy()
@@ -567,10 +570,13 @@ class Odometry:
     def add_imu(self, t_ns, gyro_rad_s, accel_m_s2) -> None:
         """Buffer IMU samples: scalar ``t_ns`` with (3,) vectors or (N,) int64 with (N,3)."""
         t = np.atleast_1d(np.asarray(t_ns))
-        gyro = np.asarray(gyro_rad_s, dtype=np.float64).reshape(-1, 3) \
-            if np.size(gyro_rad_s) % 3 == 0 else None
-        acc = np.asarray(accel_m_s2, dtype=np.float64).reshape(-1, 3) \
-            if np.size(accel_m_s2) % 3 == 0 else None
+
+        def rows(v: object) -> np.ndarray | None:  # (N, 3), or (3,) for one sample; not (3, N)
+            a = np.asarray(v, dtype=np.float64)
+            return a.reshape(1, 3) if a.shape == (3,) else a if a.ndim == 2 and \
+                a.shape[1] == 3 else None
+
+        gyro, acc = rows(gyro_rad_s), rows(accel_m_s2)
         if t.ndim != 1 or not np.issubdtype(t.dtype, np.integer) or t.dtype.itemsize < 8:
             raise InputError(f"add_imu: t_ns must be int64 nanoseconds, got dtype {t.dtype} "
                              f"shape {t.shape} (a narrower integer cannot hold them)")
