@@ -297,6 +297,9 @@ def test_finding_bags_names_and_ground_truth(tmp_path: Path) -> None:
     bags = find_bags([tmp_path])
     assert bags == [tmp_path / "day1" / "run.bag", tmp_path / "day2" / "loop.mcap",
                     tmp_path / "day2" / "run.bag", ros2]
+    # one folder given as a str or a Path, not a list: the same (a str was read as its
+    # characters, and '/' walked the whole file system)
+    assert find_bags(str(tmp_path)) == bags and find_bags(tmp_path) == bags
     assert unique_names(bags) == ["day1_run", "loop", "day2_run", "walk_ros2"]
     assert find_gt(bags[0]) == tmp_path / "day1" / "gt.tum"
     assert find_gt(bags[2]) is None

@@ -88,6 +88,20 @@ def test_view_without_display_is_one_error_line(tmp_path):
     assert len(lines) == 1 and lines[0].startswith("error: --view needs a display"), lines
 
 
+def test_rrd_where_it_cannot_be_written_is_one_error_line(tmp_path):
+    """A recording path rerun cannot open is one `error:` line naming it (was rerun's
+    RuntimeError as a traceback)."""
+    pytest.importorskip("rerun")
+    bad = "/proc/adalio-test/run.rrd"  # /proc takes no new folder, also for root
+    proc = subprocess.run([sys.executable, "-c", "from adalio.cli import main; main()", "run",
+                           str(tmp_path / "any.bag"), "--rrd", bad], capture_output=True,
+                          text=True, timeout=60, check=False)
+    assert proc.returncode == 2, proc.stderr
+    lines = [ln for ln in proc.stderr.strip().splitlines() if "WARN" not in ln]
+    assert len(lines) == 1 and lines[0].startswith(f"error: --rrd {bad}: cannot write the "
+                                                   "recording there"), proc.stderr
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

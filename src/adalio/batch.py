@@ -54,6 +54,8 @@ def find_bags(inputs: Sequence[str | Path]) -> list[Path]:
     In a searched folder every ``.bag`` file is its own bag (split ROS1 bags are not joined).
     Absolute paths, each bag once, in input order (sorted within a folder).
     """
+    if isinstance(inputs, str | Path):  # one input, not a sequence of its characters
+        inputs = [inputs]
     found: dict[Path, None] = {}
     for item in inputs:
         p = Path(item).expanduser()

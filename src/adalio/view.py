@@ -134,10 +134,15 @@ class RerunView:
             port = VIEWER_PORT if port is None else int(port)
             rr.spawn(port=port, connect=False, executable_path=exe, recording=self._rec)
             sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy"))
-        if self.rrd_path is not None:
-            self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
-            sinks.append(rr.FileSink(str(self.rrd_path)))
-        self._rec.set_sinks(*sinks, default_blueprint=blueprint()[0])
+        try:
+            if self.rrd_path is not None:
+                self.rrd_path.parent.mkdir(parents=True, exist_ok=True)
+                sinks.append(rr.FileSink(str(self.rrd_path)))
+            self._rec.set_sinks(*sinks, default_blueprint=blueprint()[0])
+        except (OSError, RuntimeError) as exc:  # rerun raises RuntimeError for a file it cannot open
+            raise AdalioError(f"--rrd {self.rrd_path}: cannot write the recording there "
+                              f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}); "
+                              "give a writable file") from None
         self._rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.map_voxel_m = float(map_voxel_m)
         self.map_every_scans = int(map_every_scans)
