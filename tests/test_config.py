@@ -160,3 +160,38 @@ def test_a_simulated_imu_10x_noisier_than_its_config_gets_its_gyro_raised(tmp_pa
                      r"accelerometer", used[10.0])
     assert m is not None, used[10.0]
     assert 8.5 <= float(m.group(1)) <= 11.5
+
+
+def test_a_key_given_twice_in_a_config_file_is_an_error(tmp_path):
+    """YAML keeps the last of two equal keys: a second `preprocess:` section silently dropped
+    the first one's settings. Now an error naming the key and its line; anchors and merges
+    (`<<`) still read."""
+    f = tmp_path / "twice.yaml"
+    f.write_text("preprocess:\n  blind_m: 1.5\nmap:\n  map_voxel_m: 0.1\npreprocess:\n"
+                 "  point_filter: 2\n")
+    with pytest.raises(ConfigError, match=r"'preprocess' is given twice in one mapping \(line "
+                                          r"5\); YAML keeps only the last"):
+        load_config(config_file=f)
+    f.write_text("preprocess:\n  blind_m: 1.5\n  blind_m: 0.7\n")
+    with pytest.raises(ConfigError, match=r"'blind_m' is given twice .* \(line 3\)"):
+        load_config(config_file=f)
+    f.write_text("filter: &f\n  gate_sigmas: 4.0\nadaptive:\n  general: &g\n    voxel_size_m: 0.3\n"
+                 "  degenerate:\n    <<: *g\n    search_radius_m: 1.5\n")
+    cfg = load_config(config_file=f)
+    assert cfg.adaptive.degenerate.voxel_size_m == 0.3 and cfg.filter.gate_sigmas == 4.0
+
+
+def test_overrides_in_both_styles_and_matrices_as_text():
+    """Dotted and nested overrides apply in order, none dropping another (a nested section
+    after a dotted key of it replaced that key's value); a matrix may come as text, as
+    `--set sensor.T_imu_lidar=[[...]]` gives it."""
+    cfg = load_config(overrides={"adaptive.general.voxel_size_m": 0.3,
+                                 "adaptive": {"mode": "fixed"}})
+    assert cfg.adaptive.general.voxel_size_m == 0.3 and cfg.adaptive.mode == "fixed"
+    cfg = load_config(overrides={"sensor.T_imu_lidar":
+                                 "[[1,0,0,0.1],[0,1,0,0],[0,0,1,0],[0,0,0,1]]"})
+    assert cfg.T_imu_lidar()[0, 3] == 0.1
+    with pytest.raises(ConfigError, match="sensor.T_imu_lidar' expects a list"):
+        load_config(overrides={"sensor.T_imu_lidar": "[[1,0"})
+    with pytest.raises(ConfigError, match="overrides must be a mapping"):
+        load_config(overrides=[("adaptive.mode", "fixed")])

@@ -906,6 +906,11 @@ def _coerce(current: Any, value: Any, path: str) -> Any:
                 raise TypeError
             return str(value)
         if isinstance(current, list):
+            if isinstance(value, str):  # a matrix given as text (--set key=[[...]])
+                try:
+                    value = yaml.safe_load(value)
+                except yaml.YAMLError:
+                    raise TypeError from None
             if not isinstance(value, list):
                 raise TypeError
             return value
@@ -936,9 +941,29 @@ def available_presets() -> list[str]:
     return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".yaml"))
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """A safe YAML loader that refuses a key given twice in one mapping (PyYAML keeps the last
+    silently: a second ``preprocess:`` section dropped the first one's settings)."""
+
+    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise ConfigError(f"'{key}' is given twice in one mapping (line "
+                                  f"{key_node.start_mark.line + 1}); YAML keeps only the last: "
+                                  "merge the two into one")
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
 def _read_yaml(text: str, where: str) -> dict[str, Any]:
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # a SafeLoader
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
     except yaml.YAMLError as exc:
         line = getattr(getattr(exc, "problem_mark", None), "line", None)
         at = f" (line {line + 1})" if line is not None else ""
@@ -999,16 +1024,19 @@ def load_config(preset: str | None = None, config_file: str | Path | None = None
     if file_data:
         _merge_into(cfg, file_data, "")
     if overrides:
-        nested: dict[str, Any] = {}
-        for key, value in overrides.items():
+        if not isinstance(overrides, dict):
+            raise ConfigError(f"overrides must be a mapping of keys to values, got "
+                              f"{type(overrides).__name__}")
+        for key, value in overrides.items():  # in order, each on what the ones before set
             if value is None:
                 continue
-            parts = key.split(".")
+            nested: dict[str, Any] = {}
+            parts = str(key).split(".")
             node = nested
             for part in parts[:-1]:
                 node = node.setdefault(part, {})
             node[parts[-1]] = value
-        _merge_into(cfg, nested, "")
+            _merge_into(cfg, nested, "")
     return cfg.validate()
 
 
