@@ -151,6 +151,14 @@ def test_force_reruns_a_finished_bag(local_batch, fleet: Path, config_file: Path
     res = run_batch([fleet / "hall" / "hall.bag"], out, config_file=config_file, workers=1,
                     mode="fixed")
     assert not res.rows[0].skipped and res.rows[0].status == "ok"
+    # nor is a bag recorded again at the same path (its file changed: here its time stamp)
+    bag = fleet / "hall" / "hall.bag"
+    res = run_batch([bag], out, config_file=config_file, workers=1, mode="fixed")
+    assert res.rows[0].skipped
+    st = bag.stat()
+    os.utime(bag, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    res = run_batch([bag], out, config_file=config_file, workers=1, mode="fixed")
+    assert not res.rows[0].skipped and res.rows[0].status == "ok"
 
 
 def test_a_set_mode_is_the_mode_the_bags_run(fleet: Path, config_file: Path,

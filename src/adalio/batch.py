@@ -146,9 +146,21 @@ class BagJob:
         return self.out_dir / MARKER_DIR / f"{self.name}.json"
 
     def fingerprint(self) -> dict[str, str]:
-        """What a finished run must match to be skipped on a rerun."""
+        """What a finished run must match to be skipped on a rerun: the paths, the config, and
+        the bag's and the ground truth's files as they are (sizes and modification times: a
+        bag recorded again at the same path is run again)."""
         return {"bag_path": str(self.bag_path), "gt_path": str(self.gt_path or ""),
-                "config_sha1": hashlib.sha1(self.config.to_yaml().encode()).hexdigest()}
+                "config_sha1": hashlib.sha1(self.config.to_yaml().encode()).hexdigest(),
+                "bag_files": _files_stamp(self.bag_path),
+                "gt_file": _files_stamp(self.gt_path) if self.gt_path else ""}
+
+
+def _files_stamp(path: Path) -> str:
+    """Size and modification time (ns) of a file, or of every file in a folder (a ROS2 bag)."""
+    p = Path(path)
+    files = sorted(f for f in p.rglob("*") if f.is_file()) if p.is_dir() else [p]
+    stats = [(f.relative_to(p) if p.is_dir() else f.name, f.stat()) for f in files if f.exists()]
+    return ";".join(f"{name}:{st.st_size}:{st.st_mtime_ns}" for name, st in stats)
 
 
 @dataclass

@@ -337,6 +337,25 @@ def test_config_override_wins(real):
     assert (spec.unit, spec.reference, spec.detected) == ("us", "relative", False)
 
 
+@pytest.mark.parametrize("unit", ["ms", "us", "ns"])
+def test_a_configured_time_unit_too_small_is_an_error(real, unit):
+    """A VLP-16's times in seconds configured as ms (or smaller) squeeze the sweep into a
+    sliver of it: an error naming the setting and the unit the values look like (it ran, 20x
+    off, with false time-offset and LiDAR-gap warnings). The right unit reads."""
+    sweep = float(real.t.max())
+    t_f32 = (real.t - sweep).astype(np.float32)
+    stamp_ns = real.stamp_ns + round(sweep * 1e9)
+    cols = {"x": real.x, "y": real.y, "z": real.z, "intensity": real.intensity, "ring": real.ring,
+            "time": t_f32}
+    msg = msg_from(cols, *VELODYNE, stamp_ns)
+    wrong = SensorConfig(point_time_unit=unit, point_time_reference="relative")
+    with pytest.raises(BagError, match=r"time field 'time' read as \w+, relative .* spanning "
+                                       r".* a sliver of a 0\.1 s sweep .* the values look like s"):
+        CloudDecoder(wrong, "/velodyne_points").decode(msg)
+    right = SensorConfig(point_time_unit="s", point_time_reference="relative")
+    assert len(CloudDecoder(right, "/velodyne_points").decode(msg)) == int(real.ret.sum())
+
+
 def test_undetectable_time_is_a_clear_error(real):
     with pytest.raises(BagError, match="set sensor.point_time_unit"):
         detect_time_spec(np.linspace(5.0, 5.05, 1000), 8, "t", real.stamp_ns,

@@ -406,3 +406,22 @@ def test_an_imu_clock_stepping_back_is_told_from_reordered_messages(step_ms):
             out = list(merge(recorded(recv, stamps, 40_000_000), st))
         got = np.concatenate([o.t_ns for o in out if isinstance(o, ImuBatch)])
         assert got.tolist() == np.unique(stamps).tolist() and st.imu_reordered > 0
+
+
+def test_a_sequencer_on_a_topic_the_bag_lacks_says_so(tmp_path):
+    """The README's Python loop with a misspelt topic: an error naming it and the topics of
+    that kind the bag has (it yielded IMU alone, and the run blamed the IMU)."""
+    import bagfactory as bf
+
+    from adalio.errors import BagError
+    from adalio.io.bag import Bag
+    from adalio.io.sequencer import Sequencer
+
+    rig = bf.write_static_rig(tmp_path / "rig.bag", duration_s=0.5, columns=30)
+    with Bag(rig) as b:
+        with pytest.raises(BagError, match=r"LiDAR topic /point is not in .*rig\.bag; its LiDAR "
+                                           r"topics: /points"):
+            Sequencer(b, "/point", "/imu")
+        with pytest.raises(BagError, match=r"IMU topic /points is sensor_msgs/msg/PointCloud2 in .* its IMU topics: /imu"):
+            Sequencer(b, "/points", "/points")
+        assert any(isinstance(i, Scan) for i in Sequencer(b, "/points", "/imu"))

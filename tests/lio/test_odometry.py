@@ -103,6 +103,18 @@ def _config() -> Config:
     return cfg.validate()
 
 
+def _odometry_past_ranges(cfg: Config) -> Odometry:
+    """Odometry(cfg) for a config in which a test pushed a ratio past 1 to force a path (1.01:
+    always degenerate): Odometry checks its config, so it is made with those ratios at 1 and
+    then given the test's values, in the same config objects it reads them from."""
+    ada = cfg.adaptive
+    pushed = ada.min_eigen_ratio, ada.min_restoring_ratio
+    ada.min_eigen_ratio, ada.min_restoring_ratio = (min(v, 1.0) for v in pushed)
+    odom = Odometry(cfg)
+    ada.min_eigen_ratio, ada.min_restoring_ratio = pushed
+    return odom
+
+
 def _run(cfg: Config, duration: float, n_cols: int, seed: int = 0, accel_unit: float = 1.0,
          before_scan=None, t_begin: float = 0.0, gyro_unit: float = 1.0,
          backfill: list | None = None):
@@ -110,7 +122,7 @@ def _run(cfg: Config, duration: float, n_cols: int, seed: int = 0, accel_unit: f
     runs before each sweep; ``backfill`` (a list) collects ``take_backfill`` after each scan and
     after ``finish`` at the end."""
     rng = np.random.default_rng(seed)
-    odom = Odometry(cfg)
+    odom = _odometry_past_ranges(cfg)
     t_imu, gyro, acc = imu_samples(t_begin, duration + 0.05, 400.0, rng, noise=0.01)
     acc = acc / accel_unit
     gyro = gyro * gyro_unit
