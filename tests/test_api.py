@@ -55,3 +55,17 @@ def test_readme_python_api_example_tracks_ground_truth():
     travelled = np.linalg.norm(np.diff(p_gt, axis=0), axis=1).sum()
     assert travelled > 1.0
     assert np.abs(p_est - p_gt).max() < 0.05
+
+
+def test_run_bag_names_what_it_takes_in_the_configs_place(tmp_path):
+    """`run_bag(bag, "hilti2022", out)` (a preset's name where the Config goes) is a ConfigError
+    that says what to give (it was an AttributeError from inside), before anything is read."""
+    import pytest
+
+    from adalio.errors import ConfigError
+    from adalio.pipeline import run_bag
+
+    for wrong in ("hilti2022", {"preset": "hilti2022"}):
+        with pytest.raises(ConfigError, match=r"run_bag takes a Config \(adalio\.load_config"):
+            run_bag(tmp_path / "none.bag", wrong, tmp_path / "out")
+    assert not (tmp_path / "out").exists()

@@ -445,6 +445,10 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
     estimator, if the kernels will compile during this run (a cold numba cache;
     ``RunResult.compiled``): an input error in the bag or its first cloud comes before it.
     """
+    if not isinstance(config, Config):
+        raise ConfigError(f"run_bag takes a Config (adalio.load_config('hilti2022') or "
+                          f"load_config(config_file=...)), got {type(config).__name__} "
+                          f"{config!r:.60}")
     cfg = copy.deepcopy(config)
     if map_format is not None:
         cfg.output.map_format = map_format
