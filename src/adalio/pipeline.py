@@ -956,7 +956,8 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         except (BagError, InputError):
             # the input stops the run: the scans held for the backfill still get their poses
             # (from the state before the fault), as at the data's end; the error is raised as is
-            with contextlib.suppress(Exception):
+            with contextlib.suppress(Exception), warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # the error says what happened
                 odom.finish()
                 for e in odom.take_backfill():
                     write(e, 0.0)

@@ -117,13 +117,16 @@ def _odometry_past_ranges(cfg: Config) -> Odometry:
 
 def _run(cfg: Config, duration: float, n_cols: int, seed: int = 0, accel_unit: float = 1.0,
          before_scan=None, t_begin: float = 0.0, gyro_unit: float = 1.0,
-         backfill: list | None = None):
+         backfill: list | None = None, imu_end_s: float | None = None):
     """Feed the box-room sequence from ``t_begin`` to ``duration`` (s); ``before_scan(t_start_s)``
     runs before each sweep; ``backfill`` (a list) collects ``take_backfill`` after each scan and
     after ``finish`` at the end."""
     rng = np.random.default_rng(seed)
     odom = _odometry_past_ranges(cfg)
     t_imu, gyro, acc = imu_samples(t_begin, duration + 0.05, 400.0, rng, noise=0.01)
+    if imu_end_s is not None:  # the IMU stops early
+        keep = t_imu < round(imu_end_s * 1e9)
+        t_imu, gyro, acc = t_imu[keep], gyro[keep], acc[keep]
     acc = acc / accel_unit
     gyro = gyro * gyro_unit
     estimates, k = [], 0
@@ -918,3 +921,17 @@ def test_api_misuse_is_refused_with_what_to_do():
     for wrong in ("hilti2022", {"adaptive": {"mode": "fixed"}}):
         with pytest.raises(ConfigError, match=r"Odometry takes a Config \(adalio\.load_config"):
             Odometry(wrong)
+
+
+def test_an_imu_that_ends_before_the_scans_is_warned_about_at_finish():
+    """Through the API, scans past the IMU's last sample are posed by the motion model (a gap
+    still open); it was never said, as a gap is said when the IMU resumes. finish() says it,
+    once; a run whose IMU lasts does not."""
+    import warnings
+
+    with pytest.warns(UserWarning, match=r"the IMU data end at t = .* s, 0\.\d\d s before the "
+                                         r"last scan's end: the scans after it were posed"):
+        _run(_config(), 2.0, 300, backfill=[], imu_end_s=1.55)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        _run(_config(), 2.0, 300, backfill=[])

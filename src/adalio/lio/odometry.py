@@ -913,6 +913,15 @@ class Odometry:
         checks still open conclude if they have seen ``END_MIN_SPAN_S`` of updates and their
         estimates are conclusive, else they close unsettled (:attr:`time_offset_unsettled`,
         :attr:`extrinsic_rotation_unsettled`, :attr:`extrinsic_translation_unsettled`)."""
+        gap = self._last_gap
+        if gap is not None and self._warned_gap_ns != gap[0]:  # still open: the IMU ended
+            self._warned_gap_ns = gap[0]
+            import warnings
+
+            warnings.warn(f"the IMU data end at t = {gap[0] * 1e-9:.3f} s, {gap[1]:.2f} s before "
+                          "the last scan's end: the scans after it were posed by the "
+                          "constant-velocity motion model alone (scans.csv column imu_gap; "
+                          "adalio run leaves such scans out)", stacklevel=2)
         if self._held_scans and self.initialized:
             self._backfill()
         chk = self._offset_check
