@@ -356,6 +356,18 @@ def test_a_configured_time_unit_too_small_is_an_error(real, unit):
     assert len(CloudDecoder(right, "/velodyne_points").decode(msg)) == int(real.ret.sum())
 
 
+def test_detection_keeps_its_own_least_span(real):
+    """Detection refuses a unit whose reading spans under 2 % of a sweep (MIN_SPAN_SWEEPS; here
+    1.5 %, 200 points), as it did before the check of configured units got its own, laxer bound
+    (the two once shared a name, and the later one, 1 %, replaced detection's)."""
+    values = np.linspace(0.0, 0.0015, 200)
+    with pytest.raises(BagError, match="set sensor.point_time_unit"):
+        detect_time_spec(values, 8, "t", real.stamp_ns,
+                         SensorConfig(point_time_unit="s"), "/pts")
+    assert detect_time_spec(np.linspace(0.0, 0.0025, 200), 8, "t", real.stamp_ns,
+                            SensorConfig(point_time_unit="s"), "/pts").unit == "s"
+
+
 def test_undetectable_time_is_a_clear_error(real):
     with pytest.raises(BagError, match="set sensor.point_time_unit"):
         detect_time_spec(np.linspace(5.0, 5.05, 1000), 8, "t", real.stamp_ns,

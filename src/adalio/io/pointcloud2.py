@@ -48,10 +48,12 @@ MIN_SPAN_SWEEPS = 0.02
 MIN_POINTS_FOR_SPAN = 100
 MAX_SPAN_SWEEPS = 5.0
 """A configured time unit giving a cloud longer than this many sweeps is refused."""
-MIN_SPAN_SWEEPS = 0.01
-MIN_SPAN_POINTS = 1000
-"""... and one of at least ``MIN_SPAN_POINTS`` points spanning less than this share of a sweep
-(but more than 0: constant times are no times), a unit read too small (seconds as ms)."""
+CONFIGURED_MIN_SPAN_SWEEPS = 0.01
+CONFIGURED_MIN_SPAN_POINTS = 1000
+"""... and one of at least ``CONFIGURED_MIN_SPAN_POINTS`` points spanning less than this share of
+a sweep (but more than 0: constant times are no times), a unit read too small (seconds as ms).
+Laxer than detection's ``MIN_SPAN_SWEEPS`` / ``MIN_POINTS_FOR_SPAN``: only the first cloud is
+checked, and it may be a driver's partial sweep."""
 MAX_STAMP_OFFSET_S = 3600.0
 """A configured time unit/reference putting points further than this from the header stamp is
 refused (a clock offset that large is a unit or reference mismatch)."""
@@ -364,8 +366,8 @@ def stamp_to_ns(stamp: Any) -> int:
 def check_time_spec(values: np.ndarray, datatype: int, spec: TimeSpec, stamp_ns: int,
                     sensor: SensorConfig, topic: str = "") -> None:
     """BagError if a configured unit/reference makes the raw times of one cloud implausible:
-    spanning more than MAX_SPAN_SWEEPS sweeps, or under MIN_SPAN_SWEEPS of one (a cloud of
-    MIN_SPAN_POINTS or more), or further than MAX_STAMP_OFFSET_S from the
+    spanning more than MAX_SPAN_SWEEPS sweeps, or under CONFIGURED_MIN_SPAN_SWEEPS of one (a
+    cloud of CONFIGURED_MIN_SPAN_POINTS or more), or further than MAX_STAMP_OFFSET_S from the
     header stamp (or beyond int64 ns). The message names the field, the configured unit and, if
     detection finds one, the unit the values look like."""
     v = np.asarray(values, dtype=np.float64)
@@ -380,7 +382,8 @@ def check_time_spec(values: np.ndarray, datatype: int, spec: TimeSpec, stamp_ns:
     lo, hi = vmin * scale - base, vmax * scale - base
     if span_s > MAX_SPAN_SWEEPS * sweep_s:
         what = f"one cloud spanning {span_s:.4g} s ({sensor.lidar_rate_hz:g} Hz LiDAR)"
-    elif 0.0 < span_s < MIN_SPAN_SWEEPS * sweep_s and v.size >= MIN_SPAN_POINTS:
+    elif 0.0 < span_s < CONFIGURED_MIN_SPAN_SWEEPS * sweep_s and \
+            v.size >= CONFIGURED_MIN_SPAN_POINTS:
         what = (f"one cloud of {v.size} points spanning {span_s:.3g} s, a sliver of a "
                 f"{sweep_s:.3g} s sweep ({sensor.lidar_rate_hz:g} Hz LiDAR)")
     elif (stamp_ns != 0 and max(abs(lo), abs(hi)) > MAX_STAMP_OFFSET_S) or \
