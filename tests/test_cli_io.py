@@ -95,7 +95,7 @@ def test_missing_and_ambiguous_topics(monkeypatch, capsys, tmp_path, rig):
     assert_one_line_error(code, err, "topic /nope is not in", "/points", "--lidar-topic")
     code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--imu-topic", "/points")
     assert_one_line_error(code, err, "/points", "is sensor_msgs/msg/PointCloud2, not "
-                          "sensor_msgs/Imu")
+                          "sensor_msgs/Imu; sensor_msgs/Imu topics in the bag: /imu")
     # info lists the topics, and refuses a named one as run does
     code, out, err = run_cli(monkeypatch, capsys, "info", rig, "--imu-topic", "/points")
     assert_one_line_error(code, err, "/points", "is sensor_msgs/msg/PointCloud2, not "

@@ -419,9 +419,13 @@ def test_a_sequencer_on_a_topic_the_bag_lacks_says_so(tmp_path):
 
     rig = bf.write_static_rig(tmp_path / "rig.bag", duration_s=0.5, columns=30)
     with Bag(rig) as b:
-        with pytest.raises(BagError, match=r"LiDAR topic /point is not in .*rig\.bag; its LiDAR "
-                                           r"topics: /points"):
+        with pytest.raises(BagError, match=r"topic /point is not in .*rig\.bag; "
+                                           r"sensor_msgs/PointCloud2 topics in the bag: /points "
+                                           r"\(Sequencer's lidar_topic\)"):
             Sequencer(b, "/point", "/imu")
-        with pytest.raises(BagError, match=r"IMU topic /points is sensor_msgs/msg/PointCloud2 in .* its IMU topics: /imu"):
+        with pytest.raises(BagError, match=r"topic /points in .*rig\.bag is "
+                                           r"sensor_msgs/msg/PointCloud2, not sensor_msgs/Imu; "
+                                           r"sensor_msgs/Imu topics in the bag: /imu "
+                                           r"\(Sequencer's imu_topic\)"):
             Sequencer(b, "/points", "/points")
         assert any(isinstance(i, Scan) for i in Sequencer(b, "/points", "/imu"))

@@ -300,17 +300,20 @@ class Bag:
         norm = {_normtype(t) for t in types}
         return [t.name for t in self.topics() if t.msgtype in norm]
 
-    def _select(self, want: str, types: tuple[str, ...], what: str, flag: str) -> str:
+    def select_topic(self, want: str, types: tuple[str, ...], what: str, flag: str) -> str:
+        """The topic named ``want`` if the bag has it with one of ``types``, else the one topic
+        of those types (``want`` empty); BagError naming the bag's topics of ``what`` kind and
+        the setting (``flag``) that names one."""
         found = self.topics_of_type(types)
         if want:
             names = {t.name: t for t in self.topics()}
+            hint = f"; {what} topics in the bag: {', '.join(found)}" if found else \
+                f"; the bag has no {what} topic"
             if want not in names:
-                hint = f"; {what} topics in the bag: {', '.join(found)}" if found else \
-                    f"; the bag has no {what} topic"
                 raise BagError(f"topic {want} is not in {self.path}{hint} ({flag})")
             if want not in found:
                 raise BagError(f"topic {want} in {self.path} is {names[want].msgtype}, not "
-                               f"{what} ({flag})")
+                               f"{what}{hint} ({flag})")
             return want
         if not found:
             raise BagError(f"{self.path} has no {what} topic; record one or pick a bag "
@@ -326,9 +329,9 @@ class Bag:
     def select_topics(self, sensor: SensorConfig) -> tuple[str, str]:
         """(lidar_topic, imu_topic) from the config or auto-detected; BagError if missing or
         ambiguous."""
-        lidar = self._select(sensor.lidar_topic, POINTCLOUD2_TYPES, "sensor_msgs/PointCloud2",
+        lidar = self.select_topic(sensor.lidar_topic, POINTCLOUD2_TYPES, "sensor_msgs/PointCloud2",
                              "--lidar-topic / sensor.lidar_topic")
-        imu = self._select(sensor.imu_topic, IMU_TYPES, "sensor_msgs/Imu",
+        imu = self.select_topic(sensor.imu_topic, IMU_TYPES, "sensor_msgs/Imu",
                            "--imu-topic / sensor.imu_topic")
         return lidar, imu
 

@@ -565,14 +565,9 @@ class Sequencer:
     def __init__(self, bag: Bag, lidar_topic: str, imu_topic: str,
                  sensor: SensorConfig | None = None, *, imu_chunk: int = 64,
                  lookahead_ns: int = IMU_LOOKAHEAD_NS, start_ns: int | None = None) -> None:
-        topics = {t.name: t.msgtype for t in bag.topics()}
-        for topic, what, types in ((lidar_topic, "LiDAR", POINTCLOUD2_TYPES),
-                                   (imu_topic, "IMU", IMU_TYPES)):
-            if topics.get(topic) not in types:
-                have = sorted(n for n, t in topics.items() if t in types) or ["none"]
-                is_ = "is not in" if topic not in topics else f"is {topics[topic]} in"
-                raise BagError(f"{what} topic {topic} {is_} {bag.path}; its {what} topics: "
-                               f"{', '.join(have)}")
+        bag.select_topic(lidar_topic, POINTCLOUD2_TYPES, "sensor_msgs/PointCloud2",
+                         "Sequencer's lidar_topic")
+        bag.select_topic(imu_topic, IMU_TYPES, "sensor_msgs/Imu", "Sequencer's imu_topic")
         self.bag = bag
         self.start_ns = start_ns
         """Messages received before this time (bag clock, int64 ns) are not read."""
