@@ -166,10 +166,9 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
                              "mid-recording (or two IMUs publish on the topic); re-stamp the bag")
 
     def take_imu(upto_ns: int) -> ImuBatch | None:
-        nonlocal imu_t, imu_g, imu_a, released_imu_t
+        nonlocal imu_t, imu_g, imu_a, released_imu_t, imu_rate_hz
         if not imu_t:
             return None
-        nonlocal imu_rate_hz
         t = np.concatenate(imu_t)
         g = np.concatenate(imu_g)
         a = np.concatenate(imu_a)
@@ -467,9 +466,10 @@ class ClockCheck:
     of their receive times by over ``CLOCK_AHEAD_S`` on one topic, while the other topic's are
     not ahead of theirs (within ``CLOCK_AGREE_S``: on the recorder's clock), mean that topic's
     clock runs ahead of the other's (a LiDAR on its own or PTP time, an IMU on the recorder's).
-    Both ahead (a recorder whose clock is behind the sensors') says nothing. adalio pairs the two by their stamps, so that would be a silent error (the 8 s
-    hall 12.8 cm off at 0.5 s). Stamps that run behind their receive times are not told apart
-    from late delivery, which is harmless, and are left to the sequencer's other checks. The
+    adalio pairs the two by their stamps, so that would be a silent error (the 8 s hall 12.8 cm
+    off at 0.5 s). Both ahead (a recorder whose clock is behind the sensors') says nothing.
+    Stamps that run behind their receive times are not told apart from late delivery, which is
+    harmless: a warning where they lag the other topic's by over ``CLOCK_BEHIND_S``. The
     LiDAR's offset is its scans' end (the last point's time) minus the receive time; the IMU's
     is its stamp, moved by ``sensor.imu_time_offset_s``, minus the receive time."""
 
