@@ -582,7 +582,8 @@ def test_no_pose_reasons_name_the_start_beyond_the_bag_and_late_clouds(monkeypat
                            "--start-s", "100")
     assert_one_line_error(code, err, "--start-s 100 is at or beyond the end of the bag",
                           "s long")
-    never = SimpleNamespace(initialized=False, init_failure=lambda: "no still window")
+    never = SimpleNamespace(initialized=False, init_failure=lambda: "no still window",
+                            rest_refuted=None)
     for n_in in (0, 20):
         text = _no_pose_reason(never, n_in, "/points", "/imu", tmp_path, n_late=100)
         assert "100 scans of /points arrived more than 2 s after their IMU samples" in text

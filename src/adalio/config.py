@@ -223,6 +223,15 @@ class ImuConfig:
     motion makes within one block, ``still_accel_floor_m_s2 * still_block_s``. On by default
     since session 42 (README, Initialization, *Zero-velocity update*); False: no velocity
     information but the LiDAR's after the initialization (Faster-LIO's behaviour)."""
+    rest_lidar_check: bool = True
+    """A still window must not contradict the LiDAR: an IMU cannot tell rest from a constant
+    velocity and rotation rate (a robot already cruising when its recording starts), so a
+    static start is checked against LiDAR-only registrations of the scans over
+    ``init_window_s`` (those before it, or, at the recording's start, those after it, whose
+    poses are then held back until the check has judged, ``Odometry.take_backfill``). When
+    they moved beyond rest (``motion_init.lidar_rest_check``), the window is refused and the
+    start is a moving start (README, Initialization, *A still window the LiDAR refutes*).
+    False: every still window starts the filter at rest (the behaviour before session 76)."""
     backfill_s: float = 60.0
     """Scans read before the initialization (a moving start's refused fits, or motion before a
     still window) get their pose from a time-reversed pass of the filter, started from the first

@@ -405,6 +405,11 @@ def _no_pose_reason(odom: Any, n_in: int, lidar_topic: str, imu_topic: str, out:
     if late and not odom.initialized:
         return (f"no pose from {n_in} scans: the estimator never initialized{late} (partial "
                 f"outputs in {out})")
+    if not odom.initialized and odom.rest_refuted is not None:
+        return (f"no pose from {n_in} scans: the estimator never initialized: "
+                f"{odom.init_failure()}. Start the recording with the rig at rest (a robot "
+                "standing still for imu.init_window_s), or include more of it: the moving "
+                f"start waits for geometry that fixes the velocity (partial outputs in {out})")
     if not odom.initialized:
         return (f"no pose from {n_in} scans: the estimator never initialized: "
                 f"{odom.init_failure()}. Check {imu_topic} (rate, units, stamps); a still start "
@@ -898,8 +903,8 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
             if not stats.wall_ms:
                 stats.wall_ms = ms
             csvw.write(stats)
-            if not stats.backfill:
-                wall_ms.append(ms)
+            if not stats.backfill:  # estimates held back by the rest check come with ms 0
+                wall_ms.append(ms or stats.wall_ms)
             est_t.append(int(e.t_ns))
             degen.append(bool(stats.degenerate))
             held.append(stats.held_directions > 0)

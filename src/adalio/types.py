@@ -205,6 +205,9 @@ class InitReport:
     """Moving start: why the last refused fit was refused."""
     backfilled: int = 0
     """Of the scans without a pose, those the backfill gave one (imu.backfill_s)."""
+    lidar_rest: str = ""
+    """What the LiDAR said of the rest (imu.rest_lidar_check): a static start's check, or the
+    still window a moving start refused because the scene moved ('' when not checked)."""
 
     @property
     def scans_left_without_pose(self) -> int:
@@ -231,6 +234,8 @@ class InitReport:
             text += (" (Faster-LIO's generic values, not this IMU's: set its own imu.gyro_cov, "
                      "accel_cov and bias walks, README Presets)")
         text += f"; {self.detail}"
+        if self.lidar_rest:
+            text += f"; {self.lidar_rest}"
         if self.scans_without_pose:
             text += (f"; first filter pose {self.wait_s:.1f} s after the first scan "
                      f"({self.scans_without_pose} scans read before it, {self.backfilled} of "
@@ -253,4 +258,5 @@ class InitReport:
                 "init_wait_s": num(self.wait_s),
                 "init_scans_without_pose": int(self.scans_without_pose),
                 "init_refused_fits": int(self.refused_fits),
-                "init_backfilled": int(self.backfilled)}
+                "init_backfilled": int(self.backfilled),
+                "init_lidar_rest": self.lidar_rest}

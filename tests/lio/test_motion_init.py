@@ -173,3 +173,50 @@ def test_a_fitted_gyro_bias_beyond_the_filter_s_prior_is_refused(seed):
     fit = _registrar(3.0, 0.0, seed, slow).solve()
     assert fit is not None
     assert np.linalg.norm(fit.gyro_bias_rad_s - (B_GYRO - slow)) < 8e-3
+
+
+def _registrations(rng, speed_m_s, rate_rad_s, sigma_p_m=0.002, sigma_th_rad=0.001, n=6,
+                   period_s=0.1):
+    from adalio.lio import so3
+    from adalio.lio.motion_init import _Registered
+
+    out = []
+    for k in range(n):
+        t = k * period_s
+        p = np.asarray(speed_m_s) * t + rng.normal(scale=sigma_p_m, size=3)
+        th = np.asarray(rate_rad_s) * t + rng.normal(scale=sigma_th_rad, size=3)
+        out.append(_Registered(round((1.0 + t) * 1e9), so3.exp(th), p))
+    return out
+
+
+def test_lidar_rest_check_against_monte_carlo():
+    """The rest check's statistic (motion_init.lidar_rest_check) on registrations drawn around
+    a known motion, 2000 draws each: at rest with a registration's scatter (2 mm, 0.06 deg) it
+    refutes in at most 0.5 % of the draws (measured 0.0 %); a creep within the stillness test's
+    floors (3 mm/s) stays rest; a cruise at 0.3 m/s, or a turn at 0.1 rad/s, is refuted in every
+    draw, and the speed it reports is the truth within 3 standard errors of the line fit."""
+    from adalio.config import ImuConfig
+    from adalio.lio.motion_init import lidar_rest_check
+
+    cfg = ImuConfig()
+    rng = np.random.default_rng(7)
+    draws = 2000
+    t = np.arange(6) * 0.1
+    se_v = 0.002 / np.sqrt(((t - t.mean()) ** 2).sum())  # the line's slope, per axis
+
+    def refuted(speed, rate):
+        checks = [lidar_rest_check(_registrations(rng, speed, rate), cfg) for _ in range(draws)]
+        return np.array([c.refuted for c in checks]), checks
+
+    rest, _ = refuted([0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    assert rest.mean() <= 0.005
+    creep, _ = refuted([0.003, 0.0, 0.0], [0.0, 0.0, 0.0])
+    assert creep.mean() <= 0.005
+    cruise, checks = refuted([0.25, 0.15, 0.05], [0.0, 0.0, 0.0])
+    assert cruise.all()
+    speeds = np.array([c.speed_m_s for c in checks])
+    assert np.abs(speeds - np.linalg.norm([0.25, 0.15, 0.05])).max() < 3 * np.sqrt(3) * se_v
+    turn, checks = refuted([0.0, 0.0, 0.0], [0.0, 0.0, 0.1])
+    assert turn.all()
+    assert all(c.rate_rad_s == pytest.approx(0.1, abs=0.02) for c in checks)
+    assert lidar_rest_check(_registrations(rng, [0.3, 0, 0], [0, 0, 0], n=2), cfg) is None

@@ -117,13 +117,16 @@ def _odometry_past_ranges(cfg: Config) -> Odometry:
 
 def _run(cfg: Config, duration: float, n_cols: int, seed: int = 0, accel_unit: float = 1.0,
          before_scan=None, t_begin: float = 0.0, gyro_unit: float = 1.0,
-         backfill: list | None = None, imu_end_s: float | None = None):
-    """Feed the box-room sequence from ``t_begin`` to ``duration`` (s); ``before_scan(t_start_s)``
-    runs before each sweep; ``backfill`` (a list) collects ``take_backfill`` after each scan and
-    after ``finish`` at the end."""
+         backfill: list | None = None, imu_end_s: float | None = None,
+         imu_from_s: float | None = None):
+    """Feed the box-room sequence from ``t_begin`` to ``duration`` (s), the IMU's from
+    ``imu_from_s`` (default ``t_begin``); ``before_scan(t_start_s)`` runs before each sweep;
+    ``backfill`` (a list) collects ``take_backfill`` after each scan and after ``finish`` at the
+    end."""
     rng = np.random.default_rng(seed)
     odom = _odometry_past_ranges(cfg)
-    t_imu, gyro, acc = imu_samples(t_begin, duration + 0.05, 400.0, rng, noise=0.01)
+    t_imu, gyro, acc = imu_samples(t_begin if imu_from_s is None else imu_from_s,
+                                   duration + 0.05, 400.0, rng, noise=0.01)
     if imu_end_s is not None:  # the IMU stops early
         keep = t_imu < round(imu_end_s * 1e9)
         t_imu, gyro, acc = t_imu[keep], gyro[keep], acc[keep]
@@ -209,7 +212,9 @@ def test_motion_is_not_taken_for_rest():
     for s in (0.5, 0.8):
         assert odom.add_scan(pts, np.full(100, int(s * 1e9), np.int64)) is None
         assert not odom.initialized
-    assert odom.add_scan(pts, np.full(100, int(0.96e9), np.int64)) is not None
+    # a static start at once; its estimate waits for the LiDAR's check of the rest
+    # (imu.rest_lidar_check), which needs the scans after it
+    assert odom.add_scan(pts, np.full(100, int(0.96e9), np.int64)) is None
     assert odom.initialized
     # the report counts the two scans that got no pose and the wait from the first one
     rep = odom.init_report
@@ -236,7 +241,8 @@ def test_a_noisier_gyro_than_configured_raises_the_filter_noise(source):
     acc = np.array([0.0, 0.0, 9.81]) + 1.32e-3 * np.sqrt(400.0) * rng.normal(size=(t.size, 3))
     odom.add_imu(np.round(t * 1e9).astype(np.int64), gyro, acc)
     pts = rng.uniform(-5, 5, size=(100, 3))
-    assert odom.add_scan(pts, np.full(100, int(0.6e9), np.int64)) is not None
+    odom.add_scan(pts, np.full(100, int(0.6e9), np.int64))
+    assert odom.initialized
     q = odom._q_diag
     assert q[3:6] == pytest.approx(cfg.imu.accel_cov)
     if source == "config":
@@ -491,6 +497,9 @@ def test_real_hilti_scan_registers_a_known_displacement():
     cfg.sensor.T_imu_lidar = [[0.0, -1.0, 0.0, -0.001], [-1.0, 0.0, 0.0, -0.00855],
                               [0.0, 0.0, -1.0, 0.055], [0.0, 0.0, 0.0, 1.0]]
     cfg.adaptive.mode = "fixed"
+    # the IMU rests while the sensor jumps 7 cm between the scans: exactly what the rest check
+    # refutes (imu.rest_lidar_check); here the registration alone is tested
+    cfg.imu.rest_lidar_check = False
     cfg.validate()
     T_il = cfg.T_imu_lidar()
     odom = Odometry(cfg)
@@ -897,6 +906,116 @@ def test_zero_velocity_update_refuses_a_cruise_the_imu_cannot_tell_from_rest(mon
     # the filter's world is the IMU frame at the initialization (attitude R0 here)
     v_err = np.array([e.velocity_world_m_s for e in est]) - cruise(t)[2] @ R0
     assert np.abs(v_err[cruising]).max() < 0.05
+
+
+def _cruise_from_the_start(speed_m_s: np.ndarray, R0: np.ndarray):
+    """A rig already cruising at constant velocity and attitude when the data start (a robot
+    driving): its IMU reads gravity and the gyro bias alone, as at rest."""
+    def cruise(t):
+        t = np.atleast_1d(np.asarray(t, float))
+        p = np.array([-3.0, -1.0, 0.2]) + t[:, None] * speed_m_s
+        R = np.broadcast_to(R0, (t.size, 3, 3)).copy()
+        return p, R, np.tile(speed_m_s, (t.size, 1)), np.zeros((t.size, 3)), np.zeros((t.size, 3))
+    return cruise
+
+
+def _relative_errors(est, truth) -> np.ndarray:
+    """Position error of each estimate against the truth, both taken relative to their first
+    pose (the world is the IMU frame at the start, whichever start it was)."""
+    est = sorted(est, key=lambda e: int(e.t_ns))
+    t = np.array([e.t_ns * 1e-9 for e in est])
+    p, R, *_ = truth(t)
+    T0 = est[0].T_world_imu
+    err = []
+    for e, p_k in zip(est, p, strict=True):
+        rel_est = np.linalg.solve(T0, e.T_world_imu)[:3, 3]
+        rel_true = R[0].T @ (p_k - p[0])
+        err.append(np.linalg.norm(rel_est - rel_true))
+    return np.array(err)
+
+
+@pytest.mark.parametrize("imu_lead_s", [0.6, 0.0])
+def test_a_rig_already_cruising_is_not_started_at_rest(monkeypatch, imu_lead_s):
+    """A rig cruising at 0.6 m/s from the first sample passes the IMU's stillness test, and a
+    static start took it as resting: zero velocity, the zero-velocity update every scan after,
+    the scans' motion taken for moving things. The LiDAR-only registrations refute the rest
+    (imu.rest_lidar_check): with the IMU starting 0.6 s before the scans, on the scans after
+    the static start (which goes back and runs them again as a moving start); with both
+    starting together, on the moving start's registrations over the still window. Either way
+    it is a moving start, every scan gets a pose (the backfill's for the early ones), within
+    3 cm and 10 cm/s of the truth. With the check off the first scans hold a zero velocity
+    until the box room's walls drag the estimate along."""
+    me = sys.modules[__name__]
+    speed, R0 = np.array([0.6, 0.1, 0.0]), so3.exp(np.array([0.02, -0.03, 0.1]))
+    truth = _cruise_from_the_start(speed, R0)
+    monkeypatch.setattr(me, "trajectory", truth)
+    runs = {}
+    for check in (True, False):
+        cfg = _config()
+        cfg.imu.rest_lidar_check = check
+        odom = _odometry_past_ranges(cfg)
+        rng = np.random.default_rng(3)
+        t_imu, gyro, acc = imu_samples(0.0, 6.0, 400.0, rng, noise=0.01)
+        est, k, n_scans = [], 0, 0
+        for s in np.arange(imu_lead_s, 5.5, 0.1):
+            pts, t_ns = lidar_scan(s, 300, rng)
+            hi = int(np.searchsorted(t_imu, t_ns.max(), side="right"))
+            odom.add_imu(t_imu[k:hi], gyro[k:hi], acc[k:hi])
+            k = hi
+            n_scans += 1
+            e = odom.add_scan(pts, t_ns)
+            est += odom.take_backfill() + ([e] if e is not None else [])
+        odom.finish()
+        est += odom.take_backfill()
+        runs[check] = (odom, est, n_scans)
+    odom, est, n_scans = runs[True]
+    assert odom.init_report.method == "moving"
+    refuted = odom.rest_refuted
+    assert refuted is not None and refuted.refuted
+    assert refuted.speed_m_s == pytest.approx(np.hypot(0.6, 0.1), abs=0.05)
+    assert "a still window was refused" in odom.init_report.describe()
+    # the first path went back from a static start, the second never took one
+    assert (odom._refuted_until_ns is not None) == (imu_lead_s > 0)
+    assert len(est) == n_scans and len({int(e.t_ns) for e in est}) == n_scans
+    err = _relative_errors(est, truth)
+    assert err.max() < 0.03, err.max()
+
+    def speed_errors(est_run):  # the world is the IMU frame at the start: attitude R0
+        return np.array([np.linalg.norm(e.velocity_world_m_s - R0.T @ speed) for e in est_run])
+
+    assert speed_errors(est).max() < 0.1, speed_errors(est).max()
+    off, est_off, _ = runs[False]
+    assert off.init_report.method == "static" and off.rest_refuted is None
+    # measured: its first tracked scans at zero velocity (0.6 m/s off), 8 cm off while the
+    # walls pull it along (the simulated hall, with its moving-points filter, went 14 m off: tests/
+    # test_backfill_run.py)
+    tracked = sorted((e for e in est_off if not e.stats.backfill), key=lambda e: int(e.t_ns))
+    assert speed_errors(tracked)[:3].min() > 0.5
+    assert _relative_errors(est_off, truth).max() > 0.05
+
+
+def test_the_rest_check_changes_nothing_of_a_still_start():
+    """The box room's still start, its IMU 0.5 s ahead of the first scan so that no scan before
+    it can vouch for the rest: the first estimates are held back until the LiDAR-only
+    registrations span imu.init_window_s, then handed out by take_backfill; each estimate
+    equals, bit for bit, the one of the run without the check."""
+    runs = {}
+    for check in (True, False):
+        cfg = _config()
+        cfg.imu.rest_lidar_check = check
+        bf: list = []
+        odom, est = _run(cfg, 3.0, 300, t_begin=0.5, imu_from_s=0.0, backfill=bf)
+        runs[check] = (odom, est, bf)
+    odom, est, bf = runs[True]
+    _, est_off, bf_off = runs[False]
+    assert bf_off == [] and len(bf) >= 4  # held back, then handed out
+    assert odom.init_report.method == "static"
+    assert odom.init_report.lidar_rest.startswith("the LiDAR agrees")
+    got = sorted(est + bf, key=lambda e: int(e.t_ns))
+    assert [int(e.t_ns) for e in got] == [int(e.t_ns) for e in est_off]
+    for a, b in zip(got, est_off, strict=True):
+        assert np.array_equal(a.T_world_imu, b.T_world_imu)
+        assert np.array_equal(a.stats.sigma_p_world_m, b.stats.sigma_p_world_m)
 
 
 def test_api_misuse_is_refused_with_what_to_do():

@@ -65,7 +65,7 @@ from itertools import pairwise
 
 import numpy as np
 
-from adalio.config import Config
+from adalio.config import Config, ImuConfig
 from adalio.jit import kernel
 from adalio.lio import imu, so3
 from adalio.lio.ieskf import iterated_update
@@ -170,6 +170,79 @@ class _Registered:
     restoring: float = float("nan")
     """Restoring ratio of the registration along its weakest translation (NaN: not
     registered, or not probed)."""
+
+
+REST_CHECK_MIN_SCANS = 3
+"""Fewest LiDAR-only registrations the rest check (:func:`lidar_rest_check`) judges from: a
+line through two points has no residual to measure the registration's scatter with."""
+
+
+@dataclass
+class RestCheck:
+    """What LiDAR-only registrations say about a rest the IMU's stillness test claims
+    (:func:`lidar_rest_check`)."""
+
+    speed_m_s: float
+    """Speed of the straight-line fit of the registered positions."""
+    rate_rad_s: float
+    """Rotation rate of the straight-line fit of the registered rotations."""
+    statistic: float
+    """Both rates squared over their variances under rest, summed (chi-square, 6 dof)."""
+    limit: float
+    """The chi-square quantile at ``imu.still_false_alarm`` with 6 degrees of freedom."""
+    n_scans: int
+    span_s: float
+    t_ns: int
+    """End of the last registration judged."""
+
+    @property
+    def refuted(self) -> bool:
+        """The registrations moved beyond what rest allows: a constant motion the IMU cannot
+        tell from rest."""
+        return self.statistic > self.limit
+
+    def describe(self) -> str:
+        return (f"{self.speed_m_s:.2f} m/s and {np.degrees(self.rate_rad_s):.1f} deg/s over "
+                f"{self.n_scans} LiDAR-only registrations in {self.span_s:.2f} s (rest allows "
+                f"chi-square {self.limit:.1f}, got {self.statistic:.1f})")
+
+
+def lidar_rest_check(scans: list[_Registered], cfg: ImuConfig) -> RestCheck | None:
+    """Does a LiDAR-only registration refute the rest an IMU window claims?
+
+    An IMU cannot tell rest from a constant velocity and rotation rate (a robot already
+    cruising when its recording starts): both read gravity and the gyro bias alone. The scene
+    can: a straight line through the registered positions and rotation vectors against time
+    gives the speed ``v`` and rate ``w``, their standard errors ``se`` from the line's
+    residuals (pooled over the three axes). Rest as the stillness test defines it moves at most
+    ``imu.still_accel_floor_m_s2 x imu.still_block_s`` (the zero-velocity update's 5 mm/s) and
+    turns at most ``imu.still_gyro_floor_rad_s``; rest is refuted when
+    ``|v|²/(σ_v² + se_v²) + |w|²/(σ_w² + se_w²)`` exceeds the chi-square quantile at
+    ``imu.still_false_alarm`` with 6 degrees of freedom. None with fewer than
+    ``REST_CHECK_MIN_SCANS`` registrations."""
+    if len(scans) < REST_CHECK_MIN_SCANS:
+        return None
+    t = np.array([(s.t_ns - scans[0].t_ns) * 1e-9 for s in scans])
+    spread = float(((t - t.mean()) ** 2).sum())
+    if not spread > 0.0:
+        return None
+    A = np.column_stack([np.ones_like(t), t])
+    R0t = scans[0].R.T
+    dof = 3 * (len(t) - 2)
+    stat, rates = 0.0, []
+    floors = ((cfg.still_accel_floor_m_s2 * cfg.still_block_s) ** 2,
+              cfg.still_gyro_floor_rad_s ** 2)
+    for y, var_rest in ((np.array([s.p for s in scans]), floors[0]),
+                        (np.array([so3.log(R0t @ s.R) for s in scans]), floors[1])):
+        coef = np.linalg.lstsq(A, y, rcond=None)[0]
+        res = y - A @ coef
+        se2 = float((res ** 2).sum()) / dof / spread
+        rate = float(np.linalg.norm(coef[1]))
+        stat += rate ** 2 / (var_rest + se2)
+        rates.append(rate)
+    return RestCheck(rates[0], rates[1], stat,
+                     imu.chi2_quantile(1.0 - cfg.still_false_alarm, 6), len(scans),
+                     float(t[-1]), int(scans[-1].t_ns))
 
 
 @dataclass

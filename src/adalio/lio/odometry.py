@@ -46,7 +46,7 @@ from __future__ import annotations
 import copy
 import time
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -91,7 +91,7 @@ from adalio.lio.measurement import (
     residual_weights,
     robust_row_factors,
 )
-from adalio.lio.motion_init import MovingInit, handover_covariance
+from adalio.lio.motion_init import MovingInit, RestCheck, handover_covariance, lidar_rest_check
 from adalio.lio.moving import MovingPoints, SweepImage
 from adalio.lio.state import (
     BG,
@@ -395,6 +395,24 @@ def _information_update(P: np.ndarray, J: np.ndarray) -> np.ndarray:
     return 0.5 * (P + P.T)
 
 
+@dataclass
+class _RestOnTrial:
+    """A static start at the recording's start, before the LiDAR has checked its rest
+    (``imu.rest_lidar_check``): the filter runs on, but its estimates are held back until
+    ``registrar`` (the gyro unit check's LiDAR-only registrations) spans ``imu.init_window_s``;
+    if they refute the rest, the Odometry goes back to ``snapshot`` and the scans since run
+    again as a moving start."""
+
+    snapshot: Odometry
+    """This Odometry just before the static start (held scans shared, not copied)."""
+    registrar: MovingInit
+    t_init_ns: int
+    inputs: list[list] = field(default_factory=list)
+    """Per ``add_scan`` call since (the static start's own first): [points, t_ns, ring, the IMU
+    chunks it merged]; points None for a call that raised."""
+    estimates: list[Estimate] = field(default_factory=list)
+
+
 class Odometry:
     """Faster-LIO-style iterated-ESKF LiDAR-inertial odometry with AdaLIO switching.
 
@@ -486,6 +504,17 @@ class Odometry:
         of every LiDAR gap (:meth:`_lidar_gap`)."""
         self._units_check: MovingInit | None = None
         """After a still start: LiDAR-only registrations to compare the gyro's rotation with."""
+        self._on_trial: _RestOnTrial | None = None
+        """A static start whose rest the LiDAR has yet to check (imu.rest_lidar_check)."""
+        self._input: list | None = None
+        """The ``add_scan`` call in progress: [points, t_ns, ring, IMU chunks merged]."""
+        self._refuted_until_ns: int | None = None
+        """Still windows of scans starting before this are refused: the LiDAR saw motion."""
+        self.rest_refuted: RestCheck | None = None
+        """The LiDAR check that last refused a still window (imu.rest_lidar_check): the IMU
+        rested by its test while the scene moved (a constant velocity or rotation rate)."""
+        self._rest_agreed = ""
+        """The LiDAR check that confirmed the still window, as the InitReport says it."""
         sensor = config.sensor
         self._offset_check: TimeOffsetCheck | None = (
             TimeOffsetCheck() if (sensor.imu_time_offset_check or sensor.extrinsic_rotation_check
@@ -621,8 +650,9 @@ class Odometry:
 
     def take_backfill(self) -> list[Estimate]:
         """Poses of the scans read before the initialization, in time order (the backfill,
-        ``imu.backfill_s``), each stamped at the start of its scan; empty until the
-        initialization, then handed out once."""
+        ``imu.backfill_s``), each stamped at the start of its scan; and the filter's estimates
+        held back while the LiDAR checked a static start's rest (``imu.rest_lidar_check``),
+        stamped at their scan's end as ``add_scan``'s are. Each handed out once."""
         out, self._backfilled = self._backfilled, []
         return out
 
@@ -636,9 +666,24 @@ class Odometry:
         ``filter.local_surface_check``.
         Raises InputError for malformed arrays or per-point times spanning > 1 s. Once the
         filter has tracked ``imu.backfill_after_s``, the scans read before the initialization
-        get their poses (``take_backfill``).
+        get their poses (``take_backfill``). After a static start at the recording's start,
+        the estimates of its first ``imu.init_window_s`` or so are held back (None) until the
+        LiDAR has checked the rest (``imu.rest_lidar_check``), then handed out by
+        ``take_backfill``.
         """
-        est = self._add_scan(points_lidar, t_ns, ring)
+        entry = [points_lidar, t_ns, ring, []]
+        self._input = entry
+        if self._on_trial is not None:
+            self._on_trial.inputs.append(entry)
+        try:
+            est = self._add_scan(points_lidar, t_ns, ring)
+        except InputError:
+            entry[0] = None  # the scan raised: a replay merges its IMU only
+            raise
+        finally:
+            self._input = None
+        if self._on_trial is not None:
+            est = self._judge_rest(est)
         if (est is not None and self._held_scans and self._t_state_ns - self.init_report.t_ns
                 >= round(self.cfg.imu.backfill_after_s * 1e9)):
             self._backfill()
@@ -670,6 +715,8 @@ class Odometry:
 
         if self._units_check is not None:
             self._check_gyro_units(pts, t_pts, t_e)
+        elif self._on_trial is not None:  # the unit check concluded; the rest check goes on
+            self._feed(self._on_trial.registrar, pts, t_pts, t_e)
         # 2. initialization: static (§4), or in motion after imu.init_timeout_s without rest
         if not self.initialized:
             pts_e = self._try_initialize(pts, t_pts, t_b, t_e)
@@ -864,6 +911,8 @@ class Odometry:
     def _merge_imu(self) -> None:
         if not self._pending:
             return
+        if self._on_trial is not None and self._input is not None:
+            self._input[3].extend(self._pending)
         if (not self.initialized or self._held_scans) and self.cfg.imu.backfill_s > 0:
             self._held_imu.extend(self._pending)
         b = self._buf
@@ -913,6 +962,9 @@ class Odometry:
         checks still open conclude if they have seen ``END_MIN_SPAN_S`` of updates and their
         estimates are conclusive, else they close unsettled (:attr:`time_offset_unsettled`,
         :attr:`extrinsic_rotation_unsettled`, :attr:`extrinsic_translation_unsettled`)."""
+        if self._on_trial is not None:  # the data ended before the rest check's span
+            est = self._resolve_rest(None)
+            assert est is None
         gap = self._last_gap
         if gap is not None and self._warned_gap_ns != gap[0]:  # still open: the IMU ended
             self._warned_gap_ns = gap[0]
@@ -1092,7 +1144,7 @@ class Odometry:
                     stats=st, points_world=est.points_world))
         if stopped:
             warnings.warn(stopped, stacklevel=3)
-        self._backfilled = out[::-1]
+        self._backfilled = sorted(self._backfilled + out[::-1], key=lambda e: int(e.t_ns))
         if out:
             self._backfill_map = voxel_downsample(
                 np.vstack([e.points_world for e in out]), self.cfg.map.map_leaf_m)
@@ -1157,6 +1209,7 @@ class Odometry:
         rev._rest_imu = rev._buf
         rev._pending, rev._last_imu_t_ns = [], None
         rev._held_scans, rev._held_imu, rev._backfilled = [], [], []
+        rev._on_trial = rev._input = None
         rev._backfill_map = np.zeros((0, 3))
         rev._last_gap = rev._warned_gap_ns = rev._units_check = rev._offset_check = None
         rev._scan_intervals_ns, rev.lidar_gaps = [], []
@@ -1180,8 +1233,14 @@ class Odometry:
             if close is None or not (max(close.gyro_ratio, close.accel_ratio)
                                      <= max(test.gyro_ratio, test.accel_ratio)):
                 self._closest_still = test
-            if test.still:
+            verdict = self._rest_verdict(t_b_ns) if test.still else "refuted"
+            if verdict != "refuted":
+                snapshot = self._snapshot() if verdict == "unknown" else None
                 self._static_initialize(window, t_b_ns, test)
+                if snapshot is not None:
+                    assert self._units_check is not None and self._input is not None
+                    self._on_trial = _RestOnTrial(snapshot, self._units_check, t_b_ns,
+                                                  [self._input])
                 return None
         timeout_ns = round(cfg.init_timeout_s * 1e9)
         if self._moving is None:
@@ -1198,6 +1257,95 @@ class Odometry:
                 self._refused_fits += 1
             return None
         return self._moving_initialize(fit)
+
+    def _rest_verdict(self, t_b_ns: int) -> str:
+        """What the LiDAR says of a still window ending at ``t_b_ns`` (imu.rest_lidar_check):
+        'refuted' (refused before, or the moving start's registrations over the window moved),
+        'confirmed' (they rested, or the check is off), 'unknown' (too few registrations: the
+        recording's start; the scans after it decide, :meth:`_judge_rest`)."""
+        cfg = self.cfg.imu
+        if not cfg.rest_lidar_check:
+            return "confirmed"
+        if self._refuted_until_ns is not None and t_b_ns <= self._refuted_until_ns:
+            return "refuted"
+        if self._moving is not None:
+            lo = t_b_ns - round(cfg.init_window_s * 1e9)
+            check = lidar_rest_check([r for r in self._moving.scans if r.t_ns >= lo], cfg)
+            if check is not None:
+                if check.refuted:
+                    self.rest_refuted = check
+                    return "refuted"
+                self._rest_agreed = "the LiDAR agrees: " + check.describe()
+                return "confirmed"
+        return "unknown"
+
+    def _snapshot(self) -> Odometry:
+        """A copy of this Odometry to go back to; the scans and IMU chunks held for the
+        backfill are shared (never changed in place), not copied."""
+        held, held_imu = self._held_scans, self._held_imu
+        self._held_scans, self._held_imu = [], []
+        try:
+            snap = copy.deepcopy(self)
+        finally:
+            self._held_scans, self._held_imu = held, held_imu
+        snap._held_scans, snap._held_imu = list(held), list(held_imu)
+        return snap
+
+    def _judge_rest(self, est: Estimate | None) -> Estimate | None:
+        """A static start on trial: hold ``est`` back until the LiDAR-only registrations span
+        ``imu.init_window_s`` (or three times that has passed), then judge the rest."""
+        trial = self._on_trial
+        assert trial is not None
+        if est is not None:
+            trial.estimates.append(est)
+        regs = trial.registrar.scans
+        window_ns = round(self.cfg.imu.init_window_s * 1e9)
+        if not ((regs and regs[-1].t_ns - regs[0].t_ns >= window_ns)
+                or self._t_state_ns - trial.t_init_ns >= 3 * window_ns):
+            return None
+        return self._resolve_rest(est)
+
+    def _resolve_rest(self, est: Estimate | None) -> Estimate | None:
+        """Conclude the trial: on rest (or too few registrations to judge), hand out the
+        estimates held back (the latest as ``add_scan``'s result when it is ``est``, the rest
+        by ``take_backfill``); on motion, go back to the state before the static start and run
+        the scans since again, the still window refused, so they feed the moving start."""
+        trial, self._on_trial = self._on_trial, None
+        assert trial is not None
+        check = lidar_rest_check(trial.registrar.scans, self.cfg.imu)
+        if check is None or not check.refuted:
+            if self.init_report is not None:
+                self.init_report.lidar_rest = (
+                    "the LiDAR agrees: " + check.describe() if check is not None else
+                    "the LiDAR could not check it (too few registered scans)")
+            held = trial.estimates
+            if held and held[-1] is est:
+                self._backfilled.extend(held[:-1])
+                return est
+            self._backfilled.extend(held)
+            return None
+        pending = self._pending
+        self.__dict__.clear()
+        self.__dict__.update(trial.snapshot.__dict__)
+        self.rest_refuted = check
+        self._refuted_until_ns = max(int(np.max(e[1])) for e in trial.inputs if e[0] is not None)
+        out = []
+        for entry in trial.inputs:
+            points, t_ns, ring, chunks = entry
+            self._pending = list(chunks)
+            if points is None:
+                self._merge_imu()
+                continue
+            self._input = entry
+            try:
+                e = self._add_scan(points, t_ns, ring)
+            finally:
+                self._input = None
+            if e is not None:
+                out.append(e)
+        self._pending = pending
+        self._backfilled.extend(out)
+        return None
 
     def _wait_fields(self, t_init_ns: int) -> dict:
         """The InitReport fields on how long the run went without a pose, and why (called
@@ -1242,7 +1390,7 @@ class Odometry:
             gyro_noise_rad_s_sqrt_hz=test.gyro_noise_rad_s_sqrt_hz,
             accel_noise_m_s2_sqrt_hz=test.accel_noise_m_s2_sqrt_hz,
             noise_used=imu.noise_used(cfg, used), generic_noise=imu_noise_is_generic(cfg),
-            detail=test.describe(), **wait)
+            detail=test.describe(), lidar_rest=self._rest_agreed, **wait)
 
     def _use_measured_noise(
             self, measured: imu.StillnessTest | imu.NoiseMeasurement | None) -> ImuConfig:
@@ -1297,7 +1445,10 @@ class Odometry:
             generic_noise=imu_noise_is_generic(self.cfg.imu),
             detail=(f"{fit.n_scans} scans over {fit.window_s:.1f} s, position residual "
                     f"{fit.residual_m * 100:.1f} cm RMS, unconstrained |g| "
-                    f"{fit.gravity_norm_fit_m_s2:.2f} m/s^2"), **wait)
+                    f"{fit.gravity_norm_fit_m_s2:.2f} m/s^2"),
+            lidar_rest=("" if self.rest_refuted is None else
+                        "a still window was refused: the IMU rested by its test while the LiDAR "
+                        "registered " + self.rest_refuted.describe()), **wait)
         return fit.points_lidar_end
 
     def _check_gyro_units(self, pts: np.ndarray, t_pts: np.ndarray, t_e_ns: int) -> None:
@@ -1519,7 +1670,11 @@ class Odometry:
         """Why the filter has not initialized yet (for the error of a run with no pose)."""
         cfg = self.cfg.imu
         parts = []
-        if self._closest_still is None:
+        if self.rest_refuted is not None:
+            parts.append("the rig moved from the start: the IMU rested by its test (a constant "
+                         "velocity looks like rest to it) while the LiDAR registered "
+                         + self.rest_refuted.describe() + ", so no static start")
+        elif self._closest_still is None:
             parts.append(f"no scan had {cfg.init_window_s:g} s of IMU data before it")
         else:
             parts.append("no still window (closest: " + self._closest_still.describe() + ")")
