@@ -65,7 +65,7 @@ def test_no_pose_after_a_refused_rest_says_to_start_at_rest(tmp_path):
     """A run that never initialized because the LiDAR refused the still windows (and the moving
     start found no geometry to fix the velocity: a robot driving down the simulated stairwell,
     cut at 4 s, measured in session 76) says so and what to do, not to check the IMU."""
-    check = RestCheck(0.52, 0.045, 432.8, 22.46, 5, 0.4, 0)
+    check = RestCheck(0.52, 0.045, 432.8, 66.8, 5, 0.4, 0)
     odom = SimpleNamespace(initialized=False, rest_refuted=check,
                            init_failure=lambda: "the rig moved from the start: "
                            + check.describe())

@@ -918,6 +918,13 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
             if on_estimate is not None:
                 on_estimate(e)
 
+        def flush_held() -> None:
+            """On Ctrl-C: the estimates a pending rest check held back are written (with the
+            check off they would have been already)."""
+            odom.conclude_rest_check()
+            for e in odom.take_backfill():
+                write(e, 0.0)
+
         n_in = 0
         interrupted = False
         restart = False
@@ -956,8 +963,13 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
                     odom.finish()                      # lets it finish)
                     for e in odom.take_backfill():
                         write(e, 0.0)
+                elif interrupted:
+                    flush_held()
         except KeyboardInterrupt:
             interrupted = True
+            with contextlib.suppress(Exception), warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                flush_held()
         except (BagError, InputError):
             # the input stops the run: the scans held for the backfill still get their poses
             # (from the state before the fault), as at the data's end; the error is raised as is

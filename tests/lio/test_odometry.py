@@ -943,17 +943,24 @@ def test_a_rig_already_cruising_is_not_started_at_rest(monkeypatch, imu_lead_s):
     the static start (which goes back and runs them again as a moving start); with both
     starting together, on the moving start's registrations over the still window. Either way
     it is a moving start, every scan gets a pose (the backfill's for the early ones), within
-    3 cm and 10 cm/s of the truth. With the check off the first scans hold a zero velocity
-    until the box room's walls drag the estimate along."""
+    3 cm and 10 cm/s of the truth. The first path's run is, bit for bit, one that never took
+    the static start (its still windows refused up to the same scan), its time offset check
+    holding the same IMU samples. With the check off the first scans hold a zero velocity until
+    the box room's walls drag the estimate along."""
     me = sys.modules[__name__]
     speed, R0 = np.array([0.6, 0.1, 0.0]), so3.exp(np.array([0.02, -0.03, 0.1]))
     truth = _cruise_from_the_start(speed, R0)
     monkeypatch.setattr(me, "trajectory", truth)
     runs = {}
-    for check in (True, False):
+    for check in (True, False, "never static"):
         cfg = _config()
-        cfg.imu.rest_lidar_check = check
+        cfg.imu.rest_lidar_check = bool(check)
+        cfg.sensor.imu_time_offset_check = True  # it only looks (Odometry warns, not restarts)
         odom = _odometry_past_ranges(cfg)
+        if check == "never static":
+            if imu_lead_s == 0:
+                break
+            odom._refuted_until_ns = runs[True][0]._refuted_until_ns
         rng = np.random.default_rng(3)
         t_imu, gyro, acc = imu_samples(0.0, 6.0, 400.0, rng, noise=0.01)
         est, k, n_scans = [], 0, 0
@@ -965,10 +972,12 @@ def test_a_rig_already_cruising_is_not_started_at_rest(monkeypatch, imu_lead_s):
             n_scans += 1
             e = odom.add_scan(pts, t_ns)
             est += odom.take_backfill() + ([e] if e is not None else [])
+        chk = odom._offset_check  # finish() concludes and drops it
+        imu_seen = None if chk is None else np.concatenate(chk._imu_t)
         odom.finish()
         est += odom.take_backfill()
-        runs[check] = (odom, est, n_scans)
-    odom, est, n_scans = runs[True]
+        runs[check] = (odom, est, n_scans, imu_seen)
+    odom, est, n_scans, imu_seen = runs[True]
     assert odom.init_report.method == "moving"
     refuted = odom.rest_refuted
     assert refuted is not None and refuted.refuted
@@ -984,7 +993,13 @@ def test_a_rig_already_cruising_is_not_started_at_rest(monkeypatch, imu_lead_s):
         return np.array([np.linalg.norm(e.velocity_world_m_s - R0.T @ speed) for e in est_run])
 
     assert speed_errors(est).max() < 0.1, speed_errors(est).max()
-    off, est_off, _ = runs[False]
+    if imu_lead_s > 0:
+        _, est_never, _, imu_never = runs["never static"]
+        assert [int(e.t_ns) for e in est] == [int(e.t_ns) for e in est_never]
+        assert all(np.array_equal(a.T_world_imu, b.T_world_imu)
+                   for a, b in zip(est, est_never, strict=True))
+        assert imu_seen is not None and np.array_equal(imu_seen, imu_never)
+    off, est_off, _, _ = runs[False]
     assert off.init_report.method == "static" and off.rest_refuted is None
     # measured: its first tracked scans at zero velocity (0.6 m/s off), 8 cm off while the
     # walls pull it along (the simulated hall, with its moving-points filter, went 14 m off: tests/
@@ -994,21 +1009,27 @@ def test_a_rig_already_cruising_is_not_started_at_rest(monkeypatch, imu_lead_s):
     assert _relative_errors(est_off, truth).max() > 0.05
 
 
-def test_the_rest_check_changes_nothing_of_a_still_start():
-    """The box room's still start, its IMU 0.5 s ahead of the first scan so that no scan before
-    it can vouch for the rest: the first estimates are held back until the LiDAR-only
-    registrations span imu.init_window_s, then handed out by take_backfill; each estimate
-    equals, bit for bit, the one of the run without the check."""
+@pytest.mark.parametrize("t_begin", [0.5, 0.3])
+def test_the_rest_check_changes_nothing_of_a_still_start(t_begin):
+    """The box room's still start, its IMU 0.5 (0.2) s ahead of the first scan, so that no
+    (two) scans before the start can vouch for the rest: the first estimates are held back
+    until the LiDAR-only registrations span imu.init_window_s, then handed out by
+    take_backfill; each estimate equals, bit for bit, the one of the run without the check,
+    and so do the backfill's poses of the two scans before the start (run at once:
+    imu.backfill_after_s 0), and the map."""
     runs = {}
     for check in (True, False):
         cfg = _config()
         cfg.imu.rest_lidar_check = check
+        cfg.imu.backfill_after_s = 0.0
         bf: list = []
-        odom, est = _run(cfg, 3.0, 300, t_begin=0.5, imu_from_s=0.0, backfill=bf)
+        odom, est = _run(cfg, 3.0, 300, t_begin=t_begin, imu_from_s=0.0, backfill=bf)
         runs[check] = (odom, est, bf)
     odom, est, bf = runs[True]
-    _, est_off, bf_off = runs[False]
-    assert bf_off == [] and len(bf) >= 4  # held back, then handed out
+    off, est_off, bf_off = runs[False]
+    assert len(bf) >= 4 + len(bf_off)  # held back, then handed out
+    assert np.array_equal(odom.map_points(), off.map_points())
+    est_off = sorted(est_off + bf_off, key=lambda e: int(e.t_ns))
     assert odom.init_report.method == "static"
     assert odom.init_report.lidar_rest.startswith("the LiDAR agrees")
     got = sorted(est + bf, key=lambda e: int(e.t_ns))
@@ -1016,6 +1037,18 @@ def test_the_rest_check_changes_nothing_of_a_still_start():
     for a, b in zip(got, est_off, strict=True):
         assert np.array_equal(a.T_world_imu, b.T_world_imu)
         assert np.array_equal(a.stats.sigma_p_world_m, b.stats.sigma_p_world_m)
+
+
+def test_a_pending_rest_check_hands_out_its_estimates_when_concluded():
+    """Three scans into a held-back still start (the IMU 0.5 s ahead), add_scan has returned
+    nothing and take_backfill holds them back; conclude_rest_check (run_bag's Ctrl-C) ends the
+    check with the registrations so far, and take_backfill then hands all three out."""
+    odom, est = _run(_config(), 0.75, 300, t_begin=0.5, imu_from_s=0.0)
+    assert est == [] and odom.initialized and odom.take_backfill() == []
+    odom.conclude_rest_check()
+    held = odom.take_backfill()
+    assert [round(e.t_ns * 1e-9, 1) for e in held] == [0.6, 0.7, 0.8]
+    assert odom.take_backfill() == []
 
 
 def test_api_misuse_is_refused_with_what_to_do():

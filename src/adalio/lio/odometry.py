@@ -44,6 +44,7 @@ searches; ``undistort`` includes the IMU propagation.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import time
 import warnings
 from dataclasses import dataclass, field, replace
@@ -395,6 +396,20 @@ def _information_update(P: np.ndarray, J: np.ndarray) -> np.ndarray:
     return 0.5 * (P + P.T)
 
 
+def _shared(cfg: Config) -> dict:
+    """A deepcopy memo that keeps ``cfg`` and every dataclass inside it shared."""
+    memo: dict = {}
+    todo: list = [cfg]
+    while todo:
+        obj = todo.pop()
+        if id(obj) in memo:
+            continue
+        memo[id(obj)] = obj
+        todo.extend(v for f in dataclasses.fields(obj)
+                    if dataclasses.is_dataclass(v := getattr(obj, f.name)))
+    return memo
+
+
 @dataclass
 class _RestOnTrial:
     """A static start at the recording's start, before the LiDAR has checked its rest
@@ -409,7 +424,7 @@ class _RestOnTrial:
     t_init_ns: int
     inputs: list[list] = field(default_factory=list)
     """Per ``add_scan`` call since (the static start's own first): [points, t_ns, ring, the IMU
-    chunks it merged]; points None for a call that raised."""
+    chunks it merged, whether it raised InputError]."""
     estimates: list[Estimate] = field(default_factory=list)
 
 
@@ -652,7 +667,10 @@ class Odometry:
         """Poses of the scans read before the initialization, in time order (the backfill,
         ``imu.backfill_s``), each stamped at the start of its scan; and the filter's estimates
         held back while the LiDAR checked a static start's rest (``imu.rest_lidar_check``),
-        stamped at their scan's end as ``add_scan``'s are. Each handed out once."""
+        stamped at their scan's end as ``add_scan``'s are. Each handed out once; none while
+        the check is pending (a refuted rest takes back what it gave the backfill)."""
+        if self._on_trial is not None:
+            return []
         out, self._backfilled = self._backfilled, []
         return out
 
@@ -671,23 +689,36 @@ class Odometry:
         LiDAR has checked the rest (``imu.rest_lidar_check``), then handed out by
         ``take_backfill``.
         """
-        entry = [points_lidar, t_ns, ring, []]
+        # [points, t_ns, ring, the IMU chunks it merged, raised]: a trial's replay record
+        entry = [points_lidar, t_ns, ring, [], False]
         self._input = entry
         if self._on_trial is not None:
-            self._on_trial.inputs.append(entry)
+            self._keep_input(entry)
         try:
             est = self._add_scan(points_lidar, t_ns, ring)
         except InputError:
-            entry[0] = None  # the scan raised: a replay merges its IMU only
+            entry[4] = True
             raise
         finally:
             self._input = None
+        self._backfill_when_due(est)
         if self._on_trial is not None:
             est = self._judge_rest(est)
+        return est
+
+    def _backfill_when_due(self, est: Estimate | None) -> None:
         if (est is not None and self._held_scans and self._t_state_ns - self.init_report.t_ns
                 >= round(self.cfg.imu.backfill_after_s * 1e9)):
             self._backfill()
-        return est
+
+    def _keep_input(self, entry: list) -> None:
+        """Record an ``add_scan`` call for a trial's replay, its arrays copied (a caller may
+        reuse its buffers)."""
+        assert self._on_trial is not None
+        for k in range(3):
+            if entry[k] is not None:
+                entry[k] = np.array(entry[k], copy=True)
+        self._on_trial.inputs.append(entry)
 
     def _add_scan(self, points_lidar: np.ndarray, t_ns: np.ndarray,
                   ring: np.ndarray | None) -> Estimate | None:
@@ -962,9 +993,7 @@ class Odometry:
         checks still open conclude if they have seen ``END_MIN_SPAN_S`` of updates and their
         estimates are conclusive, else they close unsettled (:attr:`time_offset_unsettled`,
         :attr:`extrinsic_rotation_unsettled`, :attr:`extrinsic_translation_unsettled`)."""
-        if self._on_trial is not None:  # the data ended before the rest check's span
-            est = self._resolve_rest(None)
-            assert est is None
+        self.conclude_rest_check()  # the data ended before the rest check's span
         gap = self._last_gap
         if gap is not None and self._warned_gap_ns != gap[0]:  # still open: the IMU ended
             self._warned_gap_ns = gap[0]
@@ -1239,8 +1268,8 @@ class Odometry:
                 self._static_initialize(window, t_b_ns, test)
                 if snapshot is not None:
                     assert self._units_check is not None and self._input is not None
-                    self._on_trial = _RestOnTrial(snapshot, self._units_check, t_b_ns,
-                                                  [self._input])
+                    self._on_trial = _RestOnTrial(snapshot, self._units_check, t_b_ns)
+                    self._keep_input(self._input)
                 return None
         timeout_ns = round(cfg.init_timeout_s * 1e9)
         if self._moving is None:
@@ -1280,16 +1309,25 @@ class Odometry:
         return "unknown"
 
     def _snapshot(self) -> Odometry:
-        """A copy of this Odometry to go back to; the scans and IMU chunks held for the
-        backfill are shared (never changed in place), not copied."""
+        """A copy of this Odometry to go back to; its config is this one's (a caller may edit
+        it in place), and the scans and IMU chunks held for the backfill are shared (never
+        changed in place), not copied."""
         held, held_imu = self._held_scans, self._held_imu
         self._held_scans, self._held_imu = [], []
         try:
-            snap = copy.deepcopy(self)
+            snap = copy.deepcopy(self, _shared(self.cfg))
         finally:
             self._held_scans, self._held_imu = held, held_imu
         snap._held_scans, snap._held_imu = list(held), list(held_imu)
         return snap
+
+    def conclude_rest_check(self) -> None:
+        """End a pending LiDAR check of a static start's rest (imu.rest_lidar_check) with the
+        registrations so far, so that ``take_backfill`` hands out what it held back (``finish``
+        does this; ``run_bag`` calls it on Ctrl-C)."""
+        if self._on_trial is not None:
+            est = self._resolve_rest(None)
+            assert est is None
 
     def _judge_rest(self, est: Estimate | None) -> Estimate | None:
         """A static start on trial: hold ``est`` back until the LiDAR-only registrations span
@@ -1324,27 +1362,36 @@ class Odometry:
                 return est
             self._backfilled.extend(held)
             return None
-        pending = self._pending
+        live = self.__dict__.copy()
         self.__dict__.clear()
         self.__dict__.update(trial.snapshot.__dict__)
+        # what was said stays said, and the IMU's time order is the live one's
+        for name, value in live.items():
+            if name.startswith("_warned"):
+                setattr(self, name, value)
+        self._last_imu_t_ns = live["_last_imu_t_ns"]
+        pending = live["_pending"]
+        if self._offset_check is not None:  # the samples add_imu handed it since the snapshot
+            for chunk in [c for entry in trial.inputs for c in entry[3]] + pending:
+                self._offset_check.add_imu(*chunk)
         self.rest_refuted = check
-        self._refuted_until_ns = max(int(np.max(e[1])) for e in trial.inputs if e[0] is not None)
-        out = []
+        self._refuted_until_ns = max(int(np.max(e[1])) for e in trial.inputs if not e[4])
         for entry in trial.inputs:
-            points, t_ns, ring, chunks = entry
+            points, t_ns, ring, chunks, raised = entry
             self._pending = list(chunks)
-            if points is None:
-                self._merge_imu()
-                continue
             self._input = entry
             try:
                 e = self._add_scan(points, t_ns, ring)
+            except InputError:
+                if not raised:  # the same scan passed before; it cannot fail now unannounced
+                    raise
+                continue  # it raised for the caller already (an InputError the caller took)
             finally:
                 self._input = None
+            self._backfill_when_due(e)
             if e is not None:
-                out.append(e)
+                self._backfilled.append(e)
         self._pending = pending
-        self._backfilled.extend(out)
         return None
 
     def _wait_fields(self, t_init_ns: int) -> dict:
