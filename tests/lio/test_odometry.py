@@ -322,10 +322,13 @@ def test_moving_start_initializes_from_registered_scans(align, source):
 
 @pytest.mark.parametrize("t_begin", [0.0, 1.6])
 def test_gyro_in_deg_per_s_is_refused_naming_the_unit(t_begin):
-    """Still start (t_begin 0) and moving start: the gyro's rotation is 57x the LiDAR's."""
+    """Still start (t_begin 0) and moving start: the gyro's rotation is 57x the LiDAR's. The
+    message says that the setting is the Sequencer's, since Odometry does not apply it."""
     cfg = _config()
     cfg.imu.init_timeout_s = 1.0
-    with pytest.raises(InputError, match=r"reports deg/s; set sensor.gyro_unit: deg_s"):
+    with pytest.raises(InputError, match=r"reports deg/s; set sensor.gyro_unit: deg_s \(the "
+                       r"bag Sequencer converts by it; samples handed to Odometry.add_imu must "
+                       r"be in rad/s"):
         _run(cfg, 4.0, 300, seed=2, t_begin=t_begin, gyro_unit=np.rad2deg(1.0))
 
 

@@ -129,6 +129,10 @@ STAGES = ("preprocess", "undistort", "moving", "downsample", "degeneracy", "upda
 MAX_SCAN_SPAN_NS = 1_000_000_000
 """Per-point times of one sweep spanning more than this are rejected as malformed (units?)."""
 MIN_POINTS_FOR_UPDATE = 5
+API_UNITS = (" (the bag Sequencer converts by it; samples handed to Odometry.add_imu must be "
+             "in rad/s and m/s^2 already)")
+"""What the sensor unit messages add for a caller of the Python API: Odometry applies none of
+sensor.gyro_unit, accel_unit, imu_time_offset_s and the sensitivities (the Sequencer does)."""
 """Fewer downsampled points than this: the scan is not used for an update (§6.1)."""
 GYRO_RANGE_RAD_S = 35.0
 """2000 deg/s, the widest range of common MEMS gyros: a larger reading is not in rad/s."""
@@ -634,7 +638,7 @@ class Odometry:
             raise InputError(f"the gyro reads {np.abs(gyro[k]).max():.0f} at t = "
                              f"{int(t[k]) * 1e-9:.3f} s, beyond any gyro's range in rad/s "
                              f"({GYRO_RANGE_RAD_S:g}): it reports deg/s; set sensor.gyro_unit: "
-                             "deg_s")
+                             f"deg_s{API_UNITS}")
         t = t.astype(np.int64)
         if t.size == 0:
             return
@@ -1528,7 +1532,7 @@ class Odometry:
         if DEG_PER_RAD / 2 < ratio < DEG_PER_RAD * 2:
             raise InputError(f"the gyro's rotation is {ratio:.0f}x the LiDAR-registered "
                              "rotation over the first scans: it reports deg/s; set "
-                             "sensor.gyro_unit: deg_s")
+                             f"sensor.gyro_unit: deg_s{API_UNITS}")
         return False  # undecided: more rotation needed
 
     def _check_time_offset(self, t_e_ns: int, result: UpdateResult) -> None:
@@ -1648,7 +1652,9 @@ class Odometry:
                           f"(+-{est.sigma_s * 1e3:.1f}) {late} beyond sensor.imu_time_offset_s "
                           f"({self.cfg.sensor.imu_time_offset_s:g} s) (this estimate sees about "
                           "half of an offset): move sensor.imu_time_offset_s by it and run "
-                          "again until this warning stops (adalio run does so itself)",
+                          "again until this warning stops (adalio run does so itself; the bag "
+                          "Sequencer applies the setting, Odometry.add_imu takes stamps as "
+                          "they are)",
                           stacklevel=3)
 
     def _set_gap_model(self, t_ns: np.ndarray) -> None:
