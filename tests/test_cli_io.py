@@ -686,3 +686,29 @@ def test_run_names_where_its_extrinsic_came_from(monkeypatch, capsys, tmp_path):
         assert f"extrinsic from {origin};" in err
         warned = "warning: no extrinsic in the preset, the config, --extrinsic or /tf_static" in err
         assert warned == (origin == "identity (fallback)")
+
+
+@pytest.mark.parametrize(("max_range_m", "says"), [
+    (1.2, ("every scan was empty after preprocessing (no point within preprocess.blind_m .. "
+           "max_range_m)")),
+    (2.0, ("Check the scans of /hesai/pandar: too few of them keep the 50 points a moving "
+           "start needs")),
+])
+def test_no_pose_from_sparse_scans_points_at_the_scans_not_the_imu(monkeypatch, capsys,
+                                                                    tmp_path, max_range_m, says):
+    """A hall walk cut 3 s in (a moving start) whose scans lose their points to the config's
+    range limit: every point (1.2 m), or all but too few to register (2.0 m). The no-pose error
+    names the scans and the settings; it said to check the IMU's rate, units and stamps until
+    session 76 (session 75's probes)."""
+    import yaml
+
+    from adalio import simulate
+
+    sim = simulate("hall", tmp_path / "sim", duration_s=6, columns=256)
+    cfg = yaml.safe_load(sim.config_path.read_text())
+    cfg.setdefault("preprocess", {})["max_range_m"] = max_range_m
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump(cfg))
+    code, _, err = run_cli(monkeypatch, capsys, "run", sim.bag_path, "--config",
+                           tmp_path / "c.yaml", "--start-s", "3", "--out", tmp_path / "r")
+    assert_one_line_error(code, err, "no pose from 30 scans", says)
+    assert "Check /alphasense/imu" not in err

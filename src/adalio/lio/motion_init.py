@@ -78,6 +78,10 @@ MIN_SCANS = 5
 """Fewest registered scans a moving-start fit uses."""
 MIN_POINTS = 50
 """Scans with fewer downsampled points are not registered."""
+FEW_POINTS = "scans with too few points to register"
+""":attr:`MovingInit.failure` when the last scan had fewer than ``MIN_POINTS`` once downsampled
+(a LiDAR problem, not the IMU's: the no-pose message points at the scans,
+:attr:`MovingInit.starved`)."""
 PRIOR_SIGMA_P_M = 0.5
 PRIOR_SIGMA_TH_RAD = 0.1
 """Loose prior of the LiDAR-only registration around the constant-velocity prediction."""
@@ -305,6 +309,14 @@ class MovingInit:
         nested-window check (step 3c): waiting, not a refused fit."""
         self.last_t_ns = np.iinfo(np.int64).min
         """End of the latest scan handed in (int64 ns)."""
+        self.n_few_points = 0
+        """Scans not registered for having fewer than ``MIN_POINTS`` once downsampled."""
+
+    @property
+    def starved(self) -> bool:
+        """Too few registrations for a fit because scans had too few points: the scans, not the
+        IMU, keep the moving start from fitting."""
+        return self.n_few_points > 0 and len(self.scans) < MIN_SCANS
 
     def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
         if t_ns.size == 0:
@@ -352,7 +364,8 @@ class MovingInit:
         general = self.cfg.adaptive.general
         down = voxel_downsample(pts_e, general.voxel_size_m)
         if down.shape[0] < MIN_POINTS:
-            self.failure = "scans with too few points to register"
+            self.failure = FEW_POINTS
+            self.n_few_points += 1
             return
         state = x_pred
         restoring = float("nan")

@@ -1719,6 +1719,17 @@ class Odometry:
                           "gaps are counted)", stacklevel=4)
         return missing_s
 
+    @property
+    def had_points(self) -> bool:
+        """A scan with points left after preprocessing has reached the initialization."""
+        return self._t_first_scan_ns is not None
+
+    @property
+    def init_blocked_by_scans(self) -> bool:
+        """The moving start could not register enough scans for a fit because they had too few
+        points once downsampled (the scans, not the IMU, kept the filter from starting)."""
+        return self._moving is not None and self._moving.starved
+
     def init_failure(self) -> str:
         """Why the filter has not initialized yet (for the error of a run with no pose)."""
         cfg = self.cfg.imu
@@ -1727,6 +1738,8 @@ class Odometry:
             parts.append("the rig moved from the start: the IMU rested by its test (a constant "
                          "velocity looks like rest to it) while the LiDAR registered "
                          + self.rest_refuted.describe() + ", so no static start")
+        elif self._t_first_scan_ns is None:
+            pass  # said below: no scan with points
         elif self._closest_still is None:
             parts.append(f"no scan had {cfg.init_window_s:g} s of IMU data before it")
         else:
