@@ -291,6 +291,22 @@ def test_unreachable_scheduler_is_an_input_error(fleet: Path, tmp_path: Path,
             run_batch([fleet / "hall" / "hall.bag"], tmp_path / "o", scheduler=address)
 
 
+def test_linked_folders_are_searched_once(tmp_path: Path) -> None:
+    """A data folder linked into a batch folder is searched (os.walk did not follow links: its
+    bags were skipped without a word); linked twice, its bags run once; a link back up the tree
+    ends there."""
+    data = tmp_path / "data" / "site"
+    data.mkdir(parents=True)
+    (data / "a.bag").write_bytes(b"")
+    batch = tmp_path / "batch"
+    batch.mkdir()
+    (batch / "b.bag").write_bytes(b"")
+    (batch / "site").symlink_to(data)
+    (batch / "again").symlink_to(data)
+    (batch / "up").symlink_to(batch)
+    assert find_bags([batch]) == [batch / "again" / "a.bag", batch / "b.bag"]
+
+
 def test_finding_bags_names_and_ground_truth(tmp_path: Path) -> None:
     for day in ("day1", "day2"):
         (tmp_path / day).mkdir()

@@ -66,14 +66,28 @@ def find_bags(inputs: Sequence[str | Path]) -> list[Path]:
             found[p] = None
             continue
         in_folder: list[Path] = []
-        for root, dirs, files in os.walk(p):
+        seen_dirs = {os.path.realpath(p)}
+        # symbolic links to folders are followed (a data folder linked into a batch), each
+        # real folder searched once (a link back up the tree ends there)
+        for root, dirs, files in os.walk(p, followlinks=True):
             root_p = Path(root)
             bag_dirs = [d for d in dirs if _is_ros2_folder(root_p / d)]
             in_folder += [root_p / d for d in bag_dirs]
-            dirs[:] = [d for d in dirs if d not in bag_dirs and not d.startswith(".")]
+            keep = []
+            for d in sorted(dirs):
+                real = os.path.realpath(root_p / d)
+                if d in bag_dirs or d.startswith(".") or real in seen_dirs:
+                    continue
+                seen_dirs.add(real)
+                keep.append(d)
+            dirs[:] = keep
             in_folder += [root_p / f for f in files if f.lower().endswith((".bag", ".mcap"))]
+        real_bags = {os.path.realpath(b) for b in found}
         for bag in sorted(in_folder):
-            found[bag] = None
+            real = os.path.realpath(bag)
+            if real not in real_bags:  # one bag reached by two paths runs once
+                real_bags.add(real)
+                found[bag] = None
         if not in_folder:
             raise InputError(f"no bags in folder {p} (looked for .bag, .mcap and ROS2 bag "
                              "folders with metadata.yaml)")
