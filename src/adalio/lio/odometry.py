@@ -129,11 +129,11 @@ STAGES = ("preprocess", "undistort", "moving", "downsample", "degeneracy", "upda
 MAX_SCAN_SPAN_NS = 1_000_000_000
 """Per-point times of one sweep spanning more than this are rejected as malformed (units?)."""
 MIN_POINTS_FOR_UPDATE = 5
+"""Fewer downsampled points than this: the scan is not used for an update (§6.1)."""
 API_UNITS = (" (the bag Sequencer converts by it; samples handed to Odometry.add_imu must be "
              "in rad/s and m/s^2 already)")
 """What the sensor unit messages add for a caller of the Python API: Odometry applies none of
 sensor.gyro_unit, accel_unit, imu_time_offset_s and the sensitivities (the Sequencer does)."""
-"""Fewer downsampled points than this: the scan is not used for an update (§6.1)."""
 GYRO_RANGE_RAD_S = 35.0
 """2000 deg/s, the widest range of common MEMS gyros: a larger reading is not in rad/s."""
 DEG_PER_RAD = 57.29577951308232
