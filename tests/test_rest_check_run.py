@@ -66,7 +66,7 @@ def test_no_pose_after_a_refused_rest_says_to_start_at_rest(tmp_path):
     start found no geometry to fix the velocity: a robot driving down the simulated stairwell,
     cut at 4 s, measured in session 76) says so and what to do, not to check the IMU."""
     check = RestCheck(0.52, 0.045, 432.8, 66.8, 5, 0.4, 0)
-    odom = SimpleNamespace(initialized=False, rest_refuted=check,
+    odom = SimpleNamespace(initialized=False, rest_refuted=check, had_points=True,
                            init_failure=lambda: "the rig moved from the start: "
                            + check.describe())
     text = _no_pose_reason(odom, 80, "/points", "/imu", tmp_path, n_late=0)

@@ -405,7 +405,7 @@ def _no_pose_reason(odom: Any, n_in: int, lidar_topic: str, imu_topic: str, out:
     if late and not odom.initialized:
         return (f"no pose from {n_in} scans: the estimator never initialized{late} (partial "
                 f"outputs in {out})")
-    if not odom.initialized and not getattr(odom, "had_points", True):
+    if not odom.initialized and not odom.had_points:
         return (f"no pose from {n_in} scans of {lidar_topic}: every scan was empty after "
                 f"preprocessing (no point within preprocess.blind_m .. max_range_m); check "
                 f"those, and the points with `adalio info --sample 1` (partial outputs in {out})")
@@ -414,7 +414,7 @@ def _no_pose_reason(odom: Any, n_in: int, lidar_topic: str, imu_topic: str, out:
                 f"{odom.init_failure()}. Start the recording with the rig at rest (a robot "
                 "standing still for imu.init_window_s), or include more of it: the moving "
                 f"start waits for geometry that fixes the velocity (partial outputs in {out})")
-    if not odom.initialized and getattr(odom, "init_blocked_by_scans", False):
+    if not odom.initialized and odom.init_blocked_by_scans:
         return (f"no pose from {n_in} scans: the estimator never initialized: "
                 f"{odom.init_failure()}. Check the scans of {lidar_topic}: too few of them "
                 "keep the 50 points a moving start needs to register one, once downsampled "

@@ -78,10 +78,6 @@ MIN_SCANS = 5
 """Fewest registered scans a moving-start fit uses."""
 MIN_POINTS = 50
 """Scans with fewer downsampled points are not registered."""
-FEW_POINTS = "scans with too few points to register"
-""":attr:`MovingInit.failure` when the last scan had fewer than ``MIN_POINTS`` once downsampled
-(a LiDAR problem, not the IMU's: the no-pose message points at the scans,
-:attr:`MovingInit.starved`)."""
 PRIOR_SIGMA_P_M = 0.5
 PRIOR_SIGMA_TH_RAD = 0.1
 """Loose prior of the LiDAR-only registration around the constant-velocity prediction."""
@@ -210,6 +206,13 @@ class RestCheck:
         return (f"{self.speed_m_s:.2f} m/s and {np.degrees(self.rate_rad_s):.1f} deg/s over "
                 f"{self.n_scans} LiDAR-only registrations in {self.span_s:.2f} s (rest allows "
                 f"a statistic of {self.limit:.1f}, got {self.statistic:.1f})")
+
+    def verdict(self) -> str:
+        """The initialization report's words for it (``InitReport.lidar_rest``)."""
+        if self.refuted:
+            return ("a still window was refused: the IMU rested by its test while the LiDAR "
+                    "registered " + self.describe())
+        return "the LiDAR agrees: " + self.describe()
 
 
 def lidar_rest_check(scans: list[_Registered], cfg: ImuConfig) -> RestCheck | None:
@@ -364,7 +367,7 @@ class MovingInit:
         general = self.cfg.adaptive.general
         down = voxel_downsample(pts_e, general.voxel_size_m)
         if down.shape[0] < MIN_POINTS:
-            self.failure = FEW_POINTS
+            self.failure = "scans with too few points to register"
             self.n_few_points += 1
             return
         state = x_pred

@@ -532,8 +532,6 @@ class Odometry:
         self.rest_refuted: RestCheck | None = None
         """The LiDAR check that last refused a still window (imu.rest_lidar_check): the IMU
         rested by its test while the scene moved (a constant velocity or rotation rate)."""
-        self._rest_agreed = ""
-        """The LiDAR check that confirmed the still window, as the InitReport says it."""
         sensor = config.sensor
         self._offset_check: TimeOffsetCheck | None = (
             TimeOffsetCheck() if (sensor.imu_time_offset_check or sensor.extrinsic_rotation_check
@@ -1266,10 +1264,12 @@ class Odometry:
             if close is None or not (max(close.gyro_ratio, close.accel_ratio)
                                      <= max(test.gyro_ratio, test.accel_ratio)):
                 self._closest_still = test
-            verdict = self._rest_verdict(t_b_ns) if test.still else "refuted"
+            verdict, check = self._rest_verdict(t_b_ns) if test.still else ("refuted", None)
             if verdict != "refuted":
                 snapshot = self._snapshot() if verdict == "unknown" else None
                 self._static_initialize(window, t_b_ns, test)
+                if check is not None:
+                    self.init_report.lidar_rest = check.verdict()
                 if snapshot is not None:
                     assert self._units_check is not None and self._input is not None
                     self._on_trial = _RestOnTrial(snapshot, self._units_check, t_b_ns)
@@ -1291,26 +1291,26 @@ class Odometry:
             return None
         return self._moving_initialize(fit)
 
-    def _rest_verdict(self, t_b_ns: int) -> str:
-        """What the LiDAR says of a still window ending at ``t_b_ns`` (imu.rest_lidar_check):
-        'refuted' (refused before, or the moving start's registrations over the window moved),
-        'confirmed' (they rested, or the check is off), 'unknown' (too few registrations: the
-        recording's start; the scans after it decide, :meth:`_judge_rest`)."""
+    def _rest_verdict(self, t_b_ns: int) -> tuple[str, RestCheck | None]:
+        """What the LiDAR says of a still window ending at ``t_b_ns`` (imu.rest_lidar_check),
+        and the check that said it (None where none was made): 'refuted' (refused before, or
+        the moving start's registrations over the window moved), 'confirmed' (they rested, or
+        the check is off), 'unknown' (too few registrations: the recording's start; the scans
+        after it decide, :meth:`_judge_rest`)."""
         cfg = self.cfg.imu
         if not cfg.rest_lidar_check:
-            return "confirmed"
+            return "confirmed", None
         if self._refuted_until_ns is not None and t_b_ns <= self._refuted_until_ns:
-            return "refuted"
+            return "refuted", None
         if self._moving is not None:
             lo = t_b_ns - round(cfg.init_window_s * 1e9)
             check = lidar_rest_check([r for r in self._moving.scans if r.t_ns >= lo], cfg)
             if check is not None:
                 if check.refuted:
                     self.rest_refuted = check
-                    return "refuted"
-                self._rest_agreed = "the LiDAR agrees: " + check.describe()
-                return "confirmed"
-        return "unknown"
+                    return "refuted", check
+                return "confirmed", check
+        return "unknown", None
 
     def _snapshot(self) -> Odometry:
         """A copy of this Odometry to go back to; its config is this one's (a caller may edit
@@ -1358,7 +1358,7 @@ class Odometry:
         if check is None or not check.refuted:
             if self.init_report is not None:
                 self.init_report.lidar_rest = (
-                    "the LiDAR agrees: " + check.describe() if check is not None else
+                    check.verdict() if check is not None else
                     "the LiDAR could not check it (too few registered scans)")
             held = trial.estimates
             if held and held[-1] is est:
@@ -1441,7 +1441,7 @@ class Odometry:
             gyro_noise_rad_s_sqrt_hz=test.gyro_noise_rad_s_sqrt_hz,
             accel_noise_m_s2_sqrt_hz=test.accel_noise_m_s2_sqrt_hz,
             noise_used=imu.noise_used(cfg, used), generic_noise=imu_noise_is_generic(cfg),
-            detail=test.describe(), lidar_rest=self._rest_agreed, **wait)
+            detail=test.describe(), **wait)
 
     def _use_measured_noise(
             self, measured: imu.StillnessTest | imu.NoiseMeasurement | None) -> ImuConfig:
@@ -1497,9 +1497,7 @@ class Odometry:
             detail=(f"{fit.n_scans} scans over {fit.window_s:.1f} s, position residual "
                     f"{fit.residual_m * 100:.1f} cm RMS, unconstrained |g| "
                     f"{fit.gravity_norm_fit_m_s2:.2f} m/s^2"),
-            lidar_rest=("" if self.rest_refuted is None else
-                        "a still window was refused: the IMU rested by its test while the LiDAR "
-                        "registered " + self.rest_refuted.describe()), **wait)
+            lidar_rest="" if self.rest_refuted is None else self.rest_refuted.verdict(), **wait)
         return fit.points_lidar_end
 
     def _check_gyro_units(self, pts: np.ndarray, t_pts: np.ndarray, t_e_ns: int) -> None:
