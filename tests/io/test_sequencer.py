@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from adalio.errors import InputError
-from adalio.io.sequencer import SequencerStats, merge
+from adalio.io.sequencer import IMU_LOOKAHEAD_NS, SequencerStats, merge
 from adalio.types import ImuBatch, Scan
 
 
@@ -30,7 +30,9 @@ def receive_order(imu_t, scans, latency_ns, chunk=3):
     return [e[2] for e in events]
 
 
-def check_order(out, imu_t):
+def check_order(out, imu_t, lookahead_ns=IMU_LOOKAHEAD_NS):
+    """Brute force: before each scan, every sample up to its end and the first one after it
+    (the propagation's last interval needs it), once the lookahead has it; nothing later."""
     seen = []
     for item in out:
         if isinstance(item, ImuBatch):
@@ -38,7 +40,9 @@ def check_order(out, imu_t):
         else:
             assert sum(1 for t in seen if t <= item.t_end_ns) == \
                 sum(1 for t in imu_t if t <= item.t_end_ns)
-            assert all(t <= item.t_end_ns for t in seen)
+            after = [t for t in imu_t if t > item.t_end_ns]
+            received = bool(after) and after[-1] >= item.t_end_ns + lookahead_ns
+            assert [t for t in seen if t > item.t_end_ns] == (after[:1] if received else [])
     return seen
 
 
@@ -386,7 +390,10 @@ def test_an_imu_clock_stepping_back_is_told_from_reordered_messages(step_ms):
 
     with pytest.raises(InputError, match=r"IMU stamps on /imu overlap from .* where the IMU's "
                                          r"400 Hz gives .* stepped back by about "
-                                         r"(\d\.\d+) s") as info:
+                                         r"(\d\.\d+) s") as info, warnings.catch_warnings():
+        # a step's first sample can fall before the sample after a released scan's end (passed
+        # on with the scan): a stamp glitch warning may come before the error
+        warnings.simplefilter("ignore")
         list(merge(recorded(t, stepped, 5_000_000), imu_topic="/imu"))
     found = float(str(info.value).split("stepped back by about ")[1].split(" s")[0])
     assert found == pytest.approx(step_ms * 1e-3, abs=0.006)

@@ -2,8 +2,9 @@
 
 Bags are ordered by receive time: a sweep's message arrives after the IMU samples stamped during
 the sweep. The sequencer yields :class:`ImuBatch` chunks and :class:`Scan` objects such that
-every scan comes after all IMU samples with ``t_ns <= scan.t_end_ns`` (scans are keyed by their
-end time) and IMU batches never go back in time. IMU samples are held for a lookahead window to
+every scan comes after all IMU samples with ``t_ns <= scan.t_end_ns`` and the first sample after
+it, once received (the propagation's last interval takes the mid-point of the two samples around
+the scan end; scans are keyed by their end time), and IMU batches never go back in time. IMU samples are held for a lookahead window to
 absorb small reordering. Stamp problems are counted in :class:`SequencerStats`; IMU stamps going
 backwards beyond the window, scans whose end times go backwards, IMU that covers none of the
 scans, a topic whose clouds are all empty (the error says why: no points, NaN, (0, 0, 0)
@@ -165,7 +166,7 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
                              f"other: the IMU's clock stepped back by about {step_s:.3f} s "
                              "mid-recording (or two IMUs publish on the topic); re-stamp the bag")
 
-    def take_imu(upto_ns: int) -> ImuBatch | None:
+    def take_imu(upto_ns: int, one_past: bool = False) -> ImuBatch | None:
         nonlocal imu_t, imu_g, imu_a, released_imu_t, imu_rate_hz
         if not imu_t:
             return None
@@ -201,6 +202,8 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
                     st.imu_conflicting += int(np.count_nonzero(differ))
                 t, g, a = t[keep], g[keep], a[keep]
         k = int(np.searchsorted(t, upto_ns, side="right"))
+        if one_past:
+            k = min(k + 1, t.size)
         imu_t, imu_g, imu_a = [t[k:]], [g[k:]], [a[k:]]
         if k == 0:
             return None
@@ -227,7 +230,7 @@ def merge(items: Iterable[ImuBatch | Scan], stats: SequencerStats | None = None,
             if released_scan_end is not None and scan.t_end_ns <= released_scan_end:
                 out_of_order(scan.t_end_ns)
                 continue
-            batch = take_imu(scan.t_end_ns)
+            batch = take_imu(scan.t_end_ns, one_past=True)
             if batch is not None:
                 yield batch
             if st.imu_first_ns is None or scan.t_start_ns < st.imu_first_ns:
