@@ -477,7 +477,10 @@ def propagate_scan(p, R, v, b_g, b_a, g, g_anchor, P, imu_tau, gyro, accel, tau_
 
     ``imu_tau`` (n,) sample times (s, relative), ``accel`` already scaled; the first sample is the
     last one consumed by the previous scan (it may precede ``tau_start``). Mid-point inputs per
-    interval; the last input is held to ``tau_end``. Record k holds the state at ``rec_tau[k]``
+    interval, also for the interval ``tau_end`` falls in when its sample after is given (the
+    Odometry passes the first sample after the scan end when it has it: the whole interval then
+    takes one input, wherever a scan end splits it); without it the last input is held to
+    ``tau_end``. Record k holds the state at ``rec_tau[k]``
     and the body rate / world acceleration valid from it to the next record.
 
     IMU gaps (an interval between samples, or from the last sample to ``tau_end``, longer than

@@ -1760,7 +1760,7 @@ class Odometry:
         n_use = int(np.searchsorted(b.t_ns, t_e_ns, side="right"))
         # the first sample after the scan end too, when it is in: the last interval's mid-point
         # input, not the rate of the interval before held over it (a rotation-scale bias of
-        # 0.6 % at 100 Hz, README "IMU rate"); it stays in the buffer for the next scan
+        # 0.6 % at 100 Hz, README "Other IMU rates"); it stays in the buffer for the next scan
         n_pass = min(n_use + 1, b.t_ns.size)
         t_prev, gyro_prev, acc_prev = self._prev_sample
         t_ref = self._t_state_ns
