@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -88,6 +89,92 @@ def test_view_without_display_is_one_error_line(tmp_path):
     assert len(lines) == 1 and lines[0].startswith("error: --view needs a display"), lines
 
 
+def _display_without_server() -> str:
+    """A display number no X server listens on here."""
+    return next(f":{n}" for n in range(99, 40, -1) if not os.path.exists(f"/tmp/.X11-unix/X{n}"))
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="X displays are Linux-only")
+def test_view_on_a_display_that_does_not_answer_is_one_error_line(tmp_path):
+    """DISPLAY set, but no X server behind it (a lost ssh -X session): the viewer exits as it
+    starts. One error line with its reason, before the bag is read; with --rrd, a warning and the
+    recording alone. (Before session 77 the run went on for its whole length, the viewer's log
+    on the screen, its messages lost, exit 0.)"""
+    pytest.importorskip("rerun")
+    sys.path.insert(0, str(Path(__file__).resolve().parent / "io"))
+    import bagfactory as bf
+
+    env = {k: v for k, v in os.environ.items() if k != "WAYLAND_DISPLAY"}
+    env["DISPLAY"] = _display_without_server()
+    port = str(_free_port())
+    code = ("import sys, adalio.view; adalio.view.VIEWER_PORT = int(sys.argv.pop(1)); "
+            "from adalio.cli import main; main()")
+    proc = subprocess.run([sys.executable, "-c", code, port, "run", str(tmp_path / "missing.bag"),
+                           "--view"], capture_output=True, text=True, env=env, timeout=120,
+                          check=False)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("error: --view: the rerun viewer exited as it started on "
+                               f"display {env['DISPLAY']} (")
+    assert lines[0].endswith("record with --rrd FILE and open it elsewhere with `rerun FILE`")
+    rig = bf.write_static_rig(tmp_path / "rig.bag", duration_s=1.5, columns=60)
+    rrd = tmp_path / "rec" / "run.rrd"
+    proc = subprocess.run([sys.executable, "-c", code, port, "run", str(rig), "--view", "--rrd",
+                           str(rrd), "--out", str(tmp_path / "out"), "--no-progress"],
+                          capture_output=True, text=True, env=env, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr
+    warned = [ln for ln in proc.stderr.splitlines() if "rerun viewer" in ln]
+    assert len(warned) == 1 and warned[0].startswith("warning: --view: the rerun viewer exited")
+    assert warned[0].endswith("writing only the .rrd"), warned
+    assert rrd.stat().st_size > 0 and (tmp_path / "out" / "trajectory.tum").stat().st_size > 0
+    assert "WARN" not in proc.stderr and "ERROR" not in proc.stderr, proc.stderr
+
+
+FAKE_VIEWER = """
+import socket, sys, time
+port = int(next(a for a in sys.argv if a.startswith("--port=")).split("=")[1])
+mode = sys.argv[1]
+if mode == "fails":
+    print("Error: no window for you"); sys.exit(1)
+s = socket.socket(); s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+s.bind(("127.0.0.1", port)); s.listen()
+if mode == "listens_then_panics":
+    time.sleep(0.3); print("thread 'main' panicked at 'no render context'"); sys.exit(101)
+time.sleep(60)
+"""
+
+
+@pytest.mark.parametrize("mode", ["stays", "fails", "listens_then_panics"])
+def test_start_viewer_waits_until_the_viewer_is_up_or_says_why_it_is_not(tmp_path, mode):
+    """The viewer's start, against processes that behave as the rerun viewer was seen to: up
+    and listening; exiting with an ``Error:`` line (no X server); listening, then panicking
+    (no render context, 0.6 s after the port here)."""
+    from adalio.errors import AdalioError
+    from adalio.view import _listening, start_viewer
+
+    exe = tmp_path / "viewer"
+    exe.write_text(f"#!{sys.executable}\nimport sys; sys.argv.insert(1, {mode!r})\n"
+                   + FAKE_VIEWER)
+    exe.chmod(0o755)
+    port = _free_port()
+    if mode == "stays":
+        proc = start_viewer(str(exe), port)
+        try:
+            assert proc is not None and proc.poll() is None and _listening(port)
+            assert start_viewer(str(exe), port) is None  # one listens there already: reused
+        finally:
+            proc.kill()
+            proc.wait()
+        return
+    why = "(Error: no window for you)" if mode == "fails" else \
+        "(thread 'main' panicked at 'no render context')"
+    with pytest.raises(AdalioError) as info:
+        start_viewer(str(exe), port)
+    assert str(info.value).startswith("--view: the rerun viewer exited as it started")
+    assert str(info.value).endswith(why), str(info.value)
+
+
 def test_rrd_where_it_cannot_be_written_is_one_error_line(tmp_path):
     """A recording path rerun cannot open is one `error:` line naming it (was rerun's
     RuntimeError as a traceback)."""
@@ -162,6 +249,8 @@ def test_live_view_on_a_virtual_display(corridor, tmp_path, monkeypatch):
             res = CliRunner().invoke(app, ["run", str(corridor.bag_path), "--config",
                                            str(corridor.config_path), "--out",
                                            str(tmp_path / "run"), "--view", "--no-progress"])
+        if res.exit_code and "graphics driver is lacking" in str(res.exception):
+            pytest.skip(f"the viewer cannot draw on this machine's display: {res.exception}")
         assert res.exit_code == 0, res.output + repr(res.exception)
         assert not [w for w in caught if "viewer" in str(w.message)], [str(w.message)
                                                                           for w in caught]

@@ -29,8 +29,13 @@ from __future__ import annotations
 
 import bisect
 import os
+import re
 import shutil
+import socket
+import subprocess
 import sys
+import tempfile
+import time
 import uuid
 import warnings
 from pathlib import Path
@@ -54,6 +59,12 @@ VIEWER_PORT = 9876
 """gRPC port of the spawned viewer (rerun's default) when ``RerunView`` is given none."""
 MAX_SCAN_POINTS = 20_000
 """Scans with more points are logged with a regular stride (bounds the .rrd size)."""
+VIEWER_START_S = 20.0
+"""How long the spawned viewer may take to listen on its port."""
+VIEWER_SETTLE_S = 1.5
+"""... and how long it must then stay up: the viewer listens before it opens its window, and
+exits right after when it cannot (a display that does not answer: ``Failed to open connection to
+X server`` came 15 ms after the port, measured with ``DISPLAY=:99`` and no server there)."""
 
 
 def _import_rerun() -> Any:
@@ -90,6 +101,61 @@ def blueprint() -> tuple[Any, dict[str, Any]]:
         rrb.Vertical(views["degeneracy"], views["points"], views["sigma"]),
         column_shares=[3, 2])
     return rrb.Blueprint(layout, collapse_panels=True), views
+
+
+def _listening(port: int) -> bool:
+    with socket.socket() as sock:
+        sock.settimeout(0.2)
+        return sock.connect_ex(("127.0.0.1", port)) == 0
+
+
+def _exit_reason(log: Any) -> str:
+    """The viewer's own account of its exit: the last ``Error:`` or panic line of its output,
+    else the last line (ANSI colours removed)."""
+    log.seek(0)
+    lines = [re.sub(r"\x1b\[[0-9;]*m", "", ln).strip()
+             for ln in log.read().decode(errors="replace").splitlines()]
+    lines = [ln for ln in lines if ln]
+    errors = [ln for ln in lines if ln.startswith("Error:") or "panicked at" in ln]
+    reason = (errors or lines or ["no output"])[-1]
+    return re.sub(r"\s*(os error )?at \S+\.rs:\d+:", "", reason)[:300]  # the source line
+
+
+def start_viewer(exe: str, port: int) -> subprocess.Popen | None:
+    """Start the rerun viewer listening on ``port`` (its own session: it stays open after the
+    run, as ``rerun.spawn`` leaves it) and wait until it is up. None: a viewer already listens
+    there (``rerun.spawn`` reuses it too). A viewer that exits at start raises
+    :class:`AdalioError` with its reason: ``rerun.spawn`` let the run go on, its messages lost,
+    after a 6 s wait and a screen of the viewer's log."""
+    if _listening(port):
+        return None
+    with tempfile.TemporaryFile() as log:  # the viewer keeps its own handle
+        proc = subprocess.Popen([exe, f"--port={port}", "--memory-limit=75%",
+                                 "--server-memory-limit=1GiB", "--expect-data-soon"],
+                                stdin=subprocess.DEVNULL, stdout=log, stderr=log,
+                                start_new_session=True)
+        return _wait_for_viewer(proc, port, log)
+
+
+def _wait_for_viewer(proc: subprocess.Popen, port: int, log: Any) -> subprocess.Popen:
+    up_at = None
+    deadline = time.monotonic() + VIEWER_START_S
+    while True:
+        now = time.monotonic()
+        if proc.poll() is not None:
+            where = os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+            raise AdalioError("--view: the rerun viewer exited as it started"
+                              + (f" on display {where}" if where else "")
+                              + f" ({_exit_reason(log)})")
+        if up_at is None and _listening(port):
+            up_at = now
+        if up_at is not None and now - up_at >= VIEWER_SETTLE_S:
+            return proc
+        if up_at is None and now > deadline:
+            proc.kill()
+            raise AdalioError(f"--view: the rerun viewer did not listen on port {port} within "
+                              f"{VIEWER_START_S:g} s ({_exit_reason(log)})")
+        time.sleep(0.05)
 
 
 def viewer_executable() -> str | None:
@@ -132,7 +198,15 @@ class RerunView:
                 raise AdalioError("--view: the rerun viewer binary is not on PATH; reinstall "
                                   "with pip install 'adalio[view]'")
             port = VIEWER_PORT if port is None else int(port)
-            rr.spawn(port=port, connect=False, executable_path=exe, recording=self._rec)
+            try:
+                start_viewer(exe, port)
+            except AdalioError as exc:
+                if self.rrd_path is None:
+                    raise AdalioError(f"{exc}; record with --rrd FILE and open it elsewhere "
+                                      "with `rerun FILE`") from None
+                warnings.warn(f"{exc}; writing only the .rrd", stacklevel=2)
+                spawn = self.spawned = False
+        if spawn:
             sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy"))
         try:
             if self.rrd_path is not None:
