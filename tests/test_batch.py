@@ -230,6 +230,73 @@ def test_external_cluster_runs_the_bags_on_its_workers(fleet: Path, config_file:
                 p.wait(timeout=10)
 
 
+def test_a_cluster_that_loses_every_worker_fails_the_bags_left(fleet: Path, config_file: Path,
+                                                              tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch
+                                                              ) -> None:
+    """A ``dask scheduler`` whose one worker (no nanny to restart it) is killed while it runs a
+    bag: the bags left fail once the scheduler has had no worker for ``NO_WORKER_S``, their rows
+    say so, and the summary is written. Before session 77 the batch waited for ever."""
+    import signal
+    import threading
+
+    from distributed import Client
+
+    import adalio.batch
+
+    monkeypatch.setattr(adalio.batch, "NO_WORKER_S", 2.0)
+    dask_bin = str(Path(sys.executable).parent / "dask")
+    sched_file = tmp_path / "scheduler.json"
+    common = ["--scheduler-file", str(sched_file), "--no-dashboard"]
+    procs: list[subprocess.Popen] = []
+    killed: list[str] = []
+    try:
+        procs.append(subprocess.Popen([dask_bin, "scheduler", "--host", "127.0.0.1",
+                                       "--port", "0", *common],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        _wait_for(sched_file.is_file, "the scheduler file", procs)
+        procs.append(subprocess.Popen(
+            [dask_bin, "worker", "--nthreads", "1", "--no-nanny", "--host", "127.0.0.1",
+             "--memory-limit", "0", *common],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        address = json.loads(sched_file.read_text())["address"]
+        with Client(address, timeout="20s") as client:
+            client.wait_for_workers(1, timeout=TIMEOUT_S)
+
+            def kill_when_busy() -> None:
+                deadline = time.monotonic() + TIMEOUT_S
+                while time.monotonic() < deadline:
+                    busy = [k for keys in client.processing().values() for k in keys]
+                    if busy:
+                        procs[1].send_signal(signal.SIGKILL)
+                        killed.extend(busy)
+                        return
+                    time.sleep(0.05)
+
+            watcher = threading.Thread(target=kill_when_busy, daemon=True)
+            watcher.start()
+            t0 = time.monotonic()
+            res = run_batch([fleet / s / f"{s}.bag" for s in SCENES], tmp_path / "out",
+                            config_file=config_file, scheduler=address)
+            took = time.monotonic() - t0
+            watcher.join(timeout=10)
+        assert killed, "the worker was never seen running a bag"
+        assert [r.status for r in res.rows] == ["failed", "failed"], res.rows
+        for row in read_summary(tmp_path / "out").values():
+            assert row["error"].startswith("not run: the Dask scheduler had no worker for 2 s")
+        assert took < TIMEOUT_S
+    finally:
+        for p in reversed(procs):
+            if p.poll() is None:
+                p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(timeout=10)
+
+
 def test_bad_command_line_input_is_one_error_line(fleet: Path, tmp_path: Path) -> None:
     empty = tmp_path / "empty"
     empty.mkdir()

@@ -40,6 +40,12 @@ SUMMARY_COLUMNS = ("bag", "status", "poses", "scans", "degenerate_pct", "ms_per_
 MARKER_DIR = ".adalio-batch"
 CONNECT_TIMEOUT_S = 10.0
 """How long to wait for an existing scheduler to answer, and then for its first worker."""
+NO_WORKER_S = 60.0
+"""With bags left and no worker at the scheduler for this long (every worker died or was
+stopped), the batch stops: the bags left fail, their rows say why (a cluster's nanny restarts
+a worker within seconds). Without it the batch waited for ever."""
+WATCH_S = 0.5
+"""How often the batch looks at the scheduler's workers while no bag finishes."""
 
 
 # ------------------------------------------------------------------------------ finding bags
@@ -521,20 +527,44 @@ def _gather(client: Any, todo: Sequence[BagJob], rows: dict[str, BagRow], n_tota
     try:
         with _progress_bar(progress) as bar:
             task = bar.add_task("bags", total=n_total, completed=n_total - len(todo), note="")
-            for fut in as_completed(list(futures)):
-                job = futures[fut]
-                try:
-                    row = fut.result()
-                except Exception as exc:  # noqa: BLE001  (a lost worker, an unpicklable result)
-                    row = BagRow(bag=job.name, status="failed", error=one_line(exc),
-                                 bag_path=str(job.bag_path))
-                rows[job.name] = row
-                n_failed += row.status != "ok"
-                bar.update(task, advance=1,
-                           note=f"{job.name} {row.status}" + (f", {n_failed} failed"
-                                                              if n_failed else ""))
-                if on_row is not None:
-                    on_row(row)
+            ac = as_completed(list(futures))
+            left = set(futures)
+            no_worker_since = None
+            while left:
+                done = ac.next_batch(block=False)
+                stranded: list[Any] = []
+                if not done:
+                    if client.nthreads():
+                        no_worker_since = None
+                    elif no_worker_since is None:
+                        no_worker_since = time.monotonic()
+                    elif time.monotonic() - no_worker_since > NO_WORKER_S:
+                        stranded = sorted(left, key=lambda f: futures[f].name)
+                        client.cancel(stranded, force=True)
+                    if not stranded:
+                        time.sleep(WATCH_S)
+                        continue
+                for fut in done + stranded:
+                    left.discard(fut)
+                    job = futures[fut]
+                    if stranded:
+                        row = BagRow(bag=job.name, status="failed", error=(
+                            f"not run: the Dask scheduler had no worker for {NO_WORKER_S:g} s "
+                            "(every worker died or was stopped); start workers and run the "
+                            "batch again (finished bags are skipped)"), bag_path=str(job.bag_path))
+                    else:
+                        try:
+                            row = fut.result()
+                        except Exception as exc:  # noqa: BLE001  (a lost worker, unpicklable)
+                            row = BagRow(bag=job.name, status="failed", error=one_line(exc),
+                                         bag_path=str(job.bag_path))
+                    rows[job.name] = row
+                    n_failed += row.status != "ok"
+                    bar.update(task, advance=1,
+                               note=f"{job.name} {row.status}" + (f", {n_failed} failed"
+                                                                  if n_failed else ""))
+                    if on_row is not None:
+                        on_row(row)
     except KeyboardInterrupt:
         import sys
 
