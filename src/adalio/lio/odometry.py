@@ -680,6 +680,10 @@ class Odometry:
                  ring: np.ndarray | None = None) -> Estimate | None:
         """Process one sweep (§10) and return the IMU pose at the scan end.
 
+        Give ``add_imu`` the samples up to the scan end and the first one after it first (as
+        the ``Sequencer`` releases them): the interval the scan end falls in is then propagated
+        at its mid-point rate, not the rate of the interval before.
+
         Returns None while initializing, for a scan with no point left after preprocessing, and
         for a scan ending at or before the previous one (counted in ``n_skipped_scans``).
         ``ring`` (N,) holds each point's ring id (``Scan.ring``), used only by
