@@ -8,12 +8,14 @@ the scheduler's own list of workers (summary ``worker`` column).
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import os
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -187,10 +189,11 @@ def _wait_for(predicate, what: str, procs: list[subprocess.Popen]) -> None:
         time.sleep(0.2)
 
 
-def test_external_cluster_runs_the_bags_on_its_workers(fleet: Path, config_file: Path,
-                                                       direct: Path, tmp_path: Path) -> None:
-    from distributed import Client
-
+@contextlib.contextmanager
+def dask_processes(tmp_path: Path, n_workers: int, *, nanny: bool = True
+                   ) -> Iterator[tuple[str, list[subprocess.Popen]]]:
+    """A ``dask scheduler`` and ``n_workers`` ``dask worker`` processes on 127.0.0.1: the
+    scheduler's address and the processes (the scheduler first), stopped on exit."""
     dask_bin = str(Path(sys.executable).parent / "dask")
     sched_file = tmp_path / "scheduler.json"
     common = ["--scheduler-file", str(sched_file), "--no-dashboard"]
@@ -200,12 +203,29 @@ def test_external_cluster_runs_the_bags_on_its_workers(fleet: Path, config_file:
                                        "--port", "0", *common],
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         _wait_for(sched_file.is_file, "the scheduler file", procs)
-        for _ in range(2):
+        for _ in range(n_workers):
             procs.append(subprocess.Popen(
                 [dask_bin, "worker", "--nthreads", "1", "--host", "127.0.0.1",
-                 "--memory-limit", "0", *common],
+                 "--memory-limit", "0", *([] if nanny else ["--no-nanny"]), *common],
                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-        address = json.loads(sched_file.read_text())["address"]
+        yield json.loads(sched_file.read_text())["address"], procs
+    finally:
+        for p in reversed(procs):
+            if p.poll() is None:
+                p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(timeout=10)
+
+
+def test_external_cluster_runs_the_bags_on_its_workers(fleet: Path, config_file: Path,
+                                                       direct: Path, tmp_path: Path) -> None:
+    from distributed import Client
+
+    with dask_processes(tmp_path, 2) as (address, _):
         assert address.startswith("tcp://127.0.0.1:")
         with Client(address, timeout="20s") as client:
             client.wait_for_workers(2, timeout=TIMEOUT_S)
@@ -219,15 +239,6 @@ def test_external_cluster_runs_the_bags_on_its_workers(fleet: Path, config_file:
         assert {r["worker"] for r in rows.values()} <= workers
         assert (out / "hall" / "trajectory.tum").read_bytes() == \
             (direct / "trajectory.tum").read_bytes()
-    finally:
-        for p in reversed(procs):
-            p.terminate()
-        for p in procs:
-            try:
-                p.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait(timeout=10)
 
 
 def test_a_cluster_that_loses_every_worker_fails_the_bags_left(fleet: Path, config_file: Path,
@@ -245,56 +256,33 @@ def test_a_cluster_that_loses_every_worker_fails_the_bags_left(fleet: Path, conf
     import adalio.batch
 
     monkeypatch.setattr(adalio.batch, "NO_WORKER_S", 2.0)
-    dask_bin = str(Path(sys.executable).parent / "dask")
-    sched_file = tmp_path / "scheduler.json"
-    common = ["--scheduler-file", str(sched_file), "--no-dashboard"]
-    procs: list[subprocess.Popen] = []
     killed: list[str] = []
-    try:
-        procs.append(subprocess.Popen([dask_bin, "scheduler", "--host", "127.0.0.1",
-                                       "--port", "0", *common],
-                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-        _wait_for(sched_file.is_file, "the scheduler file", procs)
-        procs.append(subprocess.Popen(
-            [dask_bin, "worker", "--nthreads", "1", "--no-nanny", "--host", "127.0.0.1",
-             "--memory-limit", "0", *common],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-        address = json.loads(sched_file.read_text())["address"]
-        with Client(address, timeout="20s") as client:
-            client.wait_for_workers(1, timeout=TIMEOUT_S)
+    with dask_processes(tmp_path, 1, nanny=False) as (address, procs), \
+            Client(address, timeout="20s") as client:
+        client.wait_for_workers(1, timeout=TIMEOUT_S)
 
-            def kill_when_busy() -> None:
-                deadline = time.monotonic() + TIMEOUT_S
-                while time.monotonic() < deadline:
-                    busy = [k for keys in client.processing().values() for k in keys]
-                    if busy:
-                        procs[1].send_signal(signal.SIGKILL)
-                        killed.extend(busy)
-                        return
-                    time.sleep(0.05)
+        def kill_when_busy() -> None:
+            deadline = time.monotonic() + TIMEOUT_S
+            while time.monotonic() < deadline:
+                busy = [k for keys in client.processing().values() for k in keys]
+                if busy:
+                    procs[1].send_signal(signal.SIGKILL)
+                    killed.extend(busy)
+                    return
+                time.sleep(0.05)
 
-            watcher = threading.Thread(target=kill_when_busy, daemon=True)
-            watcher.start()
-            t0 = time.monotonic()
-            res = run_batch([fleet / s / f"{s}.bag" for s in SCENES], tmp_path / "out",
-                            config_file=config_file, scheduler=address)
-            took = time.monotonic() - t0
-            watcher.join(timeout=10)
-        assert killed, "the worker was never seen running a bag"
-        assert [r.status for r in res.rows] == ["failed", "failed"], res.rows
-        for row in read_summary(tmp_path / "out").values():
-            assert row["error"].startswith("not run: the Dask scheduler had no worker for 2 s")
-        assert took < TIMEOUT_S
-    finally:
-        for p in reversed(procs):
-            if p.poll() is None:
-                p.terminate()
-        for p in procs:
-            try:
-                p.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait(timeout=10)
+        watcher = threading.Thread(target=kill_when_busy, daemon=True)
+        watcher.start()
+        t0 = time.monotonic()
+        res = run_batch([fleet / s / f"{s}.bag" for s in SCENES], tmp_path / "out",
+                        config_file=config_file, scheduler=address)
+        took = time.monotonic() - t0
+        watcher.join(timeout=10)
+    assert killed, "the worker was never seen running a bag"
+    assert [r.status for r in res.rows] == ["failed", "failed"], res.rows
+    for row in read_summary(tmp_path / "out").values():
+        assert row["error"].startswith("not run: the Dask scheduler had no worker for 2 s")
+    assert took < TIMEOUT_S
 
 
 def test_bad_command_line_input_is_one_error_line(fleet: Path, tmp_path: Path) -> None:

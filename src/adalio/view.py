@@ -64,7 +64,8 @@ VIEWER_START_S = 20.0
 VIEWER_SETTLE_S = 1.5
 """... and how long it must then stay up: the viewer listens before it opens its window, and
 exits right after when it cannot (a display that does not answer: ``Failed to open connection to
-X server`` came 15 ms after the port, measured with ``DISPLAY=:99`` and no server there)."""
+X server`` within tens of milliseconds of the port, measured with ``DISPLAY=:99`` and no server
+there; a software renderer's panic in ``--headless``, 0.6 s)."""
 
 
 def _import_rerun() -> Any:
@@ -190,6 +191,7 @@ class RerunView:
             spawn = False
         self.rrd_path = None if rrd_path is None else Path(rrd_path)
         self.spawned = spawn
+        self._viewer: subprocess.Popen | None = None
         self._rec = rr.RecordingStream(application_id)
         sinks: list[Any] = []
         if spawn:
@@ -199,7 +201,8 @@ class RerunView:
                                   "with pip install 'adalio[view]'")
             port = VIEWER_PORT if port is None else int(port)
             try:
-                start_viewer(exe, port)
+                # kept while the run streams to it (it outlives the run, as rerun.spawn's does)
+                self._viewer = start_viewer(exe, port)
             except AdalioError as exc:
                 if self.rrd_path is None:
                     raise AdalioError(f"{exc}; record with --rrd FILE and open it elsewhere "
