@@ -159,6 +159,15 @@ def _wait_for_viewer(proc: subprocess.Popen, port: int, log: Any) -> subprocess.
         time.sleep(0.05)
 
 
+def _without_viewer(reason: str, *, recording: bool) -> None:
+    """``--view`` whose viewer cannot show the run: an error, or a warning where an ``.rrd`` is
+    written anyway (the run goes on and records only)."""
+    if not recording:
+        raise AdalioError(f"{reason}; record with --rrd FILE and open it elsewhere with "
+                          "`rerun FILE`")
+    warnings.warn(f"{reason}; writing only the .rrd", stacklevel=3)
+
+
 def viewer_executable() -> str | None:
     """The ``rerun`` viewer binary of the rerun-sdk wheel (this environment first, then PATH)."""
     here = shutil.which("rerun", path=str(Path(sys.executable).parent))
@@ -183,11 +192,8 @@ class RerunView:
         rr = _import_rerun()
         self._rr = rr
         if spawn and not has_display():
-            msg = ("--view needs a display (neither DISPLAY nor WAYLAND_DISPLAY is set); "
-                   "record with --rrd FILE and open it elsewhere with `rerun FILE`")
-            if rrd_path is None:
-                raise AdalioError(msg)
-            warnings.warn(msg + "; writing only the .rrd", stacklevel=2)
+            _without_viewer("--view needs a display (neither DISPLAY nor WAYLAND_DISPLAY is set)",
+                            recording=rrd_path is not None)
             spawn = False
         self.rrd_path = None if rrd_path is None else Path(rrd_path)
         self.spawned = spawn
@@ -204,10 +210,7 @@ class RerunView:
                 # kept while the run streams to it (it outlives the run, as rerun.spawn's does)
                 self._viewer = start_viewer(exe, port)
             except AdalioError as exc:
-                if self.rrd_path is None:
-                    raise AdalioError(f"{exc}; record with --rrd FILE and open it elsewhere "
-                                      "with `rerun FILE`") from None
-                warnings.warn(f"{exc}; writing only the .rrd", stacklevel=2)
+                _without_viewer(str(exc), recording=self.rrd_path is not None)
                 spawn = self.spawned = False
         if spawn:
             sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy"))

@@ -4,10 +4,10 @@ Bags are ordered by receive time: a sweep's message arrives after the IMU sample
 the sweep. The sequencer yields :class:`ImuBatch` chunks and :class:`Scan` objects such that
 every scan comes after all IMU samples with ``t_ns <= scan.t_end_ns`` and the first sample after
 it, once received (the propagation's last interval takes the mid-point of the two samples around
-the scan end; scans are keyed by their end time), and IMU batches never go back in time. IMU samples are held for a lookahead window to
-absorb small reordering. Stamp problems are counted in :class:`SequencerStats`; IMU stamps going
-backwards beyond the window, scans whose end times go backwards, IMU that covers none of the
-scans, a topic whose clouds are all empty (the error says why: no points, NaN, (0, 0, 0)
+the scan end; scans are keyed by their end time), and IMU batches never go back in time. IMU
+samples are held for a lookahead window to absorb small reordering. Stamp problems are counted
+in :class:`SequencerStats`; IMU stamps going backwards beyond the window, scans whose end times
+go backwards, IMU that covers none of the scans, a topic whose clouds are all empty (the error says why: no points, NaN, (0, 0, 0)
 placeholders, invalid times) or an IMU topic with no finite sample raise
 :class:`~adalio.errors.InputError`. IMU samples with a NaN/inf value are dropped with one warning
 naming the topic and the first bad stamp. Times are int64 ns; IMU in rad/s and m/s^2.

@@ -1740,13 +1740,13 @@ class Odometry:
             parts.append("the rig moved from the start: the IMU rested by its test (a constant "
                          "velocity looks like rest to it) while the LiDAR registered "
                          + self.rest_refuted.describe() + ", so no static start")
-        elif self._t_first_scan_ns is None:
+        elif not self.had_points:
             pass  # said below: no scan with points
         elif self._closest_still is None:
             parts.append(f"no scan had {cfg.init_window_s:g} s of IMU data before it")
         else:
             parts.append("no still window (closest: " + self._closest_still.describe() + ")")
-        if self._t_first_scan_ns is None:
+        if not self.had_points:
             parts.append("no scan with points arrived")
         elif self._moving is not None:
             waited_s = (self._moving.last_t_ns - self._t_first_scan_ns) * 1e-9
