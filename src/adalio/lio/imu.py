@@ -372,9 +372,8 @@ def _step_blocks(R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s2, dt, measured_
     whose world acceleration is zero whatever the state (A, B, C, D zero)."""
     omega = gyro_rad_s - b_g
     acc = accel_m_s2 - b_a
-    Jr = so3.jr(omega * dt)
     E_th = so3.exp(-omega * dt)
-    J_bg = -Jr * dt
+    J_bg = -so3.jr(omega * dt) * dt
     R_mid = so3.mul(R, so3.exp(omega * (0.5 * dt)))
     A_vth = -so3.mul(R, so3.hat(so3.mul_vec(so3.exp(omega * (0.5 * dt)), acc))) * dt
     D_vbg = so3.mul(so3.mul(R_mid, so3.hat(acc)), so3.jr(omega * (0.5 * dt))) * (0.5 * dt * dt)
@@ -385,13 +384,13 @@ def _step_blocks(R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s2, dt, measured_
         D_vbg[:] = 0.0
         B_vba[:] = 0.0
         C_vg[:] = 0.0
-    return Jr, E_th, J_bg, A_vth, D_vbg, B_vba, C_vg
+    return E_th, J_bg, A_vth, D_vbg, B_vba, C_vg
 
 
 @kernel()
 def jacobians_fg(R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s2, dt, measured_accel=True):
     """F (23×23) and G (23×12) of the discrete step (§3.2), noise order (n_g, n_a, n_bg, n_ba)."""
-    Jr, E_th, J_bg, A_vth, D_vbg, B_vba, C_vg = _step_blocks(
+    E_th, J_bg, A_vth, D_vbg, B_vba, C_vg = _step_blocks(
         R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s2, dt, measured_accel)
     F = np.eye(DIM)
     Gm = np.zeros((DIM, 12))
@@ -463,7 +462,7 @@ def propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s
     ``measured_accel`` False: the velocity is carried by a constant-velocity model, not by a
     measured specific force, so it does not depend on attitude, accel bias or gravity.
     """
-    Jr, E_th, J_bg, A_vth, D_vbg, B_vba, C_vg = _step_blocks(
+    E_th, J_bg, A_vth, D_vbg, B_vba, C_vg = _step_blocks(
         R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s2, dt, measured_accel)
     d = P.shape[0]
     FP = _left_mul_F(P, E_th, J_bg, A_vth, D_vbg, B_vba, C_vg, dt)
