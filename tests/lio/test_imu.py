@@ -292,17 +292,22 @@ def test_sparse_covariance_propagation_matches_dense():
     assert np.allclose(imu.propagate_covariance(P, F, G, q), dense, atol=1e-12)
 
 
-def test_block_covariance_propagation_matches_dense():
+@pytest.mark.parametrize("measured_accel", [True, False])
+def test_block_covariance_propagation_matches_dense(measured_accel: bool) -> None:
+    """The block propagation against the dense F P Fᵀ + G Q Gᵀ, for the measured step and for
+    the motion model across an IMU gap (measured_accel False)."""
+    gen = rng if measured_accel else np.random.default_rng(6)  # the module's stream as before
     for _ in range(5):
-        x = _random_state()
-        gyro, acc, dt = rng.normal(size=3), rng.normal(size=3) * 3, 0.004
-        F, G = imu.jacobians_fg(x.R, x.b_g, x.b_a, x.g, x.g_anchor, gyro, acc, dt)
-        A = rng.normal(size=(DIM, DIM))
+        x = _random_state(gen)
+        gyro, acc, dt = gen.normal(size=3), gen.normal(size=3) * 3, 0.004
+        F, G = imu.jacobians_fg(x.R, x.b_g, x.b_a, x.g, x.g_anchor, gyro, acc, dt,
+                                measured_accel)
+        A = gen.normal(size=(DIM, DIM))
         P = A @ A.T
         q = imu.process_noise(ImuConfig())
         dense = F @ P @ F.T + G @ np.diag(q) @ G.T
         fast = imu.propagate_covariance_fast(P, x.R, x.b_g, x.b_a, x.g, x.g_anchor, gyro, acc,
-                                             dt, q)
+                                             dt, q, measured_accel)
         assert np.allclose(fast, dense, atol=1e-12)
 
 
