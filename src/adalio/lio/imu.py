@@ -355,8 +355,15 @@ def discrete_step(p, R, v, b_g, b_a, g, gyro_rad_s, accel_m_s2, dt, measured_acc
     explicit Euler (the start attitude, ``p ← p + v Δt``) errs by O(Δt) per second of dead
     reckoning (benchmark log, *Session 51*: 6.5-8 cm after 20 s at 100 Hz, 0.5-0.9 cm so)."""
     a_w = world_accel(R, b_g, b_a, g, gyro_rad_s, accel_m_s2, dt, measured_accel)
+    return _advance(p, R, v, gyro_rad_s - b_g, a_w, dt)
+
+
+@kernel()
+def _advance(p, R, v, omega, a_w, dt):
+    """:func:`discrete_step` given its body rate ``ω`` and world acceleration ``a_w`` (which
+    :func:`propagate_scan` has already computed for the interval's pose record)."""
     p_new = p + v * dt + a_w * (0.5 * dt * dt)
-    R_new = so3.mul(R, so3.exp((gyro_rad_s - b_g) * dt))
+    R_new = so3.mul(R, so3.exp(omega * dt))
     v_new = v + a_w * dt
     return p_new, R_new, v_new
 
@@ -374,8 +381,9 @@ def _step_blocks(R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s2, dt, measured_
     acc = accel_m_s2 - b_a
     E_th = so3.exp(-omega * dt)
     J_bg = -so3.jr(omega * dt) * dt
-    R_mid = so3.mul(R, so3.exp(omega * (0.5 * dt)))
-    A_vth = -so3.mul(R, so3.hat(so3.mul_vec(so3.exp(omega * (0.5 * dt)), acc))) * dt
+    R_h = so3.exp(omega * (0.5 * dt))
+    R_mid = so3.mul(R, R_h)
+    A_vth = -so3.mul(R, so3.hat(so3.mul_vec(R_h, acc))) * dt
     D_vbg = so3.mul(so3.mul(R_mid, so3.hat(acc)), so3.jr(omega * (0.5 * dt))) * (0.5 * dt * dt)
     B_vba = -R_mid * dt
     C_vg = -so3.mul(so3.hat(g), so3.s2_basis(g, g_anchor)) * dt
@@ -406,15 +414,14 @@ def jacobians_fg(R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s2, dt, measured_
     F[0:3, 15:18] = D_vbg * (0.5 * dt)
     F[0:3, 18:21] = B_vba * (0.5 * dt)
     F[0:3, 21:23] = C_vg * (0.5 * dt)
-    # the accel noise: the measured specific force's, or across a gap the motion model's random
-    # acceleration (isotropic, so its direction does not matter), the velocity's only
-    G_a = B_vba if measured_accel else -R * dt
     Gm[0:3, 0:3] = D_vbg * (0.5 * dt)
-    if measured_accel:
-        Gm[0:3, 3:6] = G_a * (0.5 * dt)
     Gm[3:6, 0:3] = J_bg
     Gm[12:15, 0:3] = D_vbg
-    Gm[12:15, 3:6] = G_a
+    if measured_accel:
+        Gm[0:3, 3:6] = B_vba * (0.5 * dt)
+        Gm[12:15, 3:6] = B_vba
+    else:  # the motion model's random acceleration (isotropic: its direction does not
+        Gm[12:15, 3:6] = -R * dt  # matter), the velocity's only
     for i in range(3):
         Gm[15 + i, 6 + i] = dt
         Gm[18 + i, 9 + i] = dt
@@ -587,29 +594,27 @@ def propagate_scan(p, R, v, b_g, b_a, g, g_anchor, P, imu_tau, gyro, accel, tau_
             broke = True
             break
         dt = t1 - max(imu_tau[k], tau)
-        _record(m, tau, R, p, v, gyro_in - b_g,
-                world_accel(R, b_g, b_a, g, gyro_in, acc_in, dt, not gap), rec_tau, rec_R,
-                rec_p, rec_v, rec_w, rec_a)
+        a_w = world_accel(R, b_g, b_a, g, gyro_in, acc_in, dt, not gap)
+        _record(m, tau, R, p, v, gyro_in - b_g, a_w, rec_tau, rec_R, rec_p, rec_v, rec_w, rec_a)
         m += 1
         q = q_gap / dt if gap else (q_diag if not noise_dt else q_diag / dt)
         P = propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_in, acc_in, dt, q,
                                       not gap)
-        p, R, v = discrete_step(p, R, v, b_g, b_a, g, gyro_in, acc_in, dt, not gap)
+        p, R, v = _advance(p, R, v, gyro_in - b_g, a_w, dt)
         tau = t1
     if not broke:
         gap = tau_end - imu_tau[n - 1] > gap_s
         if gap:
             gyro_in, acc_in = _gap_inputs(R, b_a, g, gyro, n - 1)
     dt = tau_end - tau
-    _record(m, tau, R, p, v, gyro_in - b_g,
-            world_accel(R, b_g, b_a, g, gyro_in, acc_in, max(dt, 0.0), not gap), rec_tau, rec_R,
-            rec_p, rec_v, rec_w, rec_a)
+    a_w = world_accel(R, b_g, b_a, g, gyro_in, acc_in, max(dt, 0.0), not gap)
+    _record(m, tau, R, p, v, gyro_in - b_g, a_w, rec_tau, rec_R, rec_p, rec_v, rec_w, rec_a)
     m += 1
     if dt > 0.0:
         q = q_gap / dt if gap else (q_diag if not noise_dt else q_diag / dt)
         P = propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_in, acc_in, dt, q,
                                       not gap)
-        p, R, v = discrete_step(p, R, v, b_g, b_a, g, gyro_in, acc_in, dt, not gap)
+        p, R, v = _advance(p, R, v, gyro_in - b_g, a_w, dt)
     return (p, R, v, P, rec_tau[:m].copy(), rec_R[:m].copy(), rec_p[:m].copy(),
             rec_v[:m].copy(), rec_w[:m].copy(), rec_a[:m].copy())
 
