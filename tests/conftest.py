@@ -4,7 +4,9 @@
 reuse sequences between sessions on purpose), it points at ``adalio-cache`` in this session's
 ``tmp_path_factory`` base (``/tmp/pytest-of-$USER/pytest-N``), which is deleted at the end of
 the session; the terminal summary says how much it held. A test run leaves nothing in the
-repository.
+repository. The suite's pytest-xdist workers start after the controller's ``pytest_configure``
+and inherit its ``ADALIO_CACHE_DIR``, so they share one folder (and its lock files: a sequence
+two workers need is generated once); only the controller removes it.
 
 A suite started with Ctrl-C ignored (a background job of a shell without job control, as some
 CI scripts start it) would pass that on to every command the tests start, and the Ctrl-C tests
