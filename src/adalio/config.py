@@ -264,8 +264,8 @@ class MapConfig:
     """Which point a map cell keeps: 'first' (the first point to reach it; descending past a wall,
     that layers the wall's map points one cell apart) or 'uniform' (a uniform sample, by a hash of
     their coordinates, of the points that reached it within cell_sample_scans: better in the
-    simulated spiral shaft on every LiDAR, worse in the floor-blind stairwell; README, "Session
-    35" and "Session 39")."""
+    simulated spiral shaft on the XT-32 and the OS1-64, worse in the corridor; benchmark log,
+    sessions 35, 39 and 79)."""
     cell_sample_scans: int = 5
     """With cell_point 'uniform': a cell samples the points of the scans within this many of the
     one that first filled it, then stays fixed (a walking sensor's field-of-view edge crosses a
