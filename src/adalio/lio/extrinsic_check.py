@@ -61,7 +61,10 @@ that turned too little about one axis to settle sooner end at 0.16-0.21° (sessi
 which turns about one axis only, at 1.2-2.4°, where a 4-deviation excursion is no rotation (one
 ended at 11.8° ±2.3)."""
 HUBER_K = 2.5
-_SYMMETRIC = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+_SYM_ROWS = np.array([0, 1, 2, 0, 0, 1])
+_SYM_COLS = np.array([0, 1, 2, 1, 2, 2])
+"""``S``'s six parameters (xx, yy, zz, xy, xz, yz): entry ``k`` sits at (row, col) and its
+mirror (col, row)."""
 SHEAR_PRIOR = 0.01
 """The prior standard deviation of each entry of ``S``, the share of a turn the LiDAR-only
 registration leaves (measured on the VLP-16 at 5 Hz: up to 0.8 %). Where the turns excite an
@@ -167,6 +170,14 @@ class RotationEstimate:
         return f"({u[0]:+.2f}, {u[1]:+.2f}, {u[2]:+.2f}) of the IMU frame"
 
 
+def _symmetric(s: np.ndarray) -> np.ndarray:
+    """``S`` from its six parameters ``s`` (``_SYM_ROWS``, ``_SYM_COLS``)."""
+    S = np.zeros((3, 3))
+    S[_SYM_ROWS, _SYM_COLS] = s
+    S[_SYM_COLS, _SYM_ROWS] = s
+    return S
+
+
 def estimate_rotation(t_scan_s: np.ndarray, R_scan: np.ndarray, t_imu_s: np.ndarray,
                       gyro_rad_s: np.ndarray, offset_s: float,
                       span_s: float) -> RotationEstimate | None:
@@ -190,18 +201,16 @@ def estimate_rotation(t_scan_s: np.ndarray, R_scan: np.ndarray, t_imu_s: np.ndar
     theta = np.zeros(3)
     bias = np.median(w_gyro - w_lidar, axis=0)
     weights = np.ones(n)
-    # columns: θ (3), the bias (3), the symmetric S (6: xx, yy, zz, xy, xz, yz), whose
-    # prediction S ω_L is linear with these constant columns
+    # columns: θ (3), the bias (3), S's parameters ``s`` (6), whose prediction S ω_L is linear
+    # with these constant columns
     J = np.zeros((n, 3, 12))
     J[:, :, 3:6] = np.eye(3)
-    for col, (i, j) in enumerate(_SYMMETRIC):
-        J[:, i, 6 + col] = w_lidar[:, j]
-        if i != j:
-            J[:, j, 6 + col] = w_lidar[:, i]
-    S = np.zeros((3, 3))
+    J[:, _SYM_ROWS, 6 + np.arange(6)] = w_lidar[:, _SYM_COLS]
+    J[:, _SYM_COLS, 6 + np.arange(6)] = w_lidar[:, _SYM_ROWS]
+    s = np.zeros(6)
     for _ in range(10):
         w_rot = Rotation.from_rotvec(theta).apply(w_lidar)
-        r = w_gyro - w_rot - w_lidar @ S - bias  # S symmetric: (S ω)ᵀ = ωᵀ S
+        r = w_gyro - w_rot - w_lidar @ _symmetric(s) - bias  # S symmetric: (S ω)ᵀ = ωᵀ S
         norm = np.linalg.norm(r, axis=1)
         scale = 1.4826 * float(np.median(norm)) / np.sqrt(3.0) + 1e-12
         z = norm / scale
@@ -215,21 +224,18 @@ def estimate_rotation(t_scan_s: np.ndarray, R_scan: np.ndarray, t_imu_s: np.ndar
         A = np.einsum("n,nki,nkj->ij", weights, J, J)
         A[6:, 6:] += prior * np.eye(6)
         g = np.einsum("n,nki,nk->i", weights, J, r)
-        g[6:] -= prior * np.array([S[i, j] for i, j in _SYMMETRIC])
+        g[6:] -= prior * s
         lam = np.linalg.eigvalsh(A[:3, :3] - A[:3, 3:] @ np.linalg.solve(A[3:, 3:], A[3:, :3]))
         if not lam[0] > 1e-9 * max(lam[-1], 1e-300) or not lam[-1] > 0.0:
             return None  # the rotation turned about one axis only (or not at all)
         step = np.linalg.solve(A, g)
         theta = (Rotation.from_rotvec(step[:3]) * Rotation.from_rotvec(theta)).as_rotvec()
         bias = bias + step[3:6]
-        for col, (i, j) in enumerate(_SYMMETRIC):
-            S[i, j] += step[6 + col]
-            if i != j:
-                S[j, i] += step[6 + col]
+        s = s + step[6:]
         if np.linalg.norm(step[:3]) < 1e-7:
             break
     w_rot = Rotation.from_rotvec(theta).apply(w_lidar)
-    r = w_gyro - w_rot - w_lidar @ S - bias
+    r = w_gyro - w_rot - w_lidar @ _symmetric(s) - bias
     score = weights[:, None] * np.einsum("nki,nk->ni", J, r)
     A_inv = np.linalg.inv(A)
     omega = long_run_covariance(score, NEWEY_WEST_LAGS)
