@@ -158,13 +158,22 @@ class TimeOffsetCheck:
         t_scan = (np.asarray(self._scan_t, dtype=np.int64) - t_ref) * 1e-9
         R = np.stack(self._scan_R)
         p = np.stack(self._scan_p)
+        t_imu, w_imu, a_imu = self.imu_samples()
+        return t_scan, R, p, (t_imu - t_ref) * 1e-9, w_imu, a_imu
+
+    def imu_samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(stamps int64 ns, gyro, accelerometer) of the IMU samples held, in time order, each
+        stamp once (also the gross rotation check's gyro,
+        :func:`adalio.lio.extrinsic_check.estimate_gross_rotation`)."""
+        if not self._imu_t:
+            return np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3))
         t_imu = np.concatenate(self._imu_t)
         w_imu = np.concatenate(self._imu_w)
         a_imu = np.concatenate(self._imu_a)
         order = np.argsort(t_imu, kind="stable")
         t_imu, w_imu, a_imu = t_imu[order], w_imu[order], a_imu[order]
         keep = np.r_[True, np.diff(t_imu) > 0]
-        return t_scan, R, p, (t_imu[keep] - t_ref) * 1e-9, w_imu[keep], a_imu[keep]
+        return t_imu[keep], w_imu[keep], a_imu[keep]
 
 
 def estimate_offset(t_scan_s: np.ndarray, R_scan: np.ndarray, t_imu_s: np.ndarray,
