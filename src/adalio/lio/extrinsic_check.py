@@ -34,6 +34,13 @@ measured): the map was built from poses that followed the gyro through the wrong
 is unbiased at zero, so it tells an error from none; ``pipeline.run_bag`` finds the value by
 re-running the first scans with corrected rotations until what is left is within
 ``PASS_TOLERANCE_RAD`` or one standard deviation (:func:`next_rotation`).
+
+A gross error (tens of degrees: axes mixed up) the filter's map follows so far that the estimate
+sees a few degrees of it. :func:`estimate_gross_rotation` measures the whole rotation against a
+registration made without the gyro (``Odometry`` runs one over the first ``GROSS_SPAN_S`` after
+a still start); ``Odometry`` concludes on it only where the estimate here is significant too,
+and ``run_bag`` restarts from the rotation it finds before the passes above (README,
+"LiDAR-IMU rotation", *Gross errors*).
 """
 
 from __future__ import annotations
@@ -246,6 +253,172 @@ def estimate_rotation(t_scan_s: np.ndarray, R_scan: np.ndarray, t_imu_s: np.ndar
     return RotationEstimate(rotvec_rad=theta, cov_rad2=0.5 * (cov_theta + cov_theta.T),
                             span_s=float(span_s), n_pairs=int(n))
 
+
+
+GROSS_MIN_RAD = np.deg2rad(10.0)
+"""The gross check (:func:`estimate_gross_rotation`) acts on rotations of at least this. Smaller
+ones are the fine check's: its passes found 5° on both hall walks tried, 10° on one of two and
+15° on neither (session 80). With the right extrinsic the gross estimate (at 10 s, with a
+deviation within ``GROSS_SIGMA_MAX_RAD``) was up to 12.6° off (the OS1-64's shaft): so the
+gross check also asks the fine check's estimate to be significant (``Odometry``), which with
+the right extrinsic it was on none of session 80's walks."""
+GROSS_SIGNIFICANCE = 5.0
+"""... and of at least this many of its largest standard deviations (the fine check asks 4)."""
+GROSS_SIGMA_MAX_RAD = np.deg2rad(2.0)
+"""... and only with a largest standard deviation of at most this, so that what the correction
+leaves (a few of these) is within what the fine check finds. Where the rig hardly turned about
+an axis, or the gyro-free registration is poor, the estimate is no estimate, however far its
+angle is from zero in deviations (at 10 s, the right extrinsic, session 80: robots turning
+about the vertical 59-177° at 4.3-5.0°, the VLP-16's corridor 132-134° at 3.4°, the XT-32's
+shaft 14-21° at 2.7-3.6°, the VLP-16's hall 16-17° at 2.9°). The XT-32's and the OS1-64's hand
+walks outside the shaft had 0.3-1.6°."""
+GROSS_CERTAIN_RAD = np.deg2rad(30.0)
+GROSS_CERTAIN_SIGMA_RAD = np.deg2rad(1.0)
+"""A gross estimate of at least ``GROSS_CERTAIN_RAD`` with a deviation of at most this is acted
+on without the fine check's agreement: where the configured rotation is that far off, the
+filter's LiDAR-only rotations are themselves no measure (a quaternion given w first, 120° off:
+4.3° ±1.7 from the fine check, not significant, where the gross estimate was 117.6° ±0.7). With
+the right extrinsic, 14 of session 80's 42 runs had a gross estimate with a deviation of at
+most 1°, and those were at most 3.3°."""
+GROSS_MIN_SPAN_S = 5.0
+"""The gross check concludes at the end of a recording with at least this many seconds of
+gyro-free registrations ..."""
+GROSS_SPAN_S = 10.0
+"""... and otherwise this many seconds after the still start, when the fine checks may first
+conclude (their ``MIN_SPAN_S``; they wait for it). Its estimates over the first 5-7 s were up
+to twice as far off with the right extrinsic (11.8° against 5.4° on the XT-32's hall at 2000
+columns, session 80)."""
+GROSS_LAG_HALF_WIDTH_S = 0.2
+GROSS_LAG_STEP_S = 5.0e-3
+"""The lag grid of the gross fit: the gyro-free registration follows the turn some 75 ms late
+(the best lag -75 ms, session 80), on top of the IMU's own time offset (the fine check's grid
+is as wide)."""
+
+
+@dataclass
+class GrossRotation:
+    """The LiDAR-IMU rotation from a registration without the gyro (:func:`estimate_gross_rotation`)."""
+
+    correction: np.ndarray
+    """(3,3) the rotation the configured ``T_imu_lidar`` rotation needs on its left."""
+    cov_rad2: np.ndarray
+    """(3,3) the covariance of a small rotation on the left of ``correction``."""
+    lag_s: float
+    """The lag of the gyro's stamps on the registration's that fits best (negative: the
+    registration follows the turn late); not the IMU's time offset, the registration has its
+    own."""
+    span_s: float
+    n_pairs: int
+    fine_rad: float = float("nan")
+    """Where it concluded on a gross error with the fine check's significant estimate: that
+    estimate's angle, and its standard deviation ``fine_sigma_rad`` (NaN: it was beyond doubt
+    alone, ``certain``)."""
+    fine_sigma_rad: float = float("nan")
+
+    @property
+    def angle_rad(self) -> float:
+        return float(Rotation.from_matrix(self.correction).magnitude())
+
+    @property
+    def sigma_rad(self) -> float:
+        """The largest standard deviation (the significance is judged on it, whatever the axis)."""
+        return largest_sigma(self.cov_rad2)
+
+    @property
+    def gross(self) -> bool:
+        """A rotation error too large for the fine check: at least ``GROSS_MIN_RAD`` and
+        ``GROSS_SIGNIFICANCE`` deviations, with deviations of at most ``GROSS_SIGMA_MAX_RAD``."""
+        return (self.sigma_rad <= GROSS_SIGMA_MAX_RAD
+                and self.angle_rad >= max(GROSS_MIN_RAD, GROSS_SIGNIFICANCE * self.sigma_rad))
+
+    @property
+    def certain(self) -> bool:
+        """Gross beyond doubt: ``GROSS_CERTAIN_RAD`` at a deviation of at most
+        ``GROSS_CERTAIN_SIGMA_RAD`` (acted on without the fine check's agreement)."""
+        return (self.gross and self.sigma_rad <= GROSS_CERTAIN_SIGMA_RAD
+                and self.angle_rad >= GROSS_CERTAIN_RAD)
+
+    def text(self) -> str:
+        return f"{np.degrees(self.angle_rad):.1f} deg (+-{np.degrees(self.sigma_rad):.1f})"
+
+    def evidence(self) -> str:
+        """What said so, for a warning."""
+        fine = ("" if not np.isfinite(self.fine_rad) else
+                f"the filter's LiDAR-only rotation disagrees with the gyro "
+                f"({np.degrees(self.fine_rad):.2f} deg, +-{np.degrees(self.fine_sigma_rad):.2f}), "
+                "and ")
+        return (f"{fine}a LiDAR registration that never used the gyro turns about other axes "
+                f"than the gyro over the first {self.span_s:.0f} s")
+
+
+def _polar_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation factor of ``M`` (the nearest rotation: ``M = U P``, ``P`` symmetric; its
+    sign fixed so that it is a rotation even where ``M`` mirrors)."""
+    W, _, Vt = np.linalg.svd(M)
+    return W @ np.diag([1.0, 1.0, np.sign(np.linalg.det(W @ Vt))]) @ Vt
+
+
+def estimate_gross_rotation(t_scan_s: np.ndarray, R_scan: np.ndarray, t_imu_s: np.ndarray,
+                            gyro_rad_s: np.ndarray, span_s: float) -> GrossRotation | None:
+    """The LiDAR-IMU rotation, however large its error, from orientations ``R_scan`` (N,3,3;
+    the IMU's through the configured extrinsic) that a registration made without the gyro
+    (``motion_init.MovingInit(use_gyro=False)``), against gyro samples.
+
+    The fine check (:func:`estimate_rotation`) reads the filter's LiDAR-only steps, whose map
+    followed the gyro through the configured rotation: it sees a share of a small error, and
+    of a gross one almost nothing (a LiDAR 90° off about its axis: 14°, session 80). A
+    registration that never used the gyro sees the whole rotation, through its own
+    distortion: without the gyro it neither deskews nor predicts a turn, and it follows the
+    turn about the axes its scans constrain weakly by less (a VLP-16 by up to a factor 2.7).
+    So for each lag on a grid (the registration follows the turn some 75 ms late), the linear
+    map ``M`` and bias with ``ω_G = M ω_L + b`` over the scan pairs' mean rates are fitted by
+    least squares, and the lag that fits best is taken; the rotation is ``M``'s rotation
+    factor (``M = U P``, :func:`_polar_rotation`): a distortion by a symmetric gain ``P`` on the
+    LiDAR's side leaves it exact (a closed-form rotation fit of the rates alone, Kabsch's, was
+    28° off on the VLP-16's hall over 10 s, this one 16°).
+
+    The covariance takes the gyro as the regressor: its mean rates over a scan pair are
+    precise where the gyro-free registration's are not. A small rotation ``δ`` on the left
+    moves the prediction by ``−[ω_G − b]× δ``, which holds no information about a turn about
+    the axis the gyro turned about; the residuals are the fit's. The sandwich form with
+    Newey-West over ``NEWEY_WEST_LAGS`` pairs, or the plain ``spread² A⁻¹``, whichever is
+    larger. With the LiDAR's rates as the regressor, their noise about the other axes passed
+    for information: a robot turning about the vertical gave 117-175° at 3.5-6.5° deviations.
+    None: too few pairs, or no turn about two axes at all."""
+    if t_imu_s.size < 4 or t_scan_s.size < 2:
+        return None
+    dt = np.diff(t_scan_s)
+    best: tuple[float, float, np.ndarray, np.ndarray, np.ndarray] | None = None
+    for lag in np.arange(-GROSS_LAG_HALF_WIDTH_S, GROSS_LAG_HALF_WIDTH_S + 1e-12,
+                         GROSS_LAG_STEP_S):
+        a, b = t_scan_s[:-1] + lag, t_scan_s[1:] + lag
+        idx = np.flatnonzero((dt > MIN_PAIR_S) & (dt < MAX_PAIR_S) & (a >= t_imu_s[0])
+                             & (b <= t_imu_s[-1]))
+        if idx.size < MIN_PAIRS:
+            continue
+        w_lidar, w_gyro = pair_rates(R_scan[idx], R_scan[idx + 1], a[idx], b[idx], dt[idx],
+                                     t_imu_s, gyro_rad_s)
+        X = np.column_stack([w_lidar, np.ones(idx.size)])
+        coef = np.linalg.lstsq(X, w_gyro, rcond=None)[0]
+        e = w_gyro - X @ coef
+        cost = float(np.mean(np.sum(e * e, axis=1)))
+        if best is None or cost < best[1]:
+            best = (float(lag), cost, coef[:3].T, e, w_gyro)
+    if best is None:
+        return None
+    lag, _, M, e, w_gyro = best
+    g = w_gyro - w_gyro.mean(axis=0)
+    A = np.sum(g * g) * np.eye(3) - g.T @ g  # Σ [g]×ᵀ [g]×
+    lam = np.linalg.eigvalsh(A)
+    if not lam[0] > 1e-12 * max(lam[-1], 1e-300):
+        return None
+    score = np.cross(g, e)  # [g]×ᵀ e = −g × e, the sign irrelevant to the covariance
+    A_inv = np.linalg.inv(A)
+    cov = A_inv @ long_run_covariance(score, NEWEY_WEST_LAGS) @ A_inv
+    naive = float(np.sum(e * e)) / max(3 * len(e) - 12, 1) * A_inv
+    cov = cov if np.trace(cov) >= np.trace(naive) else naive
+    return GrossRotation(correction=_polar_rotation(M), cov_rad2=0.5 * (cov + cov.T),
+                         lag_s=lag, span_s=float(span_s), n_pairs=len(g))
 
 
 def pass_gain(tried: list[tuple[np.ndarray, np.ndarray]]) -> float:
