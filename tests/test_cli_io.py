@@ -712,3 +712,29 @@ def test_no_pose_from_sparse_scans_points_at_the_scans_not_the_imu(monkeypatch, 
                            tmp_path / "c.yaml", "--start-s", "3", "--out", tmp_path / "r")
     assert_one_line_error(code, err, "no pose from 30 scans", says)
     assert "Check /alphasense/imu" not in err
+
+
+def test_the_summary_and_the_batch_table_say_a_gross_rotation_before_the_fine_one():
+    """After a gross rotation error (session 80), the summary's `LiDAR-IMU rotation:` line and
+    the batch table's checks cell name it first, then what the fine check found after it."""
+    from adalio.batch import checks_text
+    from adalio.io.cli import _rotation_text
+
+    gross = SimpleNamespace(text=lambda: "87.6 deg (+-0.8)", span_s=9.9,
+                            angle_rad=np.radians(87.6))
+    fine = SimpleNamespace(angle_deg=2.97, found_rad=np.radians([2.97, 0.0, 0.0]), n_scans=120,
+                           passes=[0, 1, 2], detected_rad=np.radians([2.1, 0.0, 0.0]))
+    left = SimpleNamespace(angle_rad=np.radians(0.04), sigma_rad=np.radians(0.05), span_s=19.0,
+                           significant=False)
+    res = SimpleNamespace(extrinsic_rotation_gross_found=gross, extrinsic_rotation_found=fine,
+                          extrinsic_rotation=left, extrinsic_rotation_unsettled=None)
+    text = _rotation_text(res)
+    assert text.startswith("sensor.T_imu_lidar turned by 87.6 deg (+-0.8), a gross error found "
+                           "by a LiDAR registration without the gyro over the first 10 s, the "
+                           "run restarted with it; then sensor.T_imu_lidar turned by 2.97 deg"), \
+        text
+    assert text.endswith("0.04 deg (+-0.05) left against the LiDAR-registered rotation over 19 s")
+    assert "rotation 87.6 deg gross, then 2.97 deg found" in checks_text(res)
+    res.extrinsic_rotation_found = None  # the gross correction left nothing the passes found
+    assert _rotation_text(res).startswith("sensor.T_imu_lidar turned by 87.6 deg")
+    assert "rotation 87.6 deg gross, then 0.04 deg" in checks_text(res)

@@ -252,6 +252,10 @@ def checks_text(res: Any) -> str:
         elif left is not None and not text:
             v, _, unit = show(left)
             text = f"{name} {v} {unit}"
+        if name == "rotation" and getattr(res, "extrinsic_rotation_gross_found", None) is not None:
+            gross = f"{math.degrees(res.extrinsic_rotation_gross_found.angle_rad):.1f} deg gross"
+            text = (f"rotation {gross}, then {text.removeprefix('rotation ')}" if text
+                    else f"rotation {gross}")
         if text:
             parts.append(text)
     return "; ".join(parts)

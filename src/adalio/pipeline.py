@@ -203,6 +203,16 @@ class RunResult:
     extrinsic_rotation_found: RotationCalibration | None = None
     """When the check found the extrinsic's rotation off and the run restarted: how it was
     found (the run's ``config.yaml`` holds the corrected ``sensor.T_imu_lidar``)."""
+    extrinsic_rotation_gross: Any = None
+    """:class:`adalio.lio.extrinsic_check.GrossRotation`: the gross rotation check found the
+    extrinsic's rotation too far off for the fine check, and the run stopped there for
+    :func:`run_bag` to restart with it (``extrinsic_rotation_gross_found``)."""
+    extrinsic_rotation_gross_found: Any = None
+    """The gross rotation error the run restarted with (its ``config.yaml`` holds the corrected
+    ``sensor.T_imu_lidar``; the fine check then went on from it)."""
+    extrinsic_rotation_gross_checked: Any = None
+    """The gross rotation check's last estimate where it found no gross error (None: it could
+    not estimate, or did not run: a moving start, or the rotation check off)."""
     gyro_scale: Any = None
     """:class:`adalio.lio.gyro_scale.GyroScaleEstimate` the gyro scale check concluded on in
     this run (left after ``sensor.gyro_sensitivity``), or None."""
@@ -487,13 +497,53 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                          on_scan=on_scan, on_estimate=on_estimate, start_s=start_s,
                          sigma_warn_m=sigma_warn_m, parallel_compile=parallel_compile,
                          on_compile=on_compile, restart_on_offset=False)
+    kwargs: dict[str, Any] = {"progress": progress, "max_scans": max_scans, "on_scan": on_scan,
+                              "on_estimate": on_estimate, "start_s": start_s,
+                              "sigma_warn_m": sigma_warn_m}
     seen: set[str] = set()
     t_start = time.perf_counter()
     with _said_once(seen, again=False):
-        first = _run_once(bag_path, cfg, Path(out_dir), progress=progress, max_scans=max_scans,
-                          on_scan=on_scan, on_estimate=on_estimate, start_s=start_s,
-                          sigma_warn_m=sigma_warn_m, parallel_compile=parallel_compile,
-                          on_compile=on_compile, restart_on_offset=True)
+        first = _run_once(bag_path, cfg, Path(out_dir), parallel_compile=parallel_compile,
+                          on_compile=on_compile, restart_on_offset=True, **kwargs)
+    gross = first.extrinsic_rotation_gross
+    if gross is None or first.interrupted:
+        return _run_checked(bag_path, cfg, out_dir, first, seen, t_start, **kwargs)
+    configured_sigma_deg = cfg.sensor.extrinsic_rotation_sigma_deg
+    # the rotation is too far off for the fine checks, whose first run read it through the
+    # wrong axes: everything starts again from the rotation the gross check found
+    T = np.asarray(cfg.sensor.T_imu_lidar, dtype=np.float64)
+    T[:3, :3] = gross.correction @ T[:3, :3]
+    cfg.sensor.T_imu_lidar = T.tolist()
+    cfg.sensor.extrinsic_source = "config"
+    cfg.sensor.extrinsic_rotation_sigma_deg = restarted_rotation_sigma_deg(
+        cfg.sensor.extrinsic_rotation_sigma_deg, gross.sigma_rad)
+    warnings.warn(f"the LiDAR-IMU rotation is off by {gross.text()}: {gross.evidence()}; the "
+                  "run restarted with the rotation found (then "
+                  "checked finely; the corrected sensor.T_imu_lidar is in its config.yaml: "
+                  "set it in your config, or check the axes' order in a quaternion: x y z w)",
+                  stacklevel=2)
+    with _said_once(seen, again=True):
+        second = _run_once(bag_path, cfg, Path(out_dir), parallel_compile=False,
+                           on_compile=None, restart_on_offset=True, check_gross=False, **kwargs)
+    res = second if second.interrupted else _run_checked(
+        bag_path, cfg, out_dir, second, seen, t_start,
+        configured_sigma_deg=configured_sigma_deg, **kwargs)
+    res.extrinsic_rotation_gross_found = gross
+    res.calibration_wall_s = max(res.calibration_wall_s, 0.0) or (
+        time.perf_counter() - t_start - res.wall_s)
+    res.compiled = first.compiled
+    return res
+
+
+def _run_checked(bag_path: str | Path, cfg: Config, out_dir: str | Path, first: RunResult,
+                 seen: set[str], t_start: float, *, configured_sigma_deg: float | None = None,
+                 **kwargs: Any) -> RunResult:
+    """:func:`run_bag` after its first run ``first`` (stopped where a check concluded, or
+    whole): the passes that find what the checks found off, and the restart with it.
+    ``configured_sigma_deg``: after a gross rotation error, the configured
+    ``sensor.extrinsic_rotation_sigma_deg`` (``cfg`` holds the gross estimate's deviation, the
+    prior of the fine passes; a rotation they find sets the restart's from the configured one)."""
+    progress, start_s = kwargs["progress"], kwargs["start_s"]
     est, rot = first.time_offset, first.extrinsic_rotation
     scale = first.gyro_scale if first.gyro_scale is not None else first.gyro_scale_so_far
     offset_off = est is not None and est.significant
@@ -541,7 +591,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
         warnings.warn(f"the gyro's timing disagrees with the LiDAR's: the IMU's stamps run at "
                       f"least {abs(est.offset_s) * 1e3:.1f} ms {late} against the rotation the "
                       "LiDAR alone registers, but re-running the first scans found no value; "
-                      "set sensor.imu_time_offset_s if you know the offset", stacklevel=2)
+                      "set sensor.imu_time_offset_s if you know the offset", stacklevel=3)
     if found is not None:
         late = "late" if found.offset_s > found.configured_s else "early"
         warnings.warn(f"the gyro's timing disagrees with the LiDAR's: the IMU's stamps run "
@@ -549,10 +599,11 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                       f"the rotation the LiDAR alone registers (found over the first "
                       f"{found.n_scans} scans in {len(found.passes)} passes); the run restarted "
                       f"with sensor.imu_time_offset_s: {found.offset_s:.4f} (set it in your "
-                      "config to start with it)", stacklevel=2)
+                      "config to start with it)", stacklevel=3)
     if found_rot is not None:
         cfg.sensor.extrinsic_rotation_sigma_deg = restarted_rotation_sigma_deg(
-            cfg.sensor.extrinsic_rotation_sigma_deg, found_rot.sigma_rad)
+            cfg.sensor.extrinsic_rotation_sigma_deg if configured_sigma_deg is None
+            else configured_sigma_deg, found_rot.sigma_rad)
         if found_scale is not None:
             # the gyro is uncalibrated, and the rotation found may be its own axes' misalignment
             # rather than the extrinsic's: the trajectory's frame then follows the gyro's axes,
@@ -564,24 +615,22 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                       f"registers (found over the first {found_rot.n_scans} scans in "
                       f"{len(found_rot.passes)} passes); the run restarted with the corrected "
                       f"sensor.T_imu_lidar (in its config.yaml; set it in your config to start "
-                      "with it)", stacklevel=2)
+                      "with it)", stacklevel=3)
     if found_scale is not None:
         warnings.warn(f"the gyro's scale factors disagree with the data: against the rates the "
                       f"LiDAR alone registers, the gyro reads {found_scale.text()} off (found "
                       f"over the first {found_scale.n_scans} scans in "
                       f"{len(found_scale.passes)} passes); the run restarted with the corrected "
                       f"sensor.gyro_sensitivity (in its config.yaml; calibrate the IMU's "
-                      f"intrinsics, or set it in your config to start with it)", stacklevel=2)
+                      f"intrinsics, or set it in your config to start with it)", stacklevel=3)
     if found is None and found_rot is None and found_scale is None and not (
             first.stopped_for_time_offset or first.stopped_for_extrinsic_rotation
             or first.stopped_for_gyro_scale):
         return first
     t_restart = time.perf_counter()
     with _said_once(seen, again=True):
-        res = _run_once(bag_path, cfg, Path(out_dir), progress=progress, max_scans=max_scans,
-                        on_scan=on_scan, on_estimate=on_estimate, start_s=start_s,
-                        sigma_warn_m=sigma_warn_m, parallel_compile=False, on_compile=None,
-                        restart_on_offset=False, warn_checks=False)
+        res = _run_once(bag_path, cfg, Path(out_dir), parallel_compile=False, on_compile=None,
+                        restart_on_offset=False, warn_checks=False, check_gross=False, **kwargs)
     left = res.time_offset
     if found is not None and left is not None and left.significant:  # one restart only
         late = "late" if left.offset_s > 0 else "early"
@@ -591,7 +640,7 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                       f"against the LiDAR-registered rotation over {left.span_s:.0f} s (too "
                       "little rotation change to settle it, or the offset drifts): move "
                       "sensor.imu_time_offset_s by at least that and run again",
-                      stacklevel=2)
+                      stacklevel=3)
     rot_left = res.extrinsic_rotation
     if rot_left is not None and rot_left.significant:
         warnings.warn(f"after the restart, the gyro's axes are still turned at least "
@@ -599,12 +648,12 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
                       f"{np.degrees(rot_left.sigma_rad):.2f}) about {rot_left.axis_text()} "
                       f"against the rotation the LiDAR alone registers over "
                       f"{rot_left.span_s:.0f} s: check sensor.T_imu_lidar's rotation",
-                      stacklevel=2)
+                      stacklevel=3)
     scale_left = res.gyro_scale
     if found_scale is not None and scale_left is not None and scale_left.significant:
         warnings.warn(f"after the restart, the gyro still reads {scale_left.text()} off against "
                       f"the rates the LiDAR alone registers over {scale_left.span_s:.0f} s: "
-                      f"calibrate the IMU's intrinsics (sensor.gyro_sensitivity)", stacklevel=2)
+                      f"calibrate the IMU's intrinsics (sensor.gyro_sensitivity)", stacklevel=3)
     res.time_offset_found = found
     res.extrinsic_rotation_found = found_rot
     res.gyro_scale_found = found_scale
@@ -647,7 +696,8 @@ def _calibration_off(odom: Any) -> bool:
     """A check concluded that the IMU time offset, the LiDAR-IMU rotation or the gyro's scale
     is off."""
     return (_significant(odom, "time_offset") or _significant(odom, "extrinsic_rotation")
-            or _significant(odom, "gyro_scale"))
+            or _significant(odom, "gyro_scale")
+            or getattr(odom, "gross_rotation", None) is not None)
 
 
 @contextlib.contextmanager
@@ -841,7 +891,7 @@ def _calibration_pass(bag_path: str | Path, cfg: Config, n_scans: int,
             lidar_topic, imu_topic = bag.select_topics(cfg.sensor)
             odom = Odometry(cfg)
             odom.warn_time_offset = odom.conclude_time_offset = False
-            odom.warn_extrinsic_rotation = False
+            odom.warn_extrinsic_rotation = odom.check_gross_rotation = False
             seq = _sequencer(bag, lidar_topic, imu_topic, cfg, start_s)
             n = 0
             for item in seq:  # the first run's scans: every pass estimates over the same span
@@ -861,7 +911,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
               on_estimate: Callable[[Estimate], None] | None, start_s: float,
               sigma_warn_m: float, parallel_compile: bool,
               on_compile: Callable[[], None] | None, restart_on_offset: bool,
-              warn_checks: bool = True) -> RunResult:
+              warn_checks: bool = True, check_gross: bool = True) -> RunResult:
     """One pass of :func:`run_bag` (``cfg`` validated). ``restart_on_offset``: stop once the
     IMU time offset check or the LiDAR-IMU rotation check concludes on a significant value
     (``RunResult.time_offset``, ``.extrinsic_rotation``); the caller restarts with the value
@@ -889,6 +939,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         odom = Odometry(cfg)
         odom.warn_time_offset = warn_checks and not restart_on_offset
         odom.warn_extrinsic_rotation = warn_checks and not restart_on_offset
+        odom.check_gross_rotation = check_gross
         seq = _sequencer(bag, lidar_topic, imu_topic, cfg, start_s)
         tum = TumWriter(paths["trajectory"])
         csvw = ScansCsvWriter(paths["scans"])
@@ -1047,7 +1098,9 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         time_offset_unsettled=getattr(odom, "time_offset_unsettled", None),
         extrinsic_rotation_unsettled=getattr(odom, "extrinsic_rotation_unsettled", None),
         extrinsic_translation=getattr(odom, "extrinsic_translation", None),
-        extrinsic_translation_unsettled=getattr(odom, "extrinsic_translation_unsettled", None))
+        extrinsic_translation_unsettled=getattr(odom, "extrinsic_translation_unsettled", None),
+        extrinsic_rotation_gross=getattr(odom, "gross_rotation", None),
+        extrinsic_rotation_gross_checked=getattr(odom, "gross_rotation_checked", None))
     if not est_t and not interrupted and not (restart_on_offset and _calibration_off(odom)):
         raise InputError(_no_pose_reason(odom, n_in, lidar_topic, imu_topic, out,
                                          seq.stats.scans_late, start_s, bag_s))

@@ -376,14 +376,19 @@ def _rotation_text(res: Any) -> str:
 
     found = getattr(res, "extrinsic_rotation_found", None)
     text = ""
+    gross = getattr(res, "extrinsic_rotation_gross_found", None)
+    if gross is not None:
+        text = (f"sensor.T_imu_lidar turned by {gross.text()}, a gross error found by a LiDAR "
+                f"registration without the gyro over the first {gross.span_s:.0f} s, the run "
+                "restarted with it; then ")
     if found is not None:
         weighed = ("" if found.found_rad is None else
                    f" ({np.degrees(np.linalg.norm(found.found_rad)):.2f} deg as found, weighed "
                    "by its noise)")
-        text = (f"sensor.T_imu_lidar turned by {found.angle_deg:.2f} deg{weighed}, found over "
-                f"the first {found.n_scans} scans in {len(found.passes)} passes (the first run "
-                f"saw {np.degrees(np.linalg.norm(found.detected_rad)):.2f} deg), the run "
-                "restarted with it; ")
+        text += (f"sensor.T_imu_lidar turned by {found.angle_deg:.2f} deg{weighed}, found "
+                 f"over the first {found.n_scans} scans in {len(found.passes)} passes (the first "
+                 f"run saw {np.degrees(np.linalg.norm(found.detected_rad)):.2f} deg), the run "
+                 "restarted with it; ")
     return text + _check_tail(
         getattr(res, "extrinsic_rotation_unsettled", None),
         getattr(res, "extrinsic_rotation", None),

@@ -64,7 +64,15 @@ from adalio.lio.degeneracy import (
     observable_projector,
     weak_directions,
 )
-from adalio.lio.extrinsic_check import SEEN_SHARE, RotationEstimate, estimate_rotation
+from adalio.lio.extrinsic_check import (
+    GROSS_MIN_SPAN_S,
+    GROSS_SPAN_S,
+    SEEN_SHARE,
+    GrossRotation,
+    RotationEstimate,
+    estimate_gross_rotation,
+    estimate_rotation,
+)
 from adalio.lio.extrinsic_sigma import (
     error_second_moment,
     extrinsic_rotation_covariance,
@@ -522,7 +530,25 @@ class Odometry:
         deviation of the reported sigmas (scans.csv sigma_*) predicted at the scan after it, m)
         of every LiDAR gap (:meth:`_lidar_gap`)."""
         self._units_check: MovingInit | None = None
-        """After a still start: LiDAR-only registrations to compare the gyro's rotation with."""
+        """After a still start: LiDAR-only registrations, made without the gyro, to compare the
+        gyro's rotation with (its unit; the gross rotation check)."""
+        self._units_open = False
+        """The gyro unit check is open (``_units_check`` registers for it)."""
+        self._gross_open = False
+        """The gross rotation check is open (``_units_check`` registers for it too)."""
+        self._gross_t0_ns = 0
+        self._gross_judged_ns = 0
+        self.check_gross_rotation = True
+        """False: no gross rotation check (``run_bag``'s passes, which read the fine checks'
+        estimates with an extrinsic the gross check already passed)."""
+        self.gross_rotation: GrossRotation | None = None
+        """A LiDAR-IMU rotation error too large for the fine check, found by a registration
+        without the gyro over the first seconds after a still start
+        (:func:`adalio.lio.extrinsic_check.estimate_gross_rotation`; sensor.extrinsic_rotation_check);
+        ``run_bag`` restarts with it, an own loop is warned. None: none found, or not checked."""
+        self.gross_rotation_checked: GrossRotation | None = None
+        """The gross check's last estimate when it closed finding no gross error (None: it
+        could not estimate, did not run, or found one)."""
         self._on_trial: _RestOnTrial | None = None
         """A static start whose rest the LiDAR has yet to check (imu.rest_lidar_check)."""
         self._input: list | None = None
@@ -1011,8 +1037,11 @@ class Odometry:
                           "adalio run leaves such scans out)", stacklevel=2)
         if self._held_scans and self.initialized:
             self._backfill()
+        if self._gross_open and self._units_check is not None:
+            self._judge_gross_rotation(self._units_check, self._gross_judged_ns, last=True)
+        self._gross_open = False
         chk = self._offset_check
-        if chk is not None:
+        if chk is not None and self.gross_rotation is None:
             span = chk.span_s
             motion = chk.motion_samples() if span >= END_MIN_SPAN_S else None  # gathered once
             data = _rotation_data(motion)
@@ -1247,6 +1276,7 @@ class Odometry:
         rev._on_trial = rev._input = None
         rev._backfill_map = np.zeros((0, 3))
         rev._last_gap = rev._warned_gap_ns = rev._units_check = rev._offset_check = None
+        rev._units_open = rev._gross_open = False
         rev._scan_intervals_ns, rev.lidar_gaps = [], []
         rev.stage_ms_total = dict.fromkeys(self._stages, 0.0)
         return rev
@@ -1436,6 +1466,10 @@ class Odometry:
         self._moving = None
         self.initialized = True
         self._units_check = MovingInit(self.cfg, self._R_LI, self._t_LI, use_gyro=False)
+        self._units_open = True
+        self._gross_open = (self.cfg.sensor.extrinsic_rotation_check
+                            and self.check_gross_rotation and self._offset_check is not None)
+        self._gross_t0_ns = self._gross_judged_ns = t_b_ns
         acc_mean = b.accel[window].mean(axis=0)
         self.init_report = InitReport(
             method="static", t_ns=t_b_ns, gyro_bias_rad_s=init.gyro_bias_rad_s.copy(),
@@ -1508,11 +1542,60 @@ class Odometry:
         """After a still start, register the next scans LiDAR-only until they have turned
         enough to judge the gyro's unit (or UNITS_CHECK_S passed)."""
         chk = self._units_check
+        assert chk is not None
         self._feed(chk, pts, t_pts, t_e_ns)
-        done = self._judge_gyro_units(chk, self.init_report.gyro_bias_rad_s)
-        if done or (chk.scans and (chk.scans[-1].t_ns - chk.scans[0].t_ns) * 1e-9
-                    > UNITS_CHECK_S):
+        if self._units_open:
+            done = self._judge_gyro_units(chk, self.init_report.gyro_bias_rad_s)
+            if done or (chk.scans and (chk.scans[-1].t_ns - chk.scans[0].t_ns) * 1e-9
+                        > UNITS_CHECK_S):
+                self._units_open = False
+        if self._gross_open:
+            self._judge_gross_rotation(chk, t_e_ns, last=False)
+        if not (self._units_open or self._gross_open):
             self._units_check = None
+
+    def _judge_gross_rotation(self, chk: MovingInit, t_e_ns: int, *, last: bool) -> None:
+        """Once ``GROSS_SPAN_S`` have passed since the still start (``last``: the data ended,
+        with ``GROSS_MIN_SPAN_S`` of gyro-free registrations), the gross rotation check
+        concludes: a gross error (:attr:`gross_rotation`) where its estimate is one
+        (``GrossRotation.gross``) and the fine check's estimate so far is significant too (the
+        filter's own data contradict the configured rotation, whose size they cannot tell), or
+        where it is beyond doubt (``GrossRotation.certain``); else it closes (:attr:`gross_rotation_checked`). The fine checks conclude only then."""
+        if not (last or (t_e_ns - self._gross_t0_ns) * 1e-9 >= GROSS_SPAN_S):
+            return
+        self._gross_open = False
+        span = (chk.scans[-1].t_ns - chk.scans[0].t_ns) * 1e-9 if chk.scans else 0.0
+        if span < GROSS_MIN_SPAN_S:
+            return
+        est = self._gross_estimate(chk)
+        fine = self.extrinsic_rotation_estimate() if est is not None and est.gross else None
+        if est is None or not est.gross or not (
+                est.certain or (fine is not None and fine.significant)):
+            self.gross_rotation_checked = est
+            return
+        if fine is not None and fine.significant:
+            est.fine_rad, est.fine_sigma_rad = fine.angle_rad, fine.sigma_rad
+        self.gross_rotation = est
+        if self.warn_extrinsic_rotation:
+            import warnings
+
+            warnings.warn(f"the LiDAR-IMU rotation is off by {est.text()}: {est.evidence()}; "
+                          "check sensor.T_imu_lidar's rotation (or the axes' order in a "
+                          "quaternion: x y z w; run_bag restarts with the rotation found)",
+                          stacklevel=4)
+
+    def _gross_estimate(self, chk: MovingInit) -> GrossRotation | None:
+        """The gross rotation check's estimate from the gyro-free registrations of ``chk`` and
+        the gyro the fine checks hold."""
+        assert self._offset_check is not None
+        t_imu, gyro, _ = self._offset_check.imu_samples()
+        scans = [s for s in chk.scans if t_imu.size and s.t_ns >= t_imu[0]]
+        if len(scans) < 2:
+            return None
+        t0 = scans[0].t_ns
+        t_scan = np.array([(s.t_ns - t0) * 1e-9 for s in scans])
+        return estimate_gross_rotation(t_scan, np.stack([s.R for s in scans]),
+                                       (t_imu - t0) * 1e-9, gyro, float(t_scan[-1]))
 
     def _feed(self, registrar: MovingInit, pts: np.ndarray, t_pts: np.ndarray,
               t_e_ns: int) -> None:
@@ -1552,8 +1635,8 @@ class Odometry:
         span = chk.span_s
         if span < MIN_SPAN_S or t_e_ns - self._offset_judged_ns < TIME_OFFSET_JUDGE_NS:
             return
-        if not self.conclude_time_offset:
-            return
+        if not self.conclude_time_offset or self._gross_open or self.gross_rotation is not None:
+            return  # the fine checks wait for the gross one, and stop at a gross error
         self._offset_judged_ns = t_e_ns
         translation_due = self._translation_open and (
             t_e_ns - self._translation_judged_ns >= TRANSLATION_JUDGE_NS or span >= MAX_SPAN_S)
