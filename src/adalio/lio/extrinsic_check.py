@@ -297,7 +297,8 @@ is as wide)."""
 
 @dataclass
 class GrossRotation:
-    """The LiDAR-IMU rotation from a registration without the gyro (:func:`estimate_gross_rotation`)."""
+    """The LiDAR-IMU rotation from a registration without the gyro
+    (:func:`estimate_gross_rotation`)."""
 
     correction: np.ndarray
     """(3,3) the rotation the configured ``T_imu_lidar`` rotation needs on its left."""

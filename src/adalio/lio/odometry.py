@@ -537,15 +537,16 @@ class Odometry:
         self._gross_open = False
         """The gross rotation check is open (``_units_check`` registers for it too)."""
         self._gross_t0_ns = 0
-        self._gross_judged_ns = 0
+        """Where the gross rotation check started (the still start's scan, int64 ns)."""
         self.check_gross_rotation = True
         """False: no gross rotation check (``run_bag``'s passes, which read the fine checks'
         estimates with an extrinsic the gross check already passed)."""
         self.gross_rotation: GrossRotation | None = None
         """A LiDAR-IMU rotation error too large for the fine check, found by a registration
         without the gyro over the first seconds after a still start
-        (:func:`adalio.lio.extrinsic_check.estimate_gross_rotation`; sensor.extrinsic_rotation_check);
-        ``run_bag`` restarts with it, an own loop is warned. None: none found, or not checked."""
+        (:func:`adalio.lio.extrinsic_check.estimate_gross_rotation`;
+        sensor.extrinsic_rotation_check); ``run_bag`` restarts with it, an own loop is warned.
+        None: none found, or not checked."""
         self.gross_rotation_checked: GrossRotation | None = None
         """The gross check's last estimate when it closed finding no gross error (None: it
         could not estimate, did not run, or found one)."""
@@ -1038,7 +1039,7 @@ class Odometry:
         if self._held_scans and self.initialized:
             self._backfill()
         if self._gross_open and self._units_check is not None:
-            self._judge_gross_rotation(self._units_check, self._gross_judged_ns, last=True)
+            self._judge_gross_rotation(self._units_check, self._gross_t0_ns, last=True)
         self._gross_open = False
         chk = self._offset_check
         if chk is not None and self.gross_rotation is None:
@@ -1469,7 +1470,7 @@ class Odometry:
         self._units_open = True
         self._gross_open = (self.cfg.sensor.extrinsic_rotation_check
                             and self.check_gross_rotation and self._offset_check is not None)
-        self._gross_t0_ns = self._gross_judged_ns = t_b_ns
+        self._gross_t0_ns = t_b_ns
         acc_mean = b.accel[window].mean(axis=0)
         self.init_report = InitReport(
             method="static", t_ns=t_b_ns, gyro_bias_rad_s=init.gyro_bias_rad_s.copy(),
@@ -1539,8 +1540,9 @@ class Odometry:
         return fit.points_lidar_end
 
     def _check_gyro_units(self, pts: np.ndarray, t_pts: np.ndarray, t_e_ns: int) -> None:
-        """After a still start, register the next scans LiDAR-only until they have turned
-        enough to judge the gyro's unit (or UNITS_CHECK_S passed)."""
+        """After a still start, register the next scans LiDAR-only (without the gyro) until they
+        have turned enough to judge the gyro's unit (or UNITS_CHECK_S passed), and until the gross
+        rotation check concludes (``GROSS_SPAN_S``)."""
         chk = self._units_check
         assert chk is not None
         self._feed(chk, pts, t_pts, t_e_ns)
@@ -1560,7 +1562,8 @@ class Odometry:
         concludes: a gross error (:attr:`gross_rotation`) where its estimate is one
         (``GrossRotation.gross``) and the fine check's estimate so far is significant too (the
         filter's own data contradict the configured rotation, whose size they cannot tell), or
-        where it is beyond doubt (``GrossRotation.certain``); else it closes (:attr:`gross_rotation_checked`). The fine checks conclude only then."""
+        where it is beyond doubt (``GrossRotation.certain``); else it closes
+        (:attr:`gross_rotation_checked`). The fine checks conclude only then."""
         if not (last or (t_e_ns - self._gross_t0_ns) * 1e-9 >= GROSS_SPAN_S):
             return
         self._gross_open = False
