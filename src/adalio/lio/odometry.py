@@ -1042,7 +1042,7 @@ class Odometry:
             self._judge_gross_rotation(self._units_check, self._gross_t0_ns, last=True)
         self._gross_open = False
         chk = self._offset_check
-        if chk is not None and self.gross_rotation is None:
+        if chk is not None:
             span = chk.span_s
             motion = chk.motion_samples() if span >= END_MIN_SPAN_S else None  # gathered once
             data = _rotation_data(motion)
@@ -1066,7 +1066,7 @@ class Odometry:
 
     def extrinsic_rotation_estimate(self) -> RotationEstimate | None:
         """The LiDAR-IMU rotation check's conclusion, or its estimate so far (None: too few
-        updates, too little rotation, or the check is off)."""
+        updates, too little rotation, the check is off, or a gross error stopped it)."""
         if (self.extrinsic_rotation is not None or self._offset_check is None
                 or not self._rotation_open):
             return self.extrinsic_rotation
@@ -1579,6 +1579,7 @@ class Odometry:
         if fine is not None and fine.significant:
             est.fine_rad, est.fine_sigma_rad = fine.angle_rad, fine.sigma_rad
         self.gross_rotation = est
+        self._offset_check = None  # the fine checks read the wrong axes: they stop here
         if self.warn_extrinsic_rotation:
             import warnings
 
@@ -1638,8 +1639,8 @@ class Odometry:
         span = chk.span_s
         if span < MIN_SPAN_S or t_e_ns - self._offset_judged_ns < TIME_OFFSET_JUDGE_NS:
             return
-        if not self.conclude_time_offset or self._gross_open or self.gross_rotation is not None:
-            return  # the fine checks wait for the gross one, and stop at a gross error
+        if not self.conclude_time_offset or self._gross_open:
+            return  # the fine checks wait for the gross one
         self._offset_judged_ns = t_e_ns
         translation_due = self._translation_open and (
             t_e_ns - self._translation_judged_ns >= TRANSLATION_JUDGE_NS or span >= MAX_SPAN_S)
