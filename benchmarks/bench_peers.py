@@ -163,12 +163,13 @@ class Result:
 
 
 def load_sequence(scene: str, seed: int, duration_s: float | None, columns: int,
-                  mode: str | None, lidar: str = "xt32") -> Sequence:
-    """Generate (or reuse) the sequence and decode its bag once, as ``run_bag`` does."""
+                  mode: str | None, lidar: str = "xt32", lidar_tilt_deg: float = 0.0) -> Sequence:
+    """Generate (or reuse) the sequence and decode its bag once, as ``run_bag`` does
+    (``lidar_tilt_deg``: the LiDAR pitched nose down on the handle, ``simulate``'s)."""
     from adalio.pipeline import resolve_extrinsic
 
     sim = cached_sequence(scene, seed=seed, duration_s=duration_s, lidar=lidar, fmt="mcap",
-                          columns=columns)
+                          columns=columns, lidar_tilt_deg=lidar_tilt_deg)
     overrides = {"adaptive.mode": mode} if mode else None
     cfg = load_config(config_file=sim.config_path, overrides=overrides)
     cfg.validate()
@@ -796,6 +797,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lidar", default="xt32", choices=list(LIDAR_MODELS),
                     help="the simulator's LiDAR model (default the XT-32)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--lidar-tilt-deg", type=float, default=0.0,
+                    help="the LiDAR pitched this many degrees nose down on the handle "
+                         "(simulate --lidar-tilt-deg; default 0: level)")
     ap.add_argument("--duration", type=float, default=None,
                     help="sequence length in seconds (default: the full route)")
     ap.add_argument("--systems", nargs="+", default=list(SYSTEMS), choices=list(SYSTEMS))
@@ -834,7 +838,7 @@ def main(argv: list[str] | None = None) -> int:
         for columns in args.columns:
             try:
                 seq = load_sequence(scene, args.seed, args.duration, columns, args.mode,
-                                    args.lidar)
+                                    args.lidar, args.lidar_tilt_deg)
             except Exception as exc:  # noqa: BLE001
                 log(f"{scene} c{columns}: sequence failed: {exc}")
                 continue

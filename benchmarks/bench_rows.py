@@ -25,6 +25,7 @@ moves into new space, and the pull left is what the rows owe to anything else.
     python benchmarks/bench_rows.py --scenes spiral --seeds 4 --pull [--set KEY=VALUE]  # S. 40
     python benchmarks/bench_rows.py --pull --warmup-s 3 --future-s 0.5                # S. 41
     python benchmarks/bench_rows.py --pull --warmup-s 3 --lidar-rate 20 --columns 1000  # S. 58
+    python benchmarks/bench_rows.py --scenes corridor --pull --warmup-s 3 --lidar-tilt-deg 60  # S. 81
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ from adalio.sim import SCENES
 from adalio.sim.generate import START_NS, T_IMU_LIDAR_HILTI, build_trajectory
 from adalio.sim.lidar import LIDAR_MODELS, RayCaster, SweepSimulator, lidar_model
 from adalio.sim.scenes import build_scene
-from adalio.sim.trajectory import HandheldMotion
+from adalio.sim.trajectory import HandheldMotion, tilt_rig_lidar
 
 WINDOWS_S = {"hall": (6.0, 12.0), "corridor": (6.0, 12.0), "spiral": (24.0, 30.0),
              "stairs_garage": (8.0, 14.0)}
@@ -95,21 +96,24 @@ def map_sweeps(times_s: np.ndarray, k: int, future_s: float) -> np.ndarray:
 def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: float,
            max_angle_deg: float, cfg: Config | None = None, with_pull: bool = False,
            warmup_s: float = 0.0, handheld: HandheldMotion | None = None,
-           future_s: float = 0.0, lidar_rate_hz: float | None = None) -> dict:
+           future_s: float = 0.0, lidar_rate_hz: float | None = None,
+           lidar_tilt_deg: float = 0.0) -> dict:
     """Rows of every sweep in [t0_s, t1_s): true face normal, fitted normal (world frame); with
     ``with_pull`` also each sweep's :func:`pull` at the true pose. The map starts with the
     sweeps of the ``warmup_s`` before ``t0_s`` (0: empty at ``t0_s``); ``handheld``: a recorded
     walk's motion instead of the synthetic one. ``future_s > 0``: each sweep's map also holds
     the sweeps of the next ``future_s`` seconds, at their true poses (:func:`map_sweeps`), as a
     smoother's would: what is left of the pull when the map has no leading edge.
-    ``lidar_rate_hz``: the sweeps' rate (None: the model's 10 Hz); the pull stays per sweep."""
+    ``lidar_rate_hz``: the sweeps' rate (None: the model's 10 Hz); the pull stays per sweep.
+    ``lidar_tilt_deg``: the LiDAR pitched nose down on the handle (``simulate``'s)."""
     cfg = cfg or Config()
     deg = cfg.adaptive.degenerate
     T_il = np.asarray(T_IMU_LIDAR_HILTI, dtype=np.float64)
     scn = build_scene(scene, seed)
-    traj = build_trajectory(scn, T_il, seed, handheld)
+    traj = build_trajectory(scn, T_il, seed, handheld, lidar_tilt_deg)
     model = lidar_model(lidar, columns, lidar_rate_hz)
-    sim = SweepSimulator(RayCaster(scn.mesh, seed), traj, model, T_il, START_NS)
+    sim = SweepSimulator(RayCaster(scn.mesh, seed), traj, model, T_il, START_NS,
+                         R_rig_lidar=tilt_rig_lidar(lidar_tilt_deg) if lidar_tilt_deg else None)
     period_s = model.period_ns * 1e-9
 
     def lidar_pose(t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -216,6 +220,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--future-s", type=float, default=0.0,
                     help="each sweep's map also holds the sweeps of the next seconds, at their "
                          "true poses (a smoother's map; 0: only earlier sweeps, as the filter's)")
+    ap.add_argument("--lidar-tilt-deg", type=float, default=0.0,
+                    help="the LiDAR pitched this many degrees nose down on the handle "
+                         "(simulate --lidar-tilt-deg; default 0: level)")
     args = ap.parse_args(argv)
     if (args.seeds < 1 or args.columns < 16 or not args.warmup_s >= 0
             or not 0 <= args.future_s < np.inf):
@@ -247,7 +254,8 @@ def main(argv: list[str] | None = None) -> int:
         t0, t1 = args.window_s or WINDOWS_S[scene]
         for seed in range(args.seeds):
             c = census(scene, seed, args.lidar, args.columns, t0, t1, args.max_angle_deg, cfg,
-                       args.pull, args.warmup_s, handheld, args.future_s, args.lidar_rate)
+                       args.pull, args.warmup_s, handheld, args.future_s, args.lidar_rate,
+                       args.lidar_tilt_deg)
             cols = " | ".join(
                 f"{c[f'{n}_rows'] * 100:.0f} / {c[f'{n}_wrong'] * 100:.1f} / "
                 f"{c[f'{n}_wrong_height_info'] * 100:.0f} %"

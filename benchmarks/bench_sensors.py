@@ -48,7 +48,9 @@ none). With ``--imu-scale-errors-pct`` the simulated gyro and accelerometer read
 through ``I + E`` (scale factors and cross-axis sensitivity, each entry of ``E`` drawn from the
 seed with that standard deviation, ``simulate(imu_scale_error_pct=...)``), which no config says:
 an uncalibrated MEMS IMU. With ``--people`` that many people walk along the route while the
-rig does (``simulate(people=...)``, upright cylinders; :mod:`adalio.sim.people`).
+rig does (``simulate(people=...)``, upright cylinders; :mod:`adalio.sim.people`). With
+``--lidar-tilts-deg`` the LiDAR sits pitched that much nose down on the handle, the IMU fixed to
+it (``simulate(lidar_tilt_deg=...)``): the configs are the same, the view is not.
 
     python benchmarks/bench_sensors.py                      # hall + corridor, 2 seeds, full routes
     python benchmarks/bench_sensors.py --scenes hall --seeds 1 --lidars xt32-512
@@ -61,6 +63,7 @@ rig does (``simulate(people=...)``, upright cylinders; :mod:`adalio.sim.people`)
     python benchmarks/bench_sensors.py --starts still --extrinsic-translation-errors-cm 0 3
     python benchmarks/bench_sensors.py --starts still --imu-scale-errors-pct 0 0.3 1
     python benchmarks/bench_sensors.py --starts still --people 0 4
+    python benchmarks/bench_sensors.py --starts still --lidar-tilts-deg 0 30 90
 """
 
 from __future__ import annotations
@@ -91,6 +94,7 @@ from adalio.sim.generate import (
     MAX_IMU_RATE_HZ,
     MAX_IMU_SCALE_ERROR_PCT,
     MAX_IMU_TIME_OFFSET_S,
+    MAX_LIDAR_TILT_DEG,
     MIN_IMU_RATE_HZ,
 )
 from adalio.sim.lidar import lidar_model
@@ -162,6 +166,8 @@ class Cell:
     (``simulate(imu_scale_error_pct=...)``); the run's config does not say them."""
     people: int = 0
     """People walking along the route (``simulate(people=...)``)."""
+    lidar_tilt_deg: float = 0.0
+    """The LiDAR pitched this much nose down on the handle (``simulate(lidar_tilt_deg=...)``)."""
     map_off_scene: float = float("nan")
     """Share of the written map's points off the scene's surfaces, the map placed by the
     trajectory's SE(3) alignment to the GT: ghosts of people walking by, and a map that drifted
@@ -259,7 +265,8 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
                           T_imu_lidar=MOUNTINGS[cell.mounting], imu_rate_hz=cell.imu_rate_hz,
                           motion_from=cell.motion_from, lidar_rate_hz=cell.lidar_rate_hz,
                           imu_time_offset_s=cell.imu_time_offset_ms * 1e-3,
-                          imu_scale_error_pct=cell.imu_scale_error_pct, people=cell.people)
+                          imu_scale_error_pct=cell.imu_scale_error_pct, people=cell.people,
+                          lidar_tilt_deg=cell.lidar_tilt_deg)
     meta = json.loads(sim.meta_path.read_text())
     cfg = load_config(config_file=sim.config_path, overrides=overrides)
     T_true = cfg.T_imu_lidar()
@@ -283,6 +290,7 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
         f"_lever{cell.extrinsic_translation_error_cm:g}cm"
     other += "" if not cell.imu_scale_error_pct else f"_scale{cell.imu_scale_error_pct:g}pct"
     other += "" if not cell.people else f"_people{cell.people}"
+    other += "" if not cell.lidar_tilt_deg else f"_tilt{cell.lidar_tilt_deg:g}deg"
     out = out_root / (f"{cell.scene}_s{cell.seed}_imu{cell.imu_noise:g}_{cell.lidar}_"
                       f"{cell.start}{cut}{other}")
     try:
@@ -401,6 +409,7 @@ def _lidar_label(c: Cell) -> str:
         f"lever arm {c.extrinsic_translation_error_cm:g} cm off"]
     other += [] if not c.imu_scale_error_pct else [f"IMU scales {c.imu_scale_error_pct:g} %"]
     other += [] if not c.people else [f"{c.people} people"]
+    other += [] if not c.lidar_tilt_deg else [f"tilted {c.lidar_tilt_deg:g}°"]
     return f"{c.lidar} ({', '.join(other)})" if other else c.lidar
 
 
@@ -479,16 +488,17 @@ def summary_table(cells: list[Cell]) -> str:
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     keys = sorted({(c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz, c.lidar_rate_hz,
                     c.imu_time_offset_ms, c.extrinsic_error_deg, c.extrinsic_translation_error_cm,
-                    c.imu_scale_error_pct, c.people)
+                    c.imu_scale_error_pct, c.people, c.lidar_tilt_deg)
                    for c in cells},
                   key=lambda k: (k[0], k[1] != "still", k[2], k[3] != "hilti", k[3], -k[4],
-                                 k[5], k[6], k[7], k[8], k[9], k[10]))
+                                 k[5], k[6], k[7], k[8], k[9], k[10], k[11]))
     for key in keys:
         scene, start, noise = key[:3]
         cs = [c for c in cells
               if (c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz,
                   c.lidar_rate_hz, c.imu_time_offset_ms, c.extrinsic_error_deg,
-                  c.extrinsic_translation_error_cm, c.imu_scale_error_pct, c.people) == key]
+                  c.extrinsic_translation_error_cm, c.imu_scale_error_pct, c.people,
+                  c.lidar_tilt_deg) == key]
         ates = np.array([c.ate_m for c in cs])
         off = np.array([c.map_off_scene for c in cs])
         off = off if np.isfinite(off).any() else np.array([0.0]) * np.nan
@@ -540,6 +550,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--people", nargs="+", type=int, default=[0],
                     help=f"people walking along the route while the rig does (0-{MAX_PEOPLE}, "
                     "default 0)")
+    ap.add_argument("--lidar-tilts-deg", nargs="+", type=float, default=[0.0],
+                    help="the LiDAR pitched this many degrees nose down on the handle, the IMU "
+                    f"fixed to it (within +-{MAX_LIDAR_TILT_DEG:g}, default 0: level)")
     ap.add_argument("--starts", nargs="+", default=["still", "moving"],
                     choices=["still", "moving"])
     ap.add_argument("--duration", type=float, default=0.0,
@@ -578,6 +591,10 @@ def main(argv: list[str] | None = None) -> int:
     for n in args.people:
         if not 0 <= n <= MAX_PEOPLE:
             raise SystemExit(f"error: --people must be 0-{MAX_PEOPLE} (got {n})")
+    for tilt in args.lidar_tilts_deg:
+        if not abs(tilt) <= MAX_LIDAR_TILT_DEG:
+            raise SystemExit(f"error: --lidar-tilts-deg must be within "
+                             f"+-{MAX_LIDAR_TILT_DEG:g} (got {tilt:g})")
     duration = args.duration or None
     cells = []
     t0 = time.perf_counter()
@@ -594,15 +611,16 @@ def main(argv: list[str] | None = None) -> int:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for noise in args.imu_noise:
                 for (lidar, mounting, rate, lidar_rate, offset, turn, lever,
-                     scale, people) in itertools.product(
+                     scale, people, tilt) in itertools.product(
                         args.lidars, args.mountings, args.imu_rates, args.lidar_rates,
                         args.imu_time_offsets_ms, args.extrinsic_errors_deg,
                         args.extrinsic_translation_errors_cm, args.imu_scale_errors_pct,
-                        args.people):
+                        args.people, args.lidar_tilts_deg):
                     for start, cut_s in starts:
                         c = run_cell(Cell(scene, seed, noise, lidar, start, cut_s, mounting,
                                           rate, lidar_rate, args.motion_from, offset, turn,
-                                          lever, scale, people=people), duration, args.out,
+                                          lever, scale, people=people,
+                                          lidar_tilt_deg=tilt), duration, args.out,
                                      overrides)
                         cells.append(c)
                         label = f"moving {cut_s:g} s" if start == "moving" else start

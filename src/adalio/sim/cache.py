@@ -31,6 +31,7 @@ from adalio.sim.generate import (
     _check_args,
     check_free_space,
     check_imu_scale_error,
+    check_lidar_tilt,
     simulate,
 )
 from adalio.sim.lidar import lidar_model
@@ -273,11 +274,12 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
                     imu_rate_hz: float = IMU_RATE_HZ,
                     lidar_rate_hz: float | None = None,
                     imu_time_offset_s: float = 0.0,
-                    imu_scale_error_pct: float = 0.0, people: int = 0) -> SimResult:
+                    imu_scale_error_pct: float = 0.0, people: int = 0,
+                    lidar_tilt_deg: float = 0.0) -> SimResult:
     """Generate once (atomically: temp folder + rename + completion marker) and reuse
     (the key includes the IMU rate when it is not the default 400 Hz, the LiDAR's sweep rate
-    when it is not the model's, the IMU's stamp offset and sensitivity errors and the number of
-    people walking when they are not 0, a hash of
+    when it is not the model's, the IMU's stamp offset and sensitivity errors, the number of
+    people walking and the LiDAR's tilt when they are not 0, a hash of
     ``motion_from``'s content (``-hhnone`` for ``"none"``, no hand motion), and of
     ``T_imu_lidar``, the mounting
     ``simulate`` takes instead of the HILTI one, when given). After generating, the cache is
@@ -294,6 +296,7 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     _check_args(scene, duration_s, lidar, fmt, 1.0, imu_rate_hz)
     check_imu_scale_error(imu_scale_error_pct)
     check_people(people)
+    check_lidar_tilt(lidar_tilt_deg)
     model = lidar_model(lidar, columns, lidar_rate_hz)
     cols = model.columns
     dur = "full" if duration_s is None else f"{float(duration_s):g}"
@@ -310,6 +313,8 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
         imu += f"-scl{imu_scale_error_pct:g}pct"
     if people:
         imu += f"-ppl{int(people)}"
+    if lidar_tilt_deg:
+        imu += f"-tilt{float(lidar_tilt_deg):g}"
     hh = ""
     if is_no_hand(motion_from):
         hh = "-hh" + NO_HAND
@@ -365,7 +370,8 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
                      imu_bias_scale=imu_bias_scale, motion_from=motion_from,
                      T_imu_lidar=T_imu_lidar, make_room=make_room, imu_rate_hz=imu_rate_hz,
                      lidar_rate_hz=lidar_rate_hz, imu_time_offset_s=imu_time_offset_s,
-                     imu_scale_error_pct=imu_scale_error_pct, people=people)
+                     imu_scale_error_pct=imu_scale_error_pct, people=people,
+                     lidar_tilt_deg=lidar_tilt_deg)
             (tmp / "COMPLETE").write_text("ok\n")
             if final.exists() and not (final / "COMPLETE").is_file():
                 shutil.rmtree(final, ignore_errors=True)

@@ -40,7 +40,8 @@ def register(app: typer.Typer) -> None:
         extrinsic: Annotated[str | None, typer.Option(
             "--extrinsic", help="How the IMU sits on the LiDAR: T_imu_lidar as 'tx ty tz qx qy "
             "qz qw' (maps LiDAR points into the IMU frame, as `run --extrinsic`; default: the "
-            "HILTI 2022 rig's). The LiDAR stays level; the IMU turns.")] = None,
+            "HILTI 2022 rig's). The LiDAR stays level (or as --lidar-tilt-deg says); the IMU "
+            "turns.")] = None,
         imu_rate: Annotated[float, typer.Option(
             "--imu-rate", help="IMU samples per second (default: the HILTI BMI085's 400; an "
             "Ouster's internal IMU gives 100). The noise densities stay the same.")] = 400.0,
@@ -61,6 +62,11 @@ def register(app: typer.Typer) -> None:
             "--people", help="That many people walk along the route while the rig does "
             "(upright cylinders 0.4 m wide, 1.75 m tall, 0.8-1.5 m/s, both ways; 0-20, default "
             "0); meta.json says where.")] = 0,
+        lidar_tilt: Annotated[float, typer.Option(
+            "--lidar-tilt-deg", help="The LiDAR sits pitched this many degrees nose down on the "
+            "handle (negative: nose up; within +-90), its spin axis leaning forward, so that it "
+            "sees the floor ahead and the ceiling behind; the IMU stays fixed to it "
+            "(--extrinsic). Default 0: level.")] = 0.0,
     ) -> None:
         """Simulate a handheld LiDAR + IMU walk through an indoor scene into a ROS bag."""
         import json
@@ -89,7 +95,8 @@ def register(app: typer.Typer) -> None:
                                  T_imu_lidar=T_imu_lidar, imu_rate_hz=imu_rate,
                                  lidar_rate_hz=lidar_rate,
                                  imu_time_offset_s=imu_time_offset_ms * 1e-3,
-                                 imu_scale_error_pct=imu_scale_error_pct, people=people)
+                                 imu_scale_error_pct=imu_scale_error_pct, people=people,
+                                 lidar_tilt_deg=lidar_tilt)
         meta = json.loads(res.meta_path.read_text())
         console().print(
             f"[green]wrote[/] {res.bag_path} ({meta['n_scans']} sweeps, {meta['n_imu']} IMU, "

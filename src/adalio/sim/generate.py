@@ -29,7 +29,7 @@ from adalio.sim.imu import GRAVITY_M_S2, ImuNoise, sensitivity_errors, synthesiz
 from adalio.sim.lidar import LIDAR_MODELS, Occluder, RayCaster, SweepSimulator, lidar_model
 from adalio.sim.people import People, check_people
 from adalio.sim.scenes import build_scene
-from adalio.sim.trajectory import HandheldMotion, Trajectory
+from adalio.sim.trajectory import HandheldMotion, Trajectory, tilt_rig_lidar
 
 SCENES = ("hall", "corridor", "spiral", "stairs_garage")
 START_NS = 1_646_304_541_527_137_000
@@ -45,6 +45,8 @@ MAX_IMU_TIME_OFFSET_S = 1.0
 MAX_IMU_SCALE_ERROR_PCT = 10.0
 """The IMU sensitivity errors ``simulate`` draws, at most (standard deviation per entry, %):
 consumer MEMS datasheets give scale-factor tolerances and cross-axis sensitivities of 0.5-3 %."""
+MAX_LIDAR_TILT_DEG = 90.0
+"""The LiDAR tilts ``simulate`` takes, either way: up to a spin axis lying horizontal."""
 GT_RATE_HZ = 100.0
 T_IMU_LIDAR_HILTI = [[0.0, -1.0, 0.0, -0.001], [-1.0, 0.0, 0.0, -0.00855],
                      [0.0, 0.0, -1.0, 0.055], [0.0, 0.0, 0.0, 1.0]]
@@ -122,12 +124,25 @@ def _check_args(scene: str, duration_s: float | None, lidar: str, fmt: str,
                          f"(got {imu_rate_hz})")
 
 
+def check_lidar_tilt(tilt_deg: float) -> None:
+    """``--lidar-tilt-deg`` within +-:data:`MAX_LIDAR_TILT_DEG`, else an ``InputError``."""
+    if not abs(tilt_deg) <= MAX_LIDAR_TILT_DEG:
+        raise InputError(f"--lidar-tilt-deg must be within +-{MAX_LIDAR_TILT_DEG:g} "
+                         f"(got {tilt_deg:g})")
+
+
 def build_trajectory(scene_obj, T_imu_lidar: np.ndarray, seed: int,
-                     handheld: HandheldMotion | None = None) -> Trajectory:
+                     handheld: HandheldMotion | None = None,
+                     lidar_tilt_deg: float = 0.0) -> Trajectory:
     """The walking trajectory of a scene for a seed (with a recorded walk's handheld motion
-    instead of the synthetic one when ``handheld`` is given)."""
+    instead of the synthetic one when ``handheld`` is given), with the LiDAR level on the
+    handle or pitched ``lidar_tilt_deg`` nose down (:func:`~adalio.sim.trajectory.
+    tilt_rig_lidar`), the IMU fixed to it by ``T_imu_lidar``."""
+    R_rig_imu = np.asarray(T_imu_lidar)[:3, :3].T
+    if lidar_tilt_deg:
+        R_rig_imu = tilt_rig_lidar(lidar_tilt_deg) @ R_rig_imu
     return Trajectory(scene_obj.waypoints_m, scene_obj.speed_limit_m_s,
-                      T_imu_lidar[:3, :3].T, seed=seed, fillet_m=scene_obj.fillet_m,
+                      R_rig_imu, seed=seed, fillet_m=scene_obj.fillet_m,
                       handheld=handheld)
 
 
@@ -191,7 +206,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
              lidar_rate_hz: float | None = None,
              imu_time_offset_s: float = 0.0,
              imu_scale_error_pct: float = 0.0,
-             people: int = 0) -> SimResult:
+             people: int = 0, lidar_tilt_deg: float = 0.0) -> SimResult:
     """Generate one sequence of ``scene`` into ``out_dir`` (created; the bag must not exist).
 
     ``duration_s`` None walks the whole route; shorter values truncate it (static start kept).
@@ -218,6 +233,11 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     ``people``: that many people walk along the route while the rig does (upright cylinders,
     :mod:`adalio.sim.people`; where and how fast each walks is drawn from the seed's own stream,
     so the scene, the motion and the noise stay as without them); ``meta.json`` says where.
+    ``lidar_tilt_deg``: the LiDAR sits pitched this much nose down on the handle (negative: nose
+    up; within +-90), about the walk's lateral axis, with the IMU fixed to it by ``T_imu_lidar``:
+    the hand's motion stays the same, the LiDAR's spin axis leans forward, and its view takes in
+    the floor ahead and the ceiling behind. ``config.yaml`` needs nothing for it (the extrinsic
+    is the same); ``meta.json`` says it.
     ``motion_from``: a TUM trajectory (>= 10 Hz) whose handheld motion replaces the synthetic
     one (:class:`adalio.sim.trajectory.HandheldMotion`; the seed picks where in it to start);
     ``"none"``: no hand motion at all, the route's own path and attitude (a robot's walk).
@@ -232,6 +252,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     _check_args(scene, duration_s, lidar, fmt, noise_scale, imu_rate_hz)
     check_imu_scale_error(imu_scale_error_pct)
     check_people(people)
+    check_lidar_tilt(lidar_tilt_deg)
     if not abs(imu_time_offset_s) <= MAX_IMU_TIME_OFFSET_S:
         raise InputError(f"--imu-time-offset-ms must be within +-{MAX_IMU_TIME_OFFSET_S * 1e3:g} "
                          f"ms (got {imu_time_offset_s * 1e3:g})")
@@ -246,7 +267,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
         raise InputError(f"{bag_path} already exists: delete it or choose another --out")
     handheld = None if motion_from is None else HandheldMotion.load(motion_from)
     scn = build_scene(scene, seed, **(scene_params or {}))
-    traj = build_trajectory(scn, T_il, seed, handheld)
+    traj = build_trajectory(scn, T_il, seed, handheld, lidar_tilt_deg)
     dur = math.floor(traj.duration_s * 10.0) / 10.0 if duration_s is None else float(duration_s)
     dur_ns = round(dur * 1e9)
     t0 = START_NS
@@ -275,7 +296,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     check_free_space(out_dir, need)
     walkers = People.along_route(scn.waypoints_m, int(people), seed)
     sim = SweepSimulator(caster, traj, model, T_il, t0, Occluder() if occluder else None,
-                         walkers)
+                         walkers, tilt_rig_lidar(lidar_tilt_deg) if lidar_tilt_deg else None)
     n_points = 0
     bar = None
     if progress:
@@ -348,7 +369,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
                                        else sensitivity[0]).tolist(),
         "imu_accel_sensitivity_error": (np.zeros((3, 3)) if sensitivity is None
                                         else sensitivity[1]).tolist(),
-        "people": walkers.as_dict(),
+        "people": walkers.as_dict(), "lidar_tilt_deg": float(lidar_tilt_deg),
         "gravity_m_s2": GRAVITY_M_S2, "n_scans": int(n_scans), "n_imu": len(t_imu),
         "n_points": int(n_points), "route_length_m": traj.route_length_m,
         "min_clearance_m": round(clearance, 4),

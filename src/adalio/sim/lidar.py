@@ -109,7 +109,8 @@ def lidar_model(name: str, columns: int | None = None,
 
 @dataclass
 class Occluder:
-    """Operator body as an axis-aligned box in the LiDAR frame (metres)."""
+    """Operator body as an axis-aligned box in the rig (handle) frame, around the LiDAR's origin
+    (metres): in the LiDAR frame when the LiDAR sits level on the handle."""
 
     lo: tuple[float, float, float] = (-0.42, -0.25, -0.9)
     hi: tuple[float, float, float] = (-0.22, 0.25, 0.25)
@@ -161,7 +162,8 @@ def beam_directions(model: LidarModel) -> np.ndarray:
 
 
 def _occluder_distance(dirs: np.ndarray, occ: Occluder) -> np.ndarray:
-    """Ray-box (slab) distance from the LiDAR origin in the LiDAR frame; inf if missed."""
+    """Ray-box (slab) distance from the LiDAR origin, ``dirs`` and the box in one frame; inf if
+    missed."""
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = 1.0 / dirs
         t0 = np.asarray(occ.lo) * inv
@@ -177,7 +179,10 @@ class SweepSimulator:
 
     def __init__(self, caster: RayCaster, traj: Trajectory, model: LidarModel,
                  T_imu_lidar: np.ndarray, t0_ns: int, occluder: Occluder | None = None,
-                 people: People | None = None) -> None:
+                 people: People | None = None, R_rig_lidar: np.ndarray | None = None) -> None:
+        """``R_rig_lidar``: how the LiDAR is tilted on the handle (None: level), which only
+        places the operator's body (``occluder``, a box in the rig frame) in the LiDAR's view;
+        the LiDAR's poses come from ``traj``'s IMU through ``T_imu_lidar``."""
         self.caster, self.traj, self.model, self.t0_ns = caster, traj, model, int(t0_ns)
         self.people = people if people is not None and people.count else None
         self.R_il = np.asarray(T_imu_lidar, dtype=np.float64)[:3, :3]
@@ -185,7 +190,9 @@ class SweepSimulator:
         self.dirs_lidar = beam_directions(model)
         self.dirs_flat = self.dirs_lidar.reshape(-1, 3)
         n = len(self.dirs_flat)
-        self.occ_dist = (_occluder_distance(self.dirs_flat, occluder) if occluder is not None
+        dirs_rig = self.dirs_flat if R_rig_lidar is None else \
+            self.dirs_flat @ np.asarray(R_rig_lidar, dtype=np.float64).T
+        self.occ_dist = (_occluder_distance(dirs_rig, occluder) if occluder is not None
                          else np.full(n, np.inf))
         K, C = model.channels, model.columns
         self.ring = np.tile(np.arange(K, dtype=np.uint16), C)

@@ -2,7 +2,8 @@
 
 Frames: ``world`` = scene frame (z up); ``rig`` = handle frame (x forward, z up) whose orientation
 is ``R_world_rig = Rz(yaw) Ry(pitch) Rx(roll)``; ``imu`` = IMU frame, ``R_world_imu =
-R_world_rig R_rig_imu`` with ``R_rig_imu = R_imu_lidarᵀ`` so the LiDAR stays upright and forward.
+R_world_rig R_rig_imu`` with ``R_rig_imu = R_rig_lidar R_imu_lidarᵀ``: the LiDAR upright and forward
+(``R_rig_lidar = I``), or tilted on the handle (:func:`tilt_rig_lidar`).
 Time ``t_s`` is seconds since the sequence start; the rig is exactly still for ``t_s <=
 static_s`` and moves along quintic B-splines of ``tau = t_s - static_s`` afterwards (first and
 second derivatives vanish at ``tau = 0``, so the motion is C2 everywhere).
@@ -313,6 +314,13 @@ class Trajectory:
     def euler_zyx(self, t_s: np.ndarray) -> np.ndarray:
         """(N, 3) yaw, pitch, roll of the rig (radians)."""
         return self._eval(self._eul, self._eul_d, np.atleast_1d(t_s))[0]
+
+
+def tilt_rig_lidar(tilt_deg: float) -> np.ndarray:
+    """``R_rig_lidar`` of a LiDAR pitched ``tilt_deg`` nose down on the handle: about the rig's
+    lateral (y) axis, so that its x axis points ``tilt_deg`` below the forward horizontal and its
+    spin axis leans forward by as much (negative: nose up)."""
+    return euler_zyx_to_matrix(np.array([[0.0, np.radians(tilt_deg), 0.0]]))[0]
 
 
 def euler_zyx_to_matrix(e: np.ndarray) -> np.ndarray:
