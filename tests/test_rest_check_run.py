@@ -84,7 +84,7 @@ def test_a_still_start_in_a_view_that_fixes_no_axis_is_not_refused(tmp_path):
     first 20 scans, nor from the whole walk's first 150)."""
     from adalio.sim import cached_sequence
 
-    sim = cached_sequence("corridor", seed=0, duration_s=5.0, columns=512, lidar_tilt_deg=30.0)
+    sim = cached_sequence("corridor", seed=0, duration_s=3.0, columns=512, lidar_tilt_deg=30.0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = run_bag(sim.bag_path, load_config(config_file=sim.config_path), tmp_path / "o",

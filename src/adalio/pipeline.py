@@ -213,6 +213,9 @@ class RunResult:
     extrinsic_rotation_gross_checked: Any = None
     """The gross rotation check's last estimate where it found no gross error (None: it could
     not estimate, or did not run: a moving start, or the rotation check off)."""
+    lidar_view: Any = None
+    """:class:`adalio.lio.lidar_view.LidarView`: how the LiDAR's spin axis leans from the
+    vertical and whether its beams see the horizontal all around (None: no filter pose)."""
     gyro_scale: Any = None
     """:class:`adalio.lio.gyro_scale.GyroScaleEstimate` the gyro scale check concluded on in
     this run (left after ``sensor.gyro_sensitivity``), or None."""
@@ -389,6 +392,10 @@ def _config_text(cfg: Config, odom: Any) -> str:
             if check.estimate is not None:
                 measured[f"{name}_unsettled_{unit}"] = value(check.estimate)
                 measured[f"{name}_unsettled_sigma_{unit}"] = sigma(check.estimate)
+    view = getattr(odom, "lidar_view", None)
+    if view is not None:  # the spin axis's lean from the vertical, the beams' elevations
+        measured["lidar_tilt_deg"] = round(view.tilt_deg, 2)
+        measured["lidar_beams_deg"] = [round(view.up_deg, 2), round(view.down_deg, 2)]
     if measured:
         import yaml
 
@@ -1100,7 +1107,8 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         extrinsic_translation=getattr(odom, "extrinsic_translation", None),
         extrinsic_translation_unsettled=getattr(odom, "extrinsic_translation_unsettled", None),
         extrinsic_rotation_gross=getattr(odom, "gross_rotation", None),
-        extrinsic_rotation_gross_checked=getattr(odom, "gross_rotation_checked", None))
+        extrinsic_rotation_gross_checked=getattr(odom, "gross_rotation_checked", None),
+        lidar_view=getattr(odom, "lidar_view", None))
     if not est_t and not interrupted and not (restart_on_offset and _calibration_off(odom)):
         raise InputError(_no_pose_reason(odom, n_in, lidar_topic, imu_topic, out,
                                          seq.stats.scans_late, start_s, bag_s))

@@ -533,6 +533,9 @@ def _summary(con: Console, res: Any, profile: bool, origin: str = "") -> None:
     ranges = _ranges_text(res.degenerate_ranges_s)
     con.print(f"degenerate scans: {res.n_degenerate}/{res.n_scans}"
               + (f" at {ranges}" if ranges else ""), highlight=False, soft_wrap=True)
+    view = getattr(res, "lidar_view", None)
+    if view is not None and not view.sees_horizon:  # a LiDAR pitched beyond its view
+        con.print(f"LiDAR view: {view.describe()}", highlight=False, soft_wrap=True)
     if getattr(res, "n_sigma_warn", 0):
         ext_m = getattr(res, "sigma_warn_extrinsic_m", 0.0)
         con.print(f"[yellow]at risk:[/] position sigma above {res.sigma_warn_m:g} m (scans.csv "

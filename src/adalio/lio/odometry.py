@@ -89,6 +89,7 @@ from adalio.lio.ieskf import (
 )
 from adalio.lio.ivox import IVox, hash_key3
 from adalio.lio.lever_arm import TranslationEstimate, estimate_translation
+from adalio.lio.lidar_view import LidarView, lidar_view
 from adalio.lio.local_surface import LocalSurface, disagrees
 from adalio.lio.map_uncertainty import MapProvenance, deskew_covariance, world_covariance
 from adalio.lio.measurement import (
@@ -505,6 +506,9 @@ class Odometry:
         one cell of any of its points: map.moving_body_m's test)."""
         self.init_report: InitReport | None = None
         """How the filter initialized (None until it has)."""
+        self.lidar_view: LidarView | None = None
+        """How the LiDAR's view lies against gravity, from the first map's scan (None until the
+        filter initialized): does it see the horizontal all around (:mod:`adalio.lio.lidar_view`)."""
         self._t_first_scan_ns: int | None = None
         self._scans_without_pose = 0
         """Scans handed to the initialization that left it uninitialized (no pose)."""
@@ -989,6 +993,7 @@ class Odometry:
                    stage_ms: dict[str, float], t_start: float, t0: float) -> Estimate:
         """The first scan after init goes into the map whole, with no update (§4)."""
         s = self._state
+        self.lidar_view = lidar_view(pts_e, s.R @ s.R_LI, s.g)
         p_world = points_to_world(pts_e, s.R, s.p, s.R_LI, s.t_LI)
         stored = self._ivox.add_points(p_world)
         if self._movers is not None:  # the anchor's map is the world: no probation
