@@ -13,6 +13,7 @@ from rosbags.highlevel import AnyReader
 from scipy.spatial.transform import Rotation, Slerp
 
 from adalio.errors import InputError
+from adalio.io.pointcloud2 import CloudLayout, decode_fields
 from adalio.sim import simulate
 from adalio.sim.generate import START_NS, T_IMU_LIDAR_HILTI, build_trajectory, mesh_distance_m
 from adalio.sim.lidar import Occluder, RayCaster, SweepSimulator, lidar_model
@@ -36,14 +37,11 @@ def _read(bag_path):
 
 
 def _xyzt(msg):
-    offs = {f.name: f.offset for f in msg.fields}
-    dt = np.dtype({"names": ["x", "y", "z", "t"], "formats": ["<f4", "<f4", "<f4", "<f8"],
-                   "offsets": [offs["x"], offs["y"], offs["z"], offs["timestamp"]],
-                   "itemsize": msg.point_step})
-    arr = np.frombuffer(msg.data.tobytes(), dtype=dt)
-    xyz = np.column_stack([arr["x"], arr["y"], arr["z"]]).astype(np.float64)
+    """The cloud's points (LiDAR frame) and absolute times (s), beyond 0.5 m."""
+    f = decode_fields(msg.data, CloudLayout.from_msg(msg), ["x", "y", "z", "timestamp"])
+    xyz = np.column_stack([f["x"], f["y"], f["z"]]).astype(np.float64)
     keep = np.linalg.norm(xyz, axis=1) > 0.5
-    return xyz[keep], arr["t"][keep]
+    return xyz[keep], f["timestamp"][keep]
 
 
 @pytest.fixture(scope="module")
