@@ -57,10 +57,10 @@ def lidar_view(points_lidar: np.ndarray, R_world_lidar: np.ndarray,
                g_world: np.ndarray) -> LidarView | None:
     """The view of a scan's points (LiDAR frame, any order) on a LiDAR at ``R_world_lidar``
     under gravity ``g_world``. None without points or gravity."""
-    pts = np.asarray(points_lidar, dtype=np.float64)
+    pts = np.asarray(points_lidar, dtype=np.float64).reshape(-1, 3)
     g = np.asarray(g_world, dtype=np.float64)
-    horiz = np.hypot(pts[:, 0], pts[:, 1]) if pts.size else np.zeros(0)
-    keep = (horiz > 0) | (pts[:, 2] != 0) if pts.size else np.zeros(0, dtype=bool)
+    horiz = np.hypot(pts[:, 0], pts[:, 1])
+    keep = (horiz > 0) | (pts[:, 2] != 0)
     if not keep.any() or not np.linalg.norm(g) > 0:
         return None
     elev = np.degrees(np.arctan2(pts[keep, 2], horiz[keep]))
