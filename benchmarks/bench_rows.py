@@ -48,7 +48,7 @@ from adalio.sim import SCENES
 from adalio.sim.generate import START_NS, T_IMU_LIDAR_HILTI, build_trajectory
 from adalio.sim.lidar import LIDAR_MODELS, RayCaster, SweepSimulator, lidar_model
 from adalio.sim.scenes import build_scene
-from adalio.sim.trajectory import HandheldMotion, tilt_rig_lidar
+from adalio.sim.trajectory import HandheldMotion
 
 WINDOWS_S = {"hall": (6.0, 12.0), "corridor": (6.0, 12.0), "spiral": (24.0, 30.0),
              "stairs_garage": (8.0, 14.0)}
@@ -112,8 +112,7 @@ def census(scene: str, seed: int, lidar: str, columns: int, t0_s: float, t1_s: f
     scn = build_scene(scene, seed)
     traj = build_trajectory(scn, T_il, seed, handheld, lidar_tilt_deg)
     model = lidar_model(lidar, columns, lidar_rate_hz)
-    sim = SweepSimulator(RayCaster(scn.mesh, seed), traj, model, T_il, START_NS,
-                         R_rig_lidar=tilt_rig_lidar(lidar_tilt_deg) if lidar_tilt_deg else None)
+    sim = SweepSimulator(RayCaster(scn.mesh, seed), traj, model, T_il, START_NS)
     period_s = model.period_ns * 1e-9
 
     def lidar_pose(t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

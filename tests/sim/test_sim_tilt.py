@@ -87,7 +87,7 @@ def test_the_operator_s_body_stays_upright_behind_a_tilted_lidar():
     T = np.asarray(T_IMU_LIDAR_HILTI)
     R_rl = tilt_rig_lidar(TILT_DEG)
     sim = SweepSimulator(RayCaster(scn.mesh), build_trajectory(scn, T, 0, None, TILT_DEG),
-                         lidar_model("xt32", 512), T, START_NS, Occluder(), R_rig_lidar=R_rl)
+                         lidar_model("xt32", 512), T, START_NS, Occluder())
     sw = sim.sweep(START_NS, np.random.default_rng(0), noise_scale=0.0)
     body = sw.valid & (sw.face == -1)
     assert body.sum() > 50

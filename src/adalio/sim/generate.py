@@ -138,9 +138,7 @@ def build_trajectory(scene_obj, T_imu_lidar: np.ndarray, seed: int,
     instead of the synthetic one when ``handheld`` is given), with the LiDAR level on the
     handle or pitched ``lidar_tilt_deg`` nose down (:func:`~adalio.sim.trajectory.
     tilt_rig_lidar`), the IMU fixed to it by ``T_imu_lidar``."""
-    R_rig_imu = np.asarray(T_imu_lidar)[:3, :3].T
-    if lidar_tilt_deg:
-        R_rig_imu = tilt_rig_lidar(lidar_tilt_deg) @ R_rig_imu
+    R_rig_imu = tilt_rig_lidar(lidar_tilt_deg) @ np.asarray(T_imu_lidar)[:3, :3].T
     return Trajectory(scene_obj.waypoints_m, scene_obj.speed_limit_m_s,
                       R_rig_imu, seed=seed, fillet_m=scene_obj.fillet_m,
                       handheld=handheld)
@@ -296,7 +294,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     check_free_space(out_dir, need)
     walkers = People.along_route(scn.waypoints_m, int(people), seed)
     sim = SweepSimulator(caster, traj, model, T_il, t0, Occluder() if occluder else None,
-                         walkers, tilt_rig_lidar(lidar_tilt_deg) if lidar_tilt_deg else None)
+                         walkers)
     n_points = 0
     bar = None
     if progress:

@@ -179,10 +179,11 @@ class SweepSimulator:
 
     def __init__(self, caster: RayCaster, traj: Trajectory, model: LidarModel,
                  T_imu_lidar: np.ndarray, t0_ns: int, occluder: Occluder | None = None,
-                 people: People | None = None, R_rig_lidar: np.ndarray | None = None) -> None:
-        """``R_rig_lidar``: how the LiDAR is tilted on the handle (None: level), which only
-        places the operator's body (``occluder``, a box in the rig frame) in the LiDAR's view;
-        the LiDAR's poses come from ``traj``'s IMU through ``T_imu_lidar``."""
+                 people: People | None = None) -> None:
+        """The LiDAR's poses come from ``traj``'s IMU through ``T_imu_lidar``; the operator's
+        body (``occluder``, a box in the rig frame) is seen through the LiDAR's attitude on the
+        handle, ``traj.R_rig_imu`` ``R_imu_lidar`` (level, or tilted:
+        :func:`adalio.sim.trajectory.tilt_rig_lidar`)."""
         self.caster, self.traj, self.model, self.t0_ns = caster, traj, model, int(t0_ns)
         self.people = people if people is not None and people.count else None
         self.R_il = np.asarray(T_imu_lidar, dtype=np.float64)[:3, :3]
@@ -190,8 +191,7 @@ class SweepSimulator:
         self.dirs_lidar = beam_directions(model)
         self.dirs_flat = self.dirs_lidar.reshape(-1, 3)
         n = len(self.dirs_flat)
-        dirs_rig = self.dirs_flat if R_rig_lidar is None else \
-            self.dirs_flat @ np.asarray(R_rig_lidar, dtype=np.float64).T
+        dirs_rig = self.dirs_flat @ (traj.R_rig_imu @ self.R_il).T
         self.occ_dist = (_occluder_distance(dirs_rig, occluder) if occluder is not None
                          else np.full(n, np.inf))
         K, C = model.channels, model.columns
