@@ -45,7 +45,7 @@ from adalio.lio.odometry import _Association
 from adalio.lio.state import State
 from adalio.lio.voxel import voxel_downsample
 from adalio.sim import SCENES
-from adalio.sim.generate import START_NS, T_IMU_LIDAR_HILTI, build_trajectory
+from adalio.sim.generate import START_NS, T_IMU_LIDAR_HILTI, build_trajectory, check_lidar_tilt
 from adalio.sim.lidar import LIDAR_MODELS, RayCaster, SweepSimulator, lidar_model
 from adalio.sim.scenes import build_scene
 from adalio.sim.trajectory import HandheldMotion
@@ -230,6 +230,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg = load_config(overrides=parse_overrides(args.set))
     try:
         model = lidar_model(args.lidar, args.columns, args.lidar_rate)
+        check_lidar_tilt(args.lidar_tilt_deg)
     except InputError as exc:
         raise SystemExit(f"error: {exc}") from None
     try:
