@@ -508,9 +508,9 @@ CASES: list[Case] = [
     Case("no_imu_topic", bag_case(drop_topic(IMU), use_config=False), "error",
          ("has no sensor_msgs/Imu topic",)),
     Case("no_lidar_topic", bag_case(drop_topic(LIDAR), use_config=False), "error",
-         ("has no sensor_msgs/PointCloud2 topic",)),
+         ("has no sensor_msgs/PointCloud2 or Livox CustomMsg topic",)),
     Case("two_lidar_topics", bag_case(second_lidar, use_config=False), "error",
-         ("several sensor_msgs/PointCloud2 topics", "--lidar-topic")),
+         ("several sensor_msgs/PointCloud2 or Livox CustomMsg topics", "--lidar-topic")),
     # clouds
     Case("cloud_without_xyz", bag_case(clouds(renamed_xyz)), "error",
          (f"PointCloud2 on {LIDAR} has no x/y/z field",)),

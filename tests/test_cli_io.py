@@ -109,7 +109,7 @@ def test_missing_and_ambiguous_topics(monkeypatch, capsys, tmp_path, rig):
         w.add_cloud("/a", bf.T0_NS, cols, layout, 16)
         w.add_cloud("/b", bf.T0_NS, cols, layout, 16)
     code, _, err = run_cli(monkeypatch, capsys, "run", two)
-    assert_one_line_error(code, err, "several sensor_msgs/PointCloud2 topics (/a, /b)",
+    assert_one_line_error(code, err, "several sensor_msgs/PointCloud2 or Livox CustomMsg topics (/a, /b)",
                           "--lidar-topic")
     code, _, err = run_cli(monkeypatch, capsys, "run", two, "--lidar-topic", "/a")
     assert_one_line_error(code, err, "has no sensor_msgs/Imu topic")

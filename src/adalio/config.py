@@ -46,7 +46,7 @@ class SensorConfig:
     """Topics, extrinsic and time handling of the LiDAR + IMU rig."""
 
     lidar_topic: str = ""
-    """PointCloud2 topic; empty = auto-detect (the only PointCloud2 topic of the bag)."""
+    """PointCloud2 or Livox CustomMsg topic; empty = auto-detect (the bag's only such topic)."""
     imu_topic: str = ""
     """sensor_msgs/Imu topic; empty = auto-detect (the only Imu topic of the bag)."""
     T_imu_lidar: list[list[float]] = field(default_factory=_identity4)

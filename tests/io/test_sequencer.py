@@ -427,7 +427,7 @@ def test_a_sequencer_on_a_topic_the_bag_lacks_says_so(tmp_path):
     rig = bf.write_static_rig(tmp_path / "rig.bag", duration_s=0.5, columns=30)
     with Bag(rig) as b:
         with pytest.raises(BagError, match=r"topic /point is not in .*rig\.bag; "
-                                           r"sensor_msgs/PointCloud2 topics in the bag: /points "
+                                           r"sensor_msgs/PointCloud2 or Livox CustomMsg topics in the bag: /points "
                                            r"\(Sequencer's lidar_topic\)"):
             Sequencer(b, "/point", "/imu")
         with pytest.raises(BagError, match=r"topic /points in .*rig\.bag is "

@@ -1,8 +1,11 @@
 """Opening ROS bags with rosbags (no ROS install): ROS1 ``.bag`` (or a folder of split ``.bag``
 files), ROS2 bag folders (sqlite3 or mcap storage) and bare ``.mcap`` / ``.db3`` files.
 
-Topic discovery (the LiDAR ``sensor_msgs/PointCloud2`` and ``sensor_msgs/Imu`` topics), message
-iteration in bag (receive-time) order, and the static transforms of ``/tf_static``. Times are
+Topic discovery (the LiDAR ``sensor_msgs/PointCloud2`` or Livox ``CustomMsg`` and the
+``sensor_msgs/Imu`` topics), message iteration in bag (receive-time) order, and the static
+transforms of ``/tf_static``. Livox ``CustomMsg`` s come out as
+:class:`~adalio.io.livox.LivoxCloud` (read from the bytes with numpy, not as Python objects per
+point). Times are
 int64 nanoseconds; ``T_a_b`` maps points of frame ``b`` into frame ``a``. Every failure of the
 underlying reader becomes a one-line :class:`~adalio.errors.BagError`.
 """
@@ -21,8 +24,12 @@ import numpy as np
 
 from adalio.config import SensorConfig
 from adalio.errors import BagError
+from adalio.io.livox import LIVOX_TYPES, is_livox_type, parse_custom_msg, register_livox_types
 
 POINTCLOUD2_TYPES = ("sensor_msgs/msg/PointCloud2", "sensor_msgs/PointCloud2")
+LIDAR_TYPES = POINTCLOUD2_TYPES + LIVOX_TYPES
+"""The message types a LiDAR topic may have."""
+LIDAR_WHAT = "sensor_msgs/PointCloud2 or Livox CustomMsg"
 IMU_TYPES = ("sensor_msgs/msg/Imu", "sensor_msgs/Imu")
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf2_msgs/TFMessage", "tf/msg/tfMessage")
 
@@ -43,13 +50,16 @@ def ros1_typestore() -> Any:
     store = get_typestore(Stores.ROS1_NOETIC)
     if "tf2_msgs/msg/TFMessage" not in store.types:
         store.register(get_types_from_msg(TFMESSAGE_MSGDEF, "tf2_msgs/msg/TFMessage"))
+    register_livox_types(store)
     return store
 
 
 def ros2_typestore() -> Any:
     from rosbags.typesys import Stores, get_typestore
 
-    return get_typestore(Stores.ROS2_HUMBLE)
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    register_livox_types(store)
+    return store
 
 
 @dataclass
@@ -329,8 +339,8 @@ class Bag:
     def select_topics(self, sensor: SensorConfig) -> tuple[str, str]:
         """(lidar_topic, imu_topic) from the config or auto-detected; BagError if missing or
         ambiguous."""
-        lidar = self.select_topic(sensor.lidar_topic, POINTCLOUD2_TYPES, "sensor_msgs/PointCloud2",
-                             "--lidar-topic / sensor.lidar_topic")
+        lidar = self.select_topic(sensor.lidar_topic, LIDAR_TYPES, LIDAR_WHAT,
+                                  "--lidar-topic / sensor.lidar_topic")
         imu = self.select_topic(sensor.imu_topic, IMU_TYPES, "sensor_msgs/Imu",
                            "--imu-topic / sensor.imu_topic")
         return lidar, imu
@@ -357,7 +367,8 @@ class Bag:
                             return
                         continue
                     left[conn.topic] -= 1
-                msg = reader.deserialize(raw, conn.msgtype)
+                msg = parse_custom_msg(raw, self.is_ros2) if is_livox_type(conn.msgtype) \
+                    else reader.deserialize(raw, conn.msgtype)
             except StopIteration:
                 return
             except Exception as exc:  # noqa: BLE001  (damaged data surfaces as any type)
@@ -367,6 +378,10 @@ class Bag:
                                "far are kept)") from None
             self._last_t = int(t_ns)
             yield conn.topic, int(t_ns), msg
+
+    def msgtype(self, topic: str) -> str:
+        """The topic's message type (``pkg/msg/Name``), or '' if the bag has no such topic."""
+        return next((t.msgtype for t in self.topics() if t.name == topic), "")
 
     def first_message(self, topic: str) -> Any | None:
         for _, _, msg in self.messages([topic], limit=1):

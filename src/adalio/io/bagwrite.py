@@ -2,7 +2,8 @@
 mcap folders, and bare ``.mcap`` files.
 
 Messages: ``sensor_msgs/Imu`` (rad/s, m/s^2, IMU frame), ``sensor_msgs/PointCloud2`` (columns
-packed by :func:`~adalio.io.pointcloud2.encode_pointcloud2`) and ``tf2_msgs/TFMessage`` on
+packed by :func:`~adalio.io.pointcloud2.encode_pointcloud2`), Livox ``CustomMsg``
+(:meth:`BagWriter.add_livox`) and ``tf2_msgs/TFMessage`` on
 ``/tf_static`` (``T_parent_child``). Times are int64 ns; the receive time defaults to the stamp.
 """
 
@@ -127,6 +128,19 @@ class BagWriter:
         width = n // height if height > 0 else 0
         self.add_cloud_bytes(topic, stamp_ns, data, fields, point_step, width, height,
                              big_endian, frame_id, t_recv_ns=t_recv_ns)
+
+    def add_livox(self, topic: str, cloud: Any, t_recv_ns: int | None = None,
+                  msgtype: str | None = None) -> None:
+        """Write one Livox ``CustomMsg`` (:class:`~adalio.io.livox.LivoxCloud`), serialized
+        with numpy; the type is ``livox_ros_driver/msg/CustomMsg`` in a ROS1 bag and
+        ``livox_ros_driver2/msg/CustomMsg`` in a ROS2 one unless ``msgtype`` says."""
+        from adalio.io.livox import build_custom_msg
+
+        msgtype = msgtype or ("livox_ros_driver/msg/CustomMsg" if self.fmt == "ros1"
+                              else "livox_ros_driver2/msg/CustomMsg")
+        data = build_custom_msg(cloud, ros2=self.fmt != "ros1")
+        self._writer.write(self._conn(topic, msgtype),
+                           int(cloud.stamp_ns if t_recv_ns is None else t_recv_ns), data)
 
     def add_tf_static(self, transforms: list[tuple[str, str, np.ndarray]], t_ns: int,
                       topic: str = "/tf_static") -> None:

@@ -75,13 +75,14 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
                                                     "to apply.")] = None,
          config: Annotated[Path | None, typer.Option("--config", help="YAML config file.")]
          = None,
-         lidar_topic: Annotated[str | None, typer.Option(help="PointCloud2 topic.")] = None,
+         lidar_topic: Annotated[str | None, typer.Option(
+             help="PointCloud2 or Livox CustomMsg topic.")] = None,
          imu_topic: Annotated[str | None, typer.Option(help="sensor_msgs/Imu topic.")] = None,
          sample: Annotated[int, typer.Option(help="Scans decoded for the statistics.")] = 5,
          ) -> None:
     """Show a bag's topics, duration, the topics a run would use and the per-point time format."""
     from adalio.io.bag import Bag
-    from adalio.io.pointcloud2 import CloudDecoder
+    from adalio.io.livox import LivoxCloud, lidar_decoder
     from adalio.io.sequencer import accel_is_in_g, imu_msg_arrays
 
     if sample < 1:
@@ -108,7 +109,7 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
             out.print(f"[yellow]topics:[/] {exc}", highlight=False, soft_wrap=True)
             return
         out.print(f"would use: lidar [bold]{lidar}[/], imu [bold]{imu}[/]")
-        dec = CloudDecoder(cfg.sensor, lidar)
+        dec = lidar_decoder(b.msgtype(lidar), cfg.sensor, lidar)
         counts = []
         layout = ""
         n_sample = sample
@@ -121,7 +122,11 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
                 if _msg_key(t_ns, msg) in seen:
                     continue
                 seen.add(_msg_key(t_ns, msg))
-                if not layout:
+                if not layout and isinstance(msg, LivoxCloud):
+                    layout = ("Livox CustomMsg: offset_time (ns after timebase), x, y, z, "
+                              "reflectivity, tag, line")
+                    frame = msg.frame_id
+                elif not layout:
                     layout = ", ".join(f"{f.name}@{f.offset}:{f.datatype}" for f in msg.fields) \
                         + f" (point_step {msg.point_step}, {msg.height}x{msg.width}, " \
                         f"{'big' if msg.is_bigendian else 'little'}-endian)"
@@ -171,6 +176,8 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
 
 def _msg_key(receive_ns: int, msg: Any) -> tuple[int, int, int]:
     """A message met twice by ``info``'s sampling (receive time and header stamp)."""
+    if hasattr(msg, "stamp_ns"):  # a Livox CustomMsg (LivoxCloud)
+        return receive_ns, *divmod(int(msg.stamp_ns), 1_000_000_000)
     return receive_ns, int(msg.header.stamp.sec), int(msg.header.stamp.nanosec)
 
 
@@ -198,7 +205,8 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
         = None,
         config: Annotated[Path | None, typer.Option("--config", help="YAML config file.")]
         = None,
-        lidar_topic: Annotated[str | None, typer.Option(help="PointCloud2 topic.")] = None,
+        lidar_topic: Annotated[str | None, typer.Option(
+            help="PointCloud2 or Livox CustomMsg topic.")] = None,
         imu_topic: Annotated[str | None, typer.Option(help="sensor_msgs/Imu topic.")] = None,
         extrinsic: Annotated[str | None, typer.Option(
             help="T_imu_lidar as 'tx ty tz qx qy qz qw' (maps LiDAR points into the IMU "

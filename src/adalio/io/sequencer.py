@@ -25,8 +25,9 @@ import numpy as np
 
 from adalio.config import SensorConfig
 from adalio.errors import BagError, InputError
-from adalio.io.bag import IMU_TYPES, POINTCLOUD2_TYPES, Bag
-from adalio.io.pointcloud2 import CloudDecoder, stamp_to_ns
+from adalio.io.bag import IMU_TYPES, LIDAR_TYPES, LIDAR_WHAT, Bag
+from adalio.io.livox import lidar_decoder
+from adalio.io.pointcloud2 import stamp_to_ns
 from adalio.types import ImuBatch, Scan
 
 IMU_LOOKAHEAD_NS = 50_000_000
@@ -568,8 +569,7 @@ class Sequencer:
     def __init__(self, bag: Bag, lidar_topic: str, imu_topic: str,
                  sensor: SensorConfig | None = None, *, imu_chunk: int = 64,
                  lookahead_ns: int = IMU_LOOKAHEAD_NS, start_ns: int | None = None) -> None:
-        bag.select_topic(lidar_topic, POINTCLOUD2_TYPES, "sensor_msgs/PointCloud2",
-                         "Sequencer's lidar_topic")
+        bag.select_topic(lidar_topic, LIDAR_TYPES, LIDAR_WHAT, "Sequencer's lidar_topic")
         bag.select_topic(imu_topic, IMU_TYPES, "sensor_msgs/Imu", "Sequencer's imu_topic")
         self.bag = bag
         self.start_ns = start_ns
@@ -577,7 +577,7 @@ class Sequencer:
         self.lidar_topic = lidar_topic
         self.imu_topic = imu_topic
         self.sensor = sensor or SensorConfig()
-        self.decoder = CloudDecoder(self.sensor, lidar_topic)
+        self.decoder = lidar_decoder(bag.msgtype(lidar_topic), self.sensor, lidar_topic)
         self.stats = SequencerStats()
         self.imu_chunk = imu_chunk
         self.lookahead_ns = lookahead_ns
@@ -656,7 +656,7 @@ class Sequencer:
                     scan = self.decoder.decode(msg)
                 except (AttributeError, TypeError):
                     raise BagError(f"messages on {self.lidar_topic} are not "
-                                   "sensor_msgs/PointCloud2") from None
+                                   f"{LIDAR_WHAT}") from None
                 held.append(scan)
                 if not clock.done and len(scan):
                     clock.add_scan(t_recv, scan.t_end_ns)
