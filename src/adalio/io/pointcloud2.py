@@ -13,7 +13,9 @@ that an all-empty topic can be explained. A configured time unit/reference that 
 times (a cloud spanning more than ``MAX_SPAN_SWEEPS`` sweeps, times hours from the header stamp)
 is refused on the first cloud, naming the field and the unit. A cloud without a time field
 gets times reconstructed from the azimuth of a spinning LiDAR (clockwise seen from above, one
-sweep = ``1 / sensor.lidar_rate_hz``), starting at the header stamp.
+sweep = ``1 / sensor.lidar_rate_hz``), starting at the header stamp; a Livox driver's cloud
+without one (fields ``tag`` and ``line``: ``livox_ros_driver``'s PointCloud2) gets them spread
+evenly over the frame in the points' order, as the LiDAR fires them at a constant rate.
 """
 
 from __future__ import annotations
@@ -236,7 +238,8 @@ class TimeSpec:
 
     def describe(self) -> str:
         if self.field is None:
-            return "none (reconstructed from azimuth)"
+            return "none (spread over the frame in firing order)" \
+                if self.reference == "firing order" else "none (reconstructed from azimuth)"
         how = "detected" if self.detected else "from config"
         return f"'{self.field}' in {self.unit}, {self.reference} ({how})"
 
@@ -356,6 +359,19 @@ def azimuth_times_ns(points: np.ndarray, stamp_ns: int, lidar_rate_hz: float) ->
     swept = np.mod(az[0] - az, 2.0 * np.pi)
     sweep_ns = 1e9 / max(lidar_rate_hz, 1e-3)
     return np.int64(stamp_ns) + np.rint(swept / (2.0 * np.pi) * sweep_ns).astype(np.int64)
+
+
+def firing_order_times_ns(n: int, stamp_ns: int, lidar_rate_hz: float) -> np.ndarray:
+    """Per-point times of a LiDAR that fires at a constant rate and sends its points in firing
+    order (Livox): point ``i`` of ``n`` at ``stamp + i / n`` of one frame (``1 /
+    lidar_rate_hz``)."""
+    frame_ns = 1e9 / max(lidar_rate_hz, 1e-3)
+    return np.int64(stamp_ns) + np.rint(np.arange(n) * (frame_ns / max(n, 1))).astype(np.int64)
+
+
+LIVOX_FIELDS = ("tag", "line")
+"""A PointCloud2 with both fields is a Livox driver's (``livox_ros_driver``'s has no time field:
+its points come in firing order, not azimuth order)."""
 
 
 def stamp_to_ns(stamp: Any) -> int:
@@ -547,23 +563,28 @@ class CloudDecoder:
                                         self.sensor, self.topic)
                     t_ns = times_to_ns(raw_t, spec, stamp_ns)
                     ok &= t_ns != np.iinfo(np.int64).min
+        livox = all(f in names for f in LIVOX_FIELDS)
         if t_ns is None:
             if self.time_spec is None or self.time_spec.field is not None:
-                self.time_spec = TimeSpec(None, "ns", "relative",
+                self.time_spec = TimeSpec(None, "ns", "firing order" if livox else "relative",
                                           detected=self.sensor.point_time_field == "auto")
             if not self._warned_azimuth:
                 self._warned_azimuth = True
                 why = f"its time field '{tfield}' is constant" if tfield else \
                     "it has no per-point time field"
-                warnings.warn(f"PointCloud2 on {self.topic or '?'}: {why}; times reconstructed "
-                              f"from azimuth at {self.sensor.lidar_rate_hz} Hz (set "
-                              "sensor.point_time_field if it has one)", stacklevel=2)
+                how = ("spread over the frame in the points' order (a Livox driver's cloud, "
+                       "fields tag and line: a constant firing rate, no azimuth order)"
+                       if livox else "reconstructed from azimuth")
+                warnings.warn(f"PointCloud2 on {self.topic or '?'}: {why}; times {how} at "
+                              f"{self.sensor.lidar_rate_hz} Hz (set sensor.point_time_field if "
+                              "it has one)", stacklevel=2)
         n_total = int(pts.shape[0])
         pts = pts[ok]
         self.stats.add(n_total, n_nonfinite, n_zero, n_xyz_ok - int(pts.shape[0]),
                        int(pts.shape[0]))
         if t_ns is None:
-            t_ns = azimuth_times_ns(pts, stamp_ns, self._turn_hz)
+            t_ns = firing_order_times_ns(n_total, stamp_ns, self._turn_hz)[ok] if livox \
+                else azimuth_times_ns(pts, stamp_ns, self._turn_hz)
             self._check_turn_rate(t_ns, int(stamp_ns))
         else:
             t_ns = t_ns[ok]
