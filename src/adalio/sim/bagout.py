@@ -10,8 +10,15 @@ sweep start; the bag record time of a sweep is its end. sensor_msgs/Imu: orienta
 (covariance[0] = -1). Velodyne VLP-16 (``/velodyne_points``, the ROS driver's ``PointXYZIRT``):
 unorganized cloud of valid returns, packed fields x, y, z, intensity (f32 @0,4,8,12), ring (u16
 @16, 0 = the lowest beam as the driver numbers them), time (f32 seconds relative to the header
-stamp @18), point_step 22. mcap bags are written with zstd-compressed chunks (about 4x smaller for
-simulated clouds; rosbags, ros2 bag and Foxglove read them transparently).
+stamp @18), point_step 22. Livox Mid-360-like (``/livox/lidar``): Livox's own ``CustomMsg``
+(``livox_ros_driver/msg/CustomMsg`` in ROS1 bags, ``livox_ros_driver2/msg/CustomMsg`` in ROS2
+ones, as FAST-LIO users record them; :mod:`adalio.io.livox`): the valid returns in firing
+order, ``timebase`` = the frame's first firing (absolute ns) = the header stamp, per point
+``offset_time`` (u32 ns after it), x, y, z, ``reflectivity`` (the intensity, 0-255), ``tag`` 0
+(first return), ``line`` (the laser, 0-3); its IMU's accelerometer in g, as Livox's drivers
+publish it (:attr:`~adalio.sim.lidar.LidarModel.imu_accel_unit`). mcap bags are written with
+zstd-compressed chunks (about 4x smaller for simulated clouds; rosbags, ros2 bag and Foxglove
+read them transparently).
 """
 
 from __future__ import annotations
@@ -22,6 +29,13 @@ from typing import Self
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
+from adalio.io.livox import (
+    LIVOX_TYPES,
+    LivoxCloud,
+    build_custom_msg,
+    livox_points,
+    register_livox_types,
+)
 from adalio.io.pointcloud2 import encode_pointcloud2
 from adalio.sim.lidar import LidarModel, SweepPoints
 
@@ -37,6 +51,9 @@ VELODYNE_LAYOUT = [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("intensity",
 POINT_STEP = 48
 """Bytes a point of the XT-32 and Ouster layouts; the largest of all layouts."""
 VELODYNE_POINT_STEP = 22
+STANDARD_GRAVITY_M_S2 = 9.80665
+"""One g, as an IMU publishing its accelerometer in g (Livox's) scales it and adalio's reader
+converts it back."""
 
 
 def bag_path_for(out_dir: Path, stem: str, fmt: str) -> Path:
@@ -79,8 +96,13 @@ class SimBagWriter:
         self._writer.open()
         self._conn_imu = self._writer.add_connection(self.model.imu_topic, "sensor_msgs/msg/Imu",
                                                      typestore=self.typestore)
-        self._conn_lidar = self._writer.add_connection(
-            self.model.lidar_topic, "sensor_msgs/msg/PointCloud2", typestore=self.typestore)
+        if self.model.driver == "livox":
+            register_livox_types(self.typestore)
+            lidar_type = LIVOX_TYPES[0 if self.ros1 else 1]
+        else:
+            lidar_type = "sensor_msgs/msg/PointCloud2"
+        self._conn_lidar = self._writer.add_connection(self.model.lidar_topic, lidar_type,
+                                                       typestore=self.typestore)
         return self
 
     def __exit__(self, *exc) -> None:
@@ -97,8 +119,12 @@ class SimBagWriter:
 
     def write_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
                   stamp_offset_ns: int = 0) -> None:
-        """Write IMU samples (absolute int64 ns sample times, IMU frame), recorded at their
-        time and stamped ``stamp_offset_ns`` later (an IMU clock running ahead of the LiDAR's)."""
+        """Write IMU samples (absolute int64 ns sample times, IMU frame; the accelerometer in
+        m/s^2, written in the model's :attr:`~adalio.sim.lidar.LidarModel.imu_accel_unit`),
+        recorded at their time and stamped ``stamp_offset_ns`` later (an IMU clock running ahead
+        of the LiDAR's)."""
+        if self.model.imu_accel_unit == "g":
+            accel = np.asarray(accel) / STANDARD_GRAVITY_M_S2
         ocov = np.zeros(9)
         ocov[0] = -1.0
         zero9 = np.zeros(9)
@@ -116,6 +142,8 @@ class SimBagWriter:
 
     def write_sweep(self, sweep: SweepPoints, stamp_ns: int, record_ns: int) -> int:
         """Write one sweep; returns the number of points in the message."""
+        if self.model.driver == "livox":
+            return self._write_custom_msg(sweep, stamp_ns, record_ns)
         if self.model.driver == "ouster":
             C, K = self.model.columns, self.model.channels
             order = np.arange(C * K).reshape(C, K).T.ravel()
@@ -153,3 +181,19 @@ class SimBagWriter:
                            self._serialize(msg, "sensor_msgs/msg/PointCloud2"))
         self.n_scans += 1
         return height * width
+
+    def _write_custom_msg(self, sweep: SweepPoints, stamp_ns: int, record_ns: int) -> int:
+        """Write one frame as a Livox ``CustomMsg``: its valid returns in firing order,
+        ``timebase`` and header stamp ``stamp_ns`` (the frame's first firing)."""
+        v = sweep.valid
+        pts = livox_points((sweep.t_ns[v] - stamp_ns).astype(np.uint32), sweep.xyz_lidar_m[v],
+                           np.clip(sweep.intensity[v], 0, 255).astype(np.uint8),
+                           np.zeros(int(v.sum()), np.uint8), sweep.ring[v].astype(np.uint8))
+        cloud = LivoxCloud(stamp_ns=int(stamp_ns), frame_id=self.model.lidar_frame,
+                           timebase_ns=int(stamp_ns), points=pts)
+        seq = self._seq["lidar"]
+        self._seq["lidar"] += 1
+        self._writer.write(self._conn_lidar, record_ns,
+                           build_custom_msg(cloud, ros2=not self.ros1, seq=seq))
+        self.n_scans += 1
+        return len(pts)

@@ -1,15 +1,19 @@
-"""Spinning multi-beam LiDAR model, ray-cast through Embree with per-column motion.
+"""LiDAR models, spinning multi-beam and non-repetitive (Livox), ray-cast through Embree with
+per-firing motion.
 
 Frames: ``lidar`` = sensor frame (x forward at azimuth 0, z up along the spin axis); rays start at
-the LiDAR origin. Every column of a sweep is fired at its own time ``t_start + c * T / C`` from
-the sensor pose at that time (real motion distortion); the returned points are expressed in the
-LiDAR frame at their firing time, exactly like a driver without deskewing. Ranges in metres,
-times in int64 ns. Ring 0 is the top beam. Ray casting: Embree via
+the LiDAR origin. Every column of a spinning head's sweep is fired at its own time
+``t_start + c * T / C`` from the sensor pose at that time (real motion distortion); every point
+of a non-repetitive frame (:func:`non_repetitive_directions`) at its own time
+``t_start + i * T / N``. The returned points are expressed in the LiDAR frame at their firing
+time, exactly like a driver without deskewing. Ranges in metres, times in int64 ns. Ring 0 is the
+top beam (a non-repetitive model's ring: the laser). Ray casting: Embree via
 ``trimesh.ray.ray_pyembree.RayMeshIntersector`` (embreex), one call per sweep.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -27,15 +31,19 @@ PERSON_ALBEDO = 0.35
 
 @dataclass(frozen=True)
 class LidarModel:
-    """Geometry and noise of a spinning LiDAR."""
+    """Geometry and noise of a spinning or a non-repetitive (``lasers`` set) LiDAR."""
 
     name: str
     elevations_deg: tuple[float, ...]
-    """Beam elevations, ring 0 first (top)."""
+    """Beam elevations, ring 0 first (top); a non-repetitive model: the band its lasers sweep,
+    (top, bottom)."""
     columns: int
+    """Columns a sweep (each fires every beam at once); a non-repetitive model: firing cycles a
+    frame (each fires its ``lasers`` one after another)."""
     rate_hz: float = 10.0
     azimuth0_deg: float = 90.0
-    """Azimuth of column 0; the head turns clockwise seen from above (azimuth decreasing)."""
+    """Azimuth of column 0 (of the sequence's first firing); the head turns clockwise seen from
+    above (azimuth decreasing)."""
     min_range_m: float = 0.05
     max_range_m: float = 120.0
     range_noise_m: float = 0.015
@@ -46,12 +54,24 @@ class LidarModel:
     imu_frame: str = "imu"
     driver: str = "hesai"
     """Whose driver's cloud layout and config the sequence gets: ``hesai`` (unorganized, absolute
-    ``timestamp`` in s), ``ouster`` (organized rings x columns, relative ``t`` in ns) or
-    ``velodyne`` (unorganized, relative ``time`` in s)."""
+    ``timestamp`` in s), ``ouster`` (organized rings x columns, relative ``t`` in ns),
+    ``velodyne`` (unorganized, relative ``time`` in s) or ``livox`` (Livox ``CustomMsg``: points
+    in firing order, ``offset_time`` in ns after the frame's ``timebase``)."""
+    lasers: int | None = None
+    """A non-repetitive scanner (:func:`non_repetitive_directions`) with that many lasers; None:
+    a spinning head with one beam per entry of ``elevations_deg``."""
+    imu_accel_unit: str = "m_s2"
+    """The unit of the accelerometer its IMU topic carries: ``m_s2``, or ``g`` (Livox's drivers;
+    written as m/s^2 divided by the standard gravity 9.80665)."""
 
     @property
     def channels(self) -> int:
-        return len(self.elevations_deg)
+        """Beams (rings) of a spinning head; lasers of a non-repetitive one."""
+        return len(self.elevations_deg) if self.lasers is None else self.lasers
+
+    @property
+    def non_repetitive(self) -> bool:
+        return self.lasers is not None
 
     @property
     def period_ns(self) -> int:
@@ -79,7 +99,18 @@ VLP16 = LidarModel(name="vlp16", elevations_deg=tuple(np.linspace(15.0, -15.0, 1
 """Velodyne VLP-16 (Puck): 16 beams +-15 deg every 2 deg, 1800 columns (0.2 deg) at 10 Hz, range
 accuracy +-3 cm (2σ). A handheld rig adds its own IMU (here the same BMI085 model)."""
 
-LIDAR_MODELS = {"xt32": XT32, "ouster64": OUSTER64, "ouster128": OUSTER128, "vlp16": VLP16}
+MID360 = LidarModel(name="mid360", elevations_deg=(52.0, -7.0), columns=5000, lasers=4,
+                    azimuth0_deg=0.0, min_range_m=0.1, max_range_m=40.0, range_noise_m=0.02,
+                    lidar_topic="/livox/lidar", imu_topic="/livox/imu", lidar_frame="livox_frame",
+                    imu_frame="livox_frame", driver="livox", imu_accel_unit="g")
+"""Livox Mid-360-like: 360 deg x -7..+52 deg, 4 lasers, 200 000 points/s in 10 Hz frames of
+20 000 (5000 firing cycles of the 4 lasers), non-repetitive (:func:`non_repetitive_directions`),
+0.1-40 m, 2 cm range noise; ``CustomMsg`` on ``/livox/lidar`` and its built-in IMU's topic
+``/livox/imu`` (accelerometer in g), both in ``livox_frame``. The IMU samples as the simulator's
+other rigs' (``simulate``'s rate and noise, the BMI085's by default)."""
+
+LIDAR_MODELS = {"xt32": XT32, "ouster64": OUSTER64, "ouster128": OUSTER128, "vlp16": VLP16,
+                "mid360": MID360}
 
 
 MIN_LIDAR_RATE_HZ = 2.0
@@ -152,6 +183,49 @@ class RayCaster:
         return dist, face
 
 
+GOLDEN_FRACTION = (np.sqrt(5.0) - 1.0) / 2.0
+"""1/φ = 0.618...: the most irrational step, by which a non-repetitive pattern moves on each frame."""
+
+
+def zigzag_cycles_per_frame(model: LidarModel) -> float:
+    """Up-and-down cycles each laser of a non-repetitive model sweeps its band in a frame: the
+    whole number ``n`` (at least 1) that puts the points along a laser's trace about as far
+    apart in elevation as the traces lie apart in azimuth (``2 B n / C = 180 / (n K)`` degrees,
+    ``B`` the band, ``C`` the firing cycles a frame, ``K`` the lasers: 43 and about 1 deg for the
+    Mid-360), plus :data:`GOLDEN_FRACTION`, so that each frame's zigzag starts 0.618 of a cycle
+    further on than the last's."""
+    band_deg = abs(model.elevations_deg[0] - model.elevations_deg[-1])
+    n = math.floor(math.sqrt(90.0 * model.columns / (band_deg * model.channels)))
+    return max(n, 1) + GOLDEN_FRACTION
+
+
+def non_repetitive_directions(model: LidarModel, first_index: int) -> np.ndarray:
+    """(N, 3) unit ray directions in the LiDAR frame of one frame's ``N = columns * lasers``
+    firings, the first being the sequence's ``first_index``-th (0 at the sequence's start).
+
+    A deterministic low-discrepancy pattern (not Livox's own): the lasers fire one after another
+    (laser ``l = n mod K`` of firing ``n``) while the azimuth turns clockwise at a constant rate,
+    ``az(n) = az0 - 2π (n / N) (1 + 0.618 / N)``: one revolution a frame plus 0.618 of a firing
+    step, so that no azimuth recurs. Each laser zigzags over the elevation band at a constant
+    rate (a triangle wave, uniform in elevation), ``el(n) = bottom + B tri(frac(f n / N + l /
+    K))``, ``tri(p) = 1 - |2p - 1|``, ``f`` = :func:`zigzag_cycles_per_frame` (whole cycles plus
+    0.618), the lasers a quarter cycle (``1 / K``) apart. A frame thus draws ``2 f K`` steep
+    traces around the horizon, about evenly spaced; the next frame's traces lie 0.618 of a trace
+    spacing on from this frame's (the golden-ratio rotation, Weyl's equidistribution): frames
+    never repeat and their union fills the field of view in ever finer, even steps, as a Livox
+    scanner's does."""
+    N = model.columns * model.channels
+    K = model.channels
+    n = int(first_index) + np.arange(N, dtype=np.int64)
+    frames = n / N
+    az = np.radians(model.azimuth0_deg) - 2.0 * np.pi * frames * (1.0 + GOLDEN_FRACTION / N)
+    phase = np.mod(frames * zigzag_cycles_per_frame(model) + (n % K) / K, 1.0)
+    top, bottom = np.radians(model.elevations_deg[0]), np.radians(model.elevations_deg[-1])
+    el = bottom + (top - bottom) * (1.0 - np.abs(2.0 * phase - 1.0))
+    ce = np.cos(el)
+    return np.column_stack([ce * np.cos(az), ce * np.sin(az), np.sin(el)])
+
+
 def beam_directions(model: LidarModel) -> np.ndarray:
     """(C, K, 3) unit ray directions in the LiDAR frame, column-major."""
     el = np.radians(np.asarray(model.elevations_deg))
@@ -188,38 +262,57 @@ class SweepSimulator:
         self.people = people if people is not None and people.count else None
         self.R_il = np.asarray(T_imu_lidar, dtype=np.float64)[:3, :3]
         self.t_il = np.asarray(T_imu_lidar, dtype=np.float64)[:3, 3]
-        self.dirs_lidar = beam_directions(model)
-        self.dirs_flat = self.dirs_lidar.reshape(-1, 3)
-        n = len(self.dirs_flat)
-        dirs_rig = self.dirs_flat @ (traj.R_rig_imu @ self.R_il).T
-        self.occ_dist = (_occluder_distance(dirs_rig, occluder) if occluder is not None
-                         else np.full(n, np.inf))
+        self.R_rig_lidar = traj.R_rig_imu @ self.R_il
+        self.occluder = occluder
+        if not model.non_repetitive:  # the same directions every sweep
+            self.dirs_lidar = beam_directions(model)
+            self.dirs_flat = self.dirs_lidar.reshape(-1, 3)
+            self.occ_dist = self._occluder_distance(self.dirs_flat)
         K, C = model.channels, model.columns
         self.ring = np.tile(np.arange(K, dtype=np.uint16), C)
         self.column = np.repeat(np.arange(C, dtype=np.uint16), K)
 
+    def _occluder_distance(self, dirs_lidar: np.ndarray) -> np.ndarray:
+        """Distance from the LiDAR's origin to the operator's body along unit ``dirs_lidar``
+        (LiDAR frame); inf where missed or without a body."""
+        if self.occluder is None:
+            return np.full(len(dirs_lidar), np.inf)
+        return _occluder_distance(dirs_lidar @ self.R_rig_lidar.T, self.occluder)
+
     def sweep(self, t_start_ns: int, rng: np.random.Generator,
               noise_scale: float = 1.0) -> SweepPoints:
-        """Ray-cast the sweep starting at ``t_start_ns`` (absolute)."""
+        """Ray-cast the sweep (a non-repetitive model: the frame) starting at ``t_start_ns``
+        (absolute; a non-repetitive pattern counts its firings from the simulator's ``t0_ns``)."""
         model = self.model
         C, K = model.columns, model.channels
-        col_t_ns = t_start_ns + (np.arange(C, dtype=np.int64) * model.period_ns) // C
-        s = self.traj.sample((col_t_ns - self.t0_ns) * 1e-9)
+        n = C * K
+        if model.non_repetitive:  # every firing its own time and direction
+            fire_t_ns = t_start_ns + (np.arange(n, dtype=np.int64) * model.period_ns) // n
+            first = ((int(t_start_ns) - self.t0_ns) * n) // model.period_ns
+            dirs_flat = non_repetitive_directions(model, first)
+            dirs_lidar = dirs_flat[:, None]
+            occ_dist = self._occluder_distance(dirs_flat)
+            per_firing = 1
+        else:  # a column's K beams at once
+            fire_t_ns = t_start_ns + (np.arange(C, dtype=np.int64) * model.period_ns) // C
+            dirs_flat, dirs_lidar, occ_dist = self.dirs_flat, self.dirs_lidar, self.occ_dist
+            per_firing = K
+        s = self.traj.sample((fire_t_ns - self.t0_ns) * 1e-9)
         R_wl = s.R_world_imu @ self.R_il
         p_wl = s.p_world_imu_m + s.R_world_imu @ self.t_il
-        dirs_w = np.matmul(self.dirs_lidar, R_wl.transpose(0, 2, 1)).reshape(-1, 3)
-        origins = np.repeat(p_wl, K, axis=0)
+        dirs_w = np.matmul(dirs_lidar, R_wl.transpose(0, 2, 1)).reshape(-1, 3)
+        origins = np.repeat(p_wl, per_firing, axis=0)
         dist, face = self.caster.cast(origins, dirs_w)
-        n = C * K
-        use_occ = self.occ_dist < dist
-        dist = np.where(use_occ, self.occ_dist, dist)
+        use_occ = occ_dist < dist
+        dist = np.where(use_occ, occ_dist, dist)
         face = np.where(use_occ, -1, face)
         fidx = np.maximum(face, 0)
         cos_inc = np.abs((self.caster.face_normals[fidx] * dirs_w).sum(-1))
         cos_inc = np.where(use_occ, 0.8, cos_inc)
         albedo = np.where(use_occ, 0.3, self.caster.albedo[fidx])
         if self.people is not None:
-            feet = np.repeat(self.people.positions((col_t_ns - self.t0_ns) * 1e-9), K, axis=0)
+            feet = np.repeat(self.people.positions((fire_t_ns - self.t0_ns) * 1e-9), per_firing,
+                             axis=0)
             d_person, cos_person = self.people.cast(origins, dirs_w, feet)
             on_person = d_person < dist
             dist = np.where(on_person, d_person, dist)
@@ -237,9 +330,10 @@ class SweepSimulator:
             r = r_true
         valid &= (r >= model.min_range_m) & (r <= model.max_range_m)
         r = np.where(valid, r, 0.0)
-        xyz = (self.dirs_flat * r[:, None]).astype(np.float32)
+        xyz = (dirs_flat * r[:, None]).astype(np.float32)
         inten = albedo * (0.3 + 0.7 * cos_inc) * 255.0 / (1.0 + (r_true / 15.0) ** 2)
         inten = np.where(valid, np.round(np.clip(inten, 0.0, 255.0)), 0.0).astype(np.float32)
         return SweepPoints(xyz_lidar_m=xyz, range_m=r.astype(np.float32),
-                           t_ns=np.repeat(col_t_ns, K), ring=self.ring, column=self.column,
+                           t_ns=np.repeat(fire_t_ns, per_firing), ring=self.ring,
+                           column=self.column,
                            intensity=inten, valid=valid, face=np.where(valid, face, -1))
