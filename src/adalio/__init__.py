@@ -17,6 +17,7 @@ _LAZY = {
     "Odometry": "adalio.lio",
     "Bag": "adalio.io", "BagWriter": "adalio.io", "Sequencer": "adalio.io",
     "CloudDecoder": "adalio.io", "decode_pointcloud2": "adalio.io",
+    "LivoxDecoder": "adalio.io", "LivoxCloud": "adalio.io",
     "run_bag": "adalio.pipeline", "RunResult": "adalio.pipeline",
     "simulate": "adalio.sim", "cached_sequence": "adalio.sim",
 }
@@ -41,6 +42,8 @@ __all__ = [
     "Estimate",
     "ImuBatch",
     "InputError",
+    "LivoxCloud",
+    "LivoxDecoder",
     "Odometry",
     "RunResult",
     "Scan",

@@ -87,10 +87,10 @@ def test_truncated_bytes_are_refused():
             parse_custom_msg(raw[:-30], ros2=ros2)
 
 
-def test_decoder_times_drops_and_rings():
+def test_decoder_times_and_drops():
     """Absolute times are timebase + offset_time; NaN, (0, 0, 0) and third-or-later-return
-    points (tag bits 4-5 = 2, 3) are dropped and counted, first and second returns kept; the
-    line is the ring."""
+    points (tag bits 4-5 = 2, 3) are dropped and counted, first and second returns kept; no
+    rings (a line is a laser of the pattern)."""
     rng = np.random.default_rng(3)
     n = 400
     xyz = rng.uniform(-20, 20, (n, 3)).astype(np.float32)
@@ -108,7 +108,7 @@ def test_decoder_times_drops_and_rings():
     assert len(scan) == keep.sum() and 0 < keep.sum() < n - 25
     np.testing.assert_array_equal(scan.t_ns, base + pts["offset_time"][keep].astype(np.int64))
     np.testing.assert_array_equal(scan.points_lidar, xyz[keep].astype(np.float64))
-    np.testing.assert_array_equal(scan.ring, pts["line"][keep])
+    assert scan.ring is None
     st = dec.stats
     assert (st.nonfinite, st.zero, st.later_return, st.kept) == \
         (10, 15, int(((ret >= 2) & np.isfinite(xyz).all(axis=1) & xyz.any(axis=1)).sum()),
@@ -260,14 +260,14 @@ def livox_pc2(rng, n: int, base: int, with_time: bool):
 
 def test_livox_ros_driver2_pointcloud2_times():
     """livox_ros_driver2's PointCloud2: 'timestamp' detected as absolute ns, each point's time
-    within float64's resolution at 1.7e18 ns (256 ns) of the truth; 'line' read as the ring."""
+    within float64's resolution at 1.7e18 ns (256 ns) of the truth; 'line' not read as a ring."""
     base = 1_700_000_000_000_000_000
     msg, t = livox_pc2(np.random.default_rng(7), 20_000, base, with_time=True)
     dec = CloudDecoder(SensorConfig(), "/livox/lidar")
     scan = dec.decode(msg)
     assert dec.time_spec.describe() == "'timestamp' in ns, absolute (detected)"
     assert np.abs(scan.t_ns - t).max() <= 256
-    np.testing.assert_array_equal(scan.ring, np.arange(20_000) % 6)
+    assert scan.ring is None
 
 
 def test_livox_ros_driver_pointcloud2_without_times_is_read_in_firing_order():

@@ -242,7 +242,10 @@ class LivoxDecoder:
     """Decode ``CustomMsg`` s (:class:`LivoxCloud`, or rosbags' deserialized message) of one
     topic into :class:`Scan` objects, as :class:`~adalio.io.pointcloud2.CloudDecoder` does
     PointCloud2: absolute int64 ns per point (``timebase + offset_time``), NaN/inf and
-    (0, 0, 0) points dropped, ``line`` as the ring, ``reflectivity`` as the intensity."""
+    (0, 0, 0) points dropped, ``reflectivity`` as the intensity. No rings: a Livox ``line`` is
+    one of the lasers that draw the pattern, not a beam at a fixed elevation of a spinning head,
+    so the options that need rings (``filter.local_surface_check``, ``filter.one_ring_max_deg``)
+    check nothing on it, as on any cloud without a ring field."""
 
     def __init__(self, sensor: SensorConfig | None = None, topic: str = "") -> None:
         self.sensor = sensor or SensorConfig()
@@ -285,8 +288,7 @@ class LivoxDecoder:
         self.stats.later_return += int(later.sum())
         t_ns = base + p["offset_time"][ok].astype(np.int64)
         return Scan(points_lidar=xyz[ok], t_ns=t_ns, stamp_ns=stamp_ns,
-                    intensity=p["reflectivity"][ok].astype(np.float32),
-                    ring=p["line"][ok].astype(np.uint16))
+                    intensity=p["reflectivity"][ok].astype(np.float32))
 
 
 def lidar_decoder(msgtype: str, sensor: SensorConfig | None = None,

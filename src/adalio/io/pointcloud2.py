@@ -591,7 +591,7 @@ class CloudDecoder:
         intensity = cols[extras["intensity"]][ok].astype(np.float32) if "intensity" in extras \
             else None
         ring = None
-        if "ring" in extras:
+        if "ring" in extras and not livox:  # a Livox 'line' is a laser of its pattern, no ring
             r = cols[extras["ring"]][ok]
             ring = np.clip(r, 0, 65535).astype(np.uint16) if r.dtype.kind in "iu" else None
         return Scan(points_lidar=pts, t_ns=t_ns, stamp_ns=int(stamp_ns), intensity=intensity,

@@ -176,10 +176,9 @@ def _config_dict(model, T_imu_lidar: np.ndarray, imu_rate_hz: float) -> dict:
     point time. Every model is simulated with the same IMU, the HILTI BMI085, so every config
     describes it as ``hilti2022`` does (its ``imu`` section): the generic presets' IMU values are
     Faster-LIO's, not this IMU's (README, Presets), and the LiDAR is then the only thing that
-    changes between the models' sequences. The Mid-360-like model (``livox``) takes the generic
-    ``velodyne`` preset (there is no Livox one) with ``CustomMsg``'s point time (``offset_time``,
-    ns after the header stamp = ``timebase``); ``sensor.accel_unit`` stays ``auto``, which finds
-    its IMU's g."""
+    changes between the models' sequences. The Mid-360-like model (``livox``) takes the
+    ``livox_mid360`` preset (a ``CustomMsg`` carries its own point times, ``timebase +
+    offset_time``); ``sensor.accel_unit`` stays ``auto``, which finds its IMU's g."""
     sensor = {"lidar_topic": model.lidar_topic, "imu_topic": model.imu_topic,
               "T_imu_lidar": np.asarray(T_imu_lidar).tolist(), "extrinsic_source": "config",
               "imu_rate_hz": float(imu_rate_hz), "lidar_rate_hz": model.rate_hz}
@@ -190,10 +189,8 @@ def _config_dict(model, T_imu_lidar: np.ndarray, imu_rate_hz: float) -> dict:
     if model.driver == "velodyne":
         sensor.update(point_time_field="time", point_time_unit="s", point_time_reference="relative")
         return {"preset": "velodyne", "sensor": sensor, "imu": imu}
-    if model.driver == "livox":  # no preset of its own: the generic one of a sparser LiDAR
-        sensor.update(point_time_field="offset_time", point_time_unit="ns",
-                      point_time_reference="relative")
-        return {"preset": "velodyne", "sensor": sensor, "imu": imu}
+    if model.driver == "livox":
+        return {"preset": "livox_mid360", "sensor": sensor, "imu": imu}
     sensor.update(point_time_field="timestamp", point_time_unit="s",
                   point_time_reference="absolute")
     return {"preset": "hilti2022", "sensor": sensor}
