@@ -8,10 +8,12 @@ the header stamp = sweep start). The IMU reads zero rate and +g along its z axis
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
 from adalio.io.bagwrite import BagWriter
+from adalio.io.pointcloud2 import encode_pointcloud2
 
 OUSTER_LAYOUT = [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("intensity", 16, "f4"),
                  ("t", 20, "u4"), ("ring", 26, "u2")]
@@ -76,3 +78,22 @@ def write_static_rig(path: Path, fmt: str = "ros1", *, duration_s: float = 2.0,
                 w.add_cloud(lidar_topic, stamp, cols, layout or OUSTER_LAYOUT, point_step,
                             frame_id=lidar_frame, t_recv_ns=t_recv)
     return path
+
+
+def msg_from(columns, layout, step, stamp_ns, big=False, height=1, row_pad=0):
+    """A PointCloud2 message (duck-typed, as rosbags deserializes one) of ``columns`` packed
+    with ``layout``; ``row_pad`` bytes of padding after each row."""
+    data, fields = encode_pointcloud2(columns, layout, step, big)
+    n = len(columns["x"])
+    width = n // height
+    if row_pad:
+        rows = np.frombuffer(data, np.uint8).reshape(height, width * step)
+        pad = np.full((height, row_pad), 0xAB, np.uint8)
+        data = np.hstack([rows, pad]).tobytes()
+    return SimpleNamespace(
+        header=SimpleNamespace(stamp=SimpleNamespace(sec=stamp_ns // 10**9,
+                                                     nanosec=stamp_ns % 10**9),
+                               frame_id="lidar"),
+        fields=[SimpleNamespace(name=a, offset=b, datatype=c, count=d) for a, b, c, d in fields],
+        point_step=step, width=width, height=height, row_step=width * step + row_pad,
+        is_bigendian=big, data=np.frombuffer(data, np.uint8))

@@ -7,6 +7,7 @@ import warnings
 
 import numpy as np
 import pytest
+from bagfactory import msg_from
 
 from adalio.config import SensorConfig, load_config
 from adalio.errors import BagError
@@ -238,8 +239,6 @@ def livox_pc2(rng, n: int, base: int, with_time: bool):
     70 deg field of view, azimuth not in time order), points in firing order at a constant
     rate over 100 ms: livox_ros_driver2's 26-byte packed layout with ``timestamp`` (float64,
     absolute ns), or livox_ros_driver's without a time field."""
-    from tests.io.test_pointcloud2 import msg_from
-
     t = base + np.rint(np.arange(n) * (1e8 / n)).astype(np.int64)
     k = np.arange(n)
     az = np.deg2rad(35.0) * np.sin(k * 0.7311)  # a rosette's sweep across the view

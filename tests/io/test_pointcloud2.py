@@ -9,6 +9,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from bagfactory import msg_from
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -19,7 +20,6 @@ from adalio.io.pointcloud2 import (
     CloudLayout,
     TimeSpec,
     detect_time_spec,
-    encode_pointcloud2,
 )
 
 SCAN = (Path(__file__).resolve().parents[1] / "data" / "real" / "hilti2022_evalio_scan"
@@ -50,23 +50,6 @@ def real():
 def exact_ns(values) -> np.ndarray:
     """Independent truth: exact rational value of each float, in ns, rounded half-even."""
     return np.array([round(Fraction(float(v)) * 10**9) for v in values], dtype=np.int64)
-
-
-def msg_from(columns, layout, step, stamp_ns, big=False, height=1, row_pad=0):
-    data, fields = encode_pointcloud2(columns, layout, step, big)
-    n = len(columns["x"])
-    width = n // height
-    if row_pad:
-        rows = np.frombuffer(data, np.uint8).reshape(height, width * step)
-        pad = np.full((height, row_pad), 0xAB, np.uint8)
-        data = np.hstack([rows, pad]).tobytes()
-    return SimpleNamespace(
-        header=SimpleNamespace(stamp=SimpleNamespace(sec=stamp_ns // 10**9,
-                                                     nanosec=stamp_ns % 10**9),
-                               frame_id="lidar"),
-        fields=[SimpleNamespace(name=a, offset=b, datatype=c, count=d) for a, b, c, d in fields],
-        point_step=step, width=width, height=height, row_step=width * step + row_pad,
-        is_bigendian=big, data=np.frombuffer(data, np.uint8))
 
 
 def xyz_equal(scan, r):
