@@ -10,15 +10,15 @@ sweep start; the bag record time of a sweep is its end. sensor_msgs/Imu: orienta
 (covariance[0] = -1). Velodyne VLP-16 (``/velodyne_points``, the ROS driver's ``PointXYZIRT``):
 unorganized cloud of valid returns, packed fields x, y, z, intensity (f32 @0,4,8,12), ring (u16
 @16, 0 = the lowest beam as the driver numbers them), time (f32 seconds relative to the header
-stamp @18), point_step 22. Livox Mid-360-like (``/livox/lidar``): Livox's own ``CustomMsg``
-(``livox_ros_driver/msg/CustomMsg`` in ROS1 bags, ``livox_ros_driver2/msg/CustomMsg`` in ROS2
-ones, as FAST-LIO users record them; :mod:`adalio.io.livox`): the valid returns in firing
+stamp @18), point_step 22. Livox Mid-360- and Avia-like (``/livox/lidar``): Livox's own
+``CustomMsg`` (``livox_ros_driver/msg/CustomMsg`` in ROS1 bags, ``livox_ros_driver2/msg/CustomMsg``
+in ROS2 ones, as FAST-LIO users record them; :mod:`adalio.io.livox`): the valid returns in firing
 order, ``timebase`` = the frame's first firing (absolute ns) = the header stamp, per point
 ``offset_time`` (u32 ns after it), x, y, z, ``reflectivity`` (the intensity, 0-255), ``tag`` 0
-(first return), ``line`` (the laser, 0-3); its IMU's accelerometer in g, as Livox's drivers
-publish it (:attr:`~adalio.sim.lidar.LidarModel.imu_accel_unit`). mcap bags are written with
-zstd-compressed chunks (about 4x smaller for simulated clouds; rosbags, ros2 bag and Foxglove
-read them transparently).
+(first return), ``line`` (the laser: 0-3 on the Mid-360, 0-5 on the Avia); its IMU's accelerometer
+in g, as Livox's drivers publish it (:attr:`~adalio.sim.lidar.LidarModel.imu_accel_unit`). mcap bags
+are written with zstd-compressed chunks (about 4x smaller for simulated clouds; rosbags, ros2 bag
+and Foxglove read them transparently).
 """
 
 from __future__ import annotations

@@ -21,13 +21,14 @@ def register(app: typer.Typer) -> None:
         duration: Annotated[float | None, typer.Option(
             "--duration", help="Seconds (default: the whole route).")] = None,
         lidar: Annotated[str, typer.Option(
-            "--lidar", help="xt32, ouster64, ouster128, vlp16 or mid360 (a Livox Mid-360-like "
-            "non-repetitive LiDAR written as Livox's CustomMsg, its IMU's accelerometer in "
-            "g)")] = "xt32",
+            "--lidar", help="xt32, ouster64, ouster128, vlp16, mid360 (a Livox Mid-360-like "
+            "non-repetitive LiDAR, 360 x -7..52 deg) or avia (a Livox Avia-like forward-looking "
+            "rosette, 70.4 x 77.2 deg, looking along the walk); both written as Livox's "
+            "CustomMsg, their IMU's accelerometer in g")] = "xt32",
         fmt: Annotated[str, typer.Option("--format", help="ros1, ros2 (sqlite3) or mcap")] = "ros1",
         columns: Annotated[int | None, typer.Option(
             "--columns", help="Columns per sweep (default: the model's; mid360: firing "
-            "cycles of its 4 lasers a frame, 5000).")] = None,
+            "cycles of its 4 lasers a frame, 5000; avia: of its 6 lasers, 4000).")] = None,
         noise_scale: Annotated[float, typer.Option(
             "--noise-scale", help="Multiplier of all sensor noise (0 = perfect).")] = 1.0,
         imu_noise_scale: Annotated[float, typer.Option(

@@ -172,28 +172,29 @@ def mesh_distance_m(caster: RayCaster, points: np.ndarray, n_dirs: int = 256) ->
 
 
 def _config_dict(model, T_imu_lidar: np.ndarray, imu_rate_hz: float) -> dict:
-    """The sequence's ``config.yaml``: the LiDAR's preset with the rig's topics, extrinsic and
-    point time. Every model is simulated with the same IMU, the HILTI BMI085, so every config
-    describes it as ``hilti2022`` does (its ``imu`` section): the generic presets' IMU values are
-    Faster-LIO's, not this IMU's (README, Presets), and the LiDAR is then the only thing that
-    changes between the models' sequences. The Mid-360-like model (``livox``) takes the
-    ``livox_mid360`` preset (a ``CustomMsg`` carries its own point times, ``timebase +
-    offset_time``); ``sensor.accel_unit`` stays ``auto``, which finds its IMU's g."""
+    """The sequence's ``config.yaml``: the LiDAR's preset
+    (:attr:`~adalio.sim.lidar.LidarModel.preset`) with the rig's topics, extrinsic and point time.
+    Every model is simulated with the same IMU, the HILTI BMI085, so every config describes it as
+    ``hilti2022`` does (its ``imu`` section): the generic presets' IMU values are Faster-LIO's, not
+    this IMU's (README, Presets), and the LiDAR is then the only thing that changes between the
+    models' sequences. The Livox models (``livox``: ``livox_mid360``, ``livox_avia``) give no point
+    time fields (a ``CustomMsg`` carries its own point times, ``timebase + offset_time``);
+    ``sensor.accel_unit`` stays ``auto``, which finds their IMU's g."""
     sensor = {"lidar_topic": model.lidar_topic, "imu_topic": model.imu_topic,
               "T_imu_lidar": np.asarray(T_imu_lidar).tolist(), "extrinsic_source": "config",
               "imu_rate_hz": float(imu_rate_hz), "lidar_rate_hz": model.rate_hz}
     imu = preset_dict("hilti2022")["imu"]
     if model.driver == "ouster":
         sensor.update(point_time_field="t", point_time_unit="ns", point_time_reference="relative")
-        return {"preset": "ouster", "sensor": sensor, "imu": imu}
+        return {"preset": model.preset, "sensor": sensor, "imu": imu}
     if model.driver == "velodyne":
         sensor.update(point_time_field="time", point_time_unit="s", point_time_reference="relative")
-        return {"preset": "velodyne", "sensor": sensor, "imu": imu}
+        return {"preset": model.preset, "sensor": sensor, "imu": imu}
     if model.driver == "livox":
-        return {"preset": "livox_mid360", "sensor": sensor, "imu": imu}
+        return {"preset": model.preset, "sensor": sensor, "imu": imu}
     sensor.update(point_time_field="timestamp", point_time_unit="s",
                   point_time_reference="absolute")
-    return {"preset": "hilti2022", "sensor": sensor}
+    return {"preset": model.preset, "sensor": sensor}
 
 
 def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: float | None = None,

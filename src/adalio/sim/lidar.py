@@ -1,10 +1,13 @@
 """LiDAR models, spinning multi-beam and non-repetitive (Livox), ray-cast through Embree with
 per-firing motion.
 
-Frames: ``lidar`` = sensor frame (x forward at azimuth 0, z up along the spin axis); rays start at
-the LiDAR origin. Every column of a spinning head's sweep is fired at its own time
-``t_start + c * T / C`` from the sensor pose at that time (real motion distortion); every point
-of a non-repetitive frame (:func:`non_repetitive_directions`) at its own time
+Frames: ``lidar`` = sensor frame (x forward at azimuth 0, z up along the spin axis; a
+forward-looking model's view centred on x); rays start at the LiDAR origin. The simulator's rigs
+hold the LiDAR level on the handle (:mod:`adalio.sim.trajectory`: ``R_rig_lidar = I`` whatever
+``T_imu_lidar`` does to the IMU, unless pitched by ``lidar_tilt_deg``), so x points along the walk
+and z up. Every column of a spinning head's sweep is fired at its own time ``t_start + c * T / C``
+from the sensor pose at that time (real motion distortion); every point of a non-repetitive frame
+(:func:`non_repetitive_directions`, :func:`rosette_directions`) at its own time
 ``t_start + i * T / N``. The returned points are expressed in the LiDAR frame at their firing
 time, exactly like a driver without deskewing. Ranges in metres, times in int64 ns. Ring 0 is the
 top beam (a non-repetitive model's ring: the laser). Ray casting: Embree via
@@ -36,14 +39,14 @@ class LidarModel:
     name: str
     elevations_deg: tuple[float, ...]
     """Beam elevations, ring 0 first (top); a non-repetitive model: the band its lasers sweep,
-    (top, bottom)."""
+    (top, bottom) (a rosette: its vertical field of view)."""
     columns: int
     """Columns a sweep (each fires every beam at once); a non-repetitive model: firing cycles a
     frame (each fires its ``lasers`` one after another)."""
     rate_hz: float = 10.0
     azimuth0_deg: float = 90.0
     """Azimuth of column 0 (of the sequence's first firing); the head turns clockwise seen from
-    above (azimuth decreasing)."""
+    above (azimuth decreasing). A forward-looking (rosette) model: the centre of its view."""
     min_range_m: float = 0.05
     max_range_m: float = 120.0
     range_noise_m: float = 0.015
@@ -63,6 +66,15 @@ class LidarModel:
     imu_accel_unit: str = "m_s2"
     """The unit of the accelerometer its IMU topic carries: ``m_s2``, or ``g`` (Livox's drivers;
     written as m/s^2 divided by the standard gravity 9.80665)."""
+    pattern: str = "zigzag"
+    """A non-repetitive model's scan pattern: ``zigzag`` (all around, the Mid-360's:
+    :func:`non_repetitive_directions`) or ``rosette`` (forward-looking, the Avia's:
+    :func:`rosette_directions`); a spinning head has none."""
+    azimuth_fov_deg: float = 360.0
+    """Horizontal field of view (degrees), centred on ``azimuth0_deg``: a rosette's; 360 for
+    the others, which see all around."""
+    preset: str = "hilti2022"
+    """The adalio preset its sequences' ``config.yaml`` names (``adalio/presets/<preset>.yaml``)."""
 
     @property
     def channels(self) -> int:
@@ -84,7 +96,8 @@ XT32 = LidarModel(name="xt32", elevations_deg=tuple(15.0 - np.arange(32.0)), col
 OUSTER64 = LidarModel(name="ouster64", elevations_deg=tuple(np.linspace(22.5, -22.5, 64)),
                       columns=1024, azimuth0_deg=180.0, max_range_m=100.0,
                       range_noise_m=0.012, lidar_topic="/ouster/points", imu_topic="/ouster/imu",
-                      lidar_frame="os_lidar", imu_frame="os_imu", driver="ouster")
+                      lidar_frame="os_lidar", imu_frame="os_imu", driver="ouster",
+                      preset="ouster")
 """Ouster OS0/OS1-64-like: 64 beams +-22.5 deg, 1024 columns, 10 Hz."""
 
 OUSTER128 = replace(OUSTER64, name="ouster128", elevations_deg=tuple(np.linspace(45.0, -45.0, 128)),
@@ -95,22 +108,35 @@ columns, 10 Hz, 50 m range, 1.5 cm range noise; the OS1-64's driver layout and t
 VLP16 = LidarModel(name="vlp16", elevations_deg=tuple(np.linspace(15.0, -15.0, 16)),
                    columns=1800, azimuth0_deg=0.0, max_range_m=100.0, range_noise_m=0.02,
                    lidar_topic="/velodyne_points", imu_topic="/imu/data",
-                   lidar_frame="velodyne", imu_frame="imu_link", driver="velodyne")
+                   lidar_frame="velodyne", imu_frame="imu_link", driver="velodyne",
+                   preset="velodyne")
 """Velodyne VLP-16 (Puck): 16 beams +-15 deg every 2 deg, 1800 columns (0.2 deg) at 10 Hz, range
 accuracy +-3 cm (2σ). A handheld rig adds its own IMU (here the same BMI085 model)."""
 
 MID360 = LidarModel(name="mid360", elevations_deg=(52.0, -7.0), columns=5000, lasers=4,
                     azimuth0_deg=0.0, min_range_m=0.1, max_range_m=40.0, range_noise_m=0.02,
                     lidar_topic="/livox/lidar", imu_topic="/livox/imu", lidar_frame="livox_frame",
-                    imu_frame="livox_frame", driver="livox", imu_accel_unit="g")
+                    imu_frame="livox_frame", driver="livox", imu_accel_unit="g",
+                    preset="livox_mid360")
 """Livox Mid-360-like: 360 deg x -7..+52 deg, 4 lasers, 200 000 points/s in 10 Hz frames of
 20 000 (5000 firing cycles of the 4 lasers), non-repetitive (:func:`non_repetitive_directions`),
 0.1-40 m, 2 cm range noise; ``CustomMsg`` on ``/livox/lidar`` and its built-in IMU's topic
 ``/livox/imu`` (accelerometer in g), both in ``livox_frame``. The IMU samples as the simulator's
 other rigs' (``simulate``'s rate and noise, the BMI085's by default)."""
 
+AVIA = replace(MID360, name="avia", elevations_deg=(38.6, -38.6), columns=4000, lasers=6,
+               pattern="rosette", azimuth_fov_deg=70.4, min_range_m=1.0, max_range_m=100.0,
+               preset="livox_avia")
+"""Livox Avia-like: forward-looking, 70.4 deg (horizontal) x 77.2 deg (vertical) centred on the
+LiDAR's x axis, which the simulator's rigs hold level along the walk (so no azimuth or elevation
+offset is needed); 6 lasers, 240 000 points/s in 10 Hz frames of 24 000 (4000 firing cycles of
+the 6 lasers), a non-repetitive rosette (:func:`rosette_directions`), 1-100 m (its 1 m blind
+zone), 2 cm range noise; ``CustomMsg`` on ``/livox/lidar`` and its built-in IMU on
+``/livox/imu`` (accelerometer in g, as livox_ros_driver publishes it), both in ``livox_frame``;
+``config.yaml`` takes the ``livox_avia`` preset."""
+
 LIDAR_MODELS = {"xt32": XT32, "ouster64": OUSTER64, "ouster128": OUSTER128, "vlp16": VLP16,
-                "mid360": MID360}
+                "mid360": MID360, "avia": AVIA}
 
 
 MIN_LIDAR_RATE_HZ = 2.0
@@ -226,6 +252,52 @@ def non_repetitive_directions(model: LidarModel, first_index: int) -> np.ndarray
     return np.column_stack([ce * np.cos(az), ce * np.sin(az), np.sin(el)])
 
 
+ROSETTE_HZ = (10.0 * (7.0 + GOLDEN_FRACTION), 10.0 * (3.0 + math.sqrt(2.0)))
+"""Turns a second of a rosette's two counter-rotating deflections (Hz): 76.18 and 44.14, 7.618
+and 4.414 a 10 Hz frame, whose fractions 0.618 and 0.414 (1/φ, √2 - 1) are a Kronecker step."""
+ROSETTE_LASER_SPACING_DEG = 0.15
+"""Elevation between neighbouring lasers of a rosette model (degrees), the lasers in a vertical
+row."""
+
+
+def rosette_directions(model: LidarModel, first_index: int) -> np.ndarray:
+    """(N, 3) unit ray directions in the LiDAR frame of a forward-looking rosette's frame of
+    ``N = columns * lasers`` firings, the first being the sequence's ``first_index``-th (0 at
+    the sequence's start); firing ``n`` at ``t = n / (N rate)`` seconds, by laser ``n mod K``.
+
+    A deterministic pattern like a Risley-prism scanner's (not Livox's own): two deflections
+    turning opposite ways, ``z(t) = (exp(i 2π f1 t) + exp(-i 2π f2 t)) / 2`` (:data:`ROSETTE_HZ`),
+    trace a rose inside the unit disc: a petal from the centre out to the rim and back each time
+    ``f1 t + f2 t`` grows by one (12 petals a 10 Hz frame, ~48 deg apart), turning ``(f1 - f2)
+    / 2`` times a second. ``f1 / f2`` is irrational, so the trace never closes; ``f1 T``, ``f2
+    T`` and 1 are rationally independent (``T`` = 0.1 s), so each frame starts at a new point of
+    the torus of the two deflections' phases (Weyl): frames never repeat and their union keeps
+    filling the view (at 0.5 deg: about 20 % in one frame, 94 % in ten, nearly all in twenty). The
+    radius ``|cos(π (f1 + f2) t)|`` is uniform in phase, so the returns are densest at the
+    centre (and thicken again at the rim, where the trace turns). Laser ``l`` sits
+    ``(l - (K - 1) / 2)`` :data:`ROSETTE_LASER_SPACING_DEG` above the disc's centre (6 parallel
+    traces); azimuth ``az = az0 + (H / 2) Re z`` and elevation ``el = el_l + (V / 2 - |el_l|max)
+    Im z`` (``H`` = ``azimuth_fov_deg``, ``V`` the band of ``elevations_deg``, ``az0`` =
+    ``azimuth0_deg``, the band's middle the disc's centre), so every ray lies inside the H x V
+    box and the rim reaches its four edges. Direction ``(cos el cos az, cos el sin az, sin
+    el)``."""
+    K = model.channels
+    N = model.columns * K
+    n = int(first_index) + np.arange(N, dtype=np.int64)
+    firings_hz = N * model.rate_hz
+    th1 = 2.0 * np.pi * np.mod(n * (ROSETTE_HZ[0] / firings_hz), 1.0)
+    th2 = 2.0 * np.pi * np.mod(n * (ROSETTE_HZ[1] / firings_hz), 1.0)
+    top, bottom = model.elevations_deg[0], model.elevations_deg[-1]
+    laser_el = (np.arange(K) - (K - 1) / 2.0) * ROSETTE_LASER_SPACING_DEG
+    half_v = abs(top - bottom) / 2.0 - np.abs(laser_el).max()
+    az = np.radians(model.azimuth0_deg + 0.5 * model.azimuth_fov_deg
+                    * 0.5 * (np.cos(th1) + np.cos(th2)))
+    el = np.radians(0.5 * (top + bottom) + laser_el[n % K] + half_v
+                    * 0.5 * (np.sin(th1) - np.sin(th2)))
+    ce = np.cos(el)
+    return np.column_stack([ce * np.cos(az), ce * np.sin(az), np.sin(el)])
+
+
 def beam_directions(model: LidarModel) -> np.ndarray:
     """(C, K, 3) unit ray directions in the LiDAR frame, column-major."""
     el = np.radians(np.asarray(model.elevations_deg))
@@ -289,7 +361,8 @@ class SweepSimulator:
         if model.non_repetitive:  # every firing its own time and direction
             fire_t_ns = t_start_ns + (np.arange(n, dtype=np.int64) * model.period_ns) // n
             first = ((int(t_start_ns) - self.t0_ns) * n) // model.period_ns
-            dirs_flat = non_repetitive_directions(model, first)
+            dirs_flat = (rosette_directions(model, first) if model.pattern == "rosette"
+                         else non_repetitive_directions(model, first))
             dirs_lidar = dirs_flat[:, None]
             occ_dist = self._occluder_distance(dirs_flat)
             per_firing = 1
