@@ -4,10 +4,11 @@ The sensor-variation matrix of issue #12, reusable by later work: for every scen
 noise level (x the HILTI BMI085 white-noise densities, ``simulate(imu_noise_scale=...)``; bias
 walks and initial biases stay at the HILTI values) and
 LiDAR (XT-32 at 512 / 2000 columns, Ouster OS1-64, VLP-16; ``--lidars`` also takes the OS0-128,
-the XT-32 at 1000 columns and ``mid360``, a Livox Mid-360-like non-repetitive LiDAR written as
-Livox's ``CustomMsg``), the simulator's sequence is run through
-``adalio.pipeline.run_bag`` with the sequence's own ``config.yaml`` (preset ``hilti2022``,
-``ouster`` or ``velodyne`` with the simulated extrinsic; nothing else set) twice:
+the XT-32 at 1000 columns, ``mid360``, a Livox Mid-360-like non-repetitive LiDAR, and ``avia``, a
+Livox Avia-like forward-looking rosette, both written as Livox's ``CustomMsg``), the simulator's
+sequence is run through ``adalio.pipeline.run_bag`` with the sequence's own ``config.yaml``
+(preset ``hilti2022``, ``ouster``, ``velodyne``, ``livox_mid360`` or ``livox_avia`` with the
+simulated extrinsic; nothing else set) twice:
 
 * **still start**: the whole bag (the simulated walk rests for its first 2.5 s);
 * **moving start**: the bag without its first ``--cut-s`` seconds (``run_bag(start_s=...)``),
@@ -104,11 +105,13 @@ from adalio.sim.people import MAX_PEOPLE
 
 LIDARS = {"xt32-512": ("xt32", 512), "xt32-2000": ("xt32", 2000), "os1-64": ("ouster64", None),
           "os0-128": ("ouster128", None),
-          "vlp16": ("vlp16", None), "xt32-1000": ("xt32", 1000), "mid360": ("mid360", None)}
+          "vlp16": ("vlp16", None), "xt32-1000": ("xt32", 1000), "mid360": ("mid360", None),
+          "avia": ("avia", None)}
 """Name -> (simulator model, columns per sweep; None the model's). ``xt32-1000`` is the XT-32 at
 its 20 Hz setting (``--lidar-rates 20``: 1000 columns a sweep, the firing rate of its 2000 at
 10 Hz); ``mid360`` the Livox Mid-360-like non-repetitive LiDAR (Livox ``CustomMsg``, its IMU's
-accelerometer in g); neither in the default matrix."""
+accelerometer in g); ``avia`` the Livox Avia-like forward-looking rosette (70.4 x 77.2 deg along
+the walk, ``CustomMsg``, IMU in g); none of these in the default matrix."""
 DEFAULT_LIDARS = ["xt32-512", "xt32-2000", "os1-64", "vlp16"]
 LIDAR_RATE_HZ = 10.0
 """Every simulated model sweeps at 10 Hz unless ``--lidar-rates`` says otherwise."""
@@ -531,7 +534,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--imu-noise", nargs="+", type=float, default=[1.0, 10.0])
     ap.add_argument("--lidars", nargs="+", default=DEFAULT_LIDARS, choices=list(LIDARS),
                     help="simulated LiDARs (LIDARS; default: " + " ".join(DEFAULT_LIDARS)
-                    + "; mid360: a Livox Mid-360-like non-repetitive LiDAR, CustomMsg)")
+                    + "; mid360: a Livox Mid-360-like non-repetitive LiDAR, CustomMsg; avia: a "
+                    "Livox Avia-like forward-looking rosette, CustomMsg)")
     ap.add_argument("--mountings", nargs="+", default=["hilti"], choices=list(MOUNTINGS),
                     help="IMU-LiDAR mountings to simulate (MOUNTINGS)")
     ap.add_argument("--imu-rates", nargs="+", type=float, default=[IMU_RATE_HZ],
