@@ -215,7 +215,8 @@ class RunResult:
     not estimate, or did not run: a moving start, or the rotation check off)."""
     lidar_view: Any = None
     """:class:`adalio.lio.lidar_view.LidarView`: how the LiDAR's spin axis leans from the
-    vertical and whether its beams see the horizontal all around (None: no filter pose)."""
+    vertical and whether its beams see the horizontal ahead of the lean or behind it (None: no
+    filter pose)."""
     gyro_scale: Any = None
     """:class:`adalio.lio.gyro_scale.GyroScaleEstimate` the gyro scale check concluded on in
     this run (left after ``sensor.gyro_sensitivity``), or None."""

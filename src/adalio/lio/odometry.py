@@ -508,7 +508,8 @@ class Odometry:
         """How the filter initialized (None until it has)."""
         self.lidar_view: LidarView | None = None
         """How the LiDAR's view lies against gravity, from the first map's scan (None until the
-        filter initialized): does it see the horizontal all around (:mod:`adalio.lio.lidar_view`)."""
+        filter initialized): does it see the horizontal ahead of its lean or behind it
+        (:mod:`adalio.lio.lidar_view`)."""
         self._t_first_scan_ns: int | None = None
         self._scans_without_pose = 0
         """Scans handed to the initialization that left it uninitialized (no pose)."""
