@@ -98,7 +98,7 @@ def test_a_mid360_tilted_30_deg_still_sees_the_horizontal_ahead(tmp_path):
     """The Mid-360's band (-7..+52 deg) 30 deg nose down reaches the horizontal ahead of the
     lean, not behind it: no `LiDAR view:` line (session 81's every-azimuth rule printed one and
     asked for 7 deg); the simulated corridor keeps its axis there (3.4 / 5.3 cm, seeds 0 / 1,
-    README, Benchmarks, A Livox Mid-360), where the XT-32 at 30 deg loses it."""
+    README, Benchmarks, Livox LiDARs), where the XT-32 at 30 deg loses it."""
     from adalio.cli import app
     from adalio.sim import cached_sequence
 
