@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import itertools
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
+from livoxsim import PERIOD_NS, az_el_deg, custommsg_frames, frame_xyz, noise_free_walk
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation, Slerp
 
@@ -25,33 +25,12 @@ from adalio.sim.generate import START_NS, _config_dict, mesh_distance_m
 from adalio.sim.lidar import LIDAR_MODELS, RayCaster, lidar_model, rosette_directions
 from adalio.types import ImuBatch, Scan
 
-PERIOD_NS = 100_000_000
 POINTS_PER_FRAME = 24_000
 """240 000 points/s: the i-th firing of a frame at ``i * PERIOD_NS // POINTS_PER_FRAME``."""
 LASERS = 6
 HALF_H_DEG, HALF_V_DEG = 70.4 / 2.0, 77.2 / 2.0
 EPS_DEG = 1e-3
 """float32 coordinates give directions to about 1e-5 deg."""
-
-
-def _messages(bag_path: Path) -> dict[str, list[tuple[int, object]]]:
-    """Each topic's (record time ns, message), Livox frames as :class:`LivoxCloud`."""
-    out: dict[str, list] = {}
-    with Bag(bag_path) as bag:
-        for topic, t_ns, msg in bag.messages([t.name for t in bag.topics()]):
-            out.setdefault(topic, []).append((t_ns, msg))
-    return out
-
-
-def _xyz(cloud: LivoxCloud) -> np.ndarray:
-    p = cloud.points
-    return np.column_stack([p["x"], p["y"], p["z"]]).astype(np.float64)
-
-
-def _az_el_deg(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Azimuth (from x towards y) and elevation (towards z) in the points' frame, degrees."""
-    return (np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0])),
-            np.degrees(np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1]))))
 
 
 class GroundTruth:
@@ -90,25 +69,14 @@ def _times_s(cloud: LivoxCloud, keep: np.ndarray | slice = slice(None)) -> np.nd
 @pytest.fixture(scope="module")
 def walk(tmp_path_factory):
     """4 s in the hall without sensor noise: still for 2.5 s, then walking off (0.6 m by 4 s)."""
-    res = simulate("hall", tmp_path_factory.mktemp("avia"), duration_s=4.0, lidar="avia",
-                   noise_scale=0.0, seed=3)
-    return res, json.loads(res.meta_path.read_text()), _messages(res.bag_path)
+    return noise_free_walk(tmp_path_factory.mktemp("avia"), "avia")
 
 
 def test_frames_are_livox_custom_msgs_of_six_lasers_firing_in_turn(walk):
     res, meta, msgs = walk
-    with Bag(res.bag_path) as bag:
-        types = {t.name: t.msgtype for t in bag.topics()}
-    assert types == {"/livox/lidar": "livox_ros_driver/msg/CustomMsg",
-                     "/livox/imu": "sensor_msgs/msg/Imu"}
     assert {m.header.frame_id for _, m in msgs["/livox/imu"]} == {"livox_frame"}
-    frames = msgs["/livox/lidar"]
-    assert len(frames) == meta["n_scans"] == 40
-    assert sum(len(c.points) for _, c in frames) == meta["n_points"]
-    for k, (record_ns, cloud) in enumerate(frames):
-        start = START_NS + k * PERIOD_NS
-        assert cloud.timebase_ns == cloud.stamp_ns == start and record_ns == start + PERIOD_NS
-        assert cloud.frame_id == "livox_frame"
+    frames = custommsg_frames(res, meta, msgs)
+    for cloud in frames:
         p = cloud.points
         assert 0.95 * POINTS_PER_FRAME < len(p) <= POINTS_PER_FRAME  # a closed hall
         off = p["offset_time"].astype(np.int64)
@@ -117,9 +85,9 @@ def test_frames_are_livox_custom_msgs_of_six_lasers_firing_in_turn(walk):
         assert np.array_equal(i * PERIOD_NS // POINTS_PER_FRAME, off)
         assert np.array_equal(p["line"], i % LASERS)
         assert np.all(p["tag"] == 0) and p["reflectivity"].max() > 100
-        r = np.linalg.norm(_xyz(cloud), axis=1)
+        r = np.linalg.norm(frame_xyz(cloud), axis=1)
         assert r.min() >= 1.0 - 1e-6 and r.max() <= 100.0  # its 1 m blind zone
-    lines = np.bincount(np.concatenate([c.points["line"] for _, c in frames]))
+    lines = np.bincount(np.concatenate([c.points["line"] for c in frames]))
     assert len(lines) == LASERS and lines.min() > 0.16 * lines.sum()
 
 
@@ -127,7 +95,7 @@ def test_every_return_lies_in_the_box_around_x_and_reaches_its_edges(walk):
     """70.4 deg of azimuth by 77.2 deg of elevation centred on the LiDAR's x axis, every edge
     reached within 0.2 deg; the returns densest at the centre."""
     _, _, msgs = walk
-    az, el = _az_el_deg(np.concatenate([_xyz(c) for _, c in msgs["/livox/lidar"]]))
+    az, el = az_el_deg(np.concatenate([frame_xyz(c) for _, c in msgs["/livox/lidar"]]))
     assert np.abs(az).max() <= HALF_H_DEG + EPS_DEG and np.abs(el).max() <= HALF_V_DEG + EPS_DEG
     assert az.max() > HALF_H_DEG - 0.2 and az.min() < -HALF_H_DEG + 0.2
     assert el.max() > HALF_V_DEG - 0.2 and el.min() < -HALF_V_DEG + 0.2
@@ -149,7 +117,7 @@ def test_points_lie_on_the_scene_at_their_own_firing_times(walk):
     for k in (5, 38):  # still, and walking at about 0.8 m/s
         cloud = msgs["/livox/lidar"][k][1]
         keep = np.arange(0, len(cloud.points), 60)
-        xyz, t_s = _xyz(cloud)[keep], _times_s(cloud, keep)
+        xyz, t_s = frame_xyz(cloud)[keep], _times_s(cloud, keep)
         d = mesh_distance_m(caster, gt.points_scene_m(xyz, t_s))
         assert np.median(d) < 1e-3 and np.mean(d > 5e-3) < 0.01, (k, np.median(d))
         if k == 38:
@@ -163,7 +131,7 @@ def test_frames_never_repeat_and_together_fill_the_view(walk):
     about a fifth of the box's 0.5 deg cells inside its inscribed ellipse (the circular-ish
     field of view), ten frames several times as many, twenty more still."""
     _, _, msgs = walk
-    still = [_xyz(c) for _, c in msgs["/livox/lidar"][2:22]]  # 0.2-2.2 s: at rest
+    still = [frame_xyz(c) for _, c in msgs["/livox/lidar"][2:22]]  # 0.2-2.2 s: at rest
     dirs = [x / np.linalg.norm(x, axis=1, keepdims=True) for x in still]
     for a, b in itertools.pairwise(dirs):
         near, _ = cKDTree(a).query(b, distance_upper_bound=np.radians(0.01))
@@ -174,7 +142,7 @@ def test_frames_never_repeat_and_together_fill_the_view(walk):
     fov_cells = int(np.sum(np.hypot(az_c / HALF_H_DEG, el_c / HALF_V_DEG) < 1.0))
 
     def cells_hit(xyz: np.ndarray) -> int:
-        az, el = _az_el_deg(xyz)
+        az, el = az_el_deg(xyz)
         return len(np.unique(np.floor((az + HALF_H_DEG) / cell) * 1000
                              + np.floor((el + HALF_V_DEG) / cell)))
 
@@ -198,9 +166,9 @@ def test_the_view_looks_along_the_walk_and_level(walk):
     y = np.cross(z, x)
     az, el = [], []
     for _, cloud in msgs["/livox/lidar"][28:40]:
-        d = _xyz(cloud)
+        d = frame_xyz(cloud)
         d_scene = np.einsum("nij,nj->ni", gt.R_scene_lidar(_times_s(cloud)), d)
-        a, e = _az_el_deg(d_scene @ np.column_stack([x, y, z]))
+        a, e = az_el_deg(d_scene @ np.column_stack([x, y, z]))
         az.append(a)
         el.append(e)
     assert abs(np.median(np.concatenate(az))) < 3.0
@@ -268,5 +236,5 @@ def test_the_rosette_stays_in_the_box_at_any_columns_and_rate(columns, rate_hz):
     for first in (0, 7 * n, 123_456 * n):
         d = rosette_directions(model, first)
         np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
-        az, el = _az_el_deg(d)
+        az, el = az_el_deg(d)
         assert np.abs(az).max() <= HALF_H_DEG + 1e-9 and np.abs(el).max() <= HALF_V_DEG + 1e-9

@@ -13,19 +13,25 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from livoxsim import (
+    PERIOD_NS,
+    az_el_deg,
+    custommsg_frames,
+    frame_xyz,
+    messages,
+    noise_free_walk,
+)
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation, Slerp
 
 from adalio.config import load_config
 from adalio.io.bag import Bag
-from adalio.io.livox import LivoxCloud
 from adalio.io.sequencer import Sequencer
 from adalio.sim import simulate
 from adalio.sim.generate import START_NS, mesh_distance_m
 from adalio.sim.lidar import RayCaster
 from adalio.types import ImuBatch, Scan
 
-PERIOD_NS = 100_000_000
 FIRING_NS = 5_000
 """200 000 points/s."""
 STANDARD_G = 9.80665
@@ -33,23 +39,9 @@ SIM_GRAVITY_M_S2 = 9.81
 """The simulator's gravity (``adalio.sim.imu``): 1.00034 g."""
 
 
-def _messages(bag_path: Path) -> dict[str, list[tuple[int, object]]]:
-    """Each topic's (record time ns, message), Livox frames as :class:`LivoxCloud`."""
-    out: dict[str, list] = {}
-    with Bag(bag_path) as bag:
-        for topic, t_ns, msg in bag.messages([t.name for t in bag.topics()]):
-            out.setdefault(topic, []).append((t_ns, msg))
-    return out
-
-
-def _xyz(cloud: LivoxCloud) -> np.ndarray:
-    p = cloud.points
-    return np.column_stack([p["x"], p["y"], p["z"]]).astype(np.float64)
-
-
-def _az_el_deg(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return (np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0])) % 360.0,
-            np.degrees(np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1]))))
+def _az_el_deg360(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    az, el = az_el_deg(points)
+    return az % 360.0, el
 
 
 def _sha1(path: Path) -> str:
@@ -62,24 +54,13 @@ def _sha1(path: Path) -> str:
 @pytest.fixture(scope="module")
 def walk(tmp_path_factory):
     """4 s in the hall without sensor noise: still for 2.5 s, then walking off (1 m/s at 4 s)."""
-    res = simulate("hall", tmp_path_factory.mktemp("mid360"), duration_s=4.0, lidar="mid360",
-                   noise_scale=0.0, seed=3)
-    return res, json.loads(res.meta_path.read_text()), _messages(res.bag_path)
+    return noise_free_walk(tmp_path_factory.mktemp("mid360"), "mid360")
 
 
 def test_frames_are_livox_custom_msgs_with_every_point_at_its_own_time(walk):
     res, meta, msgs = walk
-    with Bag(res.bag_path) as bag:
-        types = {t.name: t.msgtype for t in bag.topics()}
-    assert types == {"/livox/lidar": "livox_ros_driver/msg/CustomMsg",
-                     "/livox/imu": "sensor_msgs/msg/Imu"}
-    frames = msgs["/livox/lidar"]
-    assert len(frames) == meta["n_scans"] == 40
-    assert sum(len(c.points) for _, c in frames) == meta["n_points"]
-    for k, (record_ns, cloud) in enumerate(frames):
-        start = START_NS + k * PERIOD_NS
-        assert cloud.timebase_ns == cloud.stamp_ns == start and record_ns == start + PERIOD_NS
-        assert cloud.frame_id == "livox_frame"
+    frames = custommsg_frames(res, meta, msgs)
+    for cloud in frames:
         p = cloud.points
         assert 0.9 * 20_000 < len(p) <= 20_000  # a closed hall: nearly every ray returns
         off = p["offset_time"].astype(np.int64)
@@ -87,13 +68,13 @@ def test_frames_are_livox_custom_msgs_with_every_point_at_its_own_time(walk):
         assert np.all(off % FIRING_NS == 0)  # its own firing slot, 5 us apart
         assert np.array_equal(p["line"], (off // FIRING_NS) % 4)  # the 4 lasers in turn
         assert np.all(p["tag"] == 0) and p["reflectivity"].max() > 100
-        az, el = _az_el_deg(_xyz(cloud))
+        az, el = _az_el_deg360(frame_xyz(cloud))
         assert el.min() >= -7.0 - 1e-3 and el.max() <= 52.0 + 1e-3
         assert el.min() < -6.9 and el.max() > 51.9
         # the azimuth turns clockwise once a frame at a constant rate, firing by firing
         turned = (az + 360.0 * off / PERIOD_NS - az[0] + 180.0) % 360.0 - 180.0
         assert np.abs(turned).max() < 0.05
-    lines = np.bincount(np.concatenate([c.points["line"] for _, c in frames]))
+    lines = np.bincount(np.concatenate([c.points["line"] for c in frames]))
     assert len(lines) == 4 and lines.min() > 0.24 * lines.sum()
 
 
@@ -116,7 +97,7 @@ def test_points_lie_on_the_scene_at_their_own_firing_times(walk):
 
     for k in (5, 38):  # still, and walking at about 1 m/s
         cloud = msgs["/livox/lidar"][k][1]
-        xyz = _xyz(cloud)
+        xyz = frame_xyz(cloud)
         keep = np.flatnonzero(np.linalg.norm(xyz, axis=1) > 0.5)[::60]  # not the operator
         t_s = (cloud.timebase_ns - START_NS
                + cloud.points["offset_time"][keep].astype(np.int64)) * 1e-9
@@ -131,18 +112,18 @@ def test_frames_never_repeat_and_together_fill_the_view(walk):
     """Still frames (the same pose): consecutive frames' directions differ, and ten frames cover
     the field of view far more fully than one (0.5 deg cells hit; the largest elevation gap)."""
     _, _, msgs = walk
-    still = [_xyz(c) for _, c in msgs["/livox/lidar"][2:22]]  # 0.2-2.2 s: at rest
+    still = [frame_xyz(c) for _, c in msgs["/livox/lidar"][2:22]]  # 0.2-2.2 s: at rest
     dirs = [x / np.linalg.norm(x, axis=1, keepdims=True) for x in still]
     for a, b in itertools.pairwise(dirs):
         near, _ = cKDTree(a).query(b)
         assert np.mean(near < np.radians(0.01)) < 0.01
 
     def cells_hit(xyz: np.ndarray) -> int:
-        az, el = _az_el_deg(xyz)
+        az, el = _az_el_deg360(xyz)
         return len(np.unique(np.floor(az / 0.5) * 1000 + np.floor((el + 7.0) / 0.5)))
 
     def largest_elevation_gap_deg(xyz: np.ndarray) -> float:
-        _, el = _az_el_deg(xyz)
+        _, el = _az_el_deg360(xyz)
         return float(np.diff(np.sort(np.r_[-7.0, el, 52.0])).max())
 
     cells = 720 * 118
@@ -176,8 +157,8 @@ def test_same_seed_same_bytes_other_seed_other_bytes(short):
 def test_its_imu_publishes_the_accelerometer_in_g(short):
     """``/livox/imu`` in ``livox_frame``: the same samples as the XT-32 rig's IMU (same seed)
     divided by the standard g, so about 1 at rest."""
-    imu = [m for _, m in _messages(short["a"].bag_path)["/livox/imu"]]
-    ref = [m for _, m in _messages(short["xt32"].bag_path)["/alphasense/imu"]]
+    imu = [m for _, m in messages(short["a"].bag_path)["/livox/imu"]]
+    ref = [m for _, m in messages(short["xt32"].bag_path)["/alphasense/imu"]]
     assert {m.header.frame_id for m in imu} == {"livox_frame"}
 
     def acc(msgs):
@@ -229,7 +210,7 @@ def test_columns_and_rate_set_the_frame(tmp_path):
     each frame's firings spread over its period."""
     res = simulate("hall", tmp_path, duration_s=1.0, lidar="mid360", columns=300,
                    lidar_rate_hz=20.0, noise_scale=0.0, seed=1)
-    frames = _messages(res.bag_path)["/livox/lidar"]
+    frames = messages(res.bag_path)["/livox/lidar"]
     assert len(frames) == 20
     for _, cloud in frames:
         off = cloud.points["offset_time"].astype(np.int64)
