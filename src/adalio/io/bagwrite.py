@@ -134,10 +134,9 @@ class BagWriter:
         """Write one Livox ``CustomMsg`` (:class:`~adalio.io.livox.LivoxCloud`), serialized
         with numpy; the type is ``livox_ros_driver/msg/CustomMsg`` in a ROS1 bag and
         ``livox_ros_driver2/msg/CustomMsg`` in a ROS2 one unless ``msgtype`` says."""
-        from adalio.io.livox import build_custom_msg
+        from adalio.io.livox import LIVOX_TYPES, build_custom_msg
 
-        msgtype = msgtype or ("livox_ros_driver/msg/CustomMsg" if self.fmt == "ros1"
-                              else "livox_ros_driver2/msg/CustomMsg")
+        msgtype = msgtype or LIVOX_TYPES[0 if self.fmt == "ros1" else 1]
         data = build_custom_msg(cloud, ros2=self.fmt != "ros1")
         self._writer.write(self._conn(topic, msgtype),
                            int(cloud.stamp_ns if t_recv_ns is None else t_recv_ns), data)

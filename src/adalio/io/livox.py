@@ -110,8 +110,8 @@ class LivoxCloud:
     points: np.ndarray
     lidar_id: int = 0
     point_num: int = -1
-    """The message's own count (``-1``: not given); a count that disagrees with the points is
-    reported, not trusted."""
+    """The message's own count (``-1``: not given); not used: the points' array is what is
+    read."""
 
 
 class _Cursor:
@@ -257,12 +257,8 @@ class LivoxDecoder:
         where = f"Livox CustomMsg on {self.topic or '?'}"
         if not isinstance(msg, LivoxCloud):
             try:
-                pts = livox_points(
-                    np.array([p.offset_time for p in msg.points], np.uint32),
-                    np.array([[p.x, p.y, p.z] for p in msg.points], np.float32).reshape(-1, 3),
-                    np.array([p.reflectivity for p in msg.points], np.uint8),
-                    np.array([p.tag for p in msg.points], np.uint8),
-                    np.array([p.line for p in msg.points], np.uint8))
+                pts = np.array([(p.offset_time, p.x, p.y, p.z, p.reflectivity, p.tag, p.line)
+                                for p in msg.points], POINT_DTYPE_ROS1)
                 msg = LivoxCloud(stamp_ns=stamp_to_ns(msg.header.stamp),
                                  frame_id=str(msg.header.frame_id), timebase_ns=int(msg.timebase),
                                  points=pts, lidar_id=int(msg.lidar_id),

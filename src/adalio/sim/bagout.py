@@ -37,6 +37,7 @@ from adalio.io.livox import (
     register_livox_types,
 )
 from adalio.io.pointcloud2 import encode_pointcloud2
+from adalio.io.sequencer import G_TO_M_S2
 from adalio.sim.lidar import LidarModel, SweepPoints
 
 FORMATS = ("ros1", "ros2", "mcap")
@@ -51,9 +52,6 @@ VELODYNE_LAYOUT = [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("intensity",
 POINT_STEP = 48
 """Bytes a point of the XT-32 and Ouster layouts; the largest of all layouts."""
 VELODYNE_POINT_STEP = 22
-STANDARD_GRAVITY_M_S2 = 9.80665
-"""One g, as an IMU publishing its accelerometer in g (Livox's) scales it and adalio's reader
-converts it back."""
 
 
 def bag_path_for(out_dir: Path, stem: str, fmt: str) -> Path:
@@ -124,7 +122,7 @@ class SimBagWriter:
         recorded at their time and stamped ``stamp_offset_ns`` later (an IMU clock running ahead
         of the LiDAR's)."""
         if self.model.imu_accel_unit == "g":
-            accel = np.asarray(accel) / STANDARD_GRAVITY_M_S2
+            accel = np.asarray(accel) / G_TO_M_S2
         ocov = np.zeros(9)
         ocov[0] = -1.0
         zero9 = np.zeros(9)
