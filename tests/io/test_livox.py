@@ -285,3 +285,28 @@ def test_livox_ros_driver_pointcloud2_without_times_is_read_in_firing_order():
     assert dec.time_spec.describe() == "none (spread over the frame in firing order)"
     wrong = azimuth_times_ns(scan.points_lidar, base, 10.0)
     assert np.median(np.abs(wrong - t)) > 2e7
+
+
+def test_livox_pointcloud2_frames_faster_than_the_config_take_the_clouds_rate():
+    """livox_ros_driver's clouds at 10 Hz with sensor.lidar_rate_hz 5: once the clouds' rate
+    is measured, the warning speaks of frames in firing order (not of azimuth or turns), and
+    from there on each point is within one point interval of its true time in its 100 ms
+    frame (at 5 Hz they would run 200 ms, into the next cloud)."""
+    n = 6_000
+    base = 1_700_000_000_000_000_000
+    rng = np.random.default_rng(9)
+    dec = CloudDecoder(SensorConfig(lidar_rate_hz=5.0), "/livox/lidar")
+    caught, late = [], []
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        for i in range(14):
+            msg, t = livox_pc2(rng, n, base + i * 100_000_000, with_time=False)
+            late.append(np.abs(dec.decode(msg).t_ns - t).max())
+        caught = [str(x.message) for x in w]
+    rate = [m for m in caught if "clouds come at" in m]
+    assert len(rate) == 1
+    assert "10.0 Hz, each a whole frame, but sensor.lidar_rate_hz is 5" in rate[0]
+    assert "spread over the frame in firing order at 10.0 Hz from here on" in rate[0]
+    assert "azimuth" not in rate[0] and "turn" not in rate[0]
+    assert late[0] > 4e7  # the configured 5 Hz: the frame's end 100 ms late
+    assert max(late[-2:]) <= 1e8 / n

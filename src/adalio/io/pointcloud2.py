@@ -585,7 +585,7 @@ class CloudDecoder:
         if t_ns is None:
             t_ns = firing_order_times_ns(n_total, stamp_ns, self._turn_hz)[ok] if livox \
                 else azimuth_times_ns(pts, stamp_ns, self._turn_hz)
-            self._check_turn_rate(t_ns, int(stamp_ns))
+            self._check_turn_rate(t_ns, int(stamp_ns), livox)
         else:
             t_ns = t_ns[ok]
         intensity = cols[extras["intensity"]][ok].astype(np.float32) if "intensity" in extras \
@@ -616,8 +616,9 @@ class CloudDecoder:
                 "relative and absolute times look alike, was read the other way; set "
                 f"sensor.point_time_reference: {spec.reference}")
 
-    def _check_turn_rate(self, t_ns: np.ndarray, stamp_ns: int) -> None:
-        """Azimuth times assume one turn per ``1 / sensor.lidar_rate_hz``. Once, after
+    def _check_turn_rate(self, t_ns: np.ndarray, stamp_ns: int, livox: bool = False) -> None:
+        """Azimuth times assume one turn per ``1 / sensor.lidar_rate_hz``, and a Livox cloud's
+        firing-order times one frame per it (``livox``). Once, after
         :data:`TURN_RATE_INTERVALS` clouds: if each cloud is a whole turn (its points sweep at
         least :data:`FULL_TURN` of it) and they come at a rate more than
         :data:`TURN_RATE_MISMATCH` off the configured one, warn. Clouds coming faster than the
@@ -640,17 +641,19 @@ class CloudDecoder:
         if (float(np.median(self._turn_covers)) < FULL_TURN
                 or abs(cloud_hz / cfg_hz - 1.0) <= TURN_RATE_MISMATCH):
             return
+        whole, times = (("a whole frame", "the times spread over the frame in firing order")
+                        if livox else ("a whole turn", "the times reconstructed from azimuth"))
         seen = (f"PointCloud2 on {self.topic or '?'}: its clouds come at {cloud_hz:.1f} Hz, "
-                f"each a whole turn, but sensor.lidar_rate_hz is {cfg_hz:g}: ")
+                f"each {whole}, but sensor.lidar_rate_hz is {cfg_hz:g}: ")
         if cloud_hz > cfg_hz:
             self._turn_hz = cloud_hz
-            warnings.warn(f"{seen}times reconstructed from azimuth at {cloud_hz:.1f} Hz from "
-                          f"here on (set sensor.lidar_rate_hz: {cloud_hz:.3g})", stacklevel=3)
+            warnings.warn(f"{seen}{times} at {cloud_hz:.1f} Hz from here on (set "
+                          f"sensor.lidar_rate_hz: {cloud_hz:.3g})", stacklevel=3)
         else:
-            warnings.warn(f"{seen}the times reconstructed from azimuth take a turn as "
+            warnings.warn(f"{seen}{times} take {'a frame' if livox else 'a turn'} as "
                           f"{1e3 / cfg_hz:.0f} ms; set sensor.lidar_rate_hz: {cloud_hz:.3g} if "
-                          "the head turns at that rate (keep it for a recording throttled to "
-                          "fewer clouds)", stacklevel=3)
+                          f"the {'LiDAR frames' if livox else 'head turns'} at that rate (keep "
+                          "it for a recording throttled to fewer clouds)", stacklevel=3)
 
 
 def decode_pointcloud2(msg: Any, sensor: SensorConfig | None = None, topic: str = "") -> Scan:
