@@ -99,6 +99,7 @@ from adalio.sim.generate import (
     MAX_IMU_TIME_OFFSET_S,
     MAX_LIDAR_TILT_DEG,
     MIN_IMU_RATE_HZ,
+    T_IMU_LIDAR_HILTI,
 )
 from adalio.sim.lidar import lidar_model
 from adalio.sim.people import MAX_PEOPLE
@@ -126,13 +127,16 @@ def _mounting(euler_zyx_deg: tuple[float, float, float], t_m: tuple[float, float
 
 
 MOUNTINGS: dict[str, list | None] = {
-    "hilti": None,
+    "default": None,
+    "hilti": T_IMU_LIDAR_HILTI,
     "upright": _mounting((0.0, 0.0, 0.0), (0.0, 0.0, 0.06)),
     "skewed": _mounting((35.0, 8.0, -175.0), (0.10, -0.05, 0.10)),
     "side": _mounting((0.0, 0.0, 90.0), (0.0, -0.05, 0.03)),
 }
-"""IMU-LiDAR mountings ``T_imu_lidar``: ``hilti`` the HILTI 2022 rig's (the simulator's
-default: the LiDAR upside down over the IMU, 5.5 cm apart); ``upright`` the IMU's axes along the
+"""IMU-LiDAR mountings ``T_imu_lidar``: ``default`` the simulator's for the LiDAR
+(:func:`adalio.sim.generate.default_mounting`: the HILTI rig's for a spinning head, a Livox
+model's built-in IMU); ``hilti`` the HILTI 2022 rig's (the LiDAR upside down over the IMU, 5.5 cm
+apart), whatever the LiDAR; ``upright`` the IMU's axes along the
 LiDAR's, 6 cm under it; ``skewed`` turned 35 / 8 / -175 degrees (z-y-x) with a 15 cm lever arm
 (the README's OS1-64 stairwell walk); ``side`` the IMU rolled 90 degrees onto its side."""
 TARGET_POSES = {"still": 0.95, "moving": 0.90}
@@ -150,7 +154,7 @@ class Cell:
     start: str
     cut_s: float = 0.0
     """Moving start: seconds cut from the bag's start (0 for a still start)."""
-    mounting: str = "hilti"
+    mounting: str = "default"
     """Key of :data:`MOUNTINGS`."""
     imu_rate_hz: float = IMU_RATE_HZ
     """The simulated IMU's sample rate (``simulate(imu_rate_hz=...)``)."""
@@ -286,7 +290,7 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     start_s = cell.cut_s
     cell.scans = int(meta["n_scans"] - round(start_s * meta["lidar_rate_hz"]))
     cut = f"{cell.cut_s:g}" if cell.start == "moving" else ""
-    other = "" if cell.mounting == "hilti" else f"_{cell.mounting}"
+    other = "" if cell.mounting == "default" else f"_{cell.mounting}"
     other += "" if cell.imu_rate_hz == IMU_RATE_HZ else f"_{cell.imu_rate_hz:g}hz"
     other += "" if cell.lidar_rate_hz == LIDAR_RATE_HZ else f"_lidar{cell.lidar_rate_hz:g}hz"
     other += "" if cell.motion_from is None else f"_hand-{Path(cell.motion_from).stem}"
@@ -404,9 +408,9 @@ def cm(x: float) -> str:
 
 
 def _lidar_label(c: Cell) -> str:
-    """The LiDAR, and the mounting, the IMU's rate and the LiDAR's when they are not the HILTI
-    rig's."""
-    other = [] if c.mounting == "hilti" else [c.mounting]
+    """The LiDAR, and the mounting, the IMU's rate and the LiDAR's when they are not the
+    simulator's defaults."""
+    other = [] if c.mounting == "default" else [c.mounting]
     other += [] if c.imu_rate_hz == IMU_RATE_HZ else [f"{c.imu_rate_hz:g} Hz IMU"]
     other += [] if c.lidar_rate_hz == LIDAR_RATE_HZ else [f"{c.lidar_rate_hz:g} Hz"]
     other += [] if not c.imu_time_offset_ms else [f"IMU {c.imu_time_offset_ms:+g} ms"]
@@ -496,7 +500,7 @@ def summary_table(cells: list[Cell]) -> str:
                     c.imu_time_offset_ms, c.extrinsic_error_deg, c.extrinsic_translation_error_cm,
                     c.imu_scale_error_pct, c.people, c.lidar_tilt_deg)
                    for c in cells},
-                  key=lambda k: (k[0], k[1] != "still", k[2], k[3] != "hilti", k[3], -k[4],
+                  key=lambda k: (k[0], k[1] != "still", k[2], k[3] != "default", k[3], -k[4],
                                  k[5], k[6], k[7], k[8], k[9], k[10], k[11]))
     for key in keys:
         scene, start, noise = key[:3]
@@ -536,7 +540,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="simulated LiDARs (LIDARS; default: " + " ".join(DEFAULT_LIDARS)
                     + "; mid360: a Livox Mid-360-like non-repetitive LiDAR, CustomMsg; avia: a "
                     "Livox Avia-like forward-looking rosette, CustomMsg)")
-    ap.add_argument("--mountings", nargs="+", default=["hilti"], choices=list(MOUNTINGS),
+    ap.add_argument("--mountings", nargs="+", default=["default"], choices=list(MOUNTINGS),
                     help="IMU-LiDAR mountings to simulate (MOUNTINGS)")
     ap.add_argument("--imu-rates", nargs="+", type=float, default=[IMU_RATE_HZ],
                     help="IMU sample rates to simulate, Hz (default: the BMI085's 400)")

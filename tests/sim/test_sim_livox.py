@@ -28,13 +28,17 @@ from adalio.config import load_config
 from adalio.io.bag import Bag
 from adalio.io.sequencer import Sequencer
 from adalio.sim import simulate
-from adalio.sim.generate import START_NS, mesh_distance_m
+from adalio.sim.generate import START_NS, T_IMU_LIDAR_HILTI, mesh_distance_m
 from adalio.sim.lidar import RayCaster
 from adalio.types import ImuBatch, Scan
 
 FIRING_NS = 5_000
 """200 000 points/s."""
 STANDARD_G = 9.80665
+MID360_T_IMU_LIDAR = [[1.0, 0.0, 0.0, -0.011], [0.0, 1.0, 0.0, -0.02329],
+                      [0.0, 0.0, 1.0, 0.04412], [0.0, 0.0, 0.0, 1.0]]
+"""The Mid-360's built-in IMU in its LiDAR's frame (Livox's manual: the IMU at (11.0, 23.29,
+-44.12) mm in the LiDAR frame), as the ``livox_mid360`` preset gives it."""
 SIM_GRAVITY_M_S2 = 9.81
 """The simulator's gravity (``adalio.sim.imu``): 1.00034 g."""
 
@@ -144,7 +148,33 @@ def short(tmp_path_factory):
             "b": simulate("hall", root / "b", lidar="mid360", **kw),
             "c": simulate("hall", root / "c", lidar="mid360", duration_s=1.0, seed=6),
             "ros2": simulate("hall", root / "ros2", lidar="mid360", fmt="ros2", **kw),
-            "xt32": simulate("hall", root / "xt32", lidar="xt32", columns=16, **kw)}
+            "xt32": simulate("hall", root / "xt32", lidar="xt32", columns=16,
+                             T_imu_lidar=MID360_T_IMU_LIDAR, **kw),
+            "hilti": simulate("hall", root / "hilti", lidar="mid360",
+                              T_imu_lidar=T_IMU_LIDAR_HILTI, **kw)}
+
+
+def test_its_imu_is_its_own_where_the_preset_puts_it(short):
+    """By default the Mid-360's IMU is its built-in one: the sequence's config and meta give the
+    ``livox_mid360`` preset's extrinsic (identity rotation, the manual's offset), so
+    ``--preset livox_mid360`` alone reads the sequence with the true mounting. At rest the
+    accelerometer then reads gravity's reaction along the level LiDAR's +z (about +1 g), where
+    the HILTI rig's mounting (asked for explicitly) holds the IMU upside down (about -1 g)."""
+    preset_T = np.asarray(load_config(preset="livox_mid360").sensor.T_imu_lidar)
+    np.testing.assert_array_equal(preset_T, MID360_T_IMU_LIDAR)
+    res = short["a"]
+    np.testing.assert_array_equal(json.loads(res.meta_path.read_text())["T_imu_lidar"], preset_T)
+    np.testing.assert_array_equal(load_config(config_file=res.config_path).sensor.T_imu_lidar,
+                                  preset_T)
+    np.testing.assert_array_equal(json.loads(short["hilti"].meta_path.read_text())["T_imu_lidar"],
+                                  T_IMU_LIDAR_HILTI)
+
+    def still_z_g(r) -> float:
+        return float(np.mean([m.linear_acceleration.z
+                              for _, m in messages(r.bag_path)["/livox/imu"]][:100]))
+
+    assert still_z_g(res) == pytest.approx(1.0, abs=0.02)
+    assert still_z_g(short["hilti"]) == pytest.approx(-1.0, abs=0.02)
 
 
 def test_same_seed_same_bytes_other_seed_other_bytes(short):
@@ -155,8 +185,8 @@ def test_same_seed_same_bytes_other_seed_other_bytes(short):
 
 
 def test_its_imu_publishes_the_accelerometer_in_g(short):
-    """``/livox/imu`` in ``livox_frame``: the same samples as the XT-32 rig's IMU (same seed)
-    divided by the standard g, so about 1 at rest."""
+    """``/livox/imu`` in ``livox_frame``: the same samples as the XT-32 rig's IMU (same seed,
+    same mounting) divided by the standard g, so about 1 at rest."""
     imu = [m for _, m in messages(short["a"].bag_path)["/livox/imu"]]
     ref = [m for _, m in messages(short["xt32"].bag_path)["/alphasense/imu"]]
     assert {m.header.frame_id for m in imu} == {"livox_frame"}
@@ -181,7 +211,7 @@ def test_adalio_reads_the_sequence_with_its_own_config(short, which):
     """The sequence's ``config.yaml`` (``accel_unit`` left to ``auto``) through adalio's reader:
     every frame a scan of its points at ``timebase + offset_time`` (no rings: a laser of the
     pattern is none), and
-    the IMU found in g and read in m/s^2 as the XT-32 rig's (same seed) is."""
+    the IMU found in g and read in m/s^2 as the XT-32 rig's (same seed and mounting) is."""
 
     def read(res):
         cfg = load_config(config_file=res.config_path)

@@ -44,7 +44,8 @@ def register(app: typer.Typer) -> None:
         extrinsic: Annotated[str | None, typer.Option(
             "--extrinsic", help="How the IMU sits on the LiDAR: T_imu_lidar as 'tx ty tz qx qy "
             "qz qw' (maps LiDAR points into the IMU frame, as `run --extrinsic`; default: the "
-            "HILTI 2022 rig's). The LiDAR stays level (or as --lidar-tilt-deg says); the IMU "
+            "HILTI 2022 rig's; mid360 and avia: their built-in IMU, where their preset puts "
+            "it). The LiDAR stays level (or as --lidar-tilt-deg says); the IMU "
             "turns.")] = None,
         imu_rate: Annotated[float, typer.Option(
             "--imu-rate", help="IMU samples per second (default: the HILTI BMI085's 400; an "

@@ -26,7 +26,14 @@ from adalio.config import preset_dict, validate_transform
 from adalio.errors import InputError
 from adalio.sim.bagout import FORMATS, POINT_STEP, SimBagWriter, bag_path_for
 from adalio.sim.imu import GRAVITY_M_S2, ImuNoise, sensitivity_errors, synthesize_imu
-from adalio.sim.lidar import LIDAR_MODELS, Occluder, RayCaster, SweepSimulator, lidar_model
+from adalio.sim.lidar import (
+    LIDAR_MODELS,
+    LidarModel,
+    Occluder,
+    RayCaster,
+    SweepSimulator,
+    lidar_model,
+)
 from adalio.sim.people import People, check_people
 from adalio.sim.scenes import build_scene
 from adalio.sim.trajectory import HandheldMotion, Trajectory, tilt_rig_lidar
@@ -51,6 +58,17 @@ GT_RATE_HZ = 100.0
 T_IMU_LIDAR_HILTI = [[0.0, -1.0, 0.0, -0.001], [-1.0, 0.0, 0.0, -0.00855],
                      [0.0, 0.0, -1.0, 0.055], [0.0, 0.0, 0.0, 1.0]]
 """HILTI 2022 PandarXT-32 -> BMI085 extrinsic (p_imu = R p_lidar + t)."""
+
+
+def default_mounting(model: LidarModel) -> list[list[float]]:
+    """The IMU-LiDAR mounting ``simulate`` gives ``model`` unless told one: a LiDAR with its
+    own IMU (:attr:`~adalio.sim.lidar.LidarModel.builtin_imu`, the Livox models) that IMU where
+    its preset's ``T_imu_lidar`` puts it, axes along the LiDAR's; the others the HILTI 2022 rig's
+    (:data:`T_IMU_LIDAR_HILTI`: the LiDAR upside down over a separate IMU)."""
+    if model.builtin_imu:
+        T = preset_dict(model.preset)["sensor"]["T_imu_lidar"]
+        return [[float(v) for v in row] for row in T]
+    return T_IMU_LIDAR_HILTI
 MIN_CLEARANCE_M = 0.25
 IMU_MESSAGE_BYTES = 600
 """Bytes a generated sequence takes per IMU sample, at most: an Imu message with its record,
@@ -214,7 +232,8 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
 
     ``duration_s`` None walks the whole route; shorter values truncate it (static start kept).
     ``noise_scale`` multiplies all sensor noise, dropouts and initial IMU biases (0 = perfect).
-    ``T_imu_lidar`` overrides the HILTI mounting, ``occluder`` toggles the operator's body,
+    ``T_imu_lidar`` overrides the model's mounting (:func:`default_mounting`: the HILTI rig's,
+    or a Livox model's built-in IMU), ``occluder`` toggles the operator's body,
     ``scene_params`` overrides the scene builder's sizes (see :mod:`adalio.sim.scenes`).
     ``imu_noise_scale`` further multiplies the IMU's white-noise densities only (x10: a 10x
     noisier IMU than the HILTI BMI085, whose bias walks and initial biases stay as they are).
@@ -260,9 +279,9 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
         raise InputError(f"--imu-time-offset-ms must be within +-{MAX_IMU_TIME_OFFSET_S * 1e3:g} "
                          f"ms (got {imu_time_offset_s * 1e3:g})")
     offset_ns = round(imu_time_offset_s * 1e9)
-    T_il = validate_transform(T_IMU_LIDAR_HILTI if T_imu_lidar is None else T_imu_lidar,
-                              "T_imu_lidar")
     model = lidar_model(lidar, columns, lidar_rate_hz)
+    T_il = validate_transform(default_mounting(model) if T_imu_lidar is None else T_imu_lidar,
+                              "T_imu_lidar")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     bag_path = bag_path_for(out_dir, scene, fmt)

@@ -75,6 +75,10 @@ class LidarModel:
     the others, which see all around."""
     preset: str = "hilti2022"
     """The adalio preset its sequences' ``config.yaml`` names (``adalio/presets/<preset>.yaml``)."""
+    builtin_imu: bool = False
+    """The IMU is the LiDAR's own (a Livox's): ``simulate`` mounts it where the preset's
+    ``T_imu_lidar`` says unless told another mounting; False: the HILTI rig's separate IMU
+    (:func:`adalio.sim.generate.default_mounting`)."""
 
     @property
     def channels(self) -> int:
@@ -117,7 +121,7 @@ MID360 = LidarModel(name="mid360", elevations_deg=(52.0, -7.0), columns=5000, la
                     azimuth0_deg=0.0, min_range_m=0.1, max_range_m=40.0, range_noise_m=0.02,
                     lidar_topic="/livox/lidar", imu_topic="/livox/imu", lidar_frame="livox_frame",
                     imu_frame="livox_frame", driver="livox", imu_accel_unit="g",
-                    preset="livox_mid360")
+                    preset="livox_mid360", builtin_imu=True)
 """Livox Mid-360-like: 360 deg x -7..+52 deg, 4 lasers, 200 000 points/s in 10 Hz frames of
 20 000 (5000 firing cycles of the 4 lasers), non-repetitive (:func:`non_repetitive_directions`),
 0.1-40 m, 2 cm range noise; ``CustomMsg`` on ``/livox/lidar`` and its built-in IMU's topic
