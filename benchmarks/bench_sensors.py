@@ -178,6 +178,9 @@ class Cell:
     """People walking along the route (``simulate(people=...)``)."""
     lidar_tilt_deg: float = 0.0
     """The LiDAR pitched this much nose down on the handle (``simulate(lidar_tilt_deg=...)``)."""
+    imu_bias_scale: float = 1.0
+    """The simulated IMU's initial biases and bias walks x this (``simulate(imu_bias_scale=...)``);
+    the run's config does not say it."""
     map_off_scene: float = float("nan")
     """Share of the written map's points off the scene's surfaces, the map placed by the
     trajectory's SE(3) alignment to the GT: ghosts of people walking by, and a map that drifted
@@ -276,7 +279,7 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
                           motion_from=cell.motion_from, lidar_rate_hz=cell.lidar_rate_hz,
                           imu_time_offset_s=cell.imu_time_offset_ms * 1e-3,
                           imu_scale_error_pct=cell.imu_scale_error_pct, people=cell.people,
-                          lidar_tilt_deg=cell.lidar_tilt_deg)
+                          lidar_tilt_deg=cell.lidar_tilt_deg, imu_bias_scale=cell.imu_bias_scale)
     meta = json.loads(sim.meta_path.read_text())
     cfg = load_config(config_file=sim.config_path, overrides=overrides)
     T_true = cfg.T_imu_lidar()
@@ -301,6 +304,7 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     other += "" if not cell.imu_scale_error_pct else f"_scale{cell.imu_scale_error_pct:g}pct"
     other += "" if not cell.people else f"_people{cell.people}"
     other += "" if not cell.lidar_tilt_deg else f"_tilt{cell.lidar_tilt_deg:g}deg"
+    other += "" if cell.imu_bias_scale == 1.0 else f"_bias{cell.imu_bias_scale:g}x"
     out = out_root / (f"{cell.scene}_s{cell.seed}_imu{cell.imu_noise:g}_{cell.lidar}_"
                       f"{cell.start}{cut}{other}")
     try:
@@ -420,6 +424,7 @@ def _lidar_label(c: Cell) -> str:
     other += [] if not c.imu_scale_error_pct else [f"IMU scales {c.imu_scale_error_pct:g} %"]
     other += [] if not c.people else [f"{c.people} people"]
     other += [] if not c.lidar_tilt_deg else [f"tilted {c.lidar_tilt_deg:g}°"]
+    other += [] if c.imu_bias_scale == 1.0 else [f"IMU bias x{c.imu_bias_scale:g}"]
     return f"{c.lidar} ({', '.join(other)})" if other else c.lidar
 
 
@@ -498,17 +503,17 @@ def summary_table(cells: list[Cell]) -> str:
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     keys = sorted({(c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz, c.lidar_rate_hz,
                     c.imu_time_offset_ms, c.extrinsic_error_deg, c.extrinsic_translation_error_cm,
-                    c.imu_scale_error_pct, c.people, c.lidar_tilt_deg)
+                    c.imu_scale_error_pct, c.people, c.lidar_tilt_deg, c.imu_bias_scale)
                    for c in cells},
                   key=lambda k: (k[0], k[1] != "still", k[2], k[3] != "default", k[3], -k[4],
-                                 k[5], k[6], k[7], k[8], k[9], k[10], k[11]))
+                                 k[5], k[6], k[7], k[8], k[9], k[10], k[11], k[12]))
     for key in keys:
         scene, start, noise = key[:3]
         cs = [c for c in cells
               if (c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz,
                   c.lidar_rate_hz, c.imu_time_offset_ms, c.extrinsic_error_deg,
                   c.extrinsic_translation_error_cm, c.imu_scale_error_pct, c.people,
-                  c.lidar_tilt_deg) == key]
+                  c.lidar_tilt_deg, c.imu_bias_scale) == key]
         ates = np.array([c.ate_m for c in cs])
         off = np.array([c.map_off_scene for c in cs])
         off = off if np.isfinite(off).any() else np.array([0.0]) * np.nan
@@ -542,6 +547,9 @@ def main(argv: list[str] | None = None) -> int:
                     "Livox Avia-like forward-looking rosette, CustomMsg)")
     ap.add_argument("--mountings", nargs="+", default=["default"], choices=list(MOUNTINGS),
                     help="IMU-LiDAR mountings to simulate (MOUNTINGS)")
+    ap.add_argument("--imu-bias-scales", nargs="+", type=float, default=[1.0],
+                    help="the simulated IMU's initial biases and bias walks x this (default 1: "
+                    "the BMI085's); the runs' configs do not say it")
     ap.add_argument("--imu-rates", nargs="+", type=float, default=[IMU_RATE_HZ],
                     help="IMU sample rates to simulate, Hz (default: the BMI085's 400)")
     ap.add_argument("--lidar-rates", nargs="+", type=float, default=[LIDAR_RATE_HZ],
@@ -601,6 +609,9 @@ def main(argv: list[str] | None = None) -> int:
         if not 0.0 <= pct <= MAX_IMU_SCALE_ERROR_PCT:
             raise SystemExit(f"error: --imu-scale-errors-pct must be 0-"
                              f"{MAX_IMU_SCALE_ERROR_PCT:g} (got {pct:g})")
+    for bias in args.imu_bias_scales:
+        if not bias >= 0:
+            raise SystemExit(f"error: --imu-bias-scales must be >= 0 (got {bias:g})")
     for n in args.people:
         if not 0 <= n <= MAX_PEOPLE:
             raise SystemExit(f"error: --people must be 0-{MAX_PEOPLE} (got {n})")
@@ -624,16 +635,17 @@ def main(argv: list[str] | None = None) -> int:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for noise in args.imu_noise:
                 for (lidar, mounting, rate, lidar_rate, offset, turn, lever,
-                     scale, people, tilt) in itertools.product(
+                     scale, people, tilt, bias) in itertools.product(
                         args.lidars, args.mountings, args.imu_rates, args.lidar_rates,
                         args.imu_time_offsets_ms, args.extrinsic_errors_deg,
                         args.extrinsic_translation_errors_cm, args.imu_scale_errors_pct,
-                        args.people, args.lidar_tilts_deg):
+                        args.people, args.lidar_tilts_deg, args.imu_bias_scales):
                     for start, cut_s in starts:
                         c = run_cell(Cell(scene, seed, noise, lidar, start, cut_s, mounting,
                                           rate, lidar_rate, args.motion_from, offset, turn,
                                           lever, scale, people=people,
-                                          lidar_tilt_deg=tilt), duration, args.out,
+                                          lidar_tilt_deg=tilt, imu_bias_scale=bias),
+                                     duration, args.out,
                                      overrides)
                         cells.append(c)
                         label = f"moving {cut_s:g} s" if start == "moving" else start

@@ -50,6 +50,7 @@ def test_bench_rows_bad_window_is_one_error_line(args: list[str], tmp_path: Path
     ("bench_rows.py", ["--lidar-rate", "1"], "--lidar-rate"),
     ("bench_sensors.py", ["--imu-time-offsets-ms", "20", "5000"], "--imu-time-offsets-ms"),
     ("bench_sensors.py", ["--extrinsic-errors-deg", "1", "200"], "--extrinsic-errors-deg"),
+    ("bench_sensors.py", ["--imu-bias-scales", "3", "-1"], "--imu-bias-scales"),
 ])
 def test_a_rate_the_simulator_refuses_is_one_error_line(script: str, args: list[str],
                                                         names: str, tmp_path: Path) -> None:
