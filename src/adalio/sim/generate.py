@@ -58,17 +58,6 @@ GT_RATE_HZ = 100.0
 T_IMU_LIDAR_HILTI = [[0.0, -1.0, 0.0, -0.001], [-1.0, 0.0, 0.0, -0.00855],
                      [0.0, 0.0, -1.0, 0.055], [0.0, 0.0, 0.0, 1.0]]
 """HILTI 2022 PandarXT-32 -> BMI085 extrinsic (p_imu = R p_lidar + t)."""
-
-
-def default_mounting(model: LidarModel) -> list[list[float]]:
-    """The IMU-LiDAR mounting ``simulate`` gives ``model`` unless told one: a LiDAR with its
-    own IMU (:attr:`~adalio.sim.lidar.LidarModel.builtin_imu`, the Livox models) that IMU where
-    its preset's ``T_imu_lidar`` puts it, axes along the LiDAR's; the others the HILTI 2022 rig's
-    (:data:`T_IMU_LIDAR_HILTI`: the LiDAR upside down over a separate IMU)."""
-    if model.builtin_imu:
-        T = preset_dict(model.preset)["sensor"]["T_imu_lidar"]
-        return [[float(v) for v in row] for row in T]
-    return T_IMU_LIDAR_HILTI
 MIN_CLEARANCE_M = 0.25
 IMU_MESSAGE_BYTES = 600
 """Bytes a generated sequence takes per IMU sample, at most: an Imu message with its record,
@@ -80,6 +69,26 @@ a database page)."""
 SPARE_BYTES = 200_000_000
 """Room kept free beside a sequence's estimated size (ground truth, mesh, bag index, and the
 other outputs of whatever else writes to the same disk meanwhile)."""
+_POINT_TIME = {
+    "hesai": {"point_time_field": "timestamp", "point_time_unit": "s",
+              "point_time_reference": "absolute"},
+    "ouster": {"point_time_field": "t", "point_time_unit": "ns", "point_time_reference": "relative"},
+    "velodyne": {"point_time_field": "time", "point_time_unit": "s",
+                 "point_time_reference": "relative"},
+}
+"""Each driver's per-point time field as the sequence's ``config.yaml`` names it (``livox``: none,
+a ``CustomMsg`` carries its own point times)."""
+
+
+def default_mounting(model: LidarModel) -> list[list[float]]:
+    """The IMU-LiDAR mounting ``simulate`` gives ``model`` unless told one: a LiDAR with its
+    own IMU (:attr:`~adalio.sim.lidar.LidarModel.builtin_imu`, the Livox models) that IMU where
+    its preset's ``T_imu_lidar`` puts it, axes along the LiDAR's; the others the HILTI 2022 rig's
+    (:data:`T_IMU_LIDAR_HILTI`: the LiDAR upside down over a separate IMU)."""
+    if model.builtin_imu:
+        T = preset_dict(model.preset)["sensor"]["T_imu_lidar"]
+        return [[float(v) for v in row] for row in T]
+    return T_IMU_LIDAR_HILTI
 
 
 def sequence_bytes(n_scans: int, columns: int, channels: int, n_imu: int) -> int:
@@ -200,19 +209,12 @@ def _config_dict(model, T_imu_lidar: np.ndarray, imu_rate_hz: float) -> dict:
     ``sensor.accel_unit`` stays ``auto``, which finds their IMU's g."""
     sensor = {"lidar_topic": model.lidar_topic, "imu_topic": model.imu_topic,
               "T_imu_lidar": np.asarray(T_imu_lidar).tolist(), "extrinsic_source": "config",
-              "imu_rate_hz": float(imu_rate_hz), "lidar_rate_hz": model.rate_hz}
-    imu = preset_dict("hilti2022")["imu"]
-    if model.driver == "ouster":
-        sensor.update(point_time_field="t", point_time_unit="ns", point_time_reference="relative")
-        return {"preset": model.preset, "sensor": sensor, "imu": imu}
-    if model.driver == "velodyne":
-        sensor.update(point_time_field="time", point_time_unit="s", point_time_reference="relative")
-        return {"preset": model.preset, "sensor": sensor, "imu": imu}
-    if model.driver == "livox":
-        return {"preset": model.preset, "sensor": sensor, "imu": imu}
-    sensor.update(point_time_field="timestamp", point_time_unit="s",
-                  point_time_reference="absolute")
-    return {"preset": model.preset, "sensor": sensor}
+              "imu_rate_hz": float(imu_rate_hz), "lidar_rate_hz": model.rate_hz,
+              **_POINT_TIME.get(model.driver, {})}
+    config = {"preset": model.preset, "sensor": sensor}
+    if model.preset != "hilti2022":  # hilti2022 itself describes the BMI085
+        config["imu"] = preset_dict("hilti2022")["imu"]
+    return config
 
 
 def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: float | None = None,
