@@ -495,25 +495,26 @@ def _offset_cell(c: Cell) -> str:
     return f"{found}, {left}"
 
 
+def _summary_key(c: Cell) -> tuple:
+    """What a summary row groups its cells by: everything but the seed, the LiDAR and the
+    moving start's cut."""
+    return (c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz, c.lidar_rate_hz,
+            c.imu_time_offset_ms, c.extrinsic_error_deg, c.extrinsic_translation_error_cm,
+            c.imu_scale_error_pct, c.people, c.lidar_tilt_deg, c.imu_bias_scale)
+
+
 def summary_table(cells: list[Cell]) -> str:
     lines = [("| scene | start | IMU noise | LiDARs | runs | poses/scans min | ATE mean | "
               "ATE worst | runs > 1 m or failed | largest error > 1 m (first pose) or failed | "
               "init | init after, median (max) | target | "
               "within 3σ x / y / z | map off the scene, mean (worst) |"),
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    keys = sorted({(c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz, c.lidar_rate_hz,
-                    c.imu_time_offset_ms, c.extrinsic_error_deg, c.extrinsic_translation_error_cm,
-                    c.imu_scale_error_pct, c.people, c.lidar_tilt_deg, c.imu_bias_scale)
-                   for c in cells},
+    keys = sorted({_summary_key(c) for c in cells},
                   key=lambda k: (k[0], k[1] != "still", k[2], k[3] != "default", k[3], -k[4],
                                  k[5], k[6], k[7], k[8], k[9], k[10], k[11], k[12]))
     for key in keys:
         scene, start, noise = key[:3]
-        cs = [c for c in cells
-              if (c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz,
-                  c.lidar_rate_hz, c.imu_time_offset_ms, c.extrinsic_error_deg,
-                  c.extrinsic_translation_error_cm, c.imu_scale_error_pct, c.people,
-                  c.lidar_tilt_deg, c.imu_bias_scale) == key]
+        cs = [c for c in cells if _summary_key(c) == key]
         ates = np.array([c.ate_m for c in cs])
         off = np.array([c.map_off_scene for c in cs])
         off = off if np.isfinite(off).any() else np.array([0.0]) * np.nan
