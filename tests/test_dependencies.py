@@ -11,6 +11,9 @@ from importlib.metadata import packages_distributions
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+NEWER_STDLIB = {"compression"}
+"""Standard-library packages of a newer Python than the oldest supported, imported only on
+that Python (3.14's ``compression.zstd``; its backport is declared for the older ones)."""
 
 
 def _imported_top_level(root: Path) -> dict[str, str]:
@@ -51,7 +54,8 @@ def _undeclared(root: Path, declared: set[str]) -> list[str]:
     own = _own_modules()
     missing = []
     for module, where in _imported_top_level(root).items():
-        if module in sys.stdlib_module_names or module in own or module == "__future__":
+        if module in sys.stdlib_module_names | NEWER_STDLIB or module in own \
+                or module == "__future__":
             continue
         names = {d.lower().replace("_", "-") for d in dists.get(module, [module])}
         if not names & declared:

@@ -19,6 +19,8 @@ OUSTER_LAYOUT = [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("intensity", 1
                  ("t", 20, "u4"), ("ring", 26, "u2")]
 OUSTER_STEP = 32
 T0_NS = 1_700_000_000_000_000_000
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+"""A zstd frame's first bytes (RFC 8878), to tell a compressed message from a CDR one."""
 BOX_LO = np.array([-6.0, -4.0, -1.5])
 BOX_HI = np.array([5.0, 3.0, 2.5])
 
@@ -48,7 +50,7 @@ def write_static_rig(path: Path, fmt: str = "ros1", *, duration_s: float = 2.0,
                      imu_frame: str = "imu", lidar_frame: str = "lidar",
                      empty_scans: tuple[int, ...] = (), columns: int = 360,
                      imu_offset_s: float = 0.0, layout: list | None = None,
-                     point_step: int = OUSTER_STEP) -> Path:
+                     point_step: int = OUSTER_STEP, compression: str | None = None) -> Path:
     """Write a static rig bag; IMU receive time = stamp, cloud receive time = sweep end + 5 ms."""
     sweep_ns = int(1e9 / lidar_rate_hz)
     pts, t_rel, ring = box_scan(columns=columns, sweep_ns=sweep_ns)
@@ -62,7 +64,7 @@ def write_static_rig(path: Path, fmt: str = "ros1", *, duration_s: float = 2.0,
         stamp = T0_NS + k * sweep_ns
         events.append((stamp + sweep_ns + 5_000_000, "cloud", k))
     events.sort(key=lambda e: (e[0], e[1]))
-    with BagWriter(path, fmt) as w:
+    with BagWriter(path, fmt, compression) as w:
         if tf_static:
             w.add_tf_static(tf_static, T0_NS)
         for t_recv, kind, k in events:

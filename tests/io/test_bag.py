@@ -69,6 +69,52 @@ def test_formats_read_back_counts_order_and_points(tmp_path, fmt, name):
     np.testing.assert_array_equal(scans[3].t_ns, bf.T0_NS + 300_000_000 + t_rel.astype(np.int64))
 
 
+COMPRESSED = [("ros1", "bz2", "rig.bag"), ("ros1", "lz4", "rig.bag"),
+              ("sqlite3", "file", "rig"), ("sqlite3", "message", "rig"),
+              ("mcap", "file", "rig"), ("mcap", "message", "rig"),
+              ("mcap_file", "message", "rig.mcap"), ("sqlite3", "message", "bare.db3")]
+
+
+@pytest.mark.parametrize("fmt,compression,name", COMPRESSED)
+def test_compressed_bags_read_back_the_same_messages(tmp_path, fmt, compression, name):
+    """rosbag record --bz2 / --lz4, ros2 bag record --compression-mode file / message (zstd),
+    and the bare .mcap file of a message-compressed recording, whose metadata.yaml (which says
+    the messages are compressed) is not beside it."""
+    path = bf.write_static_rig(tmp_path / name.removesuffix(".db3"), fmt, duration_s=1.0,
+                               imu_rate_hz=100.0, columns=90, compression=compression)
+    if name.endswith(".db3"):  # the bag's one file, moved away from its metadata.yaml
+        path = next(path.glob("*.db3")).rename(tmp_path / "alone.db3")
+    plain = bf.write_static_rig(tmp_path / "plain.bag", "ros1", duration_s=1.0,
+                                imu_rate_hz=100.0, columns=90)
+    if compression == "message" and path.is_file():  # the messages themselves are zstd frames
+        assert bf.ZSTD_MAGIC in path.read_bytes()
+    with Bag(path) as bag, Bag(plain) as ref:
+        assert {t.name: t.count for t in bag.topics()} == {"/imu": 100, "/points": 9}
+        got = list(Sequencer(bag, "/points", "/imu"))
+        want = list(Sequencer(ref, "/points", "/imu"))
+    assert [type(i) for i in got] == [type(i) for i in want]
+    for a, b in zip(got, want, strict=True):
+        if isinstance(a, Scan):
+            np.testing.assert_array_equal(a.points_lidar, b.points_lidar)
+            np.testing.assert_array_equal(a.t_ns, b.t_ns)
+        else:
+            np.testing.assert_array_equal(a.t_ns, b.t_ns)
+            np.testing.assert_array_equal(a.accel_m_s2, b.accel_m_s2)
+
+
+def test_a_file_compressed_ros2_part_is_named_with_what_to_give(tmp_path):
+    folder = bf.write_static_rig(tmp_path / "rig", "sqlite3", duration_s=0.5, imu_rate_hz=50.0,
+                                 columns=30, compression="file")
+    part = folder / "rig.db3.zstd"
+    assert part.is_file()
+    with pytest.raises(BagError, match=f"give the bag's folder {folder}"):
+        Bag(part)
+    alone = tmp_path / "alone.db3.zstd"
+    part.rename(alone)
+    with pytest.raises(BagError, match="decompress it \\('zstd -d alone.db3.zstd'\\)"):
+        Bag(alone)
+
+
 def test_folder_of_split_ros1_bags(tmp_path):
     folder = tmp_path / "split"
     folder.mkdir()

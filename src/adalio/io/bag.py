@@ -13,6 +13,7 @@ underlying reader becomes a one-line :class:`~adalio.errors.BagError`.
 from __future__ import annotations
 
 import contextlib
+import sys
 import warnings
 from collections import deque
 from collections.abc import Iterator
@@ -36,6 +37,10 @@ TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf2_msgs/TFMessage", "tf/msg/tfMessage")
 RATE_MESSAGES = 20
 """Messages whose receive times give a topic's rate in ``adalio info``."""
 TFMESSAGE_MSGDEF = "geometry_msgs/TransformStamped[] transforms\n"
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+"""The first bytes of a zstd frame: a message of a ROS2 recording made with ``ros2 bag record
+--compression-mode message``, read from its bare file, without the metadata.yaml that says so
+(a CDR message starts with its encapsulation header, 0x0000 or 0x0001)."""
 
 
 def _normtype(msgtype: str) -> str:
@@ -100,6 +105,12 @@ def resolve_bag_paths(path: str | Path) -> tuple[list[Path], bool]:
         raise BagError(f"{p} is an unfinished ROS1 recording (rosbag record stopped before it "
                        f"closed the file): repair it with 'rosbag reindex {p}', rename it to "
                        f"{p.name[:-len('.active')]} and give that")
+    if suffix == ".zstd" and p.stem.lower().endswith((".mcap", ".db3")):
+        folder = p.parent if (p.parent / "metadata.yaml").is_file() else None
+        raise BagError(f"{p} is one file of a ROS2 bag recorded with --compression-mode file "
+                       "(zstd): " + (f"give the bag's folder {folder}, whose metadata.yaml says "
+                                     "so" if folder else f"decompress it ('zstd -d {p.name}') "
+                                     "and give the bare file"))
     if suffix in (".bag", ".mcap", ".db3"):
         _warn_if_split_part(p)
         return [p], suffix != ".bag"
@@ -139,6 +150,15 @@ def _sniff(paths: list[Path], is2: bool) -> None:
             raise BagError(f"{p} is not an MCAP file (bad magic); is it the right file?")
         if p.suffix == ".db3" and not head.startswith(b"SQLite format 3"):
             raise BagError(f"{p} is not a ROS2 sqlite3 bag (bad header); is it the right file?")
+
+
+def _zstd_decompress(raw: bytes) -> bytes:
+    """``raw`` decompressed with Python's zstd (3.14's ``compression.zstd``, or its backport)."""
+    if sys.version_info >= (3, 14):
+        from compression import zstd
+    else:
+        from backports import zstd
+    return zstd.decompress(raw)
 
 
 def _reason(exc: BaseException) -> str:
@@ -367,6 +387,8 @@ class Bag:
                             return
                         continue
                     left[conn.topic] -= 1
+                if self.is_ros2 and raw[:4] == ZSTD_MAGIC:
+                    raw = _zstd_decompress(raw)
                 msg = parse_custom_msg(raw, self.is_ros2) if is_livox_type(conn.msgtype) \
                     else reader.deserialize(raw, conn.msgtype)
             except StopIteration:

@@ -23,6 +23,10 @@ FORMATS = ("ros1", "ros2", "sqlite3", "mcap", "mcap_file")
 """'ros2' = 'sqlite3' (ROS2 folder), 'mcap' (ROS2 folder with mcap storage), 'mcap_file'
 (a bare .mcap file)."""
 
+COMPRESSIONS = {"ros1": ("bz2", "lz4"), "ros2": ("file", "message")}
+"""A ROS1 bag's chunk compression (``rosbag record --bz2`` / ``--lz4``); a ROS2 bag's zstd
+compression mode (``ros2 bag record --compression-mode file`` / ``message``)."""
+
 HESAI_LAYOUT = [("x", 0, "f4"), ("y", 4, "f4"), ("z", 8, "f4"), ("intensity", 16, "f4"),
                 ("timestamp", 24, "f8"), ("ring", 32, "u2")]
 HESAI_POINT_STEP = 48
@@ -31,11 +35,18 @@ ring with padding, absolute float64 seconds."""
 
 
 class BagWriter:
-    """Context manager writing a bag in one of :data:`FORMATS`."""
+    """Context manager writing a bag in one of :data:`FORMATS`, compressed as ``compression``
+    says (one of :data:`COMPRESSIONS` for the format; None: uncompressed)."""
 
-    def __init__(self, path: str | Path, fmt: str = "ros1") -> None:
+    def __init__(self, path: str | Path, fmt: str = "ros1", compression: str | None = None
+                 ) -> None:
         if fmt not in FORMATS:
             raise ValueError(f"fmt must be one of {FORMATS}")
+        allowed = COMPRESSIONS["ros1" if fmt == "ros1" else "ros2"]
+        if fmt == "mcap_file":
+            allowed = ("message",)  # file mode makes a .mcap.zstd file, not a bare .mcap
+        if compression is not None and compression not in allowed:
+            raise ValueError(f"compression of a {fmt} bag must be one of {allowed} or None")
         self.path = Path(path)
         self.fmt = fmt
         self._conns: dict[str, Any] = {}
@@ -45,8 +56,10 @@ class BagWriter:
 
             self.store = ros1_typestore()
             self._writer = Writer(self.path)
+            if compression is not None:
+                self._writer.set_compression(Writer.CompressionFormat[compression.upper()])
         else:
-            from rosbags.rosbag2 import StoragePlugin, Writer
+            from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 
             self.store = ros2_typestore()
             target = self.path
@@ -55,6 +68,9 @@ class BagWriter:
                 target = self._tmp / "bag"
             plugin = StoragePlugin.SQLITE3 if fmt in ("ros2", "sqlite3") else StoragePlugin.MCAP
             self._writer = Writer(target, version=9, storage_plugin=plugin)
+            if compression is not None:
+                self._writer.set_compression(CompressionMode[compression.upper()],
+                                             CompressionFormat.ZSTD)
 
     def __enter__(self) -> Self:
         self._writer.open()
