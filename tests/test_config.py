@@ -101,23 +101,23 @@ def test_wrong_type_names_key():
 def test_generic_imu_noise_is_named_in_the_init_line(tmp_path):
     """The generic presets keep Faster-LIO's IMU densities, which cost the shafts their track
     (README, Presets): a run on them says so in its initialization line; a config with an IMU's
-    own densities (hilti2022, the Livox presets' built-in IMUs since session 83, or a simulated
-    sequence's) or measured white noise does not."""
+    own densities (hilti2022, the Livox presets' built-in IMUs since session 83 and the Ouster's
+    since session 84, or a simulated sequence's) or measured white noise does not."""
     from dataclasses import replace
 
     from adalio.config import GENERIC_IMU_FIELDS, imu_noise_is_generic
     from adalio.pipeline import run_bag
     from adalio.sim import simulate
 
-    for name in ("velodyne", "ouster", "hesai_xt32"):
+    for name in ("velodyne", "hesai_xt32"):
         assert imu_noise_is_generic(load_config(name).imu), name
     assert not imu_noise_is_generic(load_config("hilti2022").imu)
-    for name in ("livox_mid360", "livox_avia"):  # a built-in IMU of the BMI085's class
-        livox = load_config(name).imu
-        assert not imu_noise_is_generic(livox), name
+    for name in ("livox_mid360", "livox_avia", "ouster"):  # a built-in MEMS IMU of its class
+        builtin = load_config(name).imu
+        assert not imu_noise_is_generic(builtin), name
         for k in GENERIC_IMU_FIELDS:
-            assert getattr(livox, k) == getattr(load_config("hilti2022").imu, k), (name, k)
-        assert livox.noise_source == "at_least_config"  # a noisier one's white noise measured
+            assert getattr(builtin, k) == getattr(load_config("hilti2022").imu, k), (name, k)
+        assert builtin.noise_source == "at_least_config"  # a noisier one's white noise measured
     generic = load_config("velodyne").imu
     assert not imu_noise_is_generic(replace(generic, noise_source="measured"))
     assert imu_noise_is_generic(replace(generic, noise_source="config"))

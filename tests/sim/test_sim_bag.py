@@ -146,9 +146,9 @@ def test_config_is_accepted_and_meta_is_complete(tmp_path):
     cfg = load_config(config_file=res.config_path)
     assert cfg.sensor.point_time_field == "t" and cfg.sensor.point_time_reference == "relative"
     # the simulated IMU is the HILTI BMI085 whatever the LiDAR: described as hilti2022 does,
-    # not with the ouster preset's generic values
+    # not with a generic preset's values
     hilti = load_config("hilti2022").imu
-    assert cfg.imu == hilti and load_config("ouster").imu != hilti
+    assert cfg.imu == hilti and load_config("velodyne").imu != hilti
     meta = json.loads(res.meta_path.read_text())
     for key in ("scene", "seed", "duration_s", "topics", "T_imu_lidar", "start_time_ns",
                 "lidar"):
