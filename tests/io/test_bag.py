@@ -115,6 +115,72 @@ def test_a_file_compressed_ros2_part_is_named_with_what_to_give(tmp_path):
         Bag(alone)
 
 
+VELODYNE_PACKET = "time stamp\nuint8[1206] data\n"
+VELODYNE_SCAN = "std_msgs/Header header\nvelodyne_msgs/VelodynePacket[] packets\n"
+
+
+def _packets(w, fmt: str, topic: str, msgtype: str) -> None:
+    """Ten messages of a driver's packet type on ``topic`` (registered in the writer's store)."""
+    from rosbags.typesys import get_types_from_msg
+
+    if msgtype.startswith("velodyne_msgs"):
+        types = get_types_from_msg(VELODYNE_PACKET, "velodyne_msgs/msg/VelodynePacket")
+        types.update(get_types_from_msg(VELODYNE_SCAN, msgtype))
+    else:
+        types = get_types_from_msg("uint8[] buf\n", msgtype)
+    w.store.register(types)
+    T = w.store.types
+    for k in range(10):
+        t = bf.T0_NS + k * 100_000_000
+        if msgtype.startswith("velodyne_msgs"):
+            stamp = T["builtin_interfaces/msg/Time"](sec=t // 10**9, nanosec=t % 10**9)
+            pkt = T["velodyne_msgs/msg/VelodynePacket"](stamp=stamp,
+                                                        data=np.zeros(1206, np.uint8))
+            msg = T[msgtype](header=w._header(t, "velodyne"), packets=[pkt, pkt])
+        else:
+            msg = T[msgtype](buf=np.zeros(12609, np.uint8))
+        w.write_msg(topic, msgtype, msg, t)
+
+
+@pytest.mark.parametrize("fmt,name,topic,msgtype", [
+    ("ros1", "rig.bag", "/velodyne_packets", "velodyne_msgs/msg/VelodyneScan"),
+    ("mcap", "rig", "/ouster/lidar_packets", "ouster_sensor_msgs/msg/PacketMsg"),
+    ("sqlite3", "rig", "/hesai/pandar_packets", "hesai_ros_driver/msg/UdpFrame")])
+def test_a_lidar_recorded_as_packets_is_named_with_what_to_do(tmp_path, fmt, name, topic,
+                                                              msgtype):
+    """Drivers' raw packet topics instead of point clouds (Velodyne users often record only
+    /velodyne_packets): the error names the topic and says to play it through the driver."""
+    with BagWriter(tmp_path / name, fmt) as w:
+        for k in range(100):
+            w.add_imu("/imu", bf.T0_NS + k * 10_000_000, [0, 0, 0], [0, 0, 9.81])
+        _packets(w, fmt, topic, msgtype)
+    with Bag(tmp_path / name) as bag, pytest.raises(BagError) as err:
+        bag.select_topics(SensorConfig())
+    text = str(err.value)
+    assert "has no sensor_msgs/PointCloud2 or Livox CustomMsg topic" in text
+    assert f"{topic} ({msgtype})" in text, text
+    assert "raw packets" in text and "play the bag through the LiDAR's ROS driver" in text
+    assert text.endswith("and run on that bag"), text
+    assert "/imu" not in text
+
+
+def test_a_2d_laser_scan_is_named_as_such(tmp_path):
+    with BagWriter(tmp_path / "rig", "mcap") as w:
+        T = w.store.types
+        for k in range(10):
+            t = bf.T0_NS + k * 100_000_000
+            scan = T["sensor_msgs/msg/LaserScan"](
+                header=w._header(t, "laser"), angle_min=-3.1, angle_max=3.1, angle_increment=0.01,
+                time_increment=0.0, scan_time=0.1, range_min=0.1, range_max=30.0,
+                ranges=np.ones(620, np.float32), intensities=np.ones(620, np.float32))
+            w.write_msg("/scan", "sensor_msgs/msg/LaserScan", scan, t)
+            w.add_imu("/imu", t, [0, 0, 0], [0, 0, 9.81])
+    with Bag(tmp_path / "rig") as bag, pytest.raises(
+            BagError, match=r"/scan \(sensor_msgs/msg/LaserScan\) is a 2D laser scan, one plane "
+                            r"of ranges; adalio needs a 3D LiDAR's point clouds"):
+        bag.select_topics(SensorConfig())
+
+
 def test_folder_of_split_ros1_bags(tmp_path):
     folder = tmp_path / "split"
     folder.mkdir()

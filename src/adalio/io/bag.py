@@ -34,6 +34,13 @@ LIDAR_WHAT = "sensor_msgs/PointCloud2 or Livox CustomMsg"
 IMU_TYPES = ("sensor_msgs/msg/Imu", "sensor_msgs/Imu")
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf2_msgs/TFMessage", "tf/msg/tfMessage")
 
+PACKET_TYPE_WORDS = ("packet", "scan", "udp")
+"""Words of a message type's name (``velodyne_msgs/VelodyneScan``, ``ouster_sensor_msgs/PacketMsg``,
+``hesai_ros_driver/UdpFrame``, ``pandar_msgs/PandarScan``, ``rslidar_msg/RslidarPacket``) that
+mark a LiDAR recorded as its driver's raw packets instead of point clouds."""
+LASER_SCAN_TYPES = ("sensor_msgs/msg/LaserScan", "sensor_msgs/LaserScan",
+                    "sensor_msgs/msg/MultiEchoLaserScan", "sensor_msgs/MultiEchoLaserScan")
+
 RATE_MESSAGES = 20
 """Messages whose receive times give a topic's rate in ``adalio info``."""
 TFMESSAGE_MSGDEF = "geometry_msgs/TransformStamped[] transforms\n"
@@ -150,6 +157,10 @@ def _sniff(paths: list[Path], is2: bool) -> None:
             raise BagError(f"{p} is not an MCAP file (bad magic); is it the right file?")
         if p.suffix == ".db3" and not head.startswith(b"SQLite format 3"):
             raise BagError(f"{p} is not a ROS2 sqlite3 bag (bad header); is it the right file?")
+
+
+def _named(topics: list[TopicInfo]) -> str:
+    return ", ".join(f"{t.name} ({t.msgtype})" for t in topics)
 
 
 def _zstd_decompress(raw: bytes) -> bytes:
@@ -346,8 +357,9 @@ class Bag:
                                f"{what}{hint} ({flag})")
             return want
         if not found:
-            raise BagError(f"{self.path} has no {what} topic; record one or pick a bag "
-                           f"that has it")
+            hint = self._lidar_lookalikes() if types == LIDAR_TYPES else ""
+            raise BagError(f"{self.path} has no {what} topic; "
+                           + (hint or "record one or pick a bag that has it"))
         counts = {t.name: t.count for t in self.topics()}
         if len(found) > 1 and any(counts[t] > 0 for t in found):
             found = [t for t in found if counts[t] > 0]  # advertised, never published
@@ -355,6 +367,23 @@ class Bag:
             raise BagError(f"{self.path} has several {what} topics ({', '.join(found)}): "
                            f"choose one with {flag}")
         return found[0]
+
+    def _lidar_lookalikes(self) -> str:
+        """What the bag holds instead of a LiDAR's point clouds, with what to do, or ''."""
+        topics = [t for t in self.topics() if t.msgtype not in IMU_TYPES + TF_TYPES]
+        scans = [t for t in topics if t.msgtype in LASER_SCAN_TYPES]
+        packets = [t for t in topics if t not in scans and any(
+            w in t.msgtype.rsplit("/", 1)[-1].lower() for w in PACKET_TYPE_WORDS)]
+        if packets:
+            return (f"{_named(packets)} look{'s' if len(packets) == 1 else ''} like a LiDAR "
+                    "recorded as its driver's raw packets, which adalio does not decode: play the "
+                    "bag through the LiDAR's ROS driver, record the point clouds it publishes "
+                    "(sensor_msgs/PointCloud2) and run on that bag")
+        if scans:
+            return (f"{_named(scans)} {'is a' if len(scans) == 1 else 'are'} 2D laser scan"
+                    f"{'' if len(scans) == 1 else 's'}, one plane of ranges; adalio needs a 3D "
+                    "LiDAR's point clouds")
+        return ""
 
     def select_topics(self, sensor: SensorConfig) -> tuple[str, str]:
         """(lidar_topic, imu_topic) from the config or auto-detected; BagError if missing or
