@@ -281,6 +281,67 @@ def test_an_imu_that_says_it_has_no_gyro_or_two_frames_is_an_error():
     feed([_imu_msgs(64, frame=""), _imu_msgs(64), _imu_msgs(64, frame="")])
 
 
+def _imu_series(t_ns, accel, frame="livox_frame"):
+    """sensor_msgs/Imu-like messages with one accelerometer sample each (zero gyro)."""
+    from types import SimpleNamespace as NS
+
+    def vec(v):
+        return NS(x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+    return [NS(header=NS(stamp=NS(sec=int(t) // 10**9, nanosec=int(t) % 10**9), frame_id=frame),
+               angular_velocity=vec((0.0, 0.0, 0.0)), linear_acceleration=vec(a),
+               angular_velocity_covariance=np.zeros(9),
+               linear_acceleration_covariance=np.zeros(9)) for t, a in zip(t_ns, accel)]
+
+
+def test_two_imus_taking_turns_under_one_frame_id_are_an_error():
+    """livox_ros_driver2 with two Mid-360s and multi_topic: 0 publishes both built-in IMUs on
+    /livox/imu with frame id livox_frame, 200 Hz each, in turn. Two heads mounted differently
+    (one rolled 90 degrees: gravity on another axis), or alike with 0.1 m/s^2 between their
+    biases, are an error naming the topic and the frame; one IMU is not, with white noise, with
+    a smooth motion, or shaken at 90 % of half its rate (its consecutive samples then differ 3
+    times as much as samples two apart, measured below, but its even and odd samples share one
+    mean)."""
+    from adalio.io.sequencer import check_imu_messages, imu_msg_arrays
+
+    rng = np.random.default_rng(7)
+    n = 240  # each IMU's, 1.2 s at 200 Hz
+    t = 10**9 + np.arange(n) * 5_000_000
+
+    def feed(t_ns, accel):
+        seen: dict = {}
+        msgs = _imu_series(t_ns, accel)
+        for k in range(0, len(msgs), 20):  # the sequencer's chunks
+            check_imu_messages(msgs[k:k + 20], imu_msg_arrays(msgs[k:k + 20]), "/livox/imu",
+                               seen)
+
+    def noise(m):
+        return rng.normal(0.0, 0.02, (m, 3))
+
+    up = np.array([0.0, 0.0, 9.81])
+    for second in (np.array([0.0, 9.81, 0.0]), up + 0.1 / np.sqrt(3)):
+        t2 = np.concatenate([t, t + 2_300_000])  # the other IMU 2.3 ms later
+        a2 = np.concatenate([up + noise(n), second + noise(n)])
+        order = np.argsort(t2)  # in the bag in turn
+        t2, a2 = t2[order], a2[order]
+        with pytest.raises(InputError, match=r"IMU samples on /livox/imu alternate between two "
+                                             r"sets of values: .* two IMUs publish on the topic "
+                                             r"under one frame id \('livox_frame'\).*"
+                                             r"multi_topic: 1"):
+            feed(t2, a2)
+    # one IMU at 400 Hz
+    t1 = 10**9 + np.arange(2 * n) * 2_500_000
+    feed(t1, up + noise(2 * n))
+    s = t1 * 1e-9
+    feed(t1, up + np.column_stack([np.sin(2 * np.pi * 1.3 * s), np.cos(2 * np.pi * 0.7 * s),
+                                   0.5 * np.sin(2 * np.pi * 2.1 * s)]) + noise(2 * n))
+    shake = up + np.outer(np.sin(2 * np.pi * 0.9 * 200.0 * s + 0.3), [0.3, 0.0, 0.5])
+    d1 = np.mean(np.sum(np.diff(shake, axis=0) ** 2, axis=1))
+    d2 = np.mean(np.sum((shake[2:] - shake[:-2]) ** 2, axis=1))
+    assert d1 > 9 * d2  # it would pass the first two tests
+    feed(t1, shake + noise(2 * n))
+
+
 def _clock(d_lidar_s, d_imu_s, n=(10, 200), spread_s=0.0):
     """A ClockCheck fed stamps minus receive times (seconds), receive times spread as given."""
     from adalio.io.sequencer import ClockCheck

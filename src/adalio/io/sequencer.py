@@ -427,6 +427,41 @@ deviation; a bag written with one receive time for all) tell nothing: the check 
 NOT_PROVIDED_S = 2.0
 """Seconds of IMU stamps whose gyro (or accelerometer) says 'not provided' before that is an
 error (a driver's start-up samples may say so for a while)."""
+INTERLEAVE_SAMPLES = 400
+"""The first IMU samples on which :func:`interleaved_sources` judges whether the topic carries
+two IMUs' samples in turn."""
+INTERLEAVE_RATIO = 4.0
+"""Consecutive samples whose mean squared difference exceeds this many times that of samples
+two apart alternate between two sources: one IMU's white noise gives about 1, its motion less
+(a smooth signal's differences grow with the lag)."""
+INTERLEAVE_FLOOR = 2e-3
+"""...and whose RMS difference exceeds this fraction of the mean specific force (about 0.02
+m/s² at rest, whatever the unit): far above an accelerometer's quantization."""
+
+
+def interleaved_sources(t_ns: np.ndarray, accel: np.ndarray) -> float | None:
+    """How many times more consecutive accelerometer samples differ than samples two apart
+    (RMS, in stamp order), if that says the samples alternate between two IMUs, else None.
+
+    Two IMUs published on one topic under one frame id (livox_ros_driver2 with several LiDARs
+    and ``multi_topic: 0``) take turns: each step crosses from one to the other (their biases,
+    or gravity in their own axes), while samples two apart come from the same one. So it takes
+    all of: consecutive differences above ``sqrt(INTERLEAVE_RATIO)`` times those two apart, and
+    above ``INTERLEAVE_FLOOR``; and the even and the odd samples' means apart by at least half
+    the consecutive RMS difference, a lasting offset between the two streams. A vibration near
+    half the IMU's rate also makes consecutive samples differ most, but its even and odd
+    samples share one mean."""
+    ok = np.isfinite(accel).all(axis=1)
+    a = accel[ok][np.argsort(t_ns[ok], kind="stable")]
+    if len(a) < 4:
+        return None
+    d1 = float(np.mean(np.sum(np.diff(a, axis=0) ** 2, axis=1)))
+    d2 = float(np.mean(np.sum((a[2:] - a[:-2]) ** 2, axis=1)))
+    if not (d1 > INTERLEAVE_RATIO * d2
+            and np.sqrt(d1) > INTERLEAVE_FLOOR * float(np.linalg.norm(a.mean(axis=0)))):
+        return None
+    offset = float(np.linalg.norm(a[0::2].mean(axis=0) - a[1::2].mean(axis=0)))
+    return float(np.sqrt(d1 / d2)) if offset >= 0.5 * np.sqrt(d1) else None
 
 
 def check_imu_messages(msgs: list[Any], batch: ImuBatch, topic: str, seen: dict) -> None:
@@ -434,7 +469,9 @@ def check_imu_messages(msgs: list[Any], batch: ImuBatch, topic: str, seen: dict)
     messages say they do not provide (ROS REP 145: element 0 of its covariance -1) with all
     values zero, over ``NOT_PROVIDED_S`` of stamps before any real value; or samples
     from more than one (named) frame on the topic: two IMUs publishing on it, which merged would
-    read as one at twice the rate. ``seen`` carries the state between calls."""
+    read as one at twice the rate; or, over the first ``INTERLEAVE_SAMPLES``, samples that
+alternate between two IMUs under one frame id (:func:`interleaved_sources`). ``seen`` carries
+the state between calls."""
     for what, cov, values in (("gyro", "angular_velocity_covariance", batch.gyro_rad_s),
                               ("accelerometer", "linear_acceleration_covariance",
                                batch.accel_m_s2)):
@@ -451,6 +488,22 @@ def check_imu_messages(msgs: list[Any], batch: ImuBatch, topic: str, seen: dict)
                                  "topic (--imu-topic)")
         else:
             seen[what] = False
+    early = seen.setdefault("early", [])
+    if early is not None:
+        early.append((batch.t_ns, batch.accel_m_s2))
+        if sum(len(t) for t, _ in early) >= INTERLEAVE_SAMPLES:
+            seen["early"] = None
+            ratio = interleaved_sources(np.concatenate([t for t, _ in early]),
+                                        np.concatenate([a for _, a in early]))
+            if ratio is not None:
+                frame = msgs[0].header.frame_id or "no frame id"
+                raise InputError(
+                    f"IMU samples on {topic} alternate between two sets of values: consecutive "
+                    f"samples differ {ratio:.1f}x as much as samples two apart (one IMU's about "
+                    f"as much or less): two IMUs publish on the topic under one frame id "
+                    f"('{frame}'), as livox_ros_driver2 does for several LiDARs with "
+                    "multi_topic: 0; record with one topic per LiDAR (multi_topic: 1) and give "
+                    "one IMU's topic (--imu-topic)")
     frames = seen.setdefault("frames", set())
     new = {m.header.frame_id for m in msgs} - frames - {""}
     if new:
