@@ -189,6 +189,31 @@ def test_bad_flags(monkeypatch, capsys, rig, args, frag):
     assert_one_line_error(code, err, frag)
 
 
+def test_run_set_overrides_the_preset_and_the_config_file(monkeypatch, capsys, tmp_path, rig):
+    """``run --set KEY=VALUE`` (as ``compare`` and ``batch`` take it) over the preset and
+    ``--config``; the run's config.yaml has the values. A malformed item, an unknown key and a
+    flag that says otherwise are one error line each."""
+    f = tmp_path / "c.yaml"
+    f.write_text("imu:\n  accel_bias_cov: 2.0e-5\n")
+    out = tmp_path / "set"
+    code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--config", f, "--out", out,
+                           "--no-progress", "--max-scans", "8", "--set", "imu.accel_bias_cov=3e-5",
+                           "--set", "map.map_leaf_m=0.3", "--set", "adaptive.mode=fixed",
+                           "--mode", "fixed")
+    assert code == 0, err
+    written = load_config(config_file=out / "config.yaml")
+    assert written.imu.accel_bias_cov == 3e-5 and written.map.map_leaf_m == 0.3
+    assert written.adaptive.mode == "fixed"
+    for args, frag in ((["--set", "imu.accel_bias_cov"], "--set expects KEY=VALUE"),
+                       (["--set", "imu.acel_bias_cov=1"], "imu.accel_bias_cov"),
+                       (["--set", "adaptive.mode=fixed", "--mode", "adaptive"],
+                        "--mode adaptive and --set adaptive.mode=fixed disagree"),
+                       (["--set", "imu.accel_bias_cov=-1"], "imu.accel_bias_cov")):
+        code, _, err = run_cli(monkeypatch, capsys, "run", rig, "--out", tmp_path / "x", *args)
+        assert_one_line_error(code, err, frag)
+        assert not (tmp_path / "x").exists()
+
+
 def test_config_extrinsic_not_rotation(monkeypatch, capsys, tmp_path, rig):
     f = tmp_path / "c.yaml"
     f.write_text("sensor:\n  T_imu_lidar: [[2,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]\n")

@@ -661,10 +661,10 @@ def batch(inputs: Annotated[list[Path], typer.Argument(
     """Run many bags as one job on a Dask cluster; write OUT/<bag>/ and OUT/summary.csv."""
     from rich.console import Console
 
-    from adalio.eval.cli import _overrides
+    from adalio.config import set_options
 
     err = Console(stderr=True)
-    res = run_batch(inputs, out, preset=preset, config_file=config, overrides=_overrides(set_),
+    res = run_batch(inputs, out, preset=preset, config_file=config, overrides=set_options(set_),
                     mode=mode, workers=workers, scheduler=scheduler, force=force,
                     gt_pattern=gt_pattern, progress=not no_progress and err.is_terminal)
     typer.echo(res.summary_md.read_text(encoding="utf-8"), nl=False)

@@ -1002,6 +1002,19 @@ def preset_dict(name: str) -> dict[str, Any]:
     return _read_yaml(text, f"preset {name}")
 
 
+def set_options(items: list[str] | None) -> dict[str, str]:
+    """The command line's ``--set KEY=VALUE`` options as :func:`load_config` overrides (the
+    values as given: the config types them); ConfigError for an item without ``=`` or key."""
+    out: dict[str, str] = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--set expects KEY=VALUE (got {item!r}), e.g. --set "
+                              "map.map_leaf_m=0.3")
+        out[key.strip()] = value.strip()
+    return out
+
+
 def load_config(preset: str | None = None, config_file: str | Path | None = None,
                 overrides: dict[str, Any] | None = None) -> Config:
     """Build the effective config: defaults < preset < config file < overrides.

@@ -12,6 +12,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from adalio.config import set_options
 from adalio.errors import InputError
 from adalio.term import console as term_console
 
@@ -26,18 +27,6 @@ def _parse_floats(text: str, option: str) -> tuple[float, ...]:
     if not values:
         raise InputError(f"{option} is empty (e.g. {option} 1,5)")
     return values
-
-
-def _overrides(items: list[str] | None) -> dict[str, str]:
-    from adalio.errors import ConfigError
-
-    out: dict[str, str] = {}
-    for item in items or []:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise ConfigError(f"--set expects KEY=VALUE (got {item!r}), e.g. --set map.map_leaf_m=0.3")
-        out[key.strip()] = value.strip()
-    return out
 
 
 def _f(value: float | None, digits: int = 3) -> str:
@@ -192,7 +181,7 @@ def compare_command(
     check_out_dir(out)
     console = term_console()
     result = compare_modes(bag, parse_modes(modes), out, gt=gt, preset=preset,
-                           config_file=config, overrides=_overrides(set_), max_scans=max_scans,
+                           config_file=config, overrides=set_options(set_), max_scans=max_scans,
                            console=console)
     _print_compare(console, result)
     console.print(f"table and figures: [bold]{out / 'compare.md'}[/]")

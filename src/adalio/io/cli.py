@@ -56,13 +56,27 @@ def check_out_dir(out: Path, option: str = "--out") -> None:
 
 def _build_config(preset: str | None, config_file: Path | None, lidar_topic: str | None,
                   imu_topic: str | None, extrinsic: str | None, mode: str | None,
-                  map_format: str | None) -> Any:
-    from adalio.config import load_config, transform_from_xyz_quat
+                  map_format: str | None, sets: list[str] | None = None) -> Any:
+    """The run's config: preset < ``--config`` < ``--set KEY=VALUE`` < the named flags; a
+    ``--set`` of a key a flag also gives, to another value, is a ConfigError."""
+    from adalio.config import load_config, set_options, transform_from_xyz_quat
 
-    overrides: dict[str, Any] = {"sensor.lidar_topic": lidar_topic,
-                                 "sensor.imu_topic": imu_topic, "adaptive.mode": mode,
-                                 "output.map_format": map_format}
+    flags: dict[str, Any] = {"sensor.lidar_topic": lidar_topic,
+                             "sensor.imu_topic": imu_topic, "adaptive.mode": mode,
+                             "output.map_format": map_format}
+    overrides: dict[str, Any] = set_options(sets)
+    for key, value in flags.items():
+        if value is None:
+            continue
+        if key in overrides and overrides[key] != str(value):
+            flag = "--" + key.rpartition(".")[2].replace("_", "-")
+            raise ConfigError(f"{flag} {value} and --set {key}={overrides[key]} disagree: give "
+                              "one of them")
+        overrides[key] = value
     if extrinsic is not None:
+        if "sensor.T_imu_lidar" in overrides:
+            raise ConfigError("--extrinsic and --set sensor.T_imu_lidar=... both give the "
+                              "extrinsic: give one of them")
         overrides["sensor.T_imu_lidar"] = transform_from_xyz_quat(extrinsic)
         overrides["sensor.extrinsic_source"] = "config"
     return load_config(preset, config_file, overrides)
@@ -235,11 +249,15 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
         rrd: Annotated[Path | None, typer.Option(help="Record the live view to this .rrd file "
                                                  "(no display needed; open with `rerun FILE`).")]
         = None,
+        set_: Annotated[list[str] | None, typer.Option(
+            "--set", help="Config override KEY=VALUE (repeatable), over the preset and "
+                          "--config, e.g. --set imu.accel_bias_cov=1e-4.")] = None,
         ) -> None:
     """Estimate the trajectory and map of a bag; write trajectory.tum, map, scans.csv, config."""
     from adalio.pipeline import default_out_dir, run_bag
 
-    cfg = _build_config(preset, config, lidar_topic, imu_topic, extrinsic, mode, map_format)
+    cfg = _build_config(preset, config, lidar_topic, imu_topic, extrinsic, mode, map_format,
+                        set_)
     if gt is not None and not gt.is_file():
         raise InputError(f"ground truth {gt} does not exist: check --gt")
     out_dir = out if out is not None else default_out_dir(bag)
