@@ -470,8 +470,8 @@ def check_imu_messages(msgs: list[Any], batch: ImuBatch, topic: str, seen: dict)
     values zero, over ``NOT_PROVIDED_S`` of stamps before any real value; or samples
     from more than one (named) frame on the topic: two IMUs publishing on it, which merged would
     read as one at twice the rate; or, over the first ``INTERLEAVE_SAMPLES``, samples that
-alternate between two IMUs under one frame id (:func:`interleaved_sources`). ``seen`` carries
-the state between calls."""
+    alternate between two IMUs under one frame id (:func:`interleaved_sources`). ``seen``
+    carries the state between calls."""
     for what, cov, values in (("gyro", "angular_velocity_covariance", batch.gyro_rad_s),
                               ("accelerometer", "linear_acceleration_covariance",
                                batch.accel_m_s2)):
