@@ -78,8 +78,8 @@ COMPRESSED = [("ros1", "bz2", "rig.bag"), ("ros1", "lz4", "rig.bag"),
 @pytest.mark.parametrize("fmt,compression,name", COMPRESSED)
 def test_compressed_bags_read_back_the_same_messages(tmp_path, fmt, compression, name):
     """rosbag record --bz2 / --lz4, ros2 bag record --compression-mode file / message (zstd),
-    and the bare .mcap file of a message-compressed recording, whose metadata.yaml (which says
-    the messages are compressed) is not beside it."""
+    and the bare .mcap or .db3 file of a message-compressed recording, without the
+    metadata.yaml that says the messages are compressed."""
     path = bf.write_static_rig(tmp_path / name.removesuffix(".db3"), fmt, duration_s=1.0,
                                imu_rate_hz=100.0, columns=90, compression=compression)
     if name.endswith(".db3"):  # the bag's one file, moved away from its metadata.yaml
@@ -119,7 +119,7 @@ VELODYNE_PACKET = "time stamp\nuint8[1206] data\n"
 VELODYNE_SCAN = "std_msgs/Header header\nvelodyne_msgs/VelodynePacket[] packets\n"
 
 
-def _packets(w, fmt: str, topic: str, msgtype: str) -> None:
+def _packets(w, topic: str, msgtype: str) -> None:
     """Ten messages of a driver's packet type on ``topic`` (registered in the writer's store)."""
     from rosbags.typesys import get_types_from_msg
 
@@ -153,7 +153,7 @@ def test_a_lidar_recorded_as_packets_is_named_with_what_to_do(tmp_path, fmt, nam
     with BagWriter(tmp_path / name, fmt) as w:
         for k in range(100):
             w.add_imu("/imu", bf.T0_NS + k * 10_000_000, [0, 0, 0], [0, 0, 9.81])
-        _packets(w, fmt, topic, msgtype)
+        _packets(w, topic, msgtype)
     with Bag(tmp_path / name) as bag, pytest.raises(BagError) as err:
         bag.select_topics(SensorConfig())
     text = str(err.value)
