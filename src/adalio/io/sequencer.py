@@ -430,10 +430,11 @@ error (a driver's start-up samples may say so for a while)."""
 INTERLEAVE_SAMPLES = 400
 """The first IMU samples on which :func:`interleaved_sources` judges whether the topic carries
 two IMUs' samples in turn."""
-INTERLEAVE_RATIO = 4.0
+INTERLEAVE_RATIO = 16.0
 """Consecutive samples whose mean squared difference exceeds this many times that of samples
 two apart alternate between two sources: one IMU's white noise gives about 1, its motion less
-(a smooth signal's differences grow with the lag)."""
+(a smooth signal's differences grow with the lag), a drone's propellers up to 4.7 (EuRoC
+MH_01's ADIS16448 at 200 Hz, 400-sample windows); two heads mounted apart give thousands."""
 INTERLEAVE_FLOOR = 2e-3
 """...and whose RMS difference exceeds this fraction of the mean specific force (about 0.02
 m/s² at rest, whatever the unit): far above an accelerometer's quantization."""
@@ -450,7 +451,7 @@ def interleaved_sources(t_ns: np.ndarray, accel: np.ndarray) -> float | None:
     above ``INTERLEAVE_FLOOR``; and the even and the odd samples' means apart by at least half
     the consecutive RMS difference, a lasting offset between the two streams. A vibration near
     half the IMU's rate also makes consecutive samples differ most, but its even and odd
-    samples share one mean."""
+    samples share one mean (EuRoC MH_01's at most 0.29 of that difference)."""
     ok = np.isfinite(accel).all(axis=1)
     a = accel[ok][np.argsort(t_ns[ok], kind="stable")]
     if len(a) < 4:
