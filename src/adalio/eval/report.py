@@ -30,6 +30,7 @@ from adalio.eval.metrics import (
     sigma_consistency,
 )
 from adalio.io.writers import REPORT_FILES
+from adalio.lio.so3 import rotation_to_z
 
 REPORT_NAME = REPORT_FILES[0]
 
@@ -89,14 +90,9 @@ def leveling(up: np.ndarray | None) -> np.ndarray:
     flip = np.eye(3)
     if up[2] / np.linalg.norm(up) < FLIP_BELOW_Z:
         flip = np.diag([1.0, -1.0, -1.0])
-    # the smallest rotation taking a = flip·up to +z (Rodrigues): a's z is above -sqrt(1/2)
-    # here, so 1 + cos stays above 0.29. Written out rather than Rotation.align_vectors, whose
-    # one-vector result is not the smallest rotation in SciPy 1.11, the lower bound (an up 3.4 deg
-    # off +z came out as a 90 deg rotation there)
-    a = flip @ up / np.linalg.norm(up)
-    w = np.cross(a, [0.0, 0.0, 1.0])
-    W = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    return (np.eye(3) + W + W @ W / (1.0 + a[2])) @ flip
+    # not Rotation.align_vectors, whose one-vector result is not the smallest rotation in SciPy
+    # 1.11, the lower bound (an up 3.4 deg off +z came out as a 90 deg rotation there)
+    return rotation_to_z(flip @ up / np.linalg.norm(up)) @ flip
 
 
 def _find_map(run_dir: Path) -> Path | None:

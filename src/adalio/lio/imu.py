@@ -259,16 +259,7 @@ def static_init(gyro_rad_s: np.ndarray, accel: np.ndarray, cfg: ImuConfig) -> St
     acc_mean = accel.mean(axis=0)
     norm = float(np.linalg.norm(acc_mean))
     up_imu = acc_mean / norm
-    R = np.eye(3)
-    if cfg.gravity_align_world:
-        ez = np.array([0.0, 0.0, 1.0])
-        w = np.cross(up_imu, ez)
-        c = float(up_imu @ ez)
-        if c < -1.0 + 1e-9:
-            R = np.diag([1.0, -1.0, -1.0])
-        else:
-            W = so3.hat(w)
-            R = np.eye(3) + W + W @ W / (1.0 + c)
+    R = so3.rotation_to_z(up_imu) if cfg.gravity_align_world else np.eye(3)
     g_world = -cfg.gravity_m_s2 * (R @ up_imu)
     return StaticInit(gyro_bias_rad_s=gyro_rad_s.mean(axis=0), gravity_world_m_s2=g_world,
                       R_world_imu=R, accel_scale=cfg.gravity_m_s2 / norm,

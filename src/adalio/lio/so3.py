@@ -154,6 +154,19 @@ def exp_batch(phi: np.ndarray) -> np.ndarray:
     return out
 
 
+def rotation_to_z(u: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking the unit vector ``u`` to +z (Rodrigues: ``I + W + W²/(1 +
+    c)`` with ``W = [u × z]×``, ``c = u·z``); ``diag(1, -1, -1)`` for ``u`` at -z, where no
+    axis is the smallest."""
+    u = np.asarray(u, dtype=np.float64)
+    c = float(u[2])
+    if c < -1.0 + 1e-9:
+        return np.diag([1.0, -1.0, -1.0])
+    w = np.cross(u, [0.0, 0.0, 1.0])
+    W = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    return np.eye(3) + W + W @ W / (1.0 + c)
+
+
 def anchor_frame(axis: np.ndarray) -> np.ndarray:
     """Orthonormal right-handed 3×3 frame whose first column is the unit ``axis``."""
     a = np.asarray(axis, dtype=np.float64)
