@@ -528,6 +528,33 @@ def test_summary_flags_a_long_moving_start_wait(tmp_path, method, refused, witho
     assert ("3.1 cm RMS" in text) is flagged
 
 
+@pytest.mark.parametrize(("stray", "dropped", "said"), [
+    (2_000, False, ""),              # 0.2 %, as on clean simulated walks: nothing said
+    (99_000, False, ""),             # 9.9 %: under the note's 10 % line
+    (140_000, False, "note"),        # 14 %: ghosts behind a tenth of the points
+    (140_000, True, "dropped"),      # the option on: how many it dropped, whatever the share
+    (2_000, True, "dropped"),
+    (0, True, ""),                   # no ring field: none counted, none dropped
+])
+def test_summary_says_what_the_stray_returns_were(tmp_path, stray, dropped, said):
+    """With preprocess.drop_stray_returns the summary counts the stray returns dropped; without
+    it, it notes them, with the setting that drops them, where they reach 10 % of the points."""
+    from adalio.pipeline import STRAY_NOTE_SHARE, RunResult
+
+    assert STRAY_NOTE_SHARE == 0.1
+    res = RunResult(out_dir=tmp_path, trajectory_path=tmp_path, scans_csv_path=tmp_path,
+                    map_path=tmp_path, config_path=tmp_path, n_scans=100, n_degenerate=0,
+                    wall_s=1.0, ms_per_scan_median=1.0, stage_ms={}, interrupted=False,
+                    n_scans_in=100, stray_points=(stray, 1_000_000), stray_dropped=dropped)
+    text = _summary_text(res)
+    share = f"{stray} of 1000000 points"
+    assert (f"stray returns (preprocess.drop_stray_returns): {share}" in text) is (
+        said == "dropped")
+    assert (f"note: {share} ({100 * stray / 1e6:.1f} %) are stray returns" in text) is (
+        said == "note")
+    assert ("--set preprocess.drop_stray_returns=true" in text) is (said == "note")
+
+
 @pytest.mark.parametrize("n_blind", [0, 37])
 def test_summary_names_the_height_blind_stretches(tmp_path, n_blind):
     """The run summary names the scans whose height the sigmas leave to the IMU (scans.csv

@@ -136,6 +136,16 @@ class PreprocessConfig:
     """Points farther than this are dropped (metres)."""
     point_filter_num: int = 1
     """Keep every n-th point of the message (1 = all)."""
+    drop_stray_returns: bool = False
+    """Drop the returns whose range neither the two points before them along their ring nor
+    the two after them continue (``adalio.lio.stray``): dust or rain in front of a surface (a
+    dual-return LiDAR's other return), multipath or cross-talk ghosts behind it, mixed pixels.
+    Needs a ring per point; off by default (README, *Stray returns*)."""
+    stray_tolerance_m: float = 0.1
+    """drop_stray_returns: a point continues its ring within this plus ``stray_tolerance_rel``
+    times its range (the second difference of a surface's ranges: noise and curvature)."""
+    stray_tolerance_rel: float = 0.02
+    """drop_stray_returns: the tolerance's part that grows with the range."""
 
 
 @dataclass
@@ -701,6 +711,8 @@ RANGES: dict[str, Range] = {
     "preprocess.blind_m": NON_NEGATIVE,
     "preprocess.max_range_m": POSITIVE,
     "preprocess.point_filter_num": AT_LEAST_ONE,
+    "preprocess.stray_tolerance_m": NON_NEGATIVE,
+    "preprocess.stray_tolerance_rel": NON_NEGATIVE,
     "imu.gyro_cov": POSITIVE,
     "imu.accel_cov": POSITIVE,
     "imu.gyro_bias_cov": NON_NEGATIVE,

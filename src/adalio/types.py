@@ -83,6 +83,9 @@ class ScanStats:
     """Points of the sweep kept out of the update and the map as moving (map.remove_moving)."""
     n_seen_through: int = 0
     """Map points this sweep saw through, removed from the map (map.remove_moving)."""
+    n_stray: int = 0
+    """Stray returns among the finite points (``adalio.lio.stray``; 0 without rings), dropped
+    before the range gates with preprocess.drop_stray_returns."""
     wall_ms: float = 0.0
     eigenvalues: np.ndarray = field(default_factory=lambda: np.zeros(6))
     """Ascending eigenvalues of the 6x6 (rotation, translation) information matrix H^T H / R."""

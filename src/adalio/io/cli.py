@@ -593,6 +593,20 @@ def _summary(con: Console, res: Any, profile: bool, origin: str = "") -> None:
                   f"through{body}; scans.csv n_moving), {seen} map points "
                   f"removed as seen through "
                   f"(n_seen_through)", highlight=False, soft_wrap=True)
+    from adalio.pipeline import STRAY_NOTE_SHARE
+
+    n_stray, n_read = getattr(res, "stray_points", (0, 0))
+    if n_stray and getattr(res, "stray_dropped", False):
+        con.print(f"stray returns (preprocess.drop_stray_returns): {n_stray} of {n_read} points "
+                  f"({100.0 * n_stray / n_read:.2f} %) dropped, their range continuing neither "
+                  f"side along their ring (dust, ghosts, mixed pixels; scans.csv n_stray)",
+                  highlight=False, soft_wrap=True)
+    elif n_stray and n_stray >= STRAY_NOTE_SHARE * n_read:
+        con.print(f"note: {n_stray} of {n_read} points ({100.0 * n_stray / n_read:.1f} %) are "
+                  f"stray returns, their range continuing neither side along their ring (dust "
+                  f"or rain in front of surfaces, ghosts behind them, mixed pixels; scans.csv "
+                  f"n_stray): where the map shows them, --set preprocess.drop_stray_returns=true "
+                  f"drops them (README, Stray returns)", highlight=False, soft_wrap=True)
     dropped, rows = getattr(res, "local_surface_rows", (0, 0))
     if rows:
         con.print(f"local-surface check: {dropped}/{rows} rows dropped "

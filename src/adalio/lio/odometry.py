@@ -119,6 +119,7 @@ from adalio.lio.state import (
     rest_velocity_update,
     sigmas_from_world_covariance,
 )
+from adalio.lio.stray import stray_returns
 from adalio.lio.time_offset import (
     END_MIN_SPAN_S,
     MAX_SPAN_S,
@@ -631,7 +632,8 @@ class Odometry:
         self._backfilled: list[Estimate] = []
         self._backfill_map = np.zeros((0, 3))
         """The backfill's map (world), part of ``map_points`` but not of the filter's map."""
-        self._warned_no_ring = False
+        self._warned_no_ring: set[str] = set()
+        self._last_n_stray = 0
         self.local_surface_rows = [0, 0]
         """filter.local_surface_check: [rows dropped, rows matched or dropped] over the run."""
 
@@ -768,6 +770,7 @@ class Odometry:
         # 1. preprocess (§6.1): finite, blind, max range, decimation
         t0 = t_start
         pts, t_pts, stats.n_raw, full = self._preprocess(points_lidar, t_ns, ring)
+        stats.n_stray = self._last_n_stray
         self._merge_imu()
         t0 = _timer(stage_ms, "preprocess", t0)
         if pts.shape[0] == 0:
@@ -957,25 +960,47 @@ class Odometry:
         pre = self.cfg.preprocess
         pts = np.ascontiguousarray(pts, dtype=np.float64)
         t = np.ascontiguousarray(t, dtype=np.int64)
+        local = self.cfg.filter.local_surface_check and self.initialized
+        if ring is not None:
+            ring = np.asarray(ring)
+            if ring.shape != (pts.shape[0],) or not np.issubdtype(ring.dtype, np.integer):
+                raise InputError(f"add_scan: ring must be (N,) integer ring ids matching the "
+                                 f"{pts.shape[0]} points, got dtype {ring.dtype} shape "
+                                 f"{ring.shape}")
+        n_stray = n_dropped = 0
+        if ring is None:
+            if pre.drop_stray_returns:
+                self._warn_no_ring("preprocess.drop_stray_returns", "no return is dropped as stray")
+        elif pts.shape[0]:  # stray returns are counted always, dropped with the option
+            finite = np.isfinite(pts).all(axis=1)
+            rows_f = np.flatnonzero(finite)
+            stray = stray_returns(pts[rows_f], t[rows_f], ring[rows_f].astype(np.int64),
+                                  pre.stray_tolerance_m, pre.stray_tolerance_rel)
+            n_stray = int(stray.sum())
+            if n_stray and pre.drop_stray_returns:
+                keep = np.ones(pts.shape[0], bool)
+                keep[rows_f[stray]] = False
+                pts, t, ring = pts[keep], t[keep], ring[keep]
+                n_dropped = n_stray
+        self._last_n_stray = n_stray
         rows, dec, n_raw = _range_gate_rows(pts, pre.blind_m, pre.max_range_m,
                                             pre.point_filter_num)
+        n_raw += n_dropped
         keep = rows[dec]
         full = None
-        if self.cfg.filter.local_surface_check and self.initialized:
+        if local:
             if ring is None:
-                if not self._warned_no_ring:
-                    self._warned_no_ring = True
-                    warnings.warn("filter.local_surface_check is on but the scans carry no ring "
-                                  "field: no row is checked", stacklevel=4)
+                self._warn_no_ring("filter.local_surface_check", "no row is checked")
             else:
-                ring = np.asarray(ring)
-                if ring.shape != (pts.shape[0],) or not np.issubdtype(ring.dtype, np.integer):
-                    raise InputError(f"add_scan: ring must be (N,) integer ring ids matching the "
-                                     f"{pts.shape[0]} points, got dtype {ring.dtype} shape "
-                                     f"{ring.shape}")
                 full = (pts[rows], t[rows], np.clip(ring[rows], 0, 65535).astype(np.uint16),
                         np.flatnonzero(dec))
         return pts[keep], t[keep], int(n_raw), full
+
+    def _warn_no_ring(self, key: str, consequence: str) -> None:
+        if key not in self._warned_no_ring:
+            self._warned_no_ring.add(key)
+            warnings.warn(f"{key} is on but the scans carry no ring field: {consequence}",
+                          stacklevel=5)
 
     def _merge_imu(self) -> None:
         if not self._pending:
