@@ -156,20 +156,26 @@ def test_a_corridor_walk_through_dust_holds_only_with_the_stray_returns_dropped(
     assert dropped_se3 < 0.03 and dropped_first < 0.1 and kept_se3 > 2 * dropped_se3
 
 
-def test_without_rings_the_option_warns_once_and_counts_nothing():
-    """A Livox head's sweeps carry no ring: nothing is counted, and the option says, once, that
-    it cannot drop anything."""
+@pytest.mark.parametrize("rings", ["none", "one id"])
+def test_without_rings_the_option_warns_once_and_counts_nothing(rings):
+    """A Livox head's sweeps carry no ring; a driver may fill the field with one value (on the
+    real sweep read as one ring, 17 % of the points would be stray): nothing is counted, and
+    the option says, once, that it cannot drop anything."""
     cfg = load_config("hilti2022")
     cfg.preprocess.drop_stray_returns = True
     odom = Odometry(cfg)
     rng = np.random.default_rng(2)
     t_imu = np.arange(0, 400) * 2_500_000
     odom.add_imu(t_imu, np.zeros((400, 3)), np.tile([0.0, 0.0, -9.81], (400, 1)))
+    pts, t_ns, _ = _real_scan()
+    ring = None if rings == "none" else np.zeros(len(pts), np.uint16)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         for k in range(3):
-            pts = rng.uniform(-5, 5, (500, 3))
-            odom.add_scan(pts, np.linspace(k * 1e8, (k + 1) * 1e8 - 1, 500).astype(np.int64))
+            odom.add_scan(pts + rng.normal(0, 0.01, pts.shape), t_ns - t_ns.min() + k * 100_000_000,
+                          ring)
     said = [str(w.message) for w in caught if "drop_stray_returns" in str(w.message)]
-    assert said == [("preprocess.drop_stray_returns is on but the scans carry no ring field: "
-                     "no return is dropped as stray")]
+    why = "carry no ring field" if rings == "none" else "hold one ring id"
+    assert said == [(f"preprocess.drop_stray_returns is on but the scans {why}: no return is "
+                     "dropped as stray")]
+    assert odom._last_n_stray == 0

@@ -968,10 +968,12 @@ class Odometry:
                                  f"{pts.shape[0]} points, got dtype {ring.dtype} shape "
                                  f"{ring.shape}")
         n_stray = n_dropped = 0
-        if ring is None:
-            if pre.drop_stray_returns:
-                self._warn_no_ring("preprocess.drop_stray_returns", "no return is dropped as stray")
-        elif pts.shape[0]:  # stray returns are counted always, dropped with the option
+        one_ring = ring is not None and pts.shape[0] > 0 and ring.min() == ring.max()
+        if ring is None or one_ring:  # a ring field that holds one value is no rings either
+            if pre.drop_stray_returns and pts.shape[0]:
+                self._warn_no_ring("preprocess.drop_stray_returns", "no return is dropped as stray",
+                                   "hold one ring id" if one_ring else "carry no ring field")
+        else:  # stray returns are counted always, dropped with the option
             finite = np.isfinite(pts).all(axis=1)
             rows_f = np.flatnonzero(finite)
             stray = stray_returns(pts[rows_f], t[rows_f], ring[rows_f].astype(np.int64),
@@ -996,11 +998,10 @@ class Odometry:
                         np.flatnonzero(dec))
         return pts[keep], t[keep], int(n_raw), full
 
-    def _warn_no_ring(self, key: str, consequence: str) -> None:
+    def _warn_no_ring(self, key: str, consequence: str, why: str = "carry no ring field") -> None:
         if key not in self._warned_no_ring:
             self._warned_no_ring.add(key)
-            warnings.warn(f"{key} is on but the scans carry no ring field: {consequence}",
-                          stacklevel=5)
+            warnings.warn(f"{key} is on but the scans {why}: {consequence}", stacklevel=5)
 
     def _merge_imu(self) -> None:
         if not self._pending:
