@@ -243,6 +243,12 @@ def accel_in_g(k: int, msg: Any) -> Any:
     return msg
 
 
+def accel_clipped(k: int, msg: Any) -> Any:
+    """An accelerometer whose range ends at 12 m/s^2: the walk's footsteps reach 12.4."""
+    msg.linear_acceleration.z = max(msg.linear_acceleration.z, -12.0)
+    return msg
+
+
 def imu_backwards(k: int, msg: Any) -> Any:
     return set_stamp(msg, stamp_ns(msg) - 3 * 10**9) if 1200 <= k < 1210 else None
 
@@ -574,6 +580,9 @@ CASES: list[Case] = [
          ("done:",), CLEAN_ATE_M),
     Case("accel_in_g", bag_case(imus(accel_in_g), config={"sensor.accel_unit": "auto"}),
          "bridged", (f"accelerometer on {IMU} reports in g",), CLEAN_ATE_M),
+    Case("accel_clipped", bag_case(imus(accel_clipped)), "ok",
+         ("at risk: the accelerometer reads the end of its range (z: -12 m/s^2 on",
+          "it clips there"), CLEAN_ATE_M),
     # evaluation files
     Case("eval_empty_tum", file_case(text_file("est.tum", ""), "eval", "{f}", "{gt}"), "error",
          ("est.tum has no poses",)),

@@ -176,6 +176,9 @@ class RunResult:
     that the LiDAR-IMU extrinsic's own uncertainty alone gives them
     (``sensor.extrinsic_rotation_sigma_deg``, ``sensor.extrinsic_translation_sigma_m``): how
     much of the warning a better known extrinsic would take away."""
+    imu_saturation: list[tuple[Any, float]] = field(default_factory=list)
+    """(:class:`adalio.io.imu_range.Saturation`, its first sample's time in s since the first
+    estimated scan) of each IMU axis that read the end of its range (``Sequencer.range_monitor``)."""
     lidar_gaps: list[tuple[float, float, float]] = field(default_factory=list)
     """(start s since the first estimated scan, missing time s, the largest position sigma
     predicted at the scan after it, m) of each LiDAR gap (``Odometry.lidar_gaps``; scans.csv
@@ -1105,6 +1108,8 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         n_sigma_warn=int(sum(risky)), sigma_warn_extrinsic_m=risky_extrinsic_m,
         n_height_blind=int(sum(blind)),
         height_blind_ranges_s=_flag_ranges(est_t, blind), compiled=compiled,
+        imu_saturation=[(sat, (sat.first_t_ns - est_t[0]) * 1e-9)
+                        for sat in seq.range_monitor.found()] if est_t else [],
         lidar_gaps=[((t - est_t[0]) * 1e-9, gap_s, sigma_m)
                     for t, gap_s, sigma_m in odom.lidar_gaps] if est_t else [],
         local_surface_rows=tuple(getattr(odom, "local_surface_rows", (0, 0))),

@@ -579,6 +579,17 @@ def _summary(con: Console, res: Any, profile: bool, origin: str = "") -> None:
                   f"(scans.csv lidar_gap), the longest {gap_s:.2f} s at {t_s:.1f} s: the IMU "
                   f"alone carried the pose, its position sigma grew to {sigma_m:.2g} m",
                   highlight=False, soft_wrap=True)
+    for sensor in ("accelerometer", "gyro"):
+        axes = [(sat, t_s) for sat, t_s in getattr(res, "imu_saturation", [])
+                if sat.sensor == sensor]
+        if axes:
+            said = "; ".join(f"{sat.axis}: {sat.value:+.4g} {sat.unit} on {sat.n_samples} samples "
+                             f"in {sat.n_stretches} stretch{'es' if sat.n_stretches > 1 else ''}, "
+                             f"the first at {t_s:.1f} s" for sat, t_s in axes)
+            con.print(f"[yellow]at risk:[/] the {sensor} reads the end of its range ({said}): "
+                      f"it clips there, so the motion it gives falls short of the real one and "
+                      f"the LiDAR has to correct it; record with a wider range if the IMU has one",
+                      highlight=False, soft_wrap=True)
     if getattr(res, "n_height_blind", 0):
         con.print(f"[yellow]at risk:[/] height left to the IMU (scans.csv height_blind: the "
                   f"scans' height is mostly what their fitted normals' noise fakes; the height "

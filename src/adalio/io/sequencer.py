@@ -26,6 +26,7 @@ import numpy as np
 from adalio.config import SensorConfig
 from adalio.errors import BagError, InputError
 from adalio.io.bag import IMU_TYPES, LIDAR_TYPES, LIDAR_WHAT, Bag
+from adalio.io.imu_range import RangeMonitor
 from adalio.io.livox import lidar_decoder
 from adalio.io.pointcloud2 import stamp_to_ns
 from adalio.types import ImuBatch, Scan
@@ -637,6 +638,9 @@ class Sequencer:
         self.lookahead_ns = lookahead_ns
         self._accel_scale: float | None = {"m_s2": 1.0, "g": G_TO_M_S2}.get(
             self.sensor.accel_unit)
+        self.range_monitor = RangeMonitor()
+        """Every IMU sample read, in the sensor's own axes and in rad/s and m/s^2: where it
+        reads the end of its range (``range_monitor.found()``, once the iteration is done)."""
 
     def _raw(self) -> Iterator[ImuBatch | Scan]:
         """Decoded scans and IMU batches in receive order; IMU stamps moved onto the LiDAR's
@@ -668,6 +672,8 @@ class Sequencer:
                 item.accel_m_s2 = item.accel_m_s2 * self._accel_scale
             if isinstance(item, ImuBatch) and gyro_scale != 1.0:
                 item.gyro_rad_s = item.gyro_rad_s * gyro_scale
+            if isinstance(item, ImuBatch):  # as read: a sensitivity correction mixes the axes
+                self.range_monitor.add(item.t_ns, item.gyro_rad_s, item.accel_m_s2)
             if isinstance(item, ImuBatch) and gyro_inv is not None:
                 item.gyro_rad_s = item.gyro_rad_s @ gyro_inv.T
             if isinstance(item, ImuBatch) and accel_inv is not None:
