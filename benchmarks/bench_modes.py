@@ -36,7 +36,7 @@ import numpy as np
 import yaml
 
 from adalio.batch import BagJob, BagRow, BatchResult, dask_client, run_jobs
-from adalio.config import MODES, config_from_dict, load_config
+from adalio.config import MODES, config_from_dict, load_config, set_options
 from adalio.errors import ConfigError, InputError
 from adalio.eval.files import read_scans_csv
 from adalio.eval.metrics import ate, sigma_consistency
@@ -77,12 +77,10 @@ def gt_scan_count(gt_path: Path, lidar_rate_hz: float) -> int:
 def parse_overrides(items: list[str]) -> dict[str, str]:
     """``--set KEY=VALUE`` items as config overrides, checked once against the config's fields
     and ranges: a bad one ends the benchmark with one ``error:`` line before any run."""
-    out: dict[str, str] = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise SystemExit(f"error: --set expects KEY=VALUE (got {item!r})")
-        out[key.strip()] = value.strip()
+    try:
+        out = set_options(items)
+    except ConfigError as exc:
+        raise SystemExit(f"error: {exc}") from None
     try:
         load_config(overrides=out)
     except ConfigError as exc:
