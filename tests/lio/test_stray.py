@@ -156,10 +156,11 @@ def test_a_corridor_walk_through_dust_holds_only_with_the_stray_returns_dropped(
     assert dropped_se3 < 0.03 and dropped_first < 0.1 and kept_se3 > 2 * dropped_se3
 
 
-@pytest.mark.parametrize("rings", ["none", "one id"])
+@pytest.mark.parametrize("rings", ["none", "one id", "spread"])
 def test_without_rings_the_option_warns_once_and_counts_nothing(rings):
     """A Livox head's sweeps carry no ring; a driver may fill the field with one value (on the
-    real sweep read as one ring, 17 % of the points would be stray): nothing is counted, and
+    real sweep read as one ring, 17 % of the points would be stray), or a field with another
+    meaning may be taken for rings (ids over more than 65536 values): nothing is counted, and
     the option says, once, that it cannot drop anything."""
     cfg = load_config("hilti2022")
     cfg.preprocess.drop_stray_returns = True
@@ -168,14 +169,16 @@ def test_without_rings_the_option_warns_once_and_counts_nothing(rings):
     t_imu = np.arange(0, 400) * 2_500_000
     odom.add_imu(t_imu, np.zeros((400, 3)), np.tile([0.0, 0.0, -9.81], (400, 1)))
     pts, t_ns, _ = _real_scan()
-    ring = None if rings == "none" else np.zeros(len(pts), np.uint16)
+    ring = {"none": None, "one id": np.zeros(len(pts), np.uint16),
+            "spread": np.arange(len(pts), dtype=np.int64) * 3}[rings]
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         for k in range(3):
             odom.add_scan(pts + rng.normal(0, 0.01, pts.shape), t_ns - t_ns.min() + k * 100_000_000,
                           ring)
     said = [str(w.message) for w in caught if "drop_stray_returns" in str(w.message)]
-    why = "carry no ring field" if rings == "none" else "hold one ring id"
+    why = {"none": "carry no ring field", "one id": "hold one ring id",
+           "spread": f"hold ring ids spread over {3 * len(pts) - 2} values"}[rings]
     assert said == [(f"preprocess.drop_stray_returns is on but the scans {why}: no return is "
                      "dropped as stray")]
     assert odom._last_n_stray == 0

@@ -119,7 +119,7 @@ from adalio.lio.state import (
     rest_velocity_update,
     sigmas_from_world_covariance,
 )
-from adalio.lio.stray import stray_returns
+from adalio.lio.stray import MAX_RING_SPAN, stray_returns
 from adalio.lio.time_offset import (
     END_MIN_SPAN_S,
     MAX_SPAN_S,
@@ -968,11 +968,13 @@ class Odometry:
                                  f"{pts.shape[0]} points, got dtype {ring.dtype} shape "
                                  f"{ring.shape}")
         n_stray = n_dropped = 0
-        one_ring = ring is not None and pts.shape[0] > 0 and ring.min() == ring.max()
-        if ring is None or one_ring:  # a ring field that holds one value is no rings either
+        span = int(ring.max()) - int(ring.min()) + 1 if ring is not None and pts.shape[0] else 0
+        if ring is None or not 1 < span <= MAX_RING_SPAN:  # one ring id, or ids of no LiDAR
             if pre.drop_stray_returns and pts.shape[0]:
+                why = ("carry no ring field" if ring is None else "hold one ring id" if span == 1
+                       else f"hold ring ids spread over {span} values")
                 self._warn_no_ring("preprocess.drop_stray_returns", "no return is dropped as stray",
-                                   "hold one ring id" if one_ring else "carry no ring field")
+                                   why)
         else:  # stray returns are counted always, dropped with the option
             finite = np.isfinite(pts).all(axis=1)
             rows_f = np.flatnonzero(finite)

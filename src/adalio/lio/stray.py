@@ -8,13 +8,13 @@ range grows fast but steadily), and on either side of an edge (a door frame, a s
 the point still continues its own side. A return on nothing that the ring samples again, such
 as dust or rain in front of a wall (a dual-return LiDAR's other return), a multipath or
 cross-talk ghost behind it, or a mixed pixel between two surfaces, continues neither side: it is
-a stray return, with no surface for a point-to-plane row, and in the map it becomes a
-neighbour of real points whose planes it spoils.
+a stray return, on no surface for a point-to-plane row, and kept it enters the map as well.
 
 This is the range-image neighbour test of LiDAR drivers' noise filters and of LOAM's rejection of
 points whose neighbours jump in range, in its simplest form. The ring order is the points'
-time order within each ring (azimuth order for a spinning LiDAR); clouds without rings (Livox
-heads) are not tested.
+time order within each ring (azimuth order for a spinning LiDAR); clouds without rings (a Livox
+``CustomMsg``) are not tested, and a Livox driver's PointCloud2 ``line`` (one laser's scan) is
+read as the ring.
 """
 
 from __future__ import annotations
@@ -23,11 +23,16 @@ import numpy as np
 
 from adalio.jit import kernel
 
+MAX_RING_SPAN = 65536
+"""Ring ids spread over more values than this are no rings (a LiDAR has at most a few hundred;
+``Scan.ring`` is uint16)."""
+
 
 @kernel()
 def _ring_order(ring: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
     """Indices sorting the points by ring, then by time (stable: equal times keep the message
-    order, as the two returns of one firing)."""
+    order, as the two returns of one firing). The ring ids span at most ``MAX_RING_SPAN`` values
+    (a counting sort)."""
     n = ring.shape[0]
     lo, hi = 0, 0
     if n:
