@@ -116,7 +116,7 @@ def test_a_wall_seen_at_a_grazing_angle_is_kept():
 def _walk_through_dust(sim, drop: bool, tmp: Path):
     """Feed the walk through the API with a dust return in front of 30 % of each sweep's points
     (next to its wall return, as a dual-return LiDAR sends both); SE(3) ATE and the largest
-    error after aligning the first pose, in m, and the share of points dropped as stray."""
+    error after aligning the first pose, in m, and the share of points found stray."""
     cfg = load_config(config_file=sim.config_path)
     cfg.preprocess.drop_stray_returns = drop
     odom = Odometry(cfg)
@@ -147,8 +147,8 @@ def test_a_corridor_walk_through_dust_holds_only_with_the_stray_returns_dropped(
     kept_se3, kept_first, kept_share = _walk_through_dust(sim, False, tmp_path)
     dropped_se3, dropped_first, dropped_share = _walk_through_dust(sim, True, tmp_path)
     # the dust is 23 % of the points; each dust return also breaks a continuation of its
-    # neighbours (measured: 43 % dropped)
-    assert kept_share == 0 and 0.23 < dropped_share < 0.5
+    # neighbours (measured: 43 % found); counted with the option off as well
+    assert 0.23 < dropped_share < 0.5 and kept_share == pytest.approx(dropped_share, rel=0.05)
     # kept, the dust holds the estimate back along the corridor (measured: 6.7 cm SE(3) ATE,
     # 29 cm after aligning the first pose; 1.1 m after 10 s on the 64 s walk); dropped, the
     # walk is tracked as without dust (1.6 cm, 6.7 cm)
