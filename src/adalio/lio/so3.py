@@ -162,8 +162,7 @@ def rotation_to_z(u: np.ndarray) -> np.ndarray:
     c = float(u[2])
     if c < -1.0 + 1e-9:
         return np.diag([1.0, -1.0, -1.0])
-    w = np.cross(u, [0.0, 0.0, 1.0])
-    W = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    W = hat(np.cross(u, [0.0, 0.0, 1.0]))
     return np.eye(3) + W + W @ W / (1.0 + c)
 
 
