@@ -32,6 +32,7 @@ from adalio.sim.generate import (
     check_free_space,
     check_imu_scale_error,
     check_lidar_tilt,
+    check_stray,
     simulate,
 )
 from adalio.sim.lidar import lidar_model
@@ -275,11 +276,13 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
                     lidar_rate_hz: float | None = None,
                     imu_time_offset_s: float = 0.0,
                     imu_scale_error_pct: float = 0.0, people: int = 0,
-                    lidar_tilt_deg: float = 0.0) -> SimResult:
+                    lidar_tilt_deg: float = 0.0, ghosts: float = 0.0,
+                    dust: float = 0.0) -> SimResult:
     """Generate once (atomically: temp folder + rename + completion marker) and reuse
     (the key includes the IMU rate when it is not the default 400 Hz, the LiDAR's sweep rate
     when it is not the model's, the IMU's stamp offset and sensitivity errors, the number of
-    people walking and the LiDAR's tilt when they are not 0, a hash of
+    people walking, the LiDAR's tilt and the shares of ghost and dust returns when they are
+    not 0, a hash of
     ``motion_from``'s content (``-hhnone`` for ``"none"``, no hand motion), and of
     ``T_imu_lidar``, the mounting
     ``simulate`` takes instead of the HILTI one, when given). After generating, the cache is
@@ -297,6 +300,8 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     check_imu_scale_error(imu_scale_error_pct)
     check_people(people)
     check_lidar_tilt(lidar_tilt_deg)
+    check_stray("--ghosts", ghosts)
+    check_stray("--dust", dust)
     model = lidar_model(lidar, columns, lidar_rate_hz)
     cols = model.columns
     dur = "full" if duration_s is None else f"{float(duration_s):g}"
@@ -315,6 +320,10 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
         imu += f"-ppl{int(people)}"
     if lidar_tilt_deg:
         imu += f"-tilt{float(lidar_tilt_deg):g}"
+    if ghosts:
+        imu += f"-gh{float(ghosts):g}"
+    if dust:
+        imu += f"-dust{float(dust):g}"
     hh = ""
     if is_no_hand(motion_from):
         hh = "-hh" + NO_HAND
@@ -371,7 +380,7 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
                      T_imu_lidar=T_imu_lidar, make_room=make_room, imu_rate_hz=imu_rate_hz,
                      lidar_rate_hz=lidar_rate_hz, imu_time_offset_s=imu_time_offset_s,
                      imu_scale_error_pct=imu_scale_error_pct, people=people,
-                     lidar_tilt_deg=lidar_tilt_deg)
+                     lidar_tilt_deg=lidar_tilt_deg, ghosts=ghosts, dust=dust)
             (tmp / "COMPLETE").write_text("ok\n")
             if final.exists() and not (final / "COMPLETE").is_file():
                 shutil.rmtree(final, ignore_errors=True)

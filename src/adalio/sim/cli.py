@@ -72,6 +72,15 @@ def register(app: typer.Typer) -> None:
             "handle (negative: nose up; within +-90), its spin axis leaning forward, so that it "
             "sees the floor ahead and the ceiling behind; the IMU stays fixed to it "
             "(--extrinsic). Default 0: level.")] = 0.0,
+        ghosts: Annotated[float, typer.Option(
+            "--ghosts", help="Share of the returns that lie 0.3-2.0 m (uniform) further along "
+            "their ray, behind their surface: multipath off glass or metal, cross-talk (0-0.5, "
+            "default 0; beyond the LiDAR's range they are dropped). meta.json says it.")] = 0.0,
+        dust: Annotated[float, typer.Option(
+            "--dust", help="Share of the returns that come 0.3-2.0 m (uniform) nearer along "
+            "their ray, from dust in front of their surface (0-0.5, default 0; below the LiDAR's "
+            "minimum range they are dropped; no return is both dust and a ghost). meta.json "
+            "says it.")] = 0.0,
     ) -> None:
         """Simulate a handheld LiDAR + IMU walk through an indoor scene into a ROS bag."""
         import json
@@ -101,7 +110,7 @@ def register(app: typer.Typer) -> None:
                                  lidar_rate_hz=lidar_rate,
                                  imu_time_offset_s=imu_time_offset_ms * 1e-3,
                                  imu_scale_error_pct=imu_scale_error_pct, people=people,
-                                 lidar_tilt_deg=lidar_tilt)
+                                 lidar_tilt_deg=lidar_tilt, ghosts=ghosts, dust=dust)
         meta = json.loads(res.meta_path.read_text())
         console().print(
             f"[green]wrote[/] {res.bag_path} ({meta['n_scans']} sweeps, {meta['n_imu']} IMU, "

@@ -54,6 +54,9 @@ MAX_IMU_SCALE_ERROR_PCT = 10.0
 consumer MEMS datasheets give scale-factor tolerances and cross-axis sensitivities of 0.5-3 %."""
 MAX_LIDAR_TILT_DEG = 90.0
 """The LiDAR tilts ``simulate`` takes, either way: up to a spin axis lying horizontal."""
+MAX_STRAY_FRACTION = 0.5
+"""The shares of ghost and of dust returns ``simulate`` takes, each: at most every other
+return."""
 GT_RATE_HZ = 100.0
 T_IMU_LIDAR_HILTI = [[0.0, -1.0, 0.0, -0.001], [-1.0, 0.0, 0.0, -0.00855],
                      [0.0, 0.0, -1.0, 0.055], [0.0, 0.0, 0.0, 1.0]]
@@ -158,6 +161,14 @@ def check_lidar_tilt(tilt_deg: float) -> None:
                          f"(got {tilt_deg:g})")
 
 
+def check_stray(flag: str, fraction: float) -> None:
+    """A share of stray returns (``--ghosts``, ``--dust``; ``flag`` names it) within
+    0 .. :data:`MAX_STRAY_FRACTION`, else an ``InputError``."""
+    if not 0.0 <= fraction <= MAX_STRAY_FRACTION:
+        raise InputError(f"{flag} must be a fraction 0-{MAX_STRAY_FRACTION:g} "
+                         f"(got {fraction:g})")
+
+
 def build_trajectory(scene_obj, T_imu_lidar: np.ndarray, seed: int,
                      handheld: HandheldMotion | None = None,
                      lidar_tilt_deg: float = 0.0) -> Trajectory:
@@ -229,7 +240,8 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
              lidar_rate_hz: float | None = None,
              imu_time_offset_s: float = 0.0,
              imu_scale_error_pct: float = 0.0,
-             people: int = 0, lidar_tilt_deg: float = 0.0) -> SimResult:
+             people: int = 0, lidar_tilt_deg: float = 0.0, ghosts: float = 0.0,
+             dust: float = 0.0) -> SimResult:
     """Generate one sequence of ``scene`` into ``out_dir`` (created; the bag must not exist).
 
     ``duration_s`` None walks the whole route; shorter values truncate it (static start kept).
@@ -262,6 +274,17 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     the hand's motion stays the same, the LiDAR's spin axis leans forward, and its view takes in
     the floor ahead and the ceiling behind. ``config.yaml`` needs nothing for it (the extrinsic
     is the same); ``meta.json`` says it.
+    ``ghosts``: each valid return, on its own, with this probability (0-0.5) lies a distance
+    drawn uniformly from 0.3-2.0 m (:data:`~adalio.sim.lidar.STRAY_OFFSET_M`) further along its
+    ray, behind its surface (multipath off glass or metal, cross-talk); beyond the model's
+    maximum range it is dropped. ``dust``: likewise with this probability (0-0.5) that distance
+    nearer, in front of its surface (dust); below the model's minimum range it is dropped. No
+    return is both (one draw decides: dust with probability ``dust``, else a ghost with
+    probability ``ghosts``; :func:`~adalio.sim.lidar.dirty_ranges`). Applied after the range
+    noise and the dropouts, whatever ``noise_scale``; the intensity stays the surface's, the
+    returns' times and rings their beams'. Drawn from a stream of their own (seed, 300, sweep),
+    so the scene, the motion, the noise and the other returns stay as without them (with both 0
+    the bag is the same, byte for byte); ``meta.json`` says both.
     ``motion_from``: a TUM trajectory (>= 10 Hz) whose handheld motion replaces the synthetic
     one (:class:`adalio.sim.trajectory.HandheldMotion`; the seed picks where in it to start);
     ``"none"``: no hand motion at all, the route's own path and attitude (a robot's walk).
@@ -277,6 +300,8 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     check_imu_scale_error(imu_scale_error_pct)
     check_people(people)
     check_lidar_tilt(lidar_tilt_deg)
+    check_stray("--ghosts", ghosts)
+    check_stray("--dust", dust)
     if not abs(imu_time_offset_s) <= MAX_IMU_TIME_OFFSET_S:
         raise InputError(f"--imu-time-offset-ms must be within +-{MAX_IMU_TIME_OFFSET_S * 1e3:g} "
                          f"ms (got {imu_time_offset_s * 1e3:g})")
@@ -341,7 +366,9 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
                     writer.write_imu(t_imu[i_imu:j], imu.gyro_rad_s[i_imu:j],
                                      imu.accel_m_s2[i_imu:j], offset_ns)
                     i_imu = j
-                sweep = sim.sweep(stamp, np.random.default_rng([seed, 100, k]), noise_scale)
+                stray = np.random.default_rng([seed, 300, k]) if ghosts or dust else None
+                sweep = sim.sweep(stamp, np.random.default_rng([seed, 100, k]), noise_scale,
+                                  ghosts, dust, stray)
                 n_points += writer.write_sweep(sweep, stamp, record)
                 if bar is not None:
                     bar.advance(task)
@@ -394,6 +421,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
         "imu_accel_sensitivity_error": (np.zeros((3, 3)) if sensitivity is None
                                         else sensitivity[1]).tolist(),
         "people": walkers.as_dict(), "lidar_tilt_deg": float(lidar_tilt_deg),
+        "ghosts": float(ghosts), "dust": float(dust),
         "gravity_m_s2": GRAVITY_M_S2, "n_scans": int(n_scans), "n_imu": len(t_imu),
         "n_points": int(n_points), "route_length_m": traj.route_length_m,
         "min_clearance_m": round(clearance, 4),

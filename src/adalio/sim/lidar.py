@@ -30,6 +30,9 @@ from adalio.sim.trajectory import Trajectory
 PERSON_FACE = -2
 """``SweepPoints.face`` of a return from a walking person (no face of the scene's mesh)."""
 PERSON_ALBEDO = 0.35
+STRAY_OFFSET_M = (0.3, 2.0)
+"""How far along its ray a stray return lies from its surface (metres, drawn uniformly): a
+ghost behind it (multipath off glass or metal, cross-talk), dust in front of it."""
 
 
 @dataclass(frozen=True)
@@ -324,6 +327,23 @@ def _occluder_distance(dirs: np.ndarray, occ: Occluder) -> np.ndarray:
     return np.where(hit, tn, np.inf)
 
 
+def dirty_ranges(r: np.ndarray, valid: np.ndarray, ghosts: float, dust: float,
+                  rng: np.random.Generator) -> np.ndarray:
+    """The ranges ``r`` with stray returns among the ``valid`` ones, each return on its own:
+    with probability ``dust`` it comes from dust in front of its surface (the range shortened),
+    with probability ``ghosts`` it is a ghost behind it (lengthened), by a distance drawn
+    uniformly from :data:`STRAY_OFFSET_M` along its own ray; never both (one uniform draw ``u``
+    per beam: ``u < dust`` dust, ``dust <= u < dust + ghosts`` a ghost; ``ghosts + dust <= 1``).
+    Two draws for every beam of the sweep, valid or not, so a beam's fate depends on its index
+    only. The caller drops the ranges now outside the model's."""
+    n = len(r)
+    u = rng.random(n)
+    offset = rng.uniform(STRAY_OFFSET_M[0], STRAY_OFFSET_M[1], n)
+    in_dust = valid & (u < dust)
+    ghost = valid & (u >= dust) & (u < dust + ghosts)
+    return r + np.where(ghost, offset, 0.0) - np.where(in_dust, offset, 0.0)
+
+
 class SweepSimulator:
     """Simulates sweeps of one LiDAR model on one scene (directions and occluder precomputed)."""
 
@@ -356,9 +376,12 @@ class SweepSimulator:
         return _occluder_distance(dirs_lidar @ self.R_rig_lidar.T, self.occluder)
 
     def sweep(self, t_start_ns: int, rng: np.random.Generator,
-              noise_scale: float = 1.0) -> SweepPoints:
+              noise_scale: float = 1.0, ghosts: float = 0.0, dust: float = 0.0,
+              stray_rng: np.random.Generator | None = None) -> SweepPoints:
         """Ray-cast the sweep (a non-repetitive model: the frame) starting at ``t_start_ns``
-        (absolute; a non-repetitive pattern counts its firings from the simulator's ``t0_ns``)."""
+        (absolute; a non-repetitive pattern counts its firings from the simulator's ``t0_ns``).
+        ``ghosts`` and ``dust``: the shares of the valid returns made stray
+        (:func:`dirty_ranges`, drawn from ``stray_rng``, which only they use)."""
         model = self.model
         C, K = model.columns, model.channels
         n = C * K
@@ -406,6 +429,11 @@ class SweepSimulator:
         else:
             r = r_true
         valid &= (r >= model.min_range_m) & (r <= model.max_range_m)
+        if ghosts > 0 or dust > 0:
+            if stray_rng is None:
+                raise ValueError("ghosts or dust need a stray_rng")
+            r = dirty_ranges(r, valid, ghosts, dust, stray_rng)
+            valid &= (r >= model.min_range_m) & (r <= model.max_range_m)
         r = np.where(valid, r, 0.0)
         xyz = (dirs_flat * r[:, None]).astype(np.float32)
         inten = albedo * (0.3 + 0.7 * cos_inc) * 255.0 / (1.0 + (r_true / 15.0) ** 2)
