@@ -112,7 +112,9 @@ def test_the_forward_run_is_the_same_with_or_without_the_backfill(tmp_path):
                                      (scans["n_moving"] > 0).sum()), res.moving_points
         assert res.stray_points == (scans["n_stray"].sum(), scans["n_raw"].sum())
         assert 0 < res.stray_points[0] < 0.01 * res.stray_points[1]  # counted, not dropped
-        assert not res.stray_dropped
+        assert not res.stray_dropped and not scans["n_stray_dropped"].any()
+        assert res.stray_drops == (0, 0, res.stray_points[0])
+        assert res.stray_dropped_ranges_s == []
     assert rows["60"]["backfill"].sum() >= 3 and not rows["0"]["backfill"].any()
     assert rows["0"]["n_moving"].sum() > 1000  # walkers were kept out after the backfill too
     np.testing.assert_array_equal(poses["60"][0], poses["0"][0])

@@ -42,11 +42,10 @@ DEFAULT_SIGMA_WARN_M = 0.10
 """``run --sigma-warn-m``: a position standard deviation above this (m) is named in the summary."""
 
 
-STRAY_NOTE_SHARE = 0.1
-"""With ``preprocess.drop_stray_returns`` off, the run summary notes the stray returns when they
-are at least this share of the points read (README, *Stray returns*: simulated walks 0.2-0.9 %,
-a real PandarXT-32 sweep of a construction site 5.1 %, ten percent of dust or ghosts 14 % or
-more)."""
+STRAY_NOTE_SHARE = 0.02
+"""With ``preprocess.drop_stray_returns`` off, the run summary notes the stray returns kept when
+they are at least this share of the points read: the default ``preprocess.stray_drop_share``,
+where a sweep drops them (README, *Stray returns*), so only a raised share leaves that many."""
 
 
 @dataclass
@@ -198,6 +197,16 @@ class RunResult:
     and ``n_raw`` (``adalio.lio.stray``; no stray return is counted without rings)."""
     stray_dropped: bool = False
     """preprocess.drop_stray_returns: the stray returns were dropped, not only counted."""
+    stray_drops: tuple[int, int, int] = (0, 0, 0)
+    """(points dropped as stray, scans that dropped them, stray returns kept in the other
+    scans) over the rows written: the sum of scans.csv's ``n_stray_dropped``, its rows above 0,
+    and the sum of ``n_stray`` in its rows at 0. A scan drops them with
+    preprocess.drop_stray_returns, or where they are more than preprocess.stray_drop_share of
+    its points."""
+    stray_dropped_ranges_s: list[tuple[float, float]] = field(default_factory=list)
+    """(start, end) seconds of consecutive scans that dropped their stray returns."""
+    stray_drop_share: float = 1.0
+    """preprocess.stray_drop_share of the run."""
     moving_body: bool = False
     """map.moving_body_m > 0: the points kept out include those on the same body as a point in
     free space or one seen through (``lio/moving.py``)."""
@@ -975,8 +984,11 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         moved = [0, 0, 0]
         """Over the written rows: the sums of n_moving and n_seen_through, and the rows with
         n_moving above 0 (RunResult.moving_points)."""
-        strays = [0, 0]
-        """Over the written rows: the sums of n_stray and n_raw (RunResult.stray_points)."""
+        strays = [0, 0, 0, 0, 0]
+        """Over the written rows: the sums of n_stray and n_raw (RunResult.stray_points), of
+        n_stray_dropped, the rows that dropped points, and n_stray in the others
+        (stray_drops)."""
+        stray_drop: list[bool] = []
         risky_extrinsic_m = 0.0
         late = False
         """A backfilled row was written after later ones: the files are sorted at the end."""
@@ -1004,6 +1016,12 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
             moved[2] += int(stats.n_moving > 0)
             strays[0] += int(stats.n_stray)
             strays[1] += int(stats.n_raw)
+            stray_drop.append(stats.n_stray_dropped > 0)
+            if stray_drop[-1]:
+                strays[2] += int(stats.n_stray_dropped)
+                strays[3] += 1
+            else:
+                strays[4] += int(stats.n_stray)
             if on_estimate is not None:
                 on_estimate(e)
 
@@ -1091,8 +1109,8 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         helper.stop()
         bag.close()
     order = np.argsort(np.asarray(est_t, dtype=np.int64), kind="stable")
-    est_t, degen, held, risky, blind = ([seq_[i] for i in order]
-                                        for seq_ in (est_t, degen, held, risky, blind))
+    est_t, degen, held, risky, blind, stray_drop = (
+        [seq_[i] for i in order] for seq_ in (est_t, degen, held, risky, blind, stray_drop))
     result = RunResult(
         out_dir=out, trajectory_path=paths["trajectory"], scans_csv_path=paths["scans"],
         map_path=paths["map"], config_path=paths["config"], n_scans=len(est_t),
@@ -1114,8 +1132,11 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
                     for t, gap_s, sigma_m in odom.lidar_gaps] if est_t else [],
         local_surface_rows=tuple(getattr(odom, "local_surface_rows", (0, 0))),
         moving_points=tuple(moved),
-        stray_points=tuple(strays),
+        stray_points=(strays[0], strays[1]),
         stray_dropped=cfg.preprocess.drop_stray_returns,
+        stray_drops=(strays[2], strays[3], strays[4]),
+        stray_dropped_ranges_s=_flag_ranges(est_t, stray_drop),
+        stray_drop_share=cfg.preprocess.stray_drop_share,
         moving_body=cfg.map.remove_moving and cfg.map.moving_body_m > 0.0,
         time_offset=getattr(odom, "time_offset", None),
         stopped_for_time_offset=restart and _significant(odom, "time_offset"),

@@ -85,7 +85,12 @@ class ScanStats:
     """Map points this sweep saw through, removed from the map (map.remove_moving)."""
     n_stray: int = 0
     """Stray returns among the finite points (``adalio.lio.stray``; 0 without rings), dropped
-    before the range gates with preprocess.drop_stray_returns."""
+    before the range gates with preprocess.drop_stray_returns, or where they are more than
+    preprocess.stray_drop_share of the finite points."""
+    n_stray_dropped: int = 0
+    """Points dropped as stray (0: kept): in a sweep that drops them, the stray returns and the
+    points whose ring does not continue them either but an adjacent ring does (``adalio.lio.
+    stray.SUPPORTED``)."""
     wall_ms: float = 0.0
     eigenvalues: np.ndarray = field(default_factory=lambda: np.zeros(6))
     """Ascending eigenvalues of the 6x6 (rotation, translation) information matrix H^T H / R."""

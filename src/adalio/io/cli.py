@@ -606,18 +606,30 @@ def _summary(con: Console, res: Any, profile: bool, origin: str = "") -> None:
                   f"(n_seen_through)", highlight=False, soft_wrap=True)
     from adalio.pipeline import STRAY_NOTE_SHARE
 
-    n_stray, n_read = getattr(res, "stray_points", (0, 0))
-    if n_stray and getattr(res, "stray_dropped", False):
-        con.print(f"stray returns (preprocess.drop_stray_returns): {n_stray} of {n_read} points "
-                  f"({100.0 * n_stray / n_read:.2f} %) dropped, their range continuing neither "
-                  f"side along their ring (dust, ghosts, mixed pixels; scans.csv n_stray)",
-                  highlight=False, soft_wrap=True)
-    elif n_stray and n_stray >= STRAY_NOTE_SHARE * n_read:
-        con.print(f"note: {n_stray} of {n_read} points ({100.0 * n_stray / n_read:.1f} %) are "
-                  f"stray returns, their range continuing neither side along their ring (dust "
-                  f"or rain in front of surfaces, ghosts behind them, mixed pixels; scans.csv "
-                  f"n_stray): where the map shows them, --set preprocess.drop_stray_returns=true "
-                  f"drops them (README, Stray returns)", highlight=False, soft_wrap=True)
+    n_read = getattr(res, "stray_points", (0, 0))[1]
+    n_share, n_scans_share, kept = getattr(res, "stray_drops", (0, 0, 0))
+    if n_share and getattr(res, "stray_dropped", False):
+        con.print(f"stray returns (preprocess.drop_stray_returns): {n_share} of {n_read} points "
+                  f"({100.0 * n_share / n_read:.2f} %) dropped, their range continuing neither "
+                  f"side along their ring (dust, ghosts, mixed pixels, thin things; scans.csv "
+                  f"n_stray, n_stray_dropped)", highlight=False, soft_wrap=True)
+    elif n_read:
+        if n_share:
+            share = 100.0 * getattr(res, "stray_drop_share", 1.0)
+            con.print(f"stray returns (preprocess.stray_drop_share): {n_scans_share}/"
+                      f"{res.n_scans} scans had more than {share:g} % (dust or rain in front of "
+                      f"surfaces, ghosts behind them) and dropped {n_share} points, the stray "
+                      f"returns and the points only an adjacent ring continues (scans.csv "
+                      f"n_stray, n_stray_dropped), at "
+                      f"{_ranges_text(getattr(res, 'stray_dropped_ranges_s', []))}",
+                      highlight=False, soft_wrap=True)
+        if kept and kept >= STRAY_NOTE_SHARE * n_read:
+            con.print(f"note: {kept} of {n_read} points ({100.0 * kept / n_read:.1f} %) are "
+                      f"stray returns kept, their range continuing neither side along their ring "
+                      f"(dust or rain in front of surfaces, ghosts behind them, mixed pixels; "
+                      f"scans.csv n_stray): where the map shows them, --set "
+                      f"preprocess.drop_stray_returns=true drops them (README, Stray returns)",
+                      highlight=False, soft_wrap=True)
     dropped, rows = getattr(res, "local_surface_rows", (0, 0))
     if rows:
         con.print(f"local-surface check: {dropped}/{rows} rows dropped "

@@ -27,6 +27,7 @@ SCANS_CSV_COLUMNS: tuple[str, ...] = (
     "weak_ty", "weak_tz", "degeneracy_score", "held_dirs", "restoring_min", "imu_gap",
     "sigma_x_m", "sigma_y_m", "sigma_z_m", "sigma_roll_deg", "sigma_pitch_deg", "sigma_yaw_deg",
     "backfill", "rest", "height_blind", "lidar_gap", "n_moving", "n_seen_through", "n_stray",
+    "n_stray_dropped",
 )
 
 
@@ -128,7 +129,7 @@ class ScansCsvWriter(_RowFile):
                *[f"{v:.4g}" for v in np.resize(np.asarray(stats.sigma_rot_world_deg, float), 3)],
                int(bool(stats.backfill)), int(bool(stats.rest_update)),
                int(bool(stats.height_blind)), f"{stats.lidar_gap_s:.4g}", stats.n_moving,
-               stats.n_seen_through, stats.n_stray]
+               stats.n_seen_through, stats.n_stray, stats.n_stray_dropped]
         assert self._fh is not None
         self._csv.writerow(row)
         self._fh.flush()

@@ -119,7 +119,7 @@ from adalio.lio.state import (
     rest_velocity_update,
     sigmas_from_world_covariance,
 )
-from adalio.lio.stray import MAX_RING_SPAN, stray_returns
+from adalio.lio.stray import CONTINUED, MAX_RING_SPAN, STRAY, stray_codes
 from adalio.lio.time_offset import (
     END_MIN_SPAN_S,
     MAX_SPAN_S,
@@ -634,6 +634,7 @@ class Odometry:
         """The backfill's map (world), part of ``map_points`` but not of the filter's map."""
         self._warned_no_ring: set[str] = set()
         self._last_n_stray = 0
+        self._last_n_stray_dropped = 0
         self.local_surface_rows = [0, 0]
         """filter.local_surface_check: [rows dropped, rows matched or dropped] over the run."""
 
@@ -771,6 +772,7 @@ class Odometry:
         t0 = t_start
         pts, t_pts, stats.n_raw, full = self._preprocess(points_lidar, t_ns, ring)
         stats.n_stray = self._last_n_stray
+        stats.n_stray_dropped = self._last_n_stray_dropped
         self._merge_imu()
         t0 = _timer(stage_ms, "preprocess", t0)
         if pts.shape[0] == 0:
@@ -970,23 +972,28 @@ class Odometry:
         n_stray = n_dropped = 0
         span = int(ring.max()) - int(ring.min()) + 1 if ring is not None and pts.shape[0] else 0
         if ring is None or not 1 < span <= MAX_RING_SPAN:  # one ring id, or ids of no LiDAR
-            if pre.drop_stray_returns and pts.shape[0]:
+            if pre.drop_stray_returns and pts.shape[0]:  # (the share alone: nothing to say)
                 why = ("carry no ring field" if ring is None else "hold one ring id" if span == 1
                        else f"hold ring ids spread over {span} values")
                 self._warn_no_ring("preprocess.drop_stray_returns", "no return is dropped as stray",
                                    why)
-        else:  # stray returns are counted always, dropped with the option
+        else:  # counted always; dropped with the option, or in a scan they are a share of
             finite = np.isfinite(pts).all(axis=1)
             rows_f = np.flatnonzero(finite)
-            stray = stray_returns(pts[rows_f], t[rows_f], ring[rows_f].astype(np.int64),
-                                  pre.stray_tolerance_m, pre.stray_tolerance_rel)
-            n_stray = int(stray.sum())
-            if n_stray and pre.drop_stray_returns:
+            code = stray_codes(pts[rows_f], t[rows_f], ring[rows_f].astype(np.int64),
+                               pre.stray_tolerance_m, pre.stray_tolerance_rel)
+            n_stray = int((code == STRAY).sum())
+            if n_stray and (pre.drop_stray_returns
+                            or n_stray > pre.stray_drop_share * rows_f.size):
+                # a dirty sweep: also the points an adjacent ring supports, as many of them
+                # are stray returns that met another by chance, or a neighbour of one
+                drop = code != CONTINUED
                 keep = np.ones(pts.shape[0], bool)
-                keep[rows_f[stray]] = False
+                keep[rows_f[drop]] = False
                 pts, t, ring = pts[keep], t[keep], ring[keep]
-                n_dropped = n_stray
+                n_dropped = int(drop.sum())
         self._last_n_stray = n_stray
+        self._last_n_stray_dropped = n_dropped
         rows, dec, n_raw = _range_gate_rows(pts, pre.blind_m, pre.max_range_m,
                                             pre.point_filter_num)
         n_raw += n_dropped

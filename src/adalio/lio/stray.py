@@ -1,4 +1,5 @@
-"""Stray returns: points whose range no neighbour along their ring continues.
+"""Stray returns: points whose range no neighbour along their ring continues, and that no
+adjacent ring sees.
 
 A spinning LiDAR's ring samples a surface at successive azimuths, so along the ring the range
 of a point on a surface is the straight continuation of the two returns before it or of the two
@@ -7,14 +8,18 @@ of noise and curvature on a wall, the floor or a surface seen at a grazing angle
 range grows fast but steadily), and on either side of an edge (a door frame, a stair's nosing)
 the point still continues its own side. A return on nothing that the ring samples again, such
 as dust or rain in front of a wall (a dual-return LiDAR's other return), a multipath or
-cross-talk ghost behind it, or a mixed pixel between two surfaces, continues neither side: it is
-a stray return, on no surface for a point-to-plane row, and kept it enters the map as well.
+cross-talk ghost behind it, or a mixed pixel between two surfaces, continues neither side. So
+does a thin thing one column wide (a post, a baluster, a cable), but the adjacent rings see that
+at the same range and at the same time, and a speck of dust or a ghost they do not: a return
+that neither side of its ring continues and that no adjacent ring's return near its time lies
+at is a stray return, on no surface for a point-to-plane row, and kept it enters the map too.
 
 This is the range-image neighbour test of LiDAR drivers' noise filters and of LOAM's rejection of
 points whose neighbours jump in range, in its simplest form. The ring order is the points'
-time order within each ring (azimuth order for a spinning LiDAR); clouds without rings (a Livox
-``CustomMsg``) are not tested, and a Livox driver's PointCloud2 ``line`` (one laser's scan) is
-read as the ring.
+time order within each ring (azimuth order for a spinning LiDAR), and adjacent ring ids are
+adjacent beams, as the Hesai, Ouster and Velodyne drivers number them. Clouds without rings (a
+Livox ``CustomMsg``) are not tested, and a Livox driver's PointCloud2 ``line`` (one laser's scan)
+is read as the ring (its lines are no adjacent beams: what supports a point there is chance).
 """
 
 from __future__ import annotations
@@ -26,6 +31,11 @@ from adalio.jit import kernel
 MAX_RING_SPAN = 65536
 """Ring ids spread over more values than this are no rings (a LiDAR has at most a few hundred;
 ``Scan.ring`` is uint16)."""
+
+
+SUPPORT_SIDE = 2
+"""An adjacent ring's points nearest in time that may support a point: this many fired before
+its time and as many after (its column and the next on either side, for a spinning LiDAR)."""
 
 
 @kernel()
@@ -67,28 +77,63 @@ def _ring_order(ring: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
     return order
 
 
+CONTINUED = 0
+"""``stray_codes``: a side of its ring continues the point's range (or it has no side to judge)."""
+SUPPORTED = 1
+"""``stray_codes``: no side of its ring continues it, but an adjacent ring sees a return at its
+range there (a thin thing; or a point whose ring neighbour is a stray return)."""
+STRAY = 2
+"""``stray_codes``: a stray return."""
+
+
 @kernel()
-def stray_returns(points: np.ndarray, t_ns: np.ndarray, ring: np.ndarray,
-                  tolerance_m: float, tolerance_rel: float) -> np.ndarray:
-    """(N,) bool: True for a stray return, a point whose range neither the two points before
-    it along its ring nor the two after it continue within ``tolerance_m + tolerance_rel * r``
-    (module docstring). A point with fewer than two ring neighbours on both sides is kept."""
+def stray_codes(points: np.ndarray, t_ns: np.ndarray, ring: np.ndarray,
+                tolerance_m: float, tolerance_rel: float) -> np.ndarray:
+    """(N,) int8: ``STRAY`` for a stray return, a point whose range neither the two points
+    before it along its ring nor the two after it continue within ``tolerance_m +
+    tolerance_rel * r``, and that no point of an adjacent ring (id -1 or +1) among the
+    ``SUPPORT_SIDE`` fired before its time and as many at or after it lies within that of
+    (module docstring); ``SUPPORTED`` where only that adjacent ring's point is missing;
+    ``CONTINUED`` otherwise, and for a point with fewer than two ring neighbours on both
+    sides."""
     n = points.shape[0]
     order = _ring_order(ring, t_ns)
     r = np.empty(n)
+    ring_sorted = np.empty(n, np.int64)
+    t_sorted = np.empty(n, np.int64)
     for i in range(n):
         x, y, z = points[order[i], 0], points[order[i], 1], points[order[i], 2]
         r[i] = np.sqrt(x * x + y * y + z * z)
-    stray = np.zeros(n, np.bool_)
+        ring_sorted[i] = ring[order[i]]
+        t_sorted[i] = t_ns[order[i]]
+    code = np.zeros(n, np.int8)
     for i in range(n):
         tol = tolerance_m + tolerance_rel * r[i]
         judged = False
         fits = False
-        if i >= 2 and ring[order[i - 2]] == ring[order[i]]:
+        if i >= 2 and ring_sorted[i - 2] == ring_sorted[i]:
             judged = True
             fits = abs(r[i] - (2.0 * r[i - 1] - r[i - 2])) <= tol
-        if not fits and i + 2 < n and ring[order[i + 2]] == ring[order[i]]:
+        if not fits and i + 2 < n and ring_sorted[i + 2] == ring_sorted[i]:
             judged = True
             fits = abs(r[i] - (2.0 * r[i + 1] - r[i + 2])) <= tol
-        stray[order[i]] = judged and not fits
-    return stray
+        if not judged or fits:
+            continue
+        code[order[i]] = STRAY
+        for step in (-1, 1):  # a thin thing that an adjacent ring sees too is no stray return
+            a = np.searchsorted(ring_sorted, ring_sorted[i] + step)
+            b = np.searchsorted(ring_sorted, ring_sorted[i] + step, side="right")
+            j = a + np.searchsorted(t_sorted[a:b], t_sorted[i])
+            for c in range(max(a, j - SUPPORT_SIDE), min(b, j + SUPPORT_SIDE)):
+                if abs(r[c] - r[i]) <= tol:
+                    code[order[i]] = SUPPORTED
+                    break
+            if code[order[i]] == SUPPORTED:
+                break
+    return code
+
+
+def stray_returns(points: np.ndarray, t_ns: np.ndarray, ring: np.ndarray,
+                  tolerance_m: float, tolerance_rel: float) -> np.ndarray:
+    """(N,) bool: the stray returns (``stray_codes`` == ``STRAY``)."""
+    return stray_codes(points, t_ns, ring, tolerance_m, tolerance_rel) == STRAY
