@@ -53,7 +53,10 @@ seed with that standard deviation, ``simulate(imu_scale_error_pct=...)``), which
 an uncalibrated MEMS IMU. With ``--people`` that many people walk along the route while the
 rig does (``simulate(people=...)``, upright cylinders; :mod:`adalio.sim.people`). With
 ``--lidar-tilts-deg`` the LiDAR sits pitched that much nose down on the handle, the IMU fixed to
-it (``simulate(lidar_tilt_deg=...)``): the configs are the same, the view is not.
+it (``simulate(lidar_tilt_deg=...)``): the configs are the same, the view is not. With
+``--ghosts`` and ``--dust`` that share of each sweep's returns lies 0.3-2.0 m behind its surface
+(multipath, cross-talk) or in front of it (dust) along its ray (``simulate(ghosts=...,
+dust=...)``), which no config says.
 
     python benchmarks/bench_sensors.py                      # hall + corridor, 2 seeds, full routes
     python benchmarks/bench_sensors.py --scenes hall --seeds 1 --lidars xt32-512
@@ -67,6 +70,7 @@ it (``simulate(lidar_tilt_deg=...)``): the configs are the same, the view is not
     python benchmarks/bench_sensors.py --starts still --imu-scale-errors-pct 0 0.3 1
     python benchmarks/bench_sensors.py --starts still --people 0 4
     python benchmarks/bench_sensors.py --starts still --lidar-tilts-deg 0 30 90
+    python benchmarks/bench_sensors.py --starts still --ghosts 0 0.1 --dust 0 0.2
 """
 
 from __future__ import annotations
@@ -98,6 +102,7 @@ from adalio.sim.generate import (
     MAX_IMU_SCALE_ERROR_PCT,
     MAX_IMU_TIME_OFFSET_S,
     MAX_LIDAR_TILT_DEG,
+    MAX_STRAY_FRACTION,
     MIN_IMU_RATE_HZ,
     T_IMU_LIDAR_HILTI,
 )
@@ -181,6 +186,17 @@ class Cell:
     imu_bias_scale: float = 1.0
     """The simulated IMU's initial biases and bias walks x this (``simulate(imu_bias_scale=...)``);
     the run's config does not say it."""
+    ghosts: float = 0.0
+    """Share of the returns pushed 0.3-2.0 m behind their surface (``simulate(ghosts=...)``)."""
+    dust: float = 0.0
+    """Share of the returns pulled 0.3-2.0 m in front of their surface (``simulate(dust=...)``)."""
+    stray_share: float = float("nan")
+    """Stray returns found over the run, a share of the points read (scans.csv ``n_stray`` /
+    ``n_raw``; :mod:`adalio.lio.stray`)."""
+    stray_scan_max: float = float("nan")
+    """The largest share of stray returns in one scan."""
+    stray_dropped_scans: float = float("nan")
+    """Share of the scans that dropped their stray returns (scans.csv ``n_stray_dropped`` above 0)."""
     map_off_scene: float = float("nan")
     """Share of the written map's points off the scene's surfaces, the map placed by the
     trajectory's SE(3) alignment to the GT: ghosts of people walking by, and a map that drifted
@@ -279,7 +295,8 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
                           motion_from=cell.motion_from, lidar_rate_hz=cell.lidar_rate_hz,
                           imu_time_offset_s=cell.imu_time_offset_ms * 1e-3,
                           imu_scale_error_pct=cell.imu_scale_error_pct, people=cell.people,
-                          lidar_tilt_deg=cell.lidar_tilt_deg, imu_bias_scale=cell.imu_bias_scale)
+                          lidar_tilt_deg=cell.lidar_tilt_deg, imu_bias_scale=cell.imu_bias_scale,
+                          ghosts=cell.ghosts, dust=cell.dust)
     meta = json.loads(sim.meta_path.read_text())
     cfg = load_config(config_file=sim.config_path, overrides=overrides)
     T_true = cfg.T_imu_lidar()
@@ -305,6 +322,8 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     other += "" if not cell.people else f"_people{cell.people}"
     other += "" if not cell.lidar_tilt_deg else f"_tilt{cell.lidar_tilt_deg:g}deg"
     other += "" if cell.imu_bias_scale == 1.0 else f"_bias{cell.imu_bias_scale:g}x"
+    other += "" if not cell.ghosts else f"_ghosts{cell.ghosts:g}"
+    other += "" if not cell.dust else f"_dust{cell.dust:g}"
     out = out_root / (f"{cell.scene}_s{cell.seed}_imu{cell.imu_noise:g}_{cell.lidar}_"
                       f"{cell.start}{cut}{other}")
     try:
@@ -376,8 +395,12 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
         cell.map_off_scene = map_off_scene(res.map_path, res.trajectory_path, sim.gt_path,
                                            sim.meta_path)
     with contextlib.suppress(InputError):
-        cons = sigma_consistency(res.trajectory_path, sim.gt_path,
-                                 read_scans_csv(out / "scans.csv"))
+        scans = read_scans_csv(out / "scans.csv")
+        n_raw = np.maximum(scans["n_raw"], 1)
+        cell.stray_share = float(scans["n_stray"].sum() / n_raw.sum())
+        cell.stray_scan_max = float((scans["n_stray"] / n_raw).max())
+        cell.stray_dropped_scans = float((scans["n_stray_dropped"] > 0).mean())
+        cons = sigma_consistency(res.trajectory_path, sim.gt_path, scans)
         cell.within_3sigma = [float(v) for v in cons.within_3sigma]
         if len(cons.errors_world_m):
             cell.max_error_first_m = float(np.linalg.norm(cons.errors_world_m, axis=1).max())
@@ -425,6 +448,8 @@ def _lidar_label(c: Cell) -> str:
     other += [] if not c.people else [f"{c.people} people"]
     other += [] if not c.lidar_tilt_deg else [f"tilted {c.lidar_tilt_deg:g}°"]
     other += [] if c.imu_bias_scale == 1.0 else [f"IMU bias x{c.imu_bias_scale:g}"]
+    other += [] if not c.ghosts else [f"{100 * c.ghosts:g} % ghosts"]
+    other += [] if not c.dust else [f"{100 * c.dust:g} % dust"]
     return f"{c.lidar} ({', '.join(other)})" if other else c.lidar
 
 
@@ -500,7 +525,8 @@ def _summary_key(c: Cell) -> tuple:
     moving start's cut."""
     return (c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz, c.lidar_rate_hz,
             c.imu_time_offset_ms, c.extrinsic_error_deg, c.extrinsic_translation_error_cm,
-            c.imu_scale_error_pct, c.people, c.lidar_tilt_deg, c.imu_bias_scale)
+            c.imu_scale_error_pct, c.people, c.lidar_tilt_deg, c.imu_bias_scale, c.ghosts,
+            c.dust)
 
 
 def summary_table(cells: list[Cell]) -> str:
@@ -511,7 +537,8 @@ def summary_table(cells: list[Cell]) -> str:
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     keys = sorted({_summary_key(c) for c in cells},
                   key=lambda k: (k[0], k[1] != "still", k[2], k[3] != "default", k[3], -k[4],
-                                 k[5], k[6], k[7], k[8], k[9], k[10], k[11], k[12]))
+                                 k[5], k[6], k[7], k[8], k[9], k[10], k[11], k[12], k[13],
+                                 k[14]))
     for key in keys:
         scene, start, noise = key[:3]
         cs = [c for c in cells if _summary_key(c) == key]
@@ -575,6 +602,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lidar-tilts-deg", nargs="+", type=float, default=[0.0],
                     help="the LiDAR pitched this many degrees nose down on the handle, the IMU "
                     f"fixed to it (within +-{MAX_LIDAR_TILT_DEG:g}, default 0: level)")
+    ap.add_argument("--ghosts", nargs="+", type=float, default=[0.0],
+                    help="share of the returns simulated 0.3-2.0 m behind their surface along "
+                    f"their ray: multipath, cross-talk (0-{MAX_STRAY_FRACTION:g}, default 0)")
+    ap.add_argument("--dust", nargs="+", type=float, default=[0.0],
+                    help="share of the returns simulated 0.3-2.0 m in front of their surface "
+                    f"along their ray: dust (0-{MAX_STRAY_FRACTION:g}, default 0)")
     ap.add_argument("--starts", nargs="+", default=["still", "moving"],
                     choices=["still", "moving"])
     ap.add_argument("--duration", type=float, default=0.0,
@@ -620,6 +653,11 @@ def main(argv: list[str] | None = None) -> int:
         if not abs(tilt) <= MAX_LIDAR_TILT_DEG:
             raise SystemExit(f"error: --lidar-tilts-deg must be within "
                              f"+-{MAX_LIDAR_TILT_DEG:g} (got {tilt:g})")
+    for flag, fractions in (("--ghosts", args.ghosts), ("--dust", args.dust)):
+        for frac in fractions:
+            if not 0.0 <= frac <= MAX_STRAY_FRACTION:
+                raise SystemExit(f"error: {flag} must be a fraction 0-{MAX_STRAY_FRACTION:g} "
+                                 f"(got {frac:g})")
     duration = args.duration or None
     cells = []
     t0 = time.perf_counter()
@@ -627,8 +665,9 @@ def main(argv: list[str] | None = None) -> int:
           "ms/scan | within 3σ x / y / z | median abs(error) / σ | backfilled, worst error | "
           "IMU time offset found (passes), left | LiDAR-IMU rotation found (passes), left, "
           "final error | LiDAR-IMU translation, lever arm's error | gyro scale found (passes), "
-          "left, final error | map off the scene | error |\n"
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+          "left, final error | map off the scene | stray returns, largest in a scan, scans "
+          "dropping them | error |\n"
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
           flush=True)
     starts = [("still", 0.0)] if "still" in args.starts else []
     starts += [("moving", c) for c in args.cut_s] if "moving" in args.starts else []
@@ -636,16 +675,18 @@ def main(argv: list[str] | None = None) -> int:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for noise in args.imu_noise:
                 for (lidar, mounting, rate, lidar_rate, offset, turn, lever,
-                     scale, people, tilt, bias) in itertools.product(
+                     scale, people, tilt, bias, ghosts, dust) in itertools.product(
                         args.lidars, args.mountings, args.imu_rates, args.lidar_rates,
                         args.imu_time_offsets_ms, args.extrinsic_errors_deg,
                         args.extrinsic_translation_errors_cm, args.imu_scale_errors_pct,
-                        args.people, args.lidar_tilts_deg, args.imu_bias_scales):
+                        args.people, args.lidar_tilts_deg, args.imu_bias_scales,
+                        args.ghosts, args.dust):
                     for start, cut_s in starts:
                         c = run_cell(Cell(scene, seed, noise, lidar, start, cut_s, mounting,
                                           rate, lidar_rate, args.motion_from, offset, turn,
                                           lever, scale, people=people,
-                                          lidar_tilt_deg=tilt, imu_bias_scale=bias),
+                                          lidar_tilt_deg=tilt, imu_bias_scale=bias,
+                                          ghosts=ghosts, dust=dust),
                                      duration, args.out,
                                      overrides)
                         cells.append(c)
@@ -659,7 +700,9 @@ def main(argv: list[str] | None = None) -> int:
                               f"{c.backfilled} ({cm(c.backfill_err_m)}) | "
                               f"{_offset_cell(c)} | {_rotation_cell(c)} | "
                               f"{_translation_cell(c)} | {_scale_cell(c)} | "
-                              f"{share_cell(c.map_off_scene)} | {c.error} |",
+                              f"{share_cell(c.map_off_scene)} | "
+                              f"{share_cell(c.stray_share)}, {share_cell(c.stray_scan_max)}, "
+                              f"{share_cell(c.stray_dropped_scans)} | {c.error} |",
                               flush=True)
     print()
     print(summary_table(cells))
