@@ -579,7 +579,7 @@ def test_summary_says_where_sweeps_dropped_their_stray_returns(tmp_path, dropped
     text = _summary_text(res)
     line = (f"stray returns (preprocess.stray_drop_share): {scans}/100 scans had more than "
             f"{100 * share:g} % (dust or rain in front of surfaces, ghosts behind them) and "
-            f"dropped {dropped} points")
+            f"dropped {dropped} points ({100 * dropped / 1e6:.1f} % of those read)")
     assert (line in text) is bool(dropped)
     assert ("at 2.0-5.9 s" in text) is bool(dropped)
     assert ("note: 110000 of 1000000 points (11.0 %) are stray returns kept" in text) is note

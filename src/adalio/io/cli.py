@@ -618,7 +618,8 @@ def _summary(con: Console, res: Any, profile: bool, origin: str = "") -> None:
             share = 100.0 * getattr(res, "stray_drop_share", 1.0)
             con.print(f"stray returns (preprocess.stray_drop_share): {n_scans_share}/"
                       f"{res.n_scans} scans had more than {share:g} % (dust or rain in front of "
-                      f"surfaces, ghosts behind them) and dropped {n_share} points, the stray "
+                      f"surfaces, ghosts behind them) and dropped {n_share} points "
+                      f"({100.0 * n_share / n_read:.1f} % of those read), the stray "
                       f"returns and the points only an adjacent ring continues (scans.csv "
                       f"n_stray, n_stray_dropped), at "
                       f"{_ranges_text(getattr(res, 'stray_dropped_ranges_s', []))}",
