@@ -627,9 +627,10 @@ def _summary(con: Console, res: Any, profile: bool, origin: str = "") -> None:
         if kept and kept >= STRAY_NOTE_SHARE * n_read:
             con.print(f"note: {kept} of {n_read} points ({100.0 * kept / n_read:.1f} %) are "
                       f"stray returns kept, their range continuing neither side along their ring "
-                      f"(dust or rain in front of surfaces, ghosts behind them, mixed pixels; "
-                      f"scans.csv n_stray): where the map shows them, --set "
-                      f"preprocess.drop_stray_returns=true drops them (README, Stray returns)",
+                      f"and no adjacent ring's return there (dust or rain in front of surfaces, "
+                      f"ghosts behind them, mixed pixels; scans.csv n_stray): where the map shows "
+                      f"them, --set preprocess.stray_drop_share=0.01 drops them in every sweep "
+                      f"where they are more than 1 % (README, Stray returns)",
                       highlight=False, soft_wrap=True)
     dropped, rows = getattr(res, "local_surface_rows", (0, 0))
     if rows:

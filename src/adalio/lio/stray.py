@@ -17,9 +17,9 @@ at is a stray return, on no surface for a point-to-plane row, and kept it enters
 This is the range-image neighbour test of LiDAR drivers' noise filters and of LOAM's rejection of
 points whose neighbours jump in range, in its simplest form. The ring order is the points'
 time order within each ring (azimuth order for a spinning LiDAR), and adjacent ring ids are
-adjacent beams, as the Hesai, Ouster and Velodyne drivers number them. Clouds without rings (a
-Livox ``CustomMsg``) are not tested, and a Livox driver's PointCloud2 ``line`` (one laser's scan)
-is read as the ring (its lines are no adjacent beams: what supports a point there is chance).
+adjacent beams, as the Hesai, Ouster and Velodyne drivers number them. Clouds without rings are
+not tested, Livox clouds among them (``CustomMsg``, or a Livox driver's PointCloud2, whose
+``line`` is a laser of the pattern: ``adalio.io.pointcloud2``).
 """
 
 from __future__ import annotations
