@@ -972,12 +972,12 @@ class Odometry:
         n_stray = n_dropped = 0
         span = int(ring.max()) - int(ring.min()) + 1 if ring is not None and pts.shape[0] else 0
         if ring is None or not 1 < span <= MAX_RING_SPAN:  # one ring id, or ids of no LiDAR
-            if pre.drop_stray_returns and pts.shape[0]:  # (the share alone: nothing to say)
+            if pre.drop_stray_returns and pts.shape[0]:  # the option warns; the share is default
                 why = ("carry no ring field" if ring is None else "hold one ring id" if span == 1
                        else f"hold ring ids spread over {span} values")
                 self._warn_no_ring("preprocess.drop_stray_returns", "no return is dropped as stray",
                                    why)
-        else:  # counted always; dropped with the option, or in a scan they are a share of
+        else:  # counted always; dropped with the option, or where more than the share
             finite = np.isfinite(pts).all(axis=1)
             rows_f = np.flatnonzero(finite)
             code = stray_codes(pts[rows_f], t[rows_f], ring[rows_f].astype(np.int64),

@@ -93,9 +93,9 @@ def stray_codes(points: np.ndarray, t_ns: np.ndarray, ring: np.ndarray,
     before it along its ring nor the two after it continue within ``tolerance_m +
     tolerance_rel * r``, and that no point of an adjacent ring (id -1 or +1) among the
     ``SUPPORT_SIDE`` fired before its time and as many at or after it lies within that of
-    (module docstring); ``SUPPORTED`` where only that adjacent ring's point is missing;
-    ``CONTINUED`` otherwise, and for a point with fewer than two ring neighbours on both
-    sides."""
+    (module docstring); ``SUPPORTED`` where its ring does not continue it but such an adjacent
+    ring's point lies at its range; ``CONTINUED`` otherwise, and for a point with fewer than two
+    ring neighbours on both sides."""
     n = points.shape[0]
     order = _ring_order(ring, t_ns)
     r = np.empty(n)
