@@ -217,7 +217,8 @@ def test_info_reads_a_livox_bag(hall, tmp_path):
     res = CliRunner().invoke(app, ["info", str(path)])
     assert res.exit_code == 0, res.output
     for text in ("livox_ros_driver/msg/CustomMsg", "would use: lidar /livox/lidar",
-                 "Livox CustomMsg: offset_time", "after the message's timebase"):
+                 "Livox CustomMsg: offset_time", "after the message's timebase",
+                 "stray returns: not tested (the clouds carry no rings)"):
         assert text in res.output, res.output
 
 

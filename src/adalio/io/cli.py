@@ -125,6 +125,7 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
         out.print(f"would use: lidar [bold]{lidar}[/], imu [bold]{imu}[/]")
         dec = lidar_decoder(b.msgtype(lidar), cfg.sensor, lidar)
         counts = []
+        strays: list[float] = []  # each sampled cloud's share of stray returns (with rings)
         layout = ""
         n_sample = sample
         span = b.end_ns - b.start_ns
@@ -145,13 +146,24 @@ def info(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them)
                         + f" (point_step {msg.point_step}, {msg.height}x{msg.width}, " \
                         f"{'big' if msg.is_bigendian else 'little'}-endian)"
                     frame = msg.header.frame_id
-                counts.append(len(dec.decode(msg)))
+                scan = dec.decode(msg)
+                counts.append(len(scan))
+                share = _stray_share(scan, cfg.preprocess)
+                if share is not None:
+                    strays.append(share)
         out.print(f"cloud fields: {layout}  frame '{frame}'", highlight=False, soft_wrap=True)
         spec = dec.time_spec.describe() if dec.time_spec else "unknown"
         out.print(f"per-point time: {spec}", highlight=False, soft_wrap=True)
         if counts:
             out.print(f"points per scan ({len(counts)} sampled): min {min(counts)}, "
                       f"median {statistics.median(counts):.0f}, max {max(counts)}")
+            limit = 100.0 * cfg.preprocess.stray_drop_share
+            out.print(f"stray returns ({len(strays)} sampled): mean "
+                      f"{100.0 * statistics.fmean(strays):.2f} %, largest "
+                      f"{100.0 * max(strays):.2f} % of a scan's points; a run drops them in a "
+                      f"scan above {limit:g} % (preprocess.stray_drop_share; dust, ghosts)"
+                      if strays else "stray returns: not tested (the clouds carry no rings)",
+                      highlight=False, soft_wrap=True)
         imu_by_t = {_msg_key(t, m): m for _, t, m in b.messages([imu], limit=50)}
         if imu_by_t:
             batch = imu_msg_arrays(list(imu_by_t.values()))
@@ -330,6 +342,25 @@ def _report(con: Console, out_dir: Path, gt: Path) -> None:
         err.print("[yellow]warning:[/] ", end="", highlight=False)
         err.print(text, markup=False, highlight=False, soft_wrap=True)
     con.print(f"report: {report}", highlight=False, soft_wrap=True)
+
+
+def _stray_share(scan: Any, pre: Any) -> float | None:
+    """The share of a decoded cloud's finite points that are stray returns
+    (``adalio.lio.stray``), None where it has no rings, one ring id, or ids of no LiDAR, which
+    a run does not test either."""
+    from adalio.lio.stray import MAX_RING_SPAN, stray_returns
+
+    if scan.ring is None or len(scan) == 0:
+        return None
+    ring = np.asarray(scan.ring, np.int64)
+    if not 1 < int(ring.max()) - int(ring.min()) + 1 <= MAX_RING_SPAN:
+        return None
+    pts = np.asarray(scan.points_lidar, np.float64)
+    ok = np.isfinite(pts).all(axis=1)
+    if not ok.any():
+        return None
+    return float(stray_returns(pts[ok], np.asarray(scan.t_ns)[ok], ring[ok],
+                               pre.stray_tolerance_m, pre.stray_tolerance_rel).mean())
 
 
 def _ranges_text(ranges_s: list[tuple[float, float]], limit: int = 8) -> str:
