@@ -625,9 +625,10 @@ class Odometry:
         self._provenance = MapProvenance(config.filter.map_provenance_cell_m)
         self._W_map = np.zeros((6, 6))
         """World covariance the latest scan inherited from the map (filter.map_uncertainty)."""
-        self._held_scans: list[tuple[np.ndarray, np.ndarray]] = []
-        """Preprocessed scans (LiDAR points, int64 ns) read before the initialization, kept
-        for the backfill (imu.backfill_s)."""
+        self._held_scans: list[tuple[np.ndarray, np.ndarray, tuple[int, int, int]]] = []
+        """Preprocessed scans (LiDAR points, int64 ns, and the ``ScanStats`` counts of the
+        points read: n_raw, n_stray, n_stray_dropped) read before the initialization, kept for
+        the backfill (imu.backfill_s)."""
         self._held_imu: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._backfilled: list[Estimate] = []
         self._backfill_map = np.zeros((0, 3))
@@ -797,13 +798,13 @@ class Odometry:
             t0 = _timer(stage_ms, "undistort", t0)
             if not self.initialized:
                 self._scans_without_pose += 1
-                self._hold(pts, t_pts)
+                self._hold(pts, t_pts, stats)
                 self._accumulate(stage_ms)
                 return None
         else:
             pts_e = None
         if self._held_scans:  # tracked since the initialization, until the backfill runs
-            self._hold(pts, t_pts)
+            self._hold(pts, t_pts, stats)
         if pts_e is not None:
             return self._first_map(pts_e, t_e, stats, stage_ms, t_start, t0)
 
@@ -1174,14 +1175,16 @@ class Odometry:
         rotation and lever arm checks take the gyro's and accelerometer's stamps to have."""
         return self.time_offset.offset_s if self.time_offset is not None else 0.0
 
-    def _hold(self, pts: np.ndarray, t_pts: np.ndarray) -> None:
+    def _hold(self, pts: np.ndarray, t_pts: np.ndarray, stats: ScanStats) -> None:
         """Keep a scan for the backfill: before the initialization the latest
-        ``imu.backfill_s`` of them (points as float32), after it every scan until the backfill
-        runs; and the IMU samples they span."""
+        ``imu.backfill_s`` of them (points as float32, with the counts of the points read that
+        its backfilled row reports), after it every scan until the backfill runs; and the IMU
+        samples they span."""
         keep_s = self.cfg.imu.backfill_s
         if not keep_s > 0:
             return
-        self._held_scans.append((pts.astype(np.float32), t_pts.copy()))
+        self._held_scans.append((pts.astype(np.float32), t_pts.copy(),
+                                 (stats.n_raw, stats.n_stray, stats.n_stray_dropped)))
         if self.initialized:
             return
         horizon = int(t_pts.max()) - round(keep_s * 1e9)
@@ -1209,8 +1212,8 @@ class Odometry:
         held, chunks = self._held_scans, self._held_imu
         self._held_scans, self._held_imu = [], []
         t_init, t_now = self.init_report.t_ns, self._t_state_ns
-        scans = [(p, t) for p, t in held if int(t.max()) < t_now]
-        if not scans or not any(int(t.max()) < t_init for _, t in scans) or not chunks:
+        scans = [(p, t, n) for p, t, n in held if int(t.max()) < t_now]
+        if not scans or not any(int(t.max()) < t_init for _, t, _ in scans) or not chunks:
             return
         t_imu = np.concatenate([c[0] for c in chunks])
         gyro = np.concatenate([c[1] for c in chunks])
@@ -1226,7 +1229,7 @@ class Odometry:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # an IMU gap's time would be a mirrored one
             anchored = False
-            for pts, t_pts in reversed(scans):
+            for pts, t_pts, read in reversed(scans):
                 if (not anchored and self._anchor_state is not None
                         and int(t_pts.max()) <= self._t_first_map_ns):
                     anchored = True
@@ -1242,6 +1245,7 @@ class Odometry:
                 st = est.stats
                 st.t_ns = mirror - st.t_ns
                 st.backfill = True
+                st.n_raw, st.n_stray, st.n_stray_dropped = read  # the points read, not held
                 out.append(Estimate(
                     t_ns=st.t_ns, T_world_imu=est.T_world_imu,
                     velocity_world_m_s=-est.velocity_world_m_s,
