@@ -14,6 +14,7 @@ from adalio.lio.voxel import voxel_downsample, voxel_downsample_with_index
 from adalio.sim.generate import START_NS, T_IMU_LIDAR_HILTI, build_trajectory
 from adalio.sim.lidar import RayCaster, SweepSimulator, lidar_model
 from adalio.sim.scenes import build_scene
+from adalio.types import ScanStats
 
 T_IL = np.asarray(T_IMU_LIDAR_HILTI, dtype=np.float64)
 
@@ -197,4 +198,4 @@ def test_rings_that_do_not_match_the_points_are_refused() -> None:
     odom.cfg.filter.local_surface_check = True
     pts = np.ones((10, 3))
     with pytest.raises(InputError, match="ring must be"):
-        odom._preprocess(pts, np.arange(10, dtype=np.int64), np.zeros(9, np.int64))
+        odom._preprocess(pts, np.arange(10, dtype=np.int64), np.zeros(9, np.int64), ScanStats())

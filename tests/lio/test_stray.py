@@ -19,7 +19,7 @@ from adalio.io.writers import TumWriter
 from adalio.lio.odometry import Odometry
 from adalio.lio.stray import CONTINUED, STRAY, SUPPORTED, stray_codes, stray_returns
 from adalio.sim import cached_sequence
-from adalio.types import ImuBatch
+from adalio.types import ImuBatch, ScanStats
 
 REAL_SCAN = Path(__file__).resolve().parents[1] / "data/real/hilti2022_evalio_scan/exp04_first_scan.npz"
 TOL_M, TOL_REL = 0.1, 0.02
@@ -234,16 +234,17 @@ def test_a_sweep_drops_its_stray_returns_where_they_are_more_than_the_share():
         cfg.preprocess.max_range_m = 1000.0
         cfg.preprocess.point_filter_num = 1  # every point (the preset keeps every 2nd)
         odom = Odometry(cfg)
-        out, out_t, n_raw, _ = odom._preprocess(cloud, t_ns, ring)
+        stats = ScanStats()
+        out, out_t, _ = odom._preprocess(cloud, t_ns, ring, stats)
         r_cloud = np.linalg.norm(cloud, axis=1)
         near = (r_cloud >= cfg.preprocess.blind_m) & (r_cloud <= 1000.0)
         drop = codes != CONTINUED
         expect = near & ~drop if dropped else near
-        assert odom._last_n_stray == (codes == STRAY).sum()
-        assert odom._last_n_stray_dropped == (drop.sum() if dropped else 0)
+        assert stats.n_stray == (codes == STRAY).sum()
+        assert stats.n_stray_dropped == (drop.sum() if dropped else 0)
         np.testing.assert_array_equal(out_t, t_ns[expect])
         np.testing.assert_array_equal(out, cloud[expect])
-        assert n_raw == len(cloud)
+        assert stats.n_raw == len(cloud)
 
 
 @pytest.mark.parametrize("rings", ["none", "one id", "spread"])
@@ -271,4 +272,6 @@ def test_without_rings_the_option_warns_once_and_counts_nothing(rings):
            "spread": f"hold ring ids spread over {3 * len(pts) - 2} values"}[rings]
     assert said == [(f"preprocess.drop_stray_returns is on but the scans {why}: no return is "
                      "dropped as stray")]
-    assert odom._last_n_stray == 0
+    stats = ScanStats()  # a fourth sweep: nothing counted (and no second warning)
+    odom._preprocess(pts, t_ns - t_ns.min() + 300_000_000, ring, stats)
+    assert stats.n_stray == 0 and stats.n_stray_dropped == 0

@@ -634,8 +634,6 @@ class Odometry:
         self._backfill_map = np.zeros((0, 3))
         """The backfill's map (world), part of ``map_points`` but not of the filter's map."""
         self._warned_no_ring: set[str] = set()
-        self._last_n_stray = 0
-        self._last_n_stray_dropped = 0
         self.local_surface_rows = [0, 0]
         """filter.local_surface_check: [rows dropped, rows matched or dropped] over the run."""
 
@@ -771,9 +769,7 @@ class Odometry:
 
         # 1. preprocess (§6.1): finite, blind, max range, decimation
         t0 = t_start
-        pts, t_pts, stats.n_raw, full = self._preprocess(points_lidar, t_ns, ring)
-        stats.n_stray = self._last_n_stray
-        stats.n_stray_dropped = self._last_n_stray_dropped
+        pts, t_pts, full = self._preprocess(points_lidar, t_ns, ring, stats)
         self._merge_imu()
         t0 = _timer(stage_ms, "preprocess", t0)
         if pts.shape[0] == 0:
@@ -947,10 +943,11 @@ class Odometry:
         stats.n_moving = int(moving.sum())
         return image, ~moving
 
-    def _preprocess(self, points_lidar, t_ns, ring=None):
-        """§6.1 steps 1-2. Returns (points, t_ns, finite count, full): ``full`` is None, or with
+    def _preprocess(self, points_lidar, t_ns, ring, stats: ScanStats):
+        """§6.1 steps 1-2. Returns (points, t_ns, full): ``full`` is None, or with
         ``filter.local_surface_check`` and a ring per point, (every point in range, their
-        t_ns, their rings, the rows of them that are the decimated ``points``)."""
+        t_ns, their rings, the rows of them that are the decimated ``points``). Sets the
+        points read in ``stats``: ``n_raw`` (the finite ones), ``n_stray``, ``n_stray_dropped``."""
         pts = np.asarray(points_lidar)
         t = np.asarray(t_ns)
         if pts.ndim != 2 or pts.shape[1] != 3:
@@ -993,11 +990,10 @@ class Odometry:
                 keep[rows_f[drop]] = False
                 pts, t, ring = pts[keep], t[keep], ring[keep]
                 n_dropped = int(drop.sum())
-        self._last_n_stray = n_stray
-        self._last_n_stray_dropped = n_dropped
         rows, dec, n_raw = _range_gate_rows(pts, pre.blind_m, pre.max_range_m,
                                             pre.point_filter_num)
-        n_raw += n_dropped
+        stats.n_raw = int(n_raw) + n_dropped  # the points read: those dropped as stray too
+        stats.n_stray, stats.n_stray_dropped = n_stray, n_dropped
         keep = rows[dec]
         full = None
         if local:
@@ -1006,7 +1002,7 @@ class Odometry:
             else:
                 full = (pts[rows], t[rows], np.clip(ring[rows], 0, 65535).astype(np.uint16),
                         np.flatnonzero(dec))
-        return pts[keep], t[keep], int(n_raw), full
+        return pts[keep], t[keep], full
 
     def _warn_no_ring(self, key: str, consequence: str, why: str = "carry no ring field") -> None:
         if key not in self._warned_no_ring:
