@@ -348,13 +348,11 @@ def _stray_share(scan: Any, pre: Any) -> float | None:
     """The share of a decoded cloud's finite points that are stray returns
     (``adalio.lio.stray``), None where it has no rings, one ring id, or ids of no LiDAR, which
     a run does not test either."""
-    from adalio.lio.stray import MAX_RING_SPAN, stray_returns
+    from adalio.lio.stray import ring_id_span, rings_testable, stray_returns
 
-    if scan.ring is None or len(scan) == 0:
+    if not rings_testable(ring_id_span(scan.ring)):
         return None
     ring = np.asarray(scan.ring, np.int64)
-    if not 1 < int(ring.max()) - int(ring.min()) + 1 <= MAX_RING_SPAN:
-        return None
     pts = np.asarray(scan.points_lidar, np.float64)
     ok = np.isfinite(pts).all(axis=1)
     if not ok.any():

@@ -119,7 +119,7 @@ from adalio.lio.state import (
     rest_velocity_update,
     sigmas_from_world_covariance,
 )
-from adalio.lio.stray import CONTINUED, MAX_RING_SPAN, STRAY, stray_codes
+from adalio.lio.stray import CONTINUED, STRAY, ring_id_span, rings_testable, stray_codes
 from adalio.lio.time_offset import (
     END_MIN_SPAN_S,
     MAX_SPAN_S,
@@ -968,8 +968,8 @@ class Odometry:
                                  f"{pts.shape[0]} points, got dtype {ring.dtype} shape "
                                  f"{ring.shape}")
         n_stray = n_dropped = 0
-        span = int(ring.max()) - int(ring.min()) + 1 if ring is not None and pts.shape[0] else 0
-        if ring is None or not 1 < span <= MAX_RING_SPAN:  # one ring id, or ids of no LiDAR
+        span = ring_id_span(ring)
+        if not rings_testable(span):  # no rings, one ring id, or ids of no LiDAR
             if pre.drop_stray_returns and pts.shape[0]:  # the option warns; the share is default
                 why = ("carry no ring field" if ring is None else "hold one ring id" if span == 1
                        else f"hold ring ids spread over {span} values")

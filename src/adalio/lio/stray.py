@@ -33,6 +33,21 @@ MAX_RING_SPAN = 65536
 ``Scan.ring`` is uint16)."""
 
 
+def ring_id_span(ring: np.ndarray | None) -> int:
+    """How many values a cloud's ring ids spread over (max - min + 1; 0 without rings or
+    points)."""
+    if ring is None or len(ring) == 0:
+        return 0
+    return int(np.max(ring)) - int(np.min(ring)) + 1
+
+
+def rings_testable(span: int) -> bool:
+    """Ring ids spread over ``span`` values (:func:`ring_id_span`) are rings the test reads:
+    more than one id (a driver that fills the field with one value gives none), spread over at
+    most :data:`MAX_RING_SPAN` (more: a field with another meaning)."""
+    return 1 < span <= MAX_RING_SPAN
+
+
 SUPPORT_SIDE = 2
 """An adjacent ring's points nearest in time that may support a point: this many fired before
 its time and as many after (its column and the next on either side, for a spinning LiDAR)."""
