@@ -81,6 +81,11 @@ def register(app: typer.Typer) -> None:
             "their ray, from dust in front of their surface (0-0.5, default 0; below the LiDAR's "
             "minimum range they are dropped; no return is both dust and a ghost). meta.json "
             "says it.")] = 0.0,
+        pace: Annotated[float, typer.Option(
+            "--pace", help="Walk the route this many times as fast as the scene's speeds (0.25-3, "
+            "default 1: the shaft's 0.45 m/s, the corridor's 1.2 m/s): its speed limits and "
+            "turn-rate bound times PACE, its acceleration bound times PACE squared; the hand "
+            "and the gait keep their times. meta.json says it.")] = 1.0,
     ) -> None:
         """Simulate a handheld LiDAR + IMU walk through an indoor scene into a ROS bag."""
         import json
@@ -110,7 +115,8 @@ def register(app: typer.Typer) -> None:
                                  lidar_rate_hz=lidar_rate,
                                  imu_time_offset_s=imu_time_offset_ms * 1e-3,
                                  imu_scale_error_pct=imu_scale_error_pct, people=people,
-                                 lidar_tilt_deg=lidar_tilt, ghosts=ghosts, dust=dust)
+                                 lidar_tilt_deg=lidar_tilt, ghosts=ghosts, dust=dust,
+                                 pace=pace)
         meta = json.loads(res.meta_path.read_text())
         console().print(
             f"[green]wrote[/] {res.bag_path} ({meta['n_scans']} sweeps, {meta['n_imu']} IMU, "

@@ -36,7 +36,7 @@ from adalio.sim.lidar import (
 )
 from adalio.sim.people import People, check_people
 from adalio.sim.scenes import build_scene
-from adalio.sim.trajectory import HandheldMotion, Trajectory, tilt_rig_lidar
+from adalio.sim.trajectory import HandheldMotion, Trajectory, check_pace, tilt_rig_lidar
 
 SCENES = ("hall", "corridor", "spiral", "stairs_garage")
 START_NS = 1_646_304_541_527_137_000
@@ -171,15 +171,16 @@ def check_stray(flag: str, fraction: float) -> None:
 
 def build_trajectory(scene_obj, T_imu_lidar: np.ndarray, seed: int,
                      handheld: HandheldMotion | None = None,
-                     lidar_tilt_deg: float = 0.0) -> Trajectory:
+                     lidar_tilt_deg: float = 0.0, pace: float = 1.0) -> Trajectory:
     """The walking trajectory of a scene for a seed (with a recorded walk's handheld motion
     instead of the synthetic one when ``handheld`` is given), with the LiDAR level on the
     handle or pitched ``lidar_tilt_deg`` nose down (:func:`~adalio.sim.trajectory.
-    tilt_rig_lidar`), the IMU fixed to it by ``T_imu_lidar``."""
+    tilt_rig_lidar`), the IMU fixed to it by ``T_imu_lidar``, the route walked ``pace`` times
+    as fast as the scene's speeds (:class:`~adalio.sim.trajectory.Trajectory`)."""
     R_rig_imu = tilt_rig_lidar(lidar_tilt_deg) @ np.asarray(T_imu_lidar)[:3, :3].T
     return Trajectory(scene_obj.waypoints_m, scene_obj.speed_limit_m_s,
                       R_rig_imu, seed=seed, fillet_m=scene_obj.fillet_m,
-                      handheld=handheld)
+                      handheld=handheld, pace=pace)
 
 
 def mesh_distance_m(caster: RayCaster, points: np.ndarray, n_dirs: int = 256) -> np.ndarray:
@@ -241,7 +242,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
              imu_time_offset_s: float = 0.0,
              imu_scale_error_pct: float = 0.0,
              people: int = 0, lidar_tilt_deg: float = 0.0, ghosts: float = 0.0,
-             dust: float = 0.0) -> SimResult:
+             dust: float = 0.0, pace: float = 1.0) -> SimResult:
     """Generate one sequence of ``scene`` into ``out_dir`` (created; the bag must not exist).
 
     ``duration_s`` None walks the whole route; shorter values truncate it (static start kept).
@@ -285,6 +286,10 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     returns' times and rings their beams'. Drawn from a stream of their own (seed, 300, sweep),
     so the scene, the motion, the noise and the other returns stay as without them (with both 0
     the bag is the same, byte for byte); ``meta.json`` says both.
+    ``pace``: the route walked this many times as fast as the scene's speeds (0.25-3, default
+    1): its speed limits and yaw-rate bound times ``pace``, its acceleration bound times
+    ``pace²``; the hand and the gait keep their times (:class:`~adalio.sim.trajectory.
+    Trajectory`). The sequence is then shorter; ``meta.json`` says the pace.
     ``motion_from``: a TUM trajectory (>= 10 Hz) whose handheld motion replaces the synthetic
     one (:class:`adalio.sim.trajectory.HandheldMotion`; the seed picks where in it to start);
     ``"none"``: no hand motion at all, the route's own path and attitude (a robot's walk).
@@ -302,6 +307,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     check_lidar_tilt(lidar_tilt_deg)
     check_stray("--ghosts", ghosts)
     check_stray("--dust", dust)
+    check_pace(pace)
     if not abs(imu_time_offset_s) <= MAX_IMU_TIME_OFFSET_S:
         raise InputError(f"--imu-time-offset-ms must be within +-{MAX_IMU_TIME_OFFSET_S * 1e3:g} "
                          f"ms (got {imu_time_offset_s * 1e3:g})")
@@ -316,7 +322,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
         raise InputError(f"{bag_path} already exists: delete it or choose another --out")
     handheld = None if motion_from is None else HandheldMotion.load(motion_from)
     scn = build_scene(scene, seed, **(scene_params or {}))
-    traj = build_trajectory(scn, T_il, seed, handheld, lidar_tilt_deg)
+    traj = build_trajectory(scn, T_il, seed, handheld, lidar_tilt_deg, pace)
     dur = math.floor(traj.duration_s * 10.0) / 10.0 if duration_s is None else float(duration_s)
     dur_ns = round(dur * 1e9)
     t0 = START_NS
@@ -421,7 +427,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
         "imu_accel_sensitivity_error": (np.zeros((3, 3)) if sensitivity is None
                                         else sensitivity[1]).tolist(),
         "people": walkers.as_dict(), "lidar_tilt_deg": float(lidar_tilt_deg),
-        "ghosts": float(ghosts), "dust": float(dust),
+        "ghosts": float(ghosts), "dust": float(dust), "pace": float(pace),
         "gravity_m_s2": GRAVITY_M_S2, "n_scans": int(n_scans), "n_imu": len(t_imu),
         "n_points": int(n_points), "route_length_m": traj.route_length_m,
         "min_clearance_m": round(clearance, 4),

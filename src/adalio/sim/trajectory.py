@@ -21,6 +21,11 @@ ground truth): its translation away from its own smoothed path, in that path's f
 up frame, and its attitude away from its smoothed attitude, as roll / pitch / yaw about the same
 axes. The route and its speed profile stay the scene's, so the recorded operator's hand and gait
 are carried through the scene.
+
+``pace`` walks the route that many times as fast: the scene's speed limits and the yaw-rate bound
+times ``pace``, the acceleration bound times ``pace²``, so that where those bounds hold the
+route's speed profile is the same, run in ``1 / pace`` of the time. The hand and the gait (bobbing
+at about 2 Hz, sway, wander, the start's 2 s ramp and the still tail) keep their times.
 """
 
 from __future__ import annotations
@@ -38,6 +43,16 @@ from adalio.errors import InputError
 SAMPLE_HZ = 100.0
 YAW_RATE_MAX_RAD_S = 0.9
 ACCEL_MAX_M_S2 = 0.45
+PACE_RANGE = (0.25, 3.0)
+"""The walking paces :class:`Trajectory` takes (``simulate --pace``): a quarter of the scenes'
+speeds (a slow, careful survey) to three times them (a brisk walk down a stair, a robot)."""
+
+
+def check_pace(pace: float) -> None:
+    """InputError unless ``pace`` lies within :data:`PACE_RANGE`."""
+    lo, hi = PACE_RANGE
+    if not lo <= pace <= hi:
+        raise InputError(f"--pace must be {lo:g}-{hi:g} (got {pace:g})")
 
 
 @dataclass
@@ -201,12 +216,14 @@ class Trajectory:
     def __init__(self, waypoints_m: np.ndarray, speed_limit_m_s: np.ndarray,
                  R_rig_imu: np.ndarray, *, seed: int = 0, static_s: float = 2.5,
                  fillet_m: float = 1.0, tail_s: float = 1.5, motion: bool = True,
-                 handheld: HandheldMotion | None = None) -> None:
+                 handheld: HandheldMotion | None = None, pace: float = 1.0) -> None:
+        check_pace(pace)
         rng = np.random.default_rng([seed, 7])
+        accel_max = ACCEL_MAX_M_S2 * pace * pace
         self.static_s = float(static_s)
         self.R_rig_imu = np.asarray(R_rig_imu, dtype=np.float64)
         dense, widx = _fillet(np.asarray(waypoints_m, dtype=np.float64), fillet_m)
-        speed_dense = np.interp(widx, np.arange(len(speed_limit_m_s)), speed_limit_m_s)
+        speed_dense = np.interp(widx, np.arange(len(speed_limit_m_s)), speed_limit_m_s) * pace
         route, _ = _resample(dense, 0.1)
         route, s_grid = _resample(gaussian_filter1d(route, 2.5, axis=0, mode="nearest"), 0.1)
         dense_s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense, axis=0),
@@ -217,15 +234,15 @@ class Trajectory:
         heading = np.unwrap(np.arctan2(d1[:, 1], d1[:, 0]))
         dpsi_ds = np.abs(np.gradient(gaussian_filter1d(heading, 3.0, mode="nearest"), s_grid))
         v_lim = np.minimum(np.interp(s_grid, dense_s, speed_dense),
-                           YAW_RATE_MAX_RAD_S / np.maximum(dpsi_ds, 1e-6))
+                           YAW_RATE_MAX_RAD_S * pace / np.maximum(dpsi_ds, 1e-6))
         v_lim = gaussian_filter1d(minimum_filter1d(v_lim, 15, mode="nearest"), 5.0,
                                   mode="nearest")
         ds = np.diff(s_grid)
         for i in range(1, len(v_lim)):
-            v_lim[i] = min(v_lim[i], np.sqrt(v_lim[i - 1] ** 2 + 2 * ACCEL_MAX_M_S2 * ds[i - 1]))
+            v_lim[i] = min(v_lim[i], np.sqrt(v_lim[i - 1] ** 2 + 2 * accel_max * ds[i - 1]))
         v_lim[-1] = 0.0
         for i in range(len(v_lim) - 2, -1, -1):
-            v_lim[i] = min(v_lim[i], np.sqrt(v_lim[i + 1] ** 2 + 2 * ACCEL_MAX_M_S2 * ds[i]))
+            v_lim[i] = min(v_lim[i], np.sqrt(v_lim[i + 1] ** 2 + 2 * accel_max * ds[i]))
         length = s_grid[-1]
         dt = 1.0 / SAMPLE_HZ
         s_samples = [0.0]
@@ -237,7 +254,7 @@ class Trajectory:
                 s_now = s_samples[-1]
                 v = _smootherstep(np.array(tau / 2.0))[()] * np.interp(s_now, s_grid, v_lim)
                 if tau > 2.0:
-                    v = max(min(v, np.sqrt(2 * ACCEL_MAX_M_S2 * (length - s_now))), 1e-4)
+                    v = max(min(v, np.sqrt(2 * accel_max * (length - s_now))), 1e-4)
                 s_samples.append(min(s_now + v * dt, length))
                 v_samples.append(v)
         n_tail = int(tail_s * SAMPLE_HZ)
