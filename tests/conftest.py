@@ -83,6 +83,24 @@ def turned():
     return turn
 
 
+@pytest.fixture(scope="session")
+def summary_text():
+    """``summary_text(res)``: what the run summary prints for a ``RunResult`` (a wide console,
+    no colour)."""
+    import io
+
+    from rich.console import Console
+
+    from adalio.io.cli import _summary
+
+    def text(res) -> str:
+        buf = io.StringIO()
+        _summary(Console(file=buf, width=400), res, profile=False)
+        return buf.getvalue()
+
+    return text
+
+
 @pytest.fixture
 def hall_walk(hall_walk_of):
     """The shared 14 s hall walk as simulated. Looked up for each test: the sequence cache keeps

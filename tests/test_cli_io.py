@@ -504,19 +504,6 @@ def test_sigma_warn_default_is_the_pipeline_default():
     assert inspect.signature(run).parameters["sigma_warn_m"].default == DEFAULT_SIGMA_WARN_M
 
 
-def _summary_text(res) -> str:
-    """What the run summary prints for ``res`` (a wide console, no colour)."""
-    import io
-
-    from rich.console import Console
-
-    from adalio.io.cli import _summary
-
-    buf = io.StringIO()
-    _summary(Console(file=buf, width=400), res, profile=False)
-    return buf.getvalue()
-
-
 @pytest.mark.parametrize(("method", "refused", "without", "backfilled", "flagged"), [
     ("moving", 272, 282, 0, True),     # refused fits left 282 of 540 scans without a pose
     ("moving", 272, 282, 230, False),  # the backfill reached all but 52 (< 10 %)
@@ -524,8 +511,8 @@ def _summary_text(res) -> str:
     ("moving", 3, 40, 0, False),       # 7 % of the scans: under the 10 % line
     ("static", 0, 282, 0, False),      # a still window's scans rest at the first pose
 ])
-def test_summary_flags_a_long_moving_start_wait(tmp_path, method, refused, without, backfilled,
-                                                flagged):
+def test_summary_flags_a_long_moving_start_wait(tmp_path, summary_text, method, refused, without,
+                                                backfilled, flagged):
     """The run summary names the scans a refused moving start left without a pose (those the
     backfill did not reach either), with the count, the wait and the last refusal, once they
     pass 10 % of the scans read."""
@@ -541,7 +528,7 @@ def test_summary_flags_a_long_moving_start_wait(tmp_path, method, refused, witho
                     map_path=tmp_path, config_path=tmp_path, n_scans=540 - without + backfilled,
                     n_degenerate=0, wall_s=1.0, ms_per_scan_median=1.0, stage_ms={},
                     interrupted=False, n_scans_in=540, init_report=rep)
-    text = _summary_text(res)
+    text = summary_text(res)
     assert (f"first filter pose 28.3 s after the first scan ({without} scans read before it, "
             f"{backfilled} of them given a pose by the backfill)") in text
     line = (f"at risk: {without - backfilled}/540 scans have no pose: the filter started 28.3 s "
@@ -559,7 +546,7 @@ def test_summary_flags_a_long_moving_start_wait(tmp_path, method, refused, witho
     (2_000, True, "dropped"),
     (0, True, ""),                   # no ring field: none counted, none dropped
 ])
-def test_summary_says_what_the_stray_returns_were(tmp_path, stray, dropped, said):
+def test_summary_says_what_the_stray_returns_were(tmp_path, summary_text, stray, dropped, said):
     """With preprocess.drop_stray_returns the summary counts the stray returns dropped; without
     it, it notes those kept, with the setting that drops them, where they reach 1 % of the
     points (half the default stray_drop_share)."""
@@ -572,7 +559,7 @@ def test_summary_says_what_the_stray_returns_were(tmp_path, stray, dropped, said
                     wall_s=1.0, ms_per_scan_median=1.0, stage_ms={}, interrupted=False,
                     n_scans_in=100, stray_points=(stray, 1_000_000), stray_dropped=dropped,
                     stray_drops=(stray, 100 if stray else 0, 0) if dropped else (0, 0, stray))
-    text = _summary_text(res)
+    text = summary_text(res)
     share = f"{stray} of 1000000 points"
     assert (f"stray returns (preprocess.drop_stray_returns): {share}" in text) is (
         said == "dropped")
@@ -586,8 +573,8 @@ def test_summary_says_what_the_stray_returns_were(tmp_path, stray, dropped, said
     (180_000, 40, 0.02, False),   # dust in 40 sweeps: dropped there, 0.5 % kept
     (120_000, 30, 0.3, True),     # the share raised: 11 % kept, noted
 ])
-def test_summary_says_where_sweeps_dropped_their_stray_returns(tmp_path, dropped, scans, share,
-                                                              note):
+def test_summary_says_where_sweeps_dropped_their_stray_returns(tmp_path, summary_text, dropped,
+                                                              scans, share, note):
     """With preprocess.drop_stray_returns off, the summary names the sweeps that dropped their
     stray returns for being more than preprocess.stray_drop_share of their points, with the
     count and where, and notes only the stray returns kept."""
@@ -599,7 +586,7 @@ def test_summary_says_where_sweeps_dropped_their_stray_returns(tmp_path, dropped
                     n_scans_in=100, stray_points=(5_000 + dropped + 105_000 * note, 1_000_000),
                     stray_drops=(dropped, scans, 5_000 + 105_000 * note), stray_drop_share=share,
                     stray_dropped_ranges_s=[(2.0, 5.9)] if scans else [])
-    text = _summary_text(res)
+    text = summary_text(res)
     line = (f"stray returns (preprocess.stray_drop_share): {scans}/100 scans had more than "
             f"{100 * share:g} % (dust or rain in front of surfaces, ghosts behind them) and "
             f"dropped {dropped} points ({100 * dropped / 1e6:.1f} % of those read)")
@@ -610,7 +597,7 @@ def test_summary_says_where_sweeps_dropped_their_stray_returns(tmp_path, dropped
 
 
 @pytest.mark.parametrize("n_blind", [0, 37])
-def test_summary_names_the_height_blind_stretches(tmp_path, n_blind):
+def test_summary_names_the_height_blind_stretches(tmp_path, summary_text, n_blind):
     """The run summary names the scans whose height the sigmas leave to the IMU (scans.csv
     height_blind), with their count and time ranges, and says nothing when there are none."""
     from adalio.pipeline import RunResult
@@ -620,7 +607,7 @@ def test_summary_names_the_height_blind_stretches(tmp_path, n_blind):
                     wall_s=1.0, ms_per_scan_median=1.0, stage_ms={}, interrupted=False,
                     n_scans_in=400, n_height_blind=n_blind,
                     height_blind_ranges_s=[(3.1, 6.5)] if n_blind else [])
-    text = _summary_text(res)
+    text = summary_text(res)
     assert ("height left to the IMU" in text) is bool(n_blind)
     if n_blind:
         assert "37/400 scans at 3.1-6.5 s" in text

@@ -14,7 +14,7 @@ from adalio.pipeline import run_bag
 from adalio.sim import cached_sequence
 
 
-def test_people_walking_by_do_not_drag_the_corridor_walk(tmp_path):
+def test_people_walking_by_do_not_drag_the_corridor_walk(tmp_path, summary_text):
     sim = cached_sequence("corridor", seed=0, duration_s=12.0, columns=512, people=4)
     body = load_config(config_file=sim.config_path)
     assert body.map.remove_moving and body.map.moving_body_m > 0
@@ -23,7 +23,7 @@ def test_people_walking_by_do_not_drag_the_corridor_walk(tmp_path):
     runs, said = {}, {}
     for name, cfg in (("body", body), ("off", off), ("seen", seen)):
         res = run_bag(sim.bag_path, cfg, tmp_path / name, progress=False)
-        said[name] = _summary_text(res)
+        said[name] = summary_text(res)
         runs[name] = (float(ate(res.trajectory_path, sim.gt_path)["rmse_m"]),
                       map_off_scene(res.map_path, res.trajectory_path, sim.gt_path,
                                     sim.meta_path),
@@ -47,16 +47,3 @@ def test_people_walking_by_do_not_drag_the_corridor_walk(tmp_path):
     assert "same body" not in said["seen"]
     assert "same body" in said["body"]
     assert "moving things" not in said["off"]
-
-
-def _summary_text(res) -> str:
-    """What the run summary prints for ``res`` (a wide console, no colour)."""
-    import io
-
-    from rich.console import Console
-
-    from adalio.io.cli import _summary
-
-    buf = io.StringIO()
-    _summary(Console(file=buf, width=400), res, profile=False)
-    return buf.getvalue()
