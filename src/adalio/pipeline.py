@@ -183,6 +183,10 @@ class RunResult:
     """(start s since the first estimated scan, missing time s, the largest position sigma
     predicted at the scan after it, m) of each LiDAR gap (``Odometry.lidar_gaps``; scans.csv
     lidar_gap)."""
+    noise_raises: list[tuple[float, float, float]] = field(default_factory=list)
+    """(s since the first estimated scan, gyro density / the start's, accelerometer density /
+    the start's) of each raise of the filter's IMU white-noise densities while the run went on
+    (imu.track_noise_ratio, ``Odometry.noise_raises``): the IMU noisier than at the start."""
     init_report: Any = None
     """:class:`adalio.types.InitReport` of the estimator (None if it never initialized)."""
     local_surface_rows: tuple[int, int] = (0, 0)
@@ -1131,6 +1135,8 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
                         for sat in seq.range_monitor.found()] if est_t else [],
         lidar_gaps=[((t - est_t[0]) * 1e-9, gap_s, sigma_m)
                     for t, gap_s, sigma_m in odom.lidar_gaps] if est_t else [],
+        noise_raises=[((t - est_t[0]) * 1e-9, g, a)
+                      for t, g, a in getattr(odom, "noise_raises", [])] if est_t else [],
         local_surface_rows=tuple(getattr(odom, "local_surface_rows", (0, 0))),
         moving_points=tuple(moved),
         stray_points=(strays[0], strays[1]),

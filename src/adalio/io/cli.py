@@ -608,6 +608,16 @@ def _summary(con: Console, res: Any, profile: bool, origin: str = "") -> None:
                   f"(scans.csv lidar_gap), the longest {gap_s:.2f} s at {t_s:.1f} s: the IMU "
                   f"alone carried the pose, its position sigma grew to {sigma_m:.2g} m",
                   highlight=False, soft_wrap=True)
+    raises = getattr(res, "noise_raises", [])
+    if raises:
+        t_s, gyro_x, accel_x = raises[-1]
+        when = (f"raised at {t_s:.1f} s" if len(raises) == 1 else
+                f"raised {len(raises)} times from {raises[0][0]:.1f} s to {t_s:.1f} s")
+        con.print(f"[yellow]at risk:[/] the IMU is noisier in motion than at the start "
+                  f"(vibration?): its white noise measured over the run reached {gyro_x:.3g}x "
+                  f"(gyro) and {accel_x:.3g}x (accelerometer) the density the filter started "
+                  f"with, {when}; the filter uses it from there (imu.track_noise_ratio), so "
+                  f"the sigmas grow with it", highlight=False, soft_wrap=True)
     for sensor in ("accelerometer", "gyro"):
         axes = [(sat, t_s) for sat, t_s in getattr(res, "imu_saturation", [])
                 if sat.sensor == sensor]

@@ -160,6 +160,9 @@ it cost the 64 s corridor's run 1.17x its wall time), and at the end of its span
 LIDAR_GAP_PERIODS = 1.5
 """An interval between scans longer than this many nominal periods is a LiDAR gap: at least
 one sweep is missing (jitter of half a period passes)."""
+TRACK_NOISE_WINDOW_S = 2.0
+"""imu.track_noise_ratio measures the IMU's white noise over this much of its samples: 800 at
+400 Hz, whose second differences' median leaves the density within a few percent."""
 SCAN_PERIOD_WINDOW = 20
 """The nominal scan period is the median of this many latest intervals without a gap."""
 
@@ -479,6 +482,17 @@ class Odometry:
         """Where the sweeps saw through, to keep moving things out (map.remove_moving)."""
         self._detector = DegeneracyDetector(config.adaptive)
         self._q_diag = imu.process_noise(config.imu)
+        self._noise_used = config.imu
+        """The IMU config whose white-noise densities the filter uses (``_q_diag``): the
+        configured one, the start's measurement (imu.noise_source), or what the run measured
+        since (imu.track_noise_ratio)."""
+        self._noise_start: ImuConfig | None = None
+        """``_noise_used`` at the initialization, what a raise is told against."""
+        self._track_imu = _ImuBuffer(np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)))
+        """The IMU samples since the last noise measurement (imu.track_noise_ratio)."""
+        self.noise_raises: list[tuple[int, float, float]] = []
+        """(time ns, gyro density / the start's, accelerometer density / the start's) of each
+        raise of the filter's white-noise densities by imu.track_noise_ratio."""
         self._weak_geometry = False
         self._state = State(R_LI=self._R_LI.copy(), t_LI=self._t_LI.copy())
         self._P = initial_covariance(config.filter.estimate_extrinsic)
@@ -1312,7 +1326,8 @@ class Odometry:
             rev._P_blind = self._P_blind * np.outer(flip, flip)
         rev._t_state_ns = mirror_ns - self._t_state_ns
         rev._buf = _ImuBuffer(np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)))
-        rev._rest_imu = rev._buf
+        rev._rest_imu = rev._track_imu = rev._buf
+        rev.noise_raises = []
         rev._pending, rev._last_imu_t_ns = [], None
         rev._held_scans, rev._held_imu, rev._backfilled = [], [], []
         rev._on_trial = rev._input = None
@@ -1536,6 +1551,7 @@ class Odometry:
         used = imu.measured_noise_config(
             cfg, measured, only_if_noisier=cfg.noise_source == "at_least_config")
         self._q_diag = imu.process_noise(used)
+        self._noise_used = self._noise_start = used
         return used
 
     def _moving_initialize(self, fit) -> np.ndarray:
@@ -1915,12 +1931,53 @@ class Odometry:
         if n_use:
             self._keep_rest_samples(b.t_ns[:n_use], b.gyro[:n_use],
                                     b.accel[:n_use] * self._accel_scale)
+            self._track_noise(b.t_ns[:n_use], b.gyro[:n_use], b.accel[:n_use] * self._accel_scale)
             self._prev_sample = (int(b.t_ns[n_use - 1]), b.gyro[n_use - 1].copy(),
                                  b.accel[n_use - 1].copy())
             self._buf = _ImuBuffer(b.t_ns[n_use:], b.gyro[n_use:], b.accel[n_use:])
         self._t_state_ns = max(t_e_ns, t_ref)
         s = self._state
         return imu.undistort(pts, (t_pts - t_ref) * 1e-9, rec, s.R, s.p, s.R_LI, s.t_LI)
+
+    def _track_noise(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        """imu.track_noise_ratio: gather the scan's IMU samples and, once they span
+        ``TRACK_NOISE_WINDOW_S``, measure the white-noise densities over them
+        (:func:`imu.moving_noise`); a sensor's density more than the ratio times the one the
+        filter uses becomes the filter's from here on (its process noise, the gap model's and
+        the undistortion sigma's gyro density), recorded in :attr:`noise_raises`. A scan with
+        an IMU gap starts the window again (a gap's second differences are no noise)."""
+        ratio = self.cfg.imu.track_noise_ratio
+        if not ratio > 0 or self.cfg.imu.noise_source == "config":
+            return
+        b = self._track_imu
+        if self._last_gap is not None:
+            b = _ImuBuffer(t_ns[:0], gyro[:0], accel[:0])
+        else:
+            b = _ImuBuffer(np.concatenate([b.t_ns, t_ns]), np.vstack([b.gyro, gyro]),
+                           np.vstack([b.accel, accel]))
+        self._track_imu = b
+        if b.t_ns.size < 2 or (b.t_ns[-1] - b.t_ns[0]) * 1e-9 < TRACK_NOISE_WINDOW_S:
+            return
+        self._track_imu = _ImuBuffer(t_ns[:0], gyro[:0], accel[:0])
+        measured = imu.moving_noise(b.t_ns, b.gyro, b.accel)
+        if measured is None:
+            return
+        now = imu.measured_noise_config(self._noise_used, measured)
+        used = self._noise_used
+        up_g = now.gyro_cov > max(ratio * ratio, 1.0) * used.gyro_cov
+        up_a = now.accel_cov > max(ratio * ratio, 1.0) * used.accel_cov
+        if not (up_g or up_a):
+            return
+        used = dataclasses.replace(used, gyro_cov=now.gyro_cov if up_g else used.gyro_cov,
+                                   accel_cov=now.accel_cov if up_a else used.accel_cov)
+        self._noise_used = used
+        self._q_diag = imu.process_noise(used)
+        self._q_gap = imu.gap_noise(self.cfg.imu, self._q_diag, self._imu_period_s)
+        if up_g:
+            self._q_deskew = float(measured.gyro_noise_rad_s_sqrt_hz) ** 2
+        start = self._noise_start or self.cfg.imu
+        self.noise_raises.append((int(b.t_ns[-1]), float(np.sqrt(used.gyro_cov / start.gyro_cov)),
+                                  float(np.sqrt(used.accel_cov / start.accel_cov))))
 
     def _keep_rest_samples(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
         """Append samples to the rest window and drop those older than ``imu.init_window_s``."""
