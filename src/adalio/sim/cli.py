@@ -83,7 +83,7 @@ def register(app: typer.Typer) -> None:
             "says it.")] = 0.0,
         pace: Annotated[float, typer.Option(
             "--pace", help="Walk the route this many times as fast as the scene's speeds (0.25-3, "
-            "default 1: the shaft's 0.45 m/s, the corridor's 1.2 m/s): its speed limits and "
+            "default 1: the shaft's 0.45 m/s, the corridor's 1.1 m/s): its speed limits and "
             "turn-rate bound times PACE, its acceleration bound times PACE squared; the hand "
             "and the gait keep their times. meta.json says it.")] = 1.0,
     ) -> None:
