@@ -57,7 +57,9 @@ it (``simulate(lidar_tilt_deg=...)``): the configs are the same, the view is not
 ``--ghosts`` and ``--dust`` that share of each sweep's returns lies 0.3-2.0 m behind its surface
 (multipath, cross-talk) or in front of it (dust) along its ray (``simulate(ghosts=...,
 dust=...)``), which no config says. With ``--paces`` the route is walked that many times as fast as
-the scene's speeds (``simulate(pace=...)``): a brisk surveyor, a robot.
+the scene's speeds (``simulate(pace=...)``): a brisk surveyor, a robot. With
+``--imu-vibrations`` the IMU shakes while the rig moves, white noise of that many times its
+densities (``simulate(imu_vibration=...)``), which the still start does not see.
 
     python benchmarks/bench_sensors.py                      # hall + corridor, 2 seeds, full routes
     python benchmarks/bench_sensors.py --scenes hall --seeds 1 --lidars xt32-512
@@ -73,6 +75,7 @@ the scene's speeds (``simulate(pace=...)``): a brisk surveyor, a robot.
     python benchmarks/bench_sensors.py --starts still --lidar-tilts-deg 0 30 90
     python benchmarks/bench_sensors.py --starts still --ghosts 0 0.1 --dust 0 0.2
     python benchmarks/bench_sensors.py --starts still --paces 1 1.5 2
+    python benchmarks/bench_sensors.py --starts still --imu-vibrations 0 30 100
 """
 
 from __future__ import annotations
@@ -103,6 +106,7 @@ from adalio.sim.generate import (
     MAX_IMU_RATE_HZ,
     MAX_IMU_SCALE_ERROR_PCT,
     MAX_IMU_TIME_OFFSET_S,
+    MAX_IMU_VIBRATION,
     MAX_LIDAR_TILT_DEG,
     MAX_STRAY_FRACTION,
     MIN_IMU_RATE_HZ,
@@ -195,6 +199,9 @@ class Cell:
     """Share of the returns pulled 0.3-2.0 m in front of their surface (``simulate(dust=...)``)."""
     pace: float = 1.0
     """The route walked this many times as fast as the scene's speeds (``simulate(pace=...)``)."""
+    imu_vibration: float = 0.0
+    """White noise of this many times the IMU's densities while the rig moves
+    (``simulate(imu_vibration=...)``)."""
     stray_share: float = float("nan")
     """Stray returns found over the run, a share of the points read (scans.csv ``n_stray`` /
     ``n_raw``; :mod:`adalio.lio.stray`)."""
@@ -301,7 +308,8 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
                           imu_time_offset_s=cell.imu_time_offset_ms * 1e-3,
                           imu_scale_error_pct=cell.imu_scale_error_pct, people=cell.people,
                           lidar_tilt_deg=cell.lidar_tilt_deg, imu_bias_scale=cell.imu_bias_scale,
-                          ghosts=cell.ghosts, dust=cell.dust, pace=cell.pace)
+                          ghosts=cell.ghosts, dust=cell.dust, pace=cell.pace,
+                          imu_vibration=cell.imu_vibration)
     meta = json.loads(sim.meta_path.read_text())
     cfg = load_config(config_file=sim.config_path, overrides=overrides)
     T_true = cfg.T_imu_lidar()
@@ -330,6 +338,7 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     other += "" if not cell.ghosts else f"_ghosts{cell.ghosts:g}"
     other += "" if not cell.dust else f"_dust{cell.dust:g}"
     other += "" if cell.pace == 1.0 else f"_pace{cell.pace:g}"
+    other += "" if not cell.imu_vibration else f"_vib{cell.imu_vibration:g}"
     out = out_root / (f"{cell.scene}_s{cell.seed}_imu{cell.imu_noise:g}_{cell.lidar}_"
                       f"{cell.start}{cut}{other}")
     try:
@@ -457,6 +466,7 @@ def _lidar_label(c: Cell) -> str:
     other += [] if not c.ghosts else [f"{100 * c.ghosts:g} % ghosts"]
     other += [] if not c.dust else [f"{100 * c.dust:g} % dust"]
     other += [] if c.pace == 1.0 else [f"pace x{c.pace:g}"]
+    other += [] if not c.imu_vibration else [f"IMU shaking x{c.imu_vibration:g}"]
     return f"{c.lidar} ({', '.join(other)})" if other else c.lidar
 
 
@@ -533,7 +543,7 @@ def _summary_key(c: Cell) -> tuple:
     return (c.scene, c.start, c.imu_noise, c.mounting, c.imu_rate_hz, c.lidar_rate_hz,
             c.imu_time_offset_ms, c.extrinsic_error_deg, c.extrinsic_translation_error_cm,
             c.imu_scale_error_pct, c.people, c.lidar_tilt_deg, c.imu_bias_scale, c.ghosts,
-            c.dust, c.pace)
+            c.dust, c.pace, c.imu_vibration)
 
 
 def summary_table(cells: list[Cell]) -> str:
@@ -618,6 +628,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--paces", nargs="+", type=float, default=[1.0],
                     help="walk the route this many times as fast as the scene's speeds "
                     f"({PACE_RANGE[0]:g}-{PACE_RANGE[1]:g}, default 1)")
+    ap.add_argument("--imu-vibrations", nargs="+", type=float, default=[0.0],
+                    help="white noise of this many times the IMU's densities while the rig "
+                    f"moves (0-{MAX_IMU_VIBRATION:g}, default 0)")
     ap.add_argument("--starts", nargs="+", default=["still", "moving"],
                     choices=["still", "moving"])
     ap.add_argument("--duration", type=float, default=0.0,
@@ -668,6 +681,10 @@ def main(argv: list[str] | None = None) -> int:
             if not 0.0 <= frac <= MAX_STRAY_FRACTION:
                 raise SystemExit(f"error: {flag} must be a fraction 0-{MAX_STRAY_FRACTION:g} "
                                  f"(got {frac:g})")
+    for times in args.imu_vibrations:
+        if not 0.0 <= times <= MAX_IMU_VIBRATION:
+            raise SystemExit(f"error: --imu-vibrations must be 0-{MAX_IMU_VIBRATION:g} "
+                             f"(got {times:g})")
     for pace in args.paces:
         if not PACE_RANGE[0] <= pace <= PACE_RANGE[1]:
             raise SystemExit(f"error: --paces must be {PACE_RANGE[0]:g}-{PACE_RANGE[1]:g} "
@@ -689,18 +706,19 @@ def main(argv: list[str] | None = None) -> int:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for noise in args.imu_noise:
                 for (lidar, mounting, rate, lidar_rate, offset, turn, lever,
-                     scale, people, tilt, bias, ghosts, dust, pace) in itertools.product(
+                     scale, people, tilt, bias, ghosts, dust, pace, vib) in itertools.product(
                         args.lidars, args.mountings, args.imu_rates, args.lidar_rates,
                         args.imu_time_offsets_ms, args.extrinsic_errors_deg,
                         args.extrinsic_translation_errors_cm, args.imu_scale_errors_pct,
                         args.people, args.lidar_tilts_deg, args.imu_bias_scales,
-                        args.ghosts, args.dust, args.paces):
+                        args.ghosts, args.dust, args.paces, args.imu_vibrations):
                     for start, cut_s in starts:
                         c = run_cell(Cell(scene, seed, noise, lidar, start, cut_s, mounting,
                                           rate, lidar_rate, args.motion_from, offset, turn,
                                           lever, scale, people=people,
                                           lidar_tilt_deg=tilt, imu_bias_scale=bias,
-                                          ghosts=ghosts, dust=dust, pace=pace),
+                                          ghosts=ghosts, dust=dust, pace=pace,
+                                          imu_vibration=vib),
                                      duration, args.out,
                                      overrides)
                         cells.append(c)

@@ -31,6 +31,7 @@ from adalio.sim.generate import (
     _check_args,
     check_free_space,
     check_imu_scale_error,
+    check_imu_vibration,
     check_lidar_tilt,
     check_stray,
     simulate,
@@ -277,12 +278,13 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
                     imu_time_offset_s: float = 0.0,
                     imu_scale_error_pct: float = 0.0, people: int = 0,
                     lidar_tilt_deg: float = 0.0, ghosts: float = 0.0,
-                    dust: float = 0.0, pace: float = 1.0) -> SimResult:
+                    dust: float = 0.0, pace: float = 1.0,
+                    imu_vibration: float = 0.0) -> SimResult:
     """Generate once (atomically: temp folder + rename + completion marker) and reuse
     (the key includes the IMU rate when it is not the default 400 Hz, the LiDAR's sweep rate
     when it is not the model's, the IMU's stamp offset and sensitivity errors, the number of
     people walking, the LiDAR's tilt and the shares of ghost and dust returns when they are
-    not 0, the walking pace when it is not 1, a hash of
+    not 0, the walking pace when it is not 1, the IMU's vibration when it is not 0, a hash of
     ``motion_from``'s content (``-hhnone`` for ``"none"``, no hand motion), and of
     ``T_imu_lidar``, the mounting
     ``simulate`` takes instead of the HILTI one, when given). After generating, the cache is
@@ -303,6 +305,7 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
     check_stray("--ghosts", ghosts)
     check_stray("--dust", dust)
     check_pace(pace)
+    check_imu_vibration(imu_vibration)
     model = lidar_model(lidar, columns, lidar_rate_hz)
     cols = model.columns
     dur = "full" if duration_s is None else f"{float(duration_s):g}"
@@ -327,6 +330,8 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
         imu += f"-dust{float(dust):g}"
     if pace != 1.0:
         imu += f"-pace{float(pace):g}"
+    if imu_vibration:
+        imu += f"-vib{float(imu_vibration):g}"
     hh = ""
     if is_no_hand(motion_from):
         hh = "-hh" + NO_HAND
@@ -383,7 +388,8 @@ def cached_sequence(scene: str, *, seed: int = 0, duration_s: float | None = Non
                      T_imu_lidar=T_imu_lidar, make_room=make_room, imu_rate_hz=imu_rate_hz,
                      lidar_rate_hz=lidar_rate_hz, imu_time_offset_s=imu_time_offset_s,
                      imu_scale_error_pct=imu_scale_error_pct, people=people,
-                     lidar_tilt_deg=lidar_tilt_deg, ghosts=ghosts, dust=dust, pace=pace)
+                     lidar_tilt_deg=lidar_tilt_deg, ghosts=ghosts, dust=dust, pace=pace,
+                     imu_vibration=imu_vibration)
             (tmp / "COMPLETE").write_text("ok\n")
             if final.exists() and not (final / "COMPLETE").is_file():
                 shutil.rmtree(final, ignore_errors=True)

@@ -86,6 +86,11 @@ def register(app: typer.Typer) -> None:
             "default 1: the shaft's 0.45 m/s, the corridor's 1.1 m/s): its speed limits and "
             "turn-rate bound times PACE, its acceleration bound times PACE squared; the hand "
             "and the gait keep their times. meta.json says it.")] = 1.0,
+        imu_vibration: Annotated[float, typer.Option(
+            "--imu-vibration", help="While the rig moves, the IMU shakes (a robot's motors or "
+            "legs): white noise of X times the IMU's white-noise densities added to its samples, "
+            "in full from 0.3 m/s on, so the still start stays quiet (0-300, default 0). "
+            "config.yaml does not say it (meta.json does).")] = 0.0,
     ) -> None:
         """Simulate a handheld LiDAR + IMU walk through an indoor scene into a ROS bag."""
         import json
@@ -116,7 +121,7 @@ def register(app: typer.Typer) -> None:
                                  imu_time_offset_s=imu_time_offset_ms * 1e-3,
                                  imu_scale_error_pct=imu_scale_error_pct, people=people,
                                  lidar_tilt_deg=lidar_tilt, ghosts=ghosts, dust=dust,
-                                 pace=pace)
+                                 pace=pace, imu_vibration=imu_vibration)
         meta = json.loads(res.meta_path.read_text())
         console().print(
             f"[green]wrote[/] {res.bag_path} ({meta['n_scans']} sweeps, {meta['n_imu']} IMU, "

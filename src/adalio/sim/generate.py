@@ -52,6 +52,12 @@ MAX_IMU_TIME_OFFSET_S = 1.0
 MAX_IMU_SCALE_ERROR_PCT = 10.0
 """The IMU sensitivity errors ``simulate`` draws, at most (standard deviation per entry, %):
 consumer MEMS datasheets give scale-factor tolerances and cross-axis sensitivities of 0.5-3 %."""
+MAX_IMU_VIBRATION = 300.0
+"""``--imu-vibration`` at most: 300 times the BMI085's white noise is about 6 m/s² RMS on each
+accelerometer axis at 400 Hz, a legged robot's steps."""
+VIBRATION_FULL_M_S = 0.3
+"""The IMU's vibration grows with the rig's speed up to this (m/s), then stays at its full
+strength: a robot's motors and legs shake it while it moves, not while it stands."""
 MAX_LIDAR_TILT_DEG = 90.0
 """The LiDAR tilts ``simulate`` takes, either way: up to a spin axis lying horizontal."""
 MAX_STRAY_FRACTION = 0.5
@@ -135,6 +141,12 @@ def check_imu_scale_error(pct: float) -> None:
     if not 0.0 <= pct <= MAX_IMU_SCALE_ERROR_PCT:
         raise InputError(f"--imu-scale-error-pct must be 0-{MAX_IMU_SCALE_ERROR_PCT:g} "
                          f"(got {pct:g})")
+
+
+def check_imu_vibration(times: float) -> None:
+    """``--imu-vibration`` within 0 .. :data:`MAX_IMU_VIBRATION`, else an ``InputError``."""
+    if not 0.0 <= times <= MAX_IMU_VIBRATION:
+        raise InputError(f"--imu-vibration must be 0-{MAX_IMU_VIBRATION:g} (got {times:g})")
 
 
 def _check_args(scene: str, duration_s: float | None, lidar: str, fmt: str,
@@ -242,7 +254,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
              imu_time_offset_s: float = 0.0,
              imu_scale_error_pct: float = 0.0,
              people: int = 0, lidar_tilt_deg: float = 0.0, ghosts: float = 0.0,
-             dust: float = 0.0, pace: float = 1.0) -> SimResult:
+             dust: float = 0.0, pace: float = 1.0, imu_vibration: float = 0.0) -> SimResult:
     """Generate one sequence of ``scene`` into ``out_dir`` (created; the bag must not exist).
 
     ``duration_s`` None walks the whole route; shorter values truncate it (static start kept).
@@ -290,6 +302,12 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     1): its speed limits and yaw-rate bound times ``pace``, its acceleration bound times
     ``pace²``; the hand and the gait keep their times (:class:`~adalio.sim.trajectory.
     Trajectory`). The sequence is then shorter; ``meta.json`` says the pace.
+    ``imu_vibration``: while the rig moves, the IMU shakes (a robot's motors or legs): white
+    noise of this many times the IMU's white-noise densities (0-300) is added to its gyro and
+    accelerometer samples, in full from :data:`VIBRATION_FULL_M_S` of speed on and in
+    proportion below it, so that the still start is as quiet as without it. Drawn from a stream
+    of its own (seed, 400): the rest of the sequence is the same (with 0, byte for byte).
+    ``config.yaml`` does not say it; ``meta.json`` does.
     ``motion_from``: a TUM trajectory (>= 10 Hz) whose handheld motion replaces the synthetic
     one (:class:`adalio.sim.trajectory.HandheldMotion`; the seed picks where in it to start);
     ``"none"``: no hand motion at all, the route's own path and attitude (a robot's walk).
@@ -308,6 +326,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     check_stray("--ghosts", ghosts)
     check_stray("--dust", dust)
     check_pace(pace)
+    check_imu_vibration(imu_vibration)
     if not abs(imu_time_offset_s) <= MAX_IMU_TIME_OFFSET_S:
         raise InputError(f"--imu-time-offset-ms must be within +-{MAX_IMU_TIME_OFFSET_S * 1e3:g} "
                          f"ms (got {imu_time_offset_s * 1e3:g})")
@@ -343,6 +362,15 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
     imu = synthesize_imu(traj, t_imu, t0, np.random.default_rng([seed, 200]), imu_noise,
                          noise_scale, rate_hz, white_scale=imu_noise_scale,
                          bias_scale=imu_bias_scale, sensitivity=sensitivity)
+    if imu_vibration:
+        speed = np.linalg.norm(traj.sample((t_imu - t0) * 1e-9).v_world_m_s, axis=1)
+        shake = imu_vibration * np.sqrt(rate_hz) * np.clip(speed / VIBRATION_FULL_M_S, 0.0,
+                                                           1.0)[:, None]
+        vib = np.random.default_rng([seed, 400])
+        imu.gyro_rad_s = imu.gyro_rad_s + shake * imu_noise.gyro_noise_rad_s_sqrt_hz \
+            * vib.standard_normal(imu.gyro_rad_s.shape)
+        imu.accel_m_s2 = imu.accel_m_s2 + shake * imu_noise.accel_noise_m_s2_sqrt_hz \
+            * vib.standard_normal(imu.accel_m_s2.shape)
     period = model.period_ns
     n_scans = dur_ns // period
     need = sequence_bytes(n_scans, model.columns, model.channels, len(t_imu))
@@ -428,6 +456,7 @@ def simulate(scene: str, out_dir: str | Path, *, seed: int = 0, duration_s: floa
                                         else sensitivity[1]).tolist(),
         "people": walkers.as_dict(), "lidar_tilt_deg": float(lidar_tilt_deg),
         "ghosts": float(ghosts), "dust": float(dust), "pace": float(pace),
+        "imu_vibration": float(imu_vibration),
         "gravity_m_s2": GRAVITY_M_S2, "n_scans": int(n_scans), "n_imu": len(t_imu),
         "n_points": int(n_points), "route_length_m": traj.route_length_m,
         "min_clearance_m": round(clearance, 4),
