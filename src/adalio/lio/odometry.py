@@ -160,9 +160,11 @@ it cost the 64 s corridor's run 1.17x its wall time), and at the end of its span
 LIDAR_GAP_PERIODS = 1.5
 """An interval between scans longer than this many nominal periods is a LiDAR gap: at least
 one sweep is missing (jitter of half a period passes)."""
-TRACK_NOISE_WINDOW_S = 2.0
-"""imu.track_noise_ratio measures the IMU's white noise over this much of its samples: 800 at
-400 Hz, whose second differences' median leaves the density within a few percent."""
+TRACK_NOISE_WINDOW_S = 1.0
+"""imu.track_noise_ratio measures the IMU's white noise after each scan over its samples of the
+last second: 400 at 400 Hz, whose second differences' median leaves the variance within about
+10 % (a raise needs 4 times the variance), and a robot that starts to shake is caught within a
+second."""
 SCAN_PERIOD_WINDOW = 20
 """The nominal scan period is the median of this many latest intervals without a gap."""
 
@@ -489,7 +491,10 @@ class Odometry:
         self._noise_start: ImuConfig | None = None
         """``_noise_used`` at the initialization, what a raise is told against."""
         self._track_imu = _ImuBuffer(np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)))
-        """The IMU samples since the last noise measurement (imu.track_noise_ratio)."""
+        """The IMU samples of the last TRACK_NOISE_WINDOW_S (imu.track_noise_ratio)."""
+        self._noise_shown = (False, False)
+        """Whether the gyro / the accelerometer has shown itself noisier than the start by
+        imu.track_noise_ratio (further raises then follow the chi-square rule)."""
         self.noise_raises: list[tuple[int, float, float]] = []
         """(time ns, gyro density / the start's, accelerometer density / the start's) of each
         raise of the filter's white-noise densities by imu.track_noise_ratio."""
@@ -1328,6 +1333,7 @@ class Odometry:
         rev._buf = _ImuBuffer(np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)))
         rev._rest_imu = rev._track_imu = rev._buf
         rev.noise_raises = []
+        rev._noise_shown = (False, False)
         rev._pending, rev._last_imu_t_ns = [], None
         rev._held_scans, rev._held_imu, rev._backfilled = [], [], []
         rev._on_trial = rev._input = None
@@ -1940,34 +1946,44 @@ class Odometry:
         return imu.undistort(pts, (t_pts - t_ref) * 1e-9, rec, s.R, s.p, s.R_LI, s.t_LI)
 
     def _track_noise(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
-        """imu.track_noise_ratio: gather the scan's IMU samples and, once they span
-        ``TRACK_NOISE_WINDOW_S``, measure the white-noise densities over them
-        (:func:`imu.moving_noise`); a sensor's density more than the ratio times the one the
-        filter uses becomes the filter's from here on (its process noise, the gap model's and
-        the undistortion sigma's gyro density), recorded in :attr:`noise_raises`. A scan with
-        an IMU gap starts the window again (a gap's second differences are no noise)."""
+        """imu.track_noise_ratio: after each scan, measure the white-noise densities over the
+        IMU samples of the last ``TRACK_NOISE_WINDOW_S`` (:func:`imu.moving_noise`); a sensor's
+        density more than the ratio times the one the filter uses becomes the filter's from here
+        on (its process noise, the gap model's and the undistortion sigma's gyro density),
+        recorded in :attr:`noise_raises`. Once a sensor has been raised, a later window raises
+        it again wherever it shows it noisier beyond doubt (the still start's chi-square rule,
+        :func:`imu.measured_noise_config`), so that the density follows the shaking up instead
+        of stopping at the first window that crossed the ratio. A scan with an IMU gap starts
+        the window again (a gap's second differences are no noise)."""
         ratio = self.cfg.imu.track_noise_ratio
         if not ratio > 0 or self.cfg.imu.noise_source == "config":
             return
         b = self._track_imu
         if self._last_gap is not None:
-            b = _ImuBuffer(t_ns[:0], gyro[:0], accel[:0])
-        else:
-            b = _ImuBuffer(np.concatenate([b.t_ns, t_ns]), np.vstack([b.gyro, gyro]),
-                           np.vstack([b.accel, accel]))
-        self._track_imu = b
-        if b.t_ns.size < 2 or (b.t_ns[-1] - b.t_ns[0]) * 1e-9 < TRACK_NOISE_WINDOW_S:
+            self._track_imu = _ImuBuffer(t_ns[:0], gyro[:0], accel[:0])
             return
-        self._track_imu = _ImuBuffer(t_ns[:0], gyro[:0], accel[:0])
+        t = np.concatenate([b.t_ns, t_ns])
+        window_ns = round(TRACK_NOISE_WINDOW_S * 1e9)
+        lo = max(int(np.searchsorted(t, t[-1] - window_ns)) - 1, 0)
+        b = _ImuBuffer(t[lo:], np.vstack([b.gyro, gyro])[lo:], np.vstack([b.accel, accel])[lo:])
+        self._track_imu = b
+        if b.t_ns.size < 2 or b.t_ns[-1] - b.t_ns[0] < window_ns:
+            return
         measured = imu.moving_noise(b.t_ns, b.gyro, b.accel)
         if measured is None:
             return
-        now = imu.measured_noise_config(self._noise_used, measured)
         used = self._noise_used
-        up_g = now.gyro_cov > max(ratio * ratio, 1.0) * used.gyro_cov
-        up_a = now.accel_cov > max(ratio * ratio, 1.0) * used.accel_cov
+        now = imu.measured_noise_config(used, measured)
+        sure = imu.measured_noise_config(used, measured, only_if_noisier=True)
+        # a sensor's first raise needs the ratio (a clean IMU's windows never reach it); once it
+        # has shown itself noisier than the start, the start's chi-square rule follows it up
+        up_g = (sure.gyro_cov > used.gyro_cov if self._noise_shown[0]
+                else now.gyro_cov > max(ratio * ratio, 1.0) * used.gyro_cov)
+        up_a = (sure.accel_cov > used.accel_cov if self._noise_shown[1]
+                else now.accel_cov > max(ratio * ratio, 1.0) * used.accel_cov)
         if not (up_g or up_a):
             return
+        self._noise_shown = (self._noise_shown[0] or up_g, self._noise_shown[1] or up_a)
         used = dataclasses.replace(used, gyro_cov=now.gyro_cov if up_g else used.gyro_cov,
                                    accel_cov=now.accel_cov if up_a else used.accel_cov)
         self._noise_used = used
