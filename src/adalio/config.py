@@ -194,13 +194,14 @@ class ImuConfig:
     floor; README, Initialization), 'config' (gyro_cov / accel_cov as given) or 'measured' (the
     measured densities replace them). Bias walks always stay as configured."""
     track_noise_ratio: float = 2.0
-    """While the run goes on, the white-noise densities are measured again over every
+    """After every scan the white-noise densities are measured again over the last
     ``TRACK_NOISE_WINDOW_S`` of IMU samples (second differences, their median: motion and jolts
     do not count; lio/imu.py ``moving_noise``). Where a sensor's is more than this many times
     the density the filter uses (a vibrating robot, an engine started after the still start),
-    the filter uses the measured one from there on, and the summary says so; never lowered. 0
-    turns it off, and so does ``noise_source: config``. A measurement's own spread is a few
-    percent, so a clean IMU never reaches 2 (README, Initialization)."""
+    the filter uses the measured one from there on, and the summary says so; once crossed,
+    later windows raise it by the still start's chi-square rule; never lowered. 0 turns it off,
+    and so does ``noise_source: config``. A measurement's own spread is about 10 % in variance,
+    so a clean IMU never reaches 2 (README, Initialization)."""
     init_timeout_s: float = 1.0
     """No still window within this long after the first scan: initialize in motion (s)."""
     moving_init_window_s: float = 1.0
