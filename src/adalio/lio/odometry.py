@@ -373,6 +373,15 @@ class _ImuBuffer:
     gyro: np.ndarray
     accel: np.ndarray
 
+    def last(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
+             span_ns: int) -> _ImuBuffer:
+        """These samples and the given ones after them, from the last one before the newest
+        minus ``span_ns`` on (so that they span at least ``span_ns`` once there are enough)."""
+        t = np.concatenate([self.t_ns, t_ns])
+        lo = max(int(np.searchsorted(t, t[-1] - span_ns)) - 1, 0)
+        return _ImuBuffer(t[lo:], np.vstack([self.gyro, gyro])[lo:],
+                          np.vstack([self.accel, accel])[lo:])
+
 
 def _timer(stage_ms: dict[str, float], name: str, t0: float) -> float:
     now = time.perf_counter()
@@ -1958,15 +1967,11 @@ class Odometry:
         ratio = self.cfg.imu.track_noise_ratio
         if not ratio > 0 or self.cfg.imu.noise_source == "config":
             return
-        b = self._track_imu
         if self._last_gap is not None:
             self._track_imu = _ImuBuffer(t_ns[:0], gyro[:0], accel[:0])
             return
-        t = np.concatenate([b.t_ns, t_ns])
         window_ns = round(TRACK_NOISE_WINDOW_S * 1e9)
-        lo = max(int(np.searchsorted(t, t[-1] - window_ns)) - 1, 0)
-        b = _ImuBuffer(t[lo:], np.vstack([b.gyro, gyro])[lo:], np.vstack([b.accel, accel])[lo:])
-        self._track_imu = b
+        b = self._track_imu = self._track_imu.last(t_ns, gyro, accel, window_ns)
         if b.t_ns.size < 2 or b.t_ns[-1] - b.t_ns[0] < window_ns:
             return
         measured = imu.moving_noise(b.t_ns, b.gyro, b.accel)
@@ -1977,10 +1982,11 @@ class Odometry:
         sure = imu.measured_noise_config(used, measured, only_if_noisier=True)
         # a sensor's first raise needs the ratio (a clean IMU's windows never reach it); once it
         # has shown itself noisier than the start, the start's chi-square rule follows it up
+        first = max(ratio * ratio, 1.0)  # in variance
         up_g = (sure.gyro_cov > used.gyro_cov if self._noise_shown[0]
-                else now.gyro_cov > max(ratio * ratio, 1.0) * used.gyro_cov)
+                else now.gyro_cov > first * used.gyro_cov)
         up_a = (sure.accel_cov > used.accel_cov if self._noise_shown[1]
-                else now.accel_cov > max(ratio * ratio, 1.0) * used.accel_cov)
+                else now.accel_cov > first * used.accel_cov)
         if not (up_g or up_a):
             return
         self._noise_shown = (self._noise_shown[0] or up_g, self._noise_shown[1] or up_a)
@@ -1997,11 +2003,8 @@ class Odometry:
 
     def _keep_rest_samples(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
         """Append samples to the rest window and drop those older than ``imu.init_window_s``."""
-        r = self._rest_imu
-        t = np.concatenate([r.t_ns, t_ns])
-        lo = max(int(np.searchsorted(t, t[-1] - round(self.cfg.imu.init_window_s * 1e9))) - 1, 0)
-        self._rest_imu = _ImuBuffer(t[lo:], np.vstack([r.gyro, gyro])[lo:],
-                                    np.vstack([r.accel, accel])[lo:])
+        self._rest_imu = self._rest_imu.last(t_ns, gyro, accel,
+                                             round(self.cfg.imu.init_window_s * 1e9))
 
     def _rest_update(self, t_e_ns: int) -> bool:
         """imu.zero_velocity_update: if the IMU rested over the last ``imu.init_window_s``
