@@ -470,6 +470,13 @@ def _lidar_label(c: Cell) -> str:
     return f"{c.lidar} ({', '.join(other)})" if other else c.lidar
 
 
+def _refuse_outside(flag: str, values: list[float], lo: float, hi: float) -> None:
+    """One ``error:`` line and exit 2 (SystemExit) for the first value outside ``lo``-``hi``."""
+    for v in values:
+        if not lo <= v <= hi:
+            raise SystemExit(f"error: {flag} must be {lo:g}-{hi:g} (got {v:g})")
+
+
 def shifted_extrinsic(T: np.ndarray, cm: float, seed: int) -> np.ndarray:
     """``T`` with its translation moved by ``cm`` centimetres along a unit direction drawn from
     ``seed`` (the same for every scene and IMU of that seed)."""
@@ -662,16 +669,12 @@ def main(argv: list[str] | None = None) -> int:
         if not abs(turn) <= MAX_EXTRINSIC_ERROR_DEG:
             raise SystemExit(f"error: --extrinsic-errors-deg must be within "
                              f"+-{MAX_EXTRINSIC_ERROR_DEG:g} (got {turn:g})")
-    for pct in args.imu_scale_errors_pct:
-        if not 0.0 <= pct <= MAX_IMU_SCALE_ERROR_PCT:
-            raise SystemExit(f"error: --imu-scale-errors-pct must be 0-"
-                             f"{MAX_IMU_SCALE_ERROR_PCT:g} (got {pct:g})")
+    _refuse_outside("--imu-scale-errors-pct", args.imu_scale_errors_pct, 0.0,
+                    MAX_IMU_SCALE_ERROR_PCT)
     for bias in args.imu_bias_scales:
         if not bias >= 0:
             raise SystemExit(f"error: --imu-bias-scales must be >= 0 (got {bias:g})")
-    for n in args.people:
-        if not 0 <= n <= MAX_PEOPLE:
-            raise SystemExit(f"error: --people must be 0-{MAX_PEOPLE} (got {n})")
+    _refuse_outside("--people", args.people, 0, MAX_PEOPLE)
     for tilt in args.lidar_tilts_deg:
         if not abs(tilt) <= MAX_LIDAR_TILT_DEG:
             raise SystemExit(f"error: --lidar-tilts-deg must be within "
@@ -681,14 +684,8 @@ def main(argv: list[str] | None = None) -> int:
             if not 0.0 <= frac <= MAX_STRAY_FRACTION:
                 raise SystemExit(f"error: {flag} must be a fraction 0-{MAX_STRAY_FRACTION:g} "
                                  f"(got {frac:g})")
-    for times in args.imu_vibrations:
-        if not 0.0 <= times <= MAX_IMU_VIBRATION:
-            raise SystemExit(f"error: --imu-vibrations must be 0-{MAX_IMU_VIBRATION:g} "
-                             f"(got {times:g})")
-    for pace in args.paces:
-        if not PACE_RANGE[0] <= pace <= PACE_RANGE[1]:
-            raise SystemExit(f"error: --paces must be {PACE_RANGE[0]:g}-{PACE_RANGE[1]:g} "
-                             f"(got {pace:g})")
+    _refuse_outside("--imu-vibrations", args.imu_vibrations, 0.0, MAX_IMU_VIBRATION)
+    _refuse_outside("--paces", args.paces, *PACE_RANGE)
     duration = args.duration or None
     cells = []
     t0 = time.perf_counter()
