@@ -7,6 +7,19 @@ Public API (see README "Python API"):
 * Bag reading and the IMU/LiDAR sequencer from :mod:`adalio.io`.
 """
 
+import os as _os
+
+# numba's OpenMP threads (its default threading layer) sleep while they wait for work instead of
+# spinning for it, unless you set OMP_WAIT_POLICY or GOMP_SPINCOUNT yourself. GNU OpenMP's default
+# spins up to 300 000 rounds at each wait: on a machine whose cores are busy with other work
+# (another run, a test worker, a viewer) the parallel kernels then wait for a thread that spins
+# on the other core. Measured in session 88 on the 2-core dev machine, a 43 s hall at 512
+# columns: a median 10.8-12.1 ms per scan against 21.9-22.0 ms with one core busy, and the same
+# 10-11 ms when the machine is idle (README, "Conventions", Threads). It must be set before
+# OpenMP starts (numba starts it at the first parallel kernel), hence here.
+if "OMP_WAIT_POLICY" not in _os.environ and "GOMP_SPINCOUNT" not in _os.environ:
+    _os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+
 from adalio.config import Config, config_from_dict, load_config
 from adalio.errors import AdalioError, BagError, ConfigError, InputError
 from adalio.types import Estimate, ImuBatch, Scan, ScanStats
