@@ -49,7 +49,13 @@ searched again by adalio's kernel and by scipy's compiled k-d tree (``cKDTree.qu
 all cores, tree built untimed on the same map points), a reference for what the kNN alone costs
 in compiled code that is not ours.
 
+``--busy-cores N`` keeps N cores busy with other processes while the systems run, as on a machine
+doing other work; the header line says how numba's OpenMP threads wait (adalio makes them sleep,
+``OMP_WAIT_POLICY=PASSIVE``, unless ``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` is set: run with
+``GOMP_SPINCOUNT=300000`` for GNU OpenMP's spinning default, as before session 88).
+
     python benchmarks/bench_peers.py --scenes hall spiral --columns 512 2000 --duration 20
+    python benchmarks/bench_peers.py --scenes hall --columns 512 --busy-cores 1
 """
 
 from __future__ import annotations
@@ -62,6 +68,7 @@ import gc
 import importlib
 import os
 import shlex
+import subprocess
 import sys
 import tempfile
 import time
@@ -784,8 +791,23 @@ def summary_table(results: list[Result], names: list[str]) -> str:
 def thread_note() -> str:
     import numba
 
-    return (f"{os.cpu_count()} cores; numba threads {numba.get_num_threads()}, peers' "
+    wait = (f"GOMP_SPINCOUNT={os.environ['GOMP_SPINCOUNT']}" if "GOMP_SPINCOUNT" in os.environ
+            else f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}")
+    return (f"{os.cpu_count()} cores; numba threads {numba.get_num_threads()} ({wait}), peers' "
             "max_num_threads 0 (= all cores, TBB)")
+
+
+@contextlib.contextmanager
+def busy_cores(n: int):
+    """``n`` other processes that keep a core each busy while the systems run (a machine doing
+    other work), stopped on the way out."""
+    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+    try:
+        yield
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -820,9 +842,14 @@ def main(argv: list[str] | None = None) -> int:
                          "against scipy's k-d tree")
     ap.add_argument("--no-run", action="store_true",
                     help="skip adalio's whole run (run_bag) per sequence")
+    ap.add_argument("--busy-cores", type=int, default=0,
+                    help="keep this many cores busy with other processes while the systems run "
+                         "(a machine doing other work; default 0)")
     args = ap.parse_args(argv)
     if args.repeat < 1:
         raise SystemExit("--repeat must be >= 1")
+    if not 0 <= args.busy_cores <= (os.cpu_count() or 1):
+        raise SystemExit(f"--busy-cores must be 0-{os.cpu_count() or 1} (got {args.busy_cores})")
 
     out_dir = (args.out.expanduser().resolve() if args.out is not None
                else Path(tempfile.mkdtemp(prefix="bench_peers_")))
@@ -843,7 +870,7 @@ def main(argv: list[str] | None = None) -> int:
                 log(f"{scene} c{columns}: sequence failed: {exc}")
                 continue
             log(f"{scene} c{columns}: {len(seq.scans)} scans decoded in {seq.decode_s:.1f} s")
-            with native_stdout_to_stderr():
+            with native_stdout_to_stderr(), busy_cores(args.busy_cores):
                 res = bench_sequence(seq, names, args, out_dir, log)
             results.append(res)
             del seq
@@ -853,7 +880,8 @@ def main(argv: list[str] | None = None) -> int:
     cmd = "python benchmarks/bench_peers.py " + " ".join(
         shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
     print(f"Command: `{cmd.strip()}`  (seed {args.seed}, duration "
-          f"{args.duration or 'full'} s, repeat {args.repeat}, {thread_note()}; "
+          f"{args.duration or 'full'} s, repeat {args.repeat}, {thread_note()}, "
+          f"other processes busy on {args.busy_cores} of the cores; "
           f"took {wall:.0f} s; trajectories in {out_dir})\n")
     print(summary_table(results, names), flush=True)
     os.dup2(2, 1)  # rko-lio prints its profile to fd 1 at exit
