@@ -393,8 +393,9 @@ _BAG_NUMBA_THREADS: int | None = None
 
 def _share_cores(n_threads: int) -> None:
     """In an embedded worker process: run each bag's parallel kernels on ``n_threads`` numba
-    threads (cores // workers), since with more threads than cores they spin-wait on each other
-    (one search: 8 instead of 3.8 ms measured). Applied by :func:`process_bag` in the task's
+    threads (cores // workers), since with more threads than cores they wait for each other's
+    cores (one search: 8 instead of 3.8 ms measured while OpenMP's threads still spun as they
+    waited, before session 88). Applied by :func:`process_bag` in the task's
     own thread (numba's thread count is per calling thread)."""
     global _BAG_NUMBA_THREADS
     _BAG_NUMBA_THREADS = n_threads

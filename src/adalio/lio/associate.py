@@ -40,7 +40,8 @@ PARALLEL_MIN_QUERIES = 256
 """Batches of at least this many queries run on all numba threads (``NUMBA_NUM_THREADS``). On the
 quiet 2-core dev machine (OpenMP layer) two threads beat one from 128 queries on: 0.23 vs 0.36 ms
 at 512, 1.6 vs 2.7 ms at 2842 (a 512-column XT-32 scan). On a machine whose cores are all busy,
-OpenMP's spin-waiting makes them slower (8 vs 3.8 ms measured), hence one numba thread per
+OpenMP's spin-waiting made them slower (8 vs 3.8 ms measured, before adalio made its OpenMP
+threads sleep while they wait in session 88: ``adalio/__init__.py``), hence one numba thread per
 ``adalio batch`` worker when the workers fill the cores."""
 
 
