@@ -1004,18 +1004,26 @@ class Odometry:
                 self._warn_no_ring("preprocess.drop_stray_returns", "no return is dropped as stray",
                                    why)
         else:  # counted always; dropped with the option, or where more than the share
-            finite = np.isfinite(pts).all(axis=1)
-            rows_f = np.flatnonzero(finite)
-            code = stray_codes(pts[rows_f], t[rows_f], ring[rows_f].astype(np.int64),
-                               pre.stray_tolerance_m, pre.stray_tolerance_rel)
+            # the finite points (a column at a time: numpy's all(axis=1) over three columns
+            # took 0.9 of 3.4 ms per 63k-point sweep), gathered only when some are not
+            finite_xyz = np.isfinite(pts)
+            finite = finite_xyz[:, 0] & finite_xyz[:, 1] & finite_xyz[:, 2]
+            if finite.all():
+                rows_f = None
+                code = stray_codes(pts, t, ring.astype(np.int64), pre.stray_tolerance_m,
+                                   pre.stray_tolerance_rel)
+            else:
+                rows_f = np.flatnonzero(finite)
+                code = stray_codes(pts[rows_f], t[rows_f], ring[rows_f].astype(np.int64),
+                                   pre.stray_tolerance_m, pre.stray_tolerance_rel)
             n_stray = int((code == STRAY).sum())
             if n_stray and (pre.drop_stray_returns
-                            or n_stray > pre.stray_drop_share * rows_f.size):
+                            or n_stray > pre.stray_drop_share * code.size):
                 # a dirty sweep: also the points an adjacent ring supports, as many of them
                 # are stray returns that met another by chance, or a neighbour of one
                 drop = code != CONTINUED
                 keep = np.ones(pts.shape[0], bool)
-                keep[rows_f[drop]] = False
+                keep[drop if rows_f is None else rows_f[drop]] = False
                 pts, t, ring = pts[keep], t[keep], ring[keep]
                 n_dropped = int(drop.sum())
         rows, dec, n_raw = _range_gate_rows(pts, pre.blind_m, pre.max_range_m,
