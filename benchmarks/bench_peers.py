@@ -10,7 +10,8 @@ is the sequence's own (``sensor.T_imu_lidar`` of its ``config.yaml``).
 How each system is fed (only the per-scan call is timed, after a short untimed warm-up pass that
 also takes numba compilation out of the timings):
 
-* adalio: ``Odometry.add_imu`` per sequencer batch, ``Odometry.add_scan(points, t_ns)`` timed.
+* adalio: ``Odometry.add_imu`` per sequencer batch, ``Odometry.add_scan(points, t_ns, ring)`` timed
+  (the rings, as ``adalio run`` passes them, for the stray-return test; before session 88 none).
 * rko-lio: base frame = IMU (``extrinsic_imu2base = I``, ``extrinsic_lidar2base = T_imu_lidar``);
   every IMU sample older than the scan end goes in with ``add_imu_measurement`` first (as its own
   ``LidarIMUSequencer`` does), then ``register_scan(points, t_ns, start, end)`` is timed.
@@ -187,9 +188,8 @@ def load_sequence(scene: str, seed: int, duration_s: float | None, columns: int,
         T_imu_lidar, _ = resolve_extrinsic(bag, lidar_topic, imu_topic, cfg)
         cfg.sensor.T_imu_lidar = T_imu_lidar.tolist()
         for item in Sequencer(bag, lidar_topic, imu_topic, cfg.sensor):
-            if isinstance(item, Scan):
+            if isinstance(item, Scan):  # adalio gets the rings, as in a run (its stray test)
                 item.intensity = None
-                item.ring = None
             items.append(item)
     decode_s = time.perf_counter() - t0
     scans = [it for it in items if isinstance(it, Scan)]
@@ -252,8 +252,11 @@ class Adalio(System):
     def imu(self, batch: ImuBatch) -> None:
         self.odom.add_imu(batch.t_ns, batch.gyro_rad_s, batch.accel_m_s2)
 
-    def step(self, points: np.ndarray, t_ns: np.ndarray) -> Any:
-        return self.odom.add_scan(points, t_ns)
+    def prepare(self, scan: Scan) -> tuple:
+        return (scan.points_lidar, scan.t_ns, scan.ring)
+
+    def step(self, points: np.ndarray, t_ns: np.ndarray, ring: np.ndarray | None) -> Any:
+        return self.odom.add_scan(points, t_ns, ring)
 
     def pose(self, scan: Scan, out: Any) -> tuple[int, np.ndarray] | None:
         return None if out is None else (int(out.t_ns), np.asarray(out.T_world_imu))
