@@ -850,9 +850,9 @@ def main(argv: list[str] | None = None) -> int:
                          "(a machine doing other work; default 0)")
     args = ap.parse_args(argv)
     if args.repeat < 1:
-        raise SystemExit("--repeat must be >= 1")
+        raise SystemExit(f"error: --repeat must be >= 1 (got {args.repeat})")
     if not 0 <= args.busy_cores <= (os.cpu_count() or 1):
-        raise SystemExit(f"--busy-cores must be 0-{os.cpu_count() or 1} (got {args.busy_cores})")
+        raise SystemExit(f"error: --busy-cores must be 0-{os.cpu_count() or 1} (got {args.busy_cores})")
 
     out_dir = (args.out.expanduser().resolve() if args.out is not None
                else Path(tempfile.mkdtemp(prefix="bench_peers_")))
