@@ -840,7 +840,7 @@ class Odometry:
         else:  # every point in range, for the local surfaces; the decimated ones as usual
             pts_all, t_all, ring_all, rows = full
             pts_all_e = self._propagate_and_undistort(pts_all, t_all, t_e)
-            pts_e = pts_all_e[rows]
+            pts_e = pts_all_e.take(rows, axis=0)
             surface = LocalSurface(pts_all, pts_all_e, ring_all, rows,
                                    cfg.filter.local_surface_window_ring_spacings)
         if cfg.imu.zero_velocity_update:
@@ -860,7 +860,7 @@ class Odometry:
         if self._movers is not None:
             image, still = self._drop_moving(pts_e, t_e, stats)
             if not still.all():
-                pts_e = pts_e[still]
+                pts_e = np.compress(still, pts_e, axis=0)
                 if surface is not None:
                     surface = LocalSurface(pts_all, pts_all_e, ring_all, rows[still],
                                            cfg.filter.local_surface_window_ring_spacings)
@@ -1014,7 +1014,8 @@ class Odometry:
                                    pre.stray_tolerance_rel)
             else:
                 rows_f = np.flatnonzero(finite)
-                code = stray_codes(pts[rows_f], t[rows_f], ring[rows_f].astype(np.int64),
+                code = stray_codes(pts.take(rows_f, axis=0), t[rows_f],
+                                   ring[rows_f].astype(np.int64),
                                    pre.stray_tolerance_m, pre.stray_tolerance_rel)
             n_stray = int((code == STRAY).sum())
             if n_stray and (pre.drop_stray_returns
@@ -1024,7 +1025,7 @@ class Odometry:
                 drop = code != CONTINUED
                 keep = np.ones(pts.shape[0], bool)
                 keep[drop if rows_f is None else rows_f[drop]] = False
-                pts, t, ring = pts[keep], t[keep], ring[keep]
+                pts, t, ring = np.compress(keep, pts, axis=0), t[keep], ring[keep]
                 n_dropped = int(drop.sum())
         rows, dec, n_raw = _range_gate_rows(pts, pre.blind_m, pre.max_range_m,
                                             pre.point_filter_num)
@@ -1036,9 +1037,11 @@ class Odometry:
             if ring is None:
                 self._warn_no_ring("filter.local_surface_check", "no row is checked")
             else:
-                full = (pts[rows], t[rows], np.clip(ring[rows], 0, 65535).astype(np.uint16),
-                        np.flatnonzero(dec))
-        return pts[keep], t[keep], full
+                full = (pts.take(rows, axis=0), t[rows],
+                        np.clip(ring[rows], 0, 65535).astype(np.uint16), np.flatnonzero(dec))
+        # the rows of an (N, 3) array by take / compress: numpy's fancy and boolean indexing of
+        # one took 3-4 times as long (0.84 against 0.22 ms for a 63k-point sweep's mask)
+        return pts.take(keep, axis=0), t[keep], full
 
     def _warn_no_ring(self, key: str, consequence: str, why: str = "carry no ring field") -> None:
         if key not in self._warned_no_ring:
