@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import sys
+import threading
+import time
 import warnings
 from pathlib import Path
 
@@ -254,6 +256,71 @@ def test_damaged_bags_are_bag_errors(tmp_path, content, match):
         path.write_bytes(content)
     with pytest.raises(BagError, match=match), Bag(path) as bag:
         list(bag.messages([t.name for t in bag.topics()]))
+
+
+def _read_all(bag: Bag, read_ahead: bool) -> tuple[list, str | None]:
+    """(topic, receive time, header stamp) of every message read, and the error that stopped
+    the reading (None: read to the end)."""
+    got = []
+    try:
+        for topic, t_recv, msg in bag.messages([t.name for t in bag.topics()],
+                                               read_ahead=read_ahead):
+            got.append((topic, t_recv, stamp_to_ns(msg.header.stamp)))
+    except BagError as exc:
+        return got, str(exc)
+    return got, None
+
+
+def _read_ahead_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name == "adalio-bag-read-ahead"]
+
+
+@pytest.mark.parametrize("fmt,compression", [("sqlite3", None), ("mcap", "message"),
+                                             ("ros1", "lz4")])
+def test_read_ahead_gives_the_same_messages_and_the_same_error_after_them(tmp_path, fmt,
+                                                                        compression):
+    """Bag.messages(read_ahead=True), which adalio run reads with: the messages of the bag in
+    the same order, and a read that fails mid-bag raises the same error, after the same
+    messages, as the plain read."""
+    kwargs = {"compression": compression} if compression else {}
+    path = bf.write_static_rig(tmp_path / ("rig.bag" if fmt == "ros1" else "rig"), fmt,
+                               duration_s=2.0, columns=90, **kwargs)
+    for damaged in (False, True):
+        if damaged:  # a page of the database overwritten, as in test_cli_io
+            db = next(path.glob("*.db3"))
+            data = bytearray(db.read_bytes())
+            page = int(len(data) * 0.6) // 4096 * 4096
+            data[page:page + 4096] = b"\xff" * 4096
+            db.write_bytes(bytes(data))
+        with Bag(path) as bag:
+            plain = _read_all(bag, read_ahead=False)
+        with Bag(path) as bag:
+            ahead = _read_all(bag, read_ahead=True)
+        assert ahead == plain
+        assert len(plain[0]) > 20
+        assert (plain[1] is not None) == damaged
+        if damaged:
+            assert "after" in plain[1] and "truncated or corrupted" in plain[1]
+        if fmt != "sqlite3":
+            break
+    assert not _read_ahead_threads()
+
+
+def test_read_ahead_reads_ahead_and_stops_with_its_reader_or_the_bag(tmp_path):
+    path = bf.write_static_rig(tmp_path / "rig.bag", duration_s=2.0, columns=90)
+    with Bag(path) as bag:
+        topics = [t.name for t in bag.topics()]
+        it = bag.messages(topics, read_ahead=True)
+        _, t_first, _ = next(it)
+        deadline = time.monotonic() + 10.0  # the thread reads on while the caller holds one
+        while bag._last_t <= t_first and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert bag._last_t > t_first
+        it.close()  # the caller stops early (adalio run --max-scans): so does the thread
+        assert not _read_ahead_threads()
+        bag.messages(topics, read_ahead=True)  # never iterated: closing the bag stops it
+        assert _read_ahead_threads()
+    assert not _read_ahead_threads()
 
 
 def add_box_clouds(w: BagWriter, n: int, sweep_ns: int) -> None:

@@ -618,7 +618,9 @@ class Sequencer:
     """Decode and merge the LiDAR and IMU topics of an opened :class:`Bag`.
 
     Iterating yields ``ImuBatch`` and ``Scan`` objects in processing order; ``stats`` and
-    ``decoder.time_spec`` describe what was seen.
+    ``decoder.time_spec`` describe what was seen. The bag is read ahead in a thread
+    (:meth:`Bag.messages`' ``read_ahead``); the decoding stays in the caller's thread, where its
+    warnings are caught.
     """
 
     def __init__(self, bag: Bag, lidar_topic: str, imu_topic: str,
@@ -699,7 +701,7 @@ class Sequencer:
 
         clock = ClockCheck(self.lidar_topic, self.imu_topic, self.stats.warn)
         for topic, t_recv, msg in self.bag.messages([self.lidar_topic, self.imu_topic],
-                                                    start_ns=self.start_ns):
+                                                    start_ns=self.start_ns, read_ahead=True):
             if topic == self.imu_topic:
                 imu_msgs.append(msg)
                 if not clock.done:
