@@ -413,7 +413,7 @@ class Bag:
         ``read_ahead``: a thread reads, decompresses and deserializes up to
         ``READ_AHEAD_MESSAGES`` messages ahead of the caller, while the caller works on the ones
         it has (a compressed bag's decompression releases the GIL: the XT-32's 2000-column mcap
-        bags run in 9-17 % less wall time on two cores). The same messages in the same order,
+        bags run in 9-18 % less wall time on two cores). The same messages in the same order,
         and the same errors where they occur: a read that fails reaches the caller after the
         messages before it. Meanwhile the bag must not be read otherwise; closing it stops the
         thread."""
