@@ -165,5 +165,8 @@ def test_valid_messages_decode_exactly(n, height, big, order, gap, seed, pad):
 
 def test_fuzz_reached_the_decoding_paths():
     """The malformed-message fuzzer above ran and produced refused, empty and decoded clouds
-    (so it explores past the first layout check)."""
+    (so it explores past the first layout check). Under xdist the fuzzer may have run in
+    another worker; it then runs here."""
+    if not OUTCOMES:
+        test_malformed_messages_fail_only_with_project_errors()
     assert OUTCOMES.get("refused", 0) > 0 and OUTCOMES.get("decoded", 0) > 0, OUTCOMES
