@@ -135,7 +135,8 @@ def decode_fields(data: Any, layout: CloudLayout, names: list[str],
                   topic: str = "") -> dict[str, np.ndarray]:
     """Decode the named fields of every point (organized clouds are flattened row by row).
 
-    Returns native-endian 1-D arrays. Raises BagError for a field that is absent, has count != 1,
+    Returns native-endian 1-D arrays: read-only strided views into ``data`` where the cloud's
+    byte order is the machine's (no copy), copies otherwise. Raises BagError for a field that is absent, has count != 1,
     an unknown datatype, lies outside ``point_step``, or for data shorter than the layout says.
     """
     where = f"PointCloud2 on {topic or '?'}"
@@ -186,10 +187,14 @@ def decode_fields(data: Any, layout: CloudLayout, names: list[str],
                                                strides=(row_step, 1), writeable=False)
         block = np.ascontiguousarray(rows).reshape(-1)
     out: dict[str, np.ndarray] = {}
+    if block.flags.writeable:  # a view of the message's own buffer is never written through
+        block = block.view()
+        block.flags.writeable = False
     for name, fmt, off in zip(names, fmts, offs, strict=True):
         dtype = np.dtype({"names": ["v"], "formats": [fmt], "offsets": [off], "itemsize": step})
         col = block.view(dtype)["v"]
-        out[name] = col.astype(np.dtype(fmt).newbyteorder("="), copy=True)
+        # a copy of each column took 0.2 ms per 63k-point cloud, six of them a third of decoding
+        out[name] = col if col.dtype.isnative else col.astype(col.dtype.newbyteorder("="))
     return out
 
 
@@ -334,16 +339,22 @@ def times_to_ns(values: np.ndarray, spec: TimeSpec, stamp_ns: int) -> np.ndarray
     base = 0 if spec.reference == "absolute" else int(stamp_ns)
     if values.dtype.kind in "iu":
         return values.astype(np.int64) * np.int64(scale) + np.int64(base)
-    v = values.astype(np.float64)
+    v = values.astype(np.float64)  # a copy, worked on in place
     bad = ~np.isfinite(v)
     limit = 9.2e18 / scale
     bad |= np.abs(v) > limit
-    v = np.where(bad, 0.0, v)
+    any_bad = bool(bad.any())
+    if any_bad:
+        v[bad] = 0.0
     whole = np.floor(v)
-    frac = v - whole
-    out = whole.astype(np.int64) * np.int64(scale) + np.rint(frac * scale).astype(np.int64)
-    out = out + np.int64(base)
-    out[bad] = np.iinfo(np.int64).min
+    frac = np.subtract(v, whole, out=v)
+    frac *= scale
+    out = whole.astype(np.int64)
+    out *= np.int64(scale)
+    out += np.rint(frac, out=frac).astype(np.int64)
+    out += np.int64(base)
+    if any_bad:
+        out[bad] = np.iinfo(np.int64).min
     return out
 
 
