@@ -136,8 +136,9 @@ def decode_fields(data: Any, layout: CloudLayout, names: list[str],
     """Decode the named fields of every point (organized clouds are flattened row by row).
 
     Returns native-endian 1-D arrays: read-only strided views into ``data`` where the cloud's
-    byte order is the machine's (no copy), copies otherwise. Raises BagError for a field that is absent, has count != 1,
-    an unknown datatype, lies outside ``point_step``, or for data shorter than the layout says.
+    byte order is the machine's (no copy), copies otherwise. Raises BagError for a field that is
+    absent, has count != 1, an unknown datatype, lies outside ``point_step``, or for data
+    shorter than the layout says.
     """
     where = f"PointCloud2 on {topic or '?'}"
     step = layout.point_step
