@@ -396,9 +396,13 @@ def _share_cores(n_threads: int) -> None:
     threads (cores // workers), since with more threads than cores they wait for each other's
     cores (one search: 8 instead of 3.8 ms measured while OpenMP's threads still spun as they
     waited, before session 88). Applied by :func:`process_bag` in the task's
-    own thread (numba's thread count is per calling thread)."""
+    own thread (numba's thread count is per calling thread). Also reads each bag without a
+    read-ahead thread (:attr:`Sequencer.read_ahead`)."""
     global _BAG_NUMBA_THREADS
     _BAG_NUMBA_THREADS = n_threads
+    from adalio.io.sequencer import Sequencer
+
+    Sequencer.read_ahead = False  # the bags of the other workers use the other cores
 
 
 def use_bag_threads() -> int:

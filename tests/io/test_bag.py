@@ -323,6 +323,24 @@ def test_read_ahead_reads_ahead_and_stops_with_its_reader_or_the_bag(tmp_path):
     assert not _read_ahead_threads()
 
 
+def test_batch_workers_read_their_bags_without_a_read_ahead_thread(tmp_path, monkeypatch):
+    """adalio batch's embedded workers share the cores one bag each: there a read-ahead thread
+    only competes, so their processes switch it off (batch._share_cores)."""
+    from adalio import batch
+
+    monkeypatch.setattr(Sequencer, "read_ahead", Sequencer.read_ahead)  # restored after
+    monkeypatch.setattr(batch, "_BAG_NUMBA_THREADS", None)
+    path = bf.write_static_rig(tmp_path / "rig.bag", duration_s=1.0, columns=90)
+
+    def reads_ahead() -> bool:  # a read-ahead is registered with its bag while it runs
+        with Bag(path) as bag:
+            return any(bool(bag._ahead) for _ in Sequencer(bag, "/points", "/imu"))
+
+    assert reads_ahead()
+    batch._share_cores(1)
+    assert not reads_ahead()
+
+
 def add_box_clouds(w: BagWriter, n: int, sweep_ns: int) -> None:
     """``n`` sweeps of the factory's box (30 columns) on /points, each received at its end."""
     pts, t_rel, ring = bf.box_scan(columns=30, sweep_ns=sweep_ns)
