@@ -396,6 +396,23 @@ def test_a_task_outside_a_cluster_reports_errors_as_rows(tmp_path: Path) -> None
     assert not (tmp_path / "out" / ".adalio-batch" / "x.json").exists()
 
 
+@pytest.mark.parametrize("numba_threads", [None, "1"])
+def test_embedded_workers_read_their_bags_without_a_read_ahead_thread(monkeypatch,
+                                                                      numba_threads) -> None:
+    """The embedded workers share the cores one bag each, so their Sequencers do not read ahead
+    (adalio run's thread would only compete there), whether or not NUMBA_NUM_THREADS is set."""
+    from adalio.batch import dask_client
+
+    if numba_threads is None:
+        monkeypatch.delenv("NUMBA_NUM_THREADS", raising=False)
+    else:
+        monkeypatch.setenv("NUMBA_NUM_THREADS", numba_threads)
+    with dask_client(workers=2) as client:
+        got = client.run(lambda: __import__("adalio.io.sequencer",
+                                            fromlist=["Sequencer"]).Sequencer.read_ahead)
+    assert list(got.values()) == [False, False]
+
+
 def test_embedded_workers_share_the_cores_between_their_numba_threads(monkeypatch) -> None:
     """Two workers on this machine: a bag's task thread gets cores // 2 numba threads (at least
     1), so the parallel kernels of two bags never spin-wait for each other's cores; the workers'

@@ -382,6 +382,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
                       dashboard_address=None, memory_limit=0, host="127.0.0.1",
                       silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
         client.run(_ignore_sigint)
+        client.run(_read_without_thread)
         if not os.environ.get("NUMBA_NUM_THREADS"):
             client.run(_share_cores, max(1, (os.cpu_count() or 1) // n))
         yield client
@@ -396,13 +397,18 @@ def _share_cores(n_threads: int) -> None:
     threads (cores // workers), since with more threads than cores they wait for each other's
     cores (one search: 8 instead of 3.8 ms measured while OpenMP's threads still spun as they
     waited, before session 88). Applied by :func:`process_bag` in the task's
-    own thread (numba's thread count is per calling thread). Also reads each bag without a
-    read-ahead thread (:attr:`Sequencer.read_ahead`)."""
+    own thread (numba's thread count is per calling thread)."""
     global _BAG_NUMBA_THREADS
     _BAG_NUMBA_THREADS = n_threads
+
+
+def _read_without_thread() -> None:
+    """In an embedded worker process: read each bag without a read-ahead thread
+    (:attr:`Sequencer.read_ahead`): the bags of the other workers use the other cores, whatever
+    ``NUMBA_NUM_THREADS`` says."""
     from adalio.io.sequencer import Sequencer
 
-    Sequencer.read_ahead = False  # the bags of the other workers use the other cores
+    Sequencer.read_ahead = False
 
 
 def use_bag_threads() -> int:

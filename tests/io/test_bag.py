@@ -325,11 +325,11 @@ def test_read_ahead_reads_ahead_and_stops_with_its_reader_or_the_bag(tmp_path):
 
 def test_batch_workers_read_their_bags_without_a_read_ahead_thread(tmp_path, monkeypatch):
     """adalio batch's embedded workers share the cores one bag each: there a read-ahead thread
-    only competes, so their processes switch it off (batch._share_cores)."""
+    only competes, so their processes switch it off (batch._read_without_thread, run in every
+    embedded worker whatever NUMBA_NUM_THREADS says)."""
     from adalio import batch
 
     monkeypatch.setattr(Sequencer, "read_ahead", Sequencer.read_ahead)  # restored after
-    monkeypatch.setattr(batch, "_BAG_NUMBA_THREADS", None)
     path = bf.write_static_rig(tmp_path / "rig.bag", duration_s=1.0, columns=90)
 
     def reads_ahead() -> bool:  # a read-ahead is registered with its bag while it runs
@@ -337,7 +337,7 @@ def test_batch_workers_read_their_bags_without_a_read_ahead_thread(tmp_path, mon
             return any(bool(bag._ahead) for _ in Sequencer(bag, "/points", "/imu"))
 
     assert reads_ahead()
-    batch._share_cores(1)
+    batch._read_without_thread()
     assert not reads_ahead()
 
 
