@@ -247,6 +247,48 @@ def test_a_sweep_drops_its_stray_returns_where_they_are_more_than_the_share():
         assert stats.n_raw == len(cloud)
 
 
+@pytest.mark.parametrize("every", [1, 2, 3])
+@pytest.mark.parametrize("dirty", [False, True])
+def test_a_sweep_with_non_finite_rows_is_gated_decimated_and_counted_as_the_rule_says(
+        every, dirty):
+    """The real sweep with NaN and inf rows among its points and dust in front of 1 % (or 8 %)
+    of them, through ``_preprocess`` with every ``every``-th point kept: the points and times
+    out are the finite ones within ``blind_m`` .. ``max_range_m`` whose message index the
+    decimation keeps, less the dropped ones when over the share (brute force); ``n_raw`` counts
+    the finite points, ``n_stray`` the stray returns among them (the kernel on the finite rows
+    alone, which the brute-force loop checks above)."""
+    rng = np.random.default_rng(11 + every)
+    pts, t_ns, ring = _real_scan()
+    pts, t_ns, ring, _ = _with_second_returns(pts, t_ns, ring, 0.08 if dirty else 0.01, -1, rng)
+    bad = rng.random(len(pts)) < 0.03
+    pts = pts.copy()
+    pts[bad, rng.integers(0, 3, bad.sum())] = rng.choice([np.nan, np.inf, -np.inf], bad.sum())
+    cfg = load_config("hilti2022")
+    cfg.preprocess.point_filter_num = every
+    cfg.preprocess.blind_m, cfg.preprocess.max_range_m = 1.0, 30.0
+    odom = Odometry(cfg)
+    stats = ScanStats()
+    out, out_t, full = odom._preprocess(pts, t_ns, ring, stats)
+    finite = np.isfinite(pts).all(axis=1)
+    codes = np.full(len(pts), CONTINUED, np.int8)
+    codes[finite] = stray_codes(pts[finite], t_ns[finite], ring[finite], cfg.preprocess.
+                                stray_tolerance_m, cfg.preprocess.stray_tolerance_rel)
+    n_stray = int((codes == STRAY).sum())
+    dropped = n_stray > cfg.preprocess.stray_drop_share * finite.sum()
+    assert dropped == dirty
+    left = ~(finite & (codes != CONTINUED)) if dropped else np.ones(len(pts), bool)
+    index = np.cumsum(left) - 1  # message index among the points left
+    with np.errstate(invalid="ignore"):
+        r = np.linalg.norm(pts, axis=1)
+    expect = left & finite & (r >= 1.0) & (r <= 30.0) & (index % every == 0)
+    np.testing.assert_array_equal(out, pts[expect])
+    np.testing.assert_array_equal(out_t, t_ns[expect])
+    assert out.flags.c_contiguous and out.dtype == np.float64 and out_t.dtype == np.int64
+    assert full is None
+    assert stats.n_raw == finite.sum() and stats.n_stray == n_stray
+    assert stats.n_stray_dropped == (((codes != CONTINUED) & finite).sum() if dropped else 0)
+
+
 @pytest.mark.parametrize("rings", ["none", "one id", "spread"])
 def test_without_rings_the_option_warns_once_and_counts_nothing(rings):
     """A Livox head's sweeps carry no ring; a driver may fill the field with one value (on the
