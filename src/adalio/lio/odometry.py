@@ -527,6 +527,17 @@ class Odometry:
         self._anchor_state: State | None = None
         """The state at ``_t_first_map_ns``: the pose that anchors the map and defines the world
         (the backfill's reversed pass is held to it, :meth:`_hold_to_anchor`)."""
+        self._anchor_v_cov = np.zeros((3, 3))
+        """The filter's velocity covariance at the anchor (:meth:`_hold_to_anchor`)."""
+        self._rested_ns: list[tuple[int, int]] = []
+        """While a backfill is pending: the spans ``[a, b)`` (ns) over which the sensor rested as
+        this filter established it, the still window of a static initialization and each
+        zero-velocity update's window (:meth:`_rest_update`); the backfill's reversed pass takes
+        rest there without the velocity gate (``_rested_mirrored_ns``)."""
+        self._rested_mirrored_ns: list[tuple[int, int]] = []
+        """The backfill's reversed pass: the forward filter's rested spans in mirrored time,
+        ``(mirror - b, mirror - a]``: a scan whose end (its forward start) lies in one is taken
+        at rest wherever its IMU is still, whatever its own velocity says."""
         self._finest_cell_m = config.map.map_leaf_m
         """Finest cell any scan has used for insertion: the plane-extent test scales with it,
         since a map densified by degenerate scans holds neighbours that close everywhere."""
@@ -1073,6 +1084,7 @@ class Odometry:
             self._movers.stored(p_world[stored], t_e)
         self._t_first_map_ns = t_e
         self._anchor_state = s.copy()
+        self._anchor_v_cov = self._P[V, V].copy()
         # This pose anchors the map, so it defines the world: no error relative to it.
         self._W_map = np.zeros((6, 6))
         self._provenance.add_scan(s.p, np.zeros((6, 6)), p_world)
@@ -1255,6 +1267,8 @@ class Odometry:
         acc = np.concatenate([c[2] for c in chunks])
         mirror = t_now + int(scans[0][1].min())
         rev = self._reversed_copy(mirror)
+        rev._rested_mirrored_ns = [(mirror - b, mirror - a) for a, b in self._rested_ns]
+        self._rested_ns = []
         k = int(np.argmin(np.abs(t_imu - t_now)))
         rev._prev_sample = (mirror - t_now, -gyro[k], acc[k].copy())
         before = t_imu < t_now
@@ -1268,7 +1282,8 @@ class Odometry:
                 if (not anchored and self._anchor_state is not None
                         and int(t_pts.max()) <= self._t_first_map_ns):
                     anchored = True
-                    rev._hold_to_anchor(self._anchor_state, mirror - self._t_first_map_ns)
+                    rev._hold_to_anchor(self._anchor_state, mirror - self._t_first_map_ns,
+                                        self._anchor_v_cov)
                 try:
                     est = rev.add_scan(pts, mirror - t_pts)
                 except InputError as exc:
@@ -1296,7 +1311,8 @@ class Odometry:
         self._accumulate(rev.stage_ms_total)
         self.init_report.backfilled = len(out)
 
-    def _hold_to_anchor(self, anchor: State, t_anchor_ns: int) -> None:
+    def _hold_to_anchor(self, anchor: State, t_anchor_ns: int,
+                        anchor_v_cov: np.ndarray) -> None:
         """The reversed pass, on reaching the anchor's time (mirrored ``t_anchor_ns``), told
         the anchor's position and yaw: they define the world, so they are known exactly there
         (:func:`adalio.lio.state.anchored_covariance`). Without this the reversed pass carries
@@ -1307,23 +1323,36 @@ class Odometry:
         velocity and biases through their correlations; the anchor's velocity carries its
         position over the gap between the two times (one point period between scans). Roll
         and pitch are left to the reversed pass: gravity defines them, and its estimate there
-        has had the whole tracked stretch."""
+        has had the whole tracked stretch.
+
+        The same update is also told the anchor's velocity (mirrored: ``-v``) with the forward
+        filter's covariance of it there (``anchor_v_cov``): what the initialization measured
+        before the anchor (a still window's zero, a moving start's fit), independent of the
+        scans after it that the reversed pass has used. Told the position alone, a reversed
+        pass that had drifted along a corridor's weak axis turned the position's correction
+        into a velocity through their correlation, and carried it into the held scans (a
+        still start given 1.7 m/s, its held poses a metre off: README, *Backfill*)."""
         x = self._state
         dt_s = (self._t_state_ns - t_anchor_ns) * 1e-9  # mirrored time runs backwards
         p_anchor = anchor.p - anchor.v * dt_s
         up_body = x.R[2, :]  # Rᵀ e_z: a small world yaw is up_body · δθ
-        H = np.zeros((4, DIM))
+        H = np.zeros((7, DIM))
         H[0:3, P_] = np.eye(3)
         H[3, TH] = up_body
-        r = np.empty(4)
+        H[4:7, V] = np.eye(3)
+        r = np.empty(7)
         r[0:3] = p_anchor - x.p
         r[3] = so3.log(anchor.R @ x.R.T)[2]
-        K, self._P = joseph_update(self._P, H, ANCHOR_VARIANCE)
+        r[4:7] = -anchor.v - x.v
+        noise = np.zeros((7, 7))
+        noise[0:4, 0:4] = ANCHOR_VARIANCE * np.eye(4)
+        noise[4:7, 4:7] = anchor_v_cov + ANCHOR_VARIANCE * np.eye(3)
+        K, self._P = joseph_update(self._P, H, noise)
         self._state = x.boxplus(K @ r)
         for name in ("_P_report", "_P_blind"):
             P = getattr(self, name)
             if P is not None:
-                setattr(self, name, joseph_update(P, H, ANCHOR_VARIANCE)[1])
+                setattr(self, name, joseph_update(P, H, noise)[1])
 
     def _reversed_copy(self, mirror_ns: int) -> Odometry:
         """This filter (state, covariance, map) in mirrored time ``mirror_ns - t``, without IMU
@@ -1545,6 +1574,7 @@ class Odometry:
         self._buf = _ImuBuffer(b.t_ns[window.stop:], b.gyro[window.stop:], b.accel[window.stop:])
         self._rest_imu = _ImuBuffer(b.t_ns[window], b.gyro[window],
                                     b.accel[window] * init.accel_scale)
+        self._add_rested(int(b.t_ns[window][0]), t_b_ns)  # the held scans there rested
         wait = self._wait_fields(t_b_ns)
         self._moving = None
         self.initialized = True
@@ -2021,8 +2051,11 @@ class Odometry:
         """imu.zero_velocity_update: if the IMU rested over the last ``imu.init_window_s``
         before the scan end, take a zero velocity there as a measurement (state.
         ``rest_velocity_update``), unless the filter's velocity refutes rest against the
-        discounted covariance's spread. The discounted covariance takes the same information:
-        rest is real information, not a plane's. True if taken."""
+        discounted covariance's spread (a cruise at constant velocity reads as rest to an IMU).
+        The discounted covariance takes the same information: rest is real information, not a
+        plane's. The backfill's reversed pass skips that gate where the forward filter
+        established rest (``_rested_mirrored_ns``): there the velocity it carried back through
+        the scans it re-registered is what is in doubt, not the rest. True if taken."""
         cfg = self.cfg.imu
         r = self._rest_imu
         window = imu.stillness_window(r.t_ns, t_e_ns, cfg.init_window_s)
@@ -2035,8 +2068,11 @@ class Odometry:
         # the gate asks the discounted covariance (the sigmas'): a filter sure of a velocity
         # that only faked information supports (a drift the rows cannot see) must not refuse
         # the rest that would correct it
-        out = rest_velocity_update(self._P, self._state.v, var_v, self._rest_gate,
-                                   self._discounted_P)
+        # the backfill's reversed pass, where the forward filter established rest: its own
+        # velocity, carried back through what it re-registered, must not refuse it
+        rested = any(lo < t_e_ns <= hi for lo, hi in self._rested_mirrored_ns)
+        out = rest_velocity_update(self._P, self._state.v, var_v,
+                                   np.inf if rested else self._rest_gate, self._discounted_P)
         if out is None:
             return False
         dx, self._P, _ = out
@@ -2046,7 +2082,17 @@ class Odometry:
         if self._P_blind is not None:
             self._P_blind = rest_velocity_covariance(self._P_blind, var_v)
         self.n_rest_updates += 1
+        if self._held_scans:  # a backfill is pending: where its reversed pass may take rest
+            self._add_rested(int(r.t_ns[window][0]), t_e_ns)
         return True
+
+    def _add_rested(self, a_ns: int, b_ns: int) -> None:
+        """Record ``[a_ns, b_ns)`` as rested (``_rested_ns``), merged with the last span."""
+        spans = self._rested_ns
+        if spans and a_ns <= spans[-1][1]:
+            spans[-1] = (spans[-1][0], max(spans[-1][1], b_ns))
+        else:
+            spans.append((a_ns, b_ns))
 
     def _refine(self, pts_e, down, assoc, leaf_m, params, surface, after_gap):
         """AdaLIO+ (degeneracy.py §3-4): halve the leaf while the translation information is weak
