@@ -327,6 +327,65 @@ def test_ctrl_c_cancels_and_keeps_finished_bags(fleet: Path, config_file: Path, 
     assert (out / "corridor" / "trajectory.tum").is_file()
 
 
+def test_a_ctrl_c_that_lands_in_a_del_still_stops_the_batch(monkeypatch: pytest.MonkeyPatch,
+                                                           tmp_path: Path) -> None:
+    """A Ctrl-C raised where Python cannot raise (a Dask future's ``__del__``, as in a CI run
+    of the test above: 'Exception ignored in: <function Future.__del__ ...>
+    KeyboardInterrupt', and the batch ran on to exit 1) is dropped. The batch's loop takes the
+    first Ctrl-C as a flag it reads instead (``pipeline.GracefulStop``), so it stops all the
+    same: ``_gather`` reports the interrupt and cancels the bags. Reproduced without a cluster:
+    the SIGINT is sent from inside a ``__del__`` while no bag has finished; on the code before,
+    the interrupt is lost and the loop runs until the (fake) bags are done."""
+    import signal
+
+    import distributed
+
+    import adalio.batch
+    from adalio.batch import BagJob
+
+    class Dying:
+        def __del__(self) -> None:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    class Batches:
+        def __init__(self, futures: list) -> None:
+            self.futures, self.calls = futures, 0
+
+        def next_batch(self, block: bool = False) -> list:
+            self.calls += 1
+            if self.calls == 2:
+                Dying()  # collected at once: its __del__ sends the Ctrl-C
+            return list(self.futures) if self.calls > 20 else []  # then every bag is done
+
+    class Future:
+        def result(self) -> adalio.batch.BagRow:
+            return adalio.batch.BagRow(bag="x", status="ok")
+
+    class Client:
+        def __init__(self) -> None:
+            self.cancelled: list = []
+
+        def submit(self, *args: object, **kwargs: object) -> Future:
+            return Future()
+
+        def nthreads(self) -> dict:
+            return {"worker": 1}
+
+        def cancel(self, futures: list, force: bool = False) -> None:
+            self.cancelled.extend(futures)
+
+    monkeypatch.setattr(distributed, "as_completed", Batches)
+    monkeypatch.setattr(adalio.batch, "WATCH_S", 0.01)
+    jobs = [BagJob(name=n, bag_path=tmp_path / f"{n}.bag", config=None, out_dir=tmp_path)
+            for n in ("a", "b")]
+    client = Client()
+    rows: dict = {}
+    before = signal.getsignal(signal.SIGINT)
+    assert adalio.batch._gather(client, jobs, rows, len(jobs), False, None) is True
+    assert len(client.cancelled) == 2 and rows == {}
+    assert signal.getsignal(signal.SIGINT) is before  # restored
+
+
 def test_unreachable_scheduler_is_an_input_error(fleet: Path, tmp_path: Path,
                                                  monkeypatch: pytest.MonkeyPatch) -> None:
     import socket

@@ -535,17 +535,23 @@ def _gather(client: Any, todo: Sequence[BagJob], rows: dict[str, BagRow], n_tota
 
     from distributed import as_completed
 
+    from adalio.pipeline import GracefulStop
+
     tag = uuid.uuid4().hex[:8]
     futures = {client.submit(process_bag, job, key=f"adalio-batch-{job.name}-{tag}",
                              pure=False, retries=0): job for job in todo}
     n_failed = 0
     try:
-        with _progress_bar(progress) as bar:
+        # a first Ctrl-C is a flag this loop reads: raised wherever it lands, it could land in
+        # a Dask future's __del__, where Python drops it, and the batch ran on to exit 1
+        with _progress_bar(progress) as bar, GracefulStop() as stop:
             task = bar.add_task("bags", total=n_total, completed=n_total - len(todo), note="")
             ac = as_completed(list(futures))
             left = set(futures)
             no_worker_since = None
             while left:
+                if stop.requested:
+                    raise KeyboardInterrupt
                 done = ac.next_batch(block=False)
                 stranded: list[Any] = []
                 if not done:
@@ -580,6 +586,8 @@ def _gather(client: Any, todo: Sequence[BagJob], rows: dict[str, BagRow], n_tota
                                                                   if n_failed else ""))
                     if on_row is not None:
                         on_row(row)
+            if stop.requested:  # during the last bags: they are in, the batch was stopped
+                raise KeyboardInterrupt
     except KeyboardInterrupt:
         import sys
 

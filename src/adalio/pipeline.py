@@ -344,9 +344,11 @@ def _flag_ranges(times_ns: list[int], flags: list[bool]) -> list[tuple[float, fl
     return out
 
 
-class _GracefulStop:
+class GracefulStop:
     """First Ctrl-C sets ``requested`` (the run stops after the current scan, so no interrupt
-    lands inside a numba kernel); a second one raises KeyboardInterrupt at once."""
+    lands inside a numba kernel; ``adalio batch`` stops at its next look at the bags, so none
+    lands in a library's ``__del__``, which would swallow it); a second one raises
+    KeyboardInterrupt at once."""
 
     def __init__(self) -> None:
         self.requested = False
@@ -1041,7 +1043,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         interrupted = False
         restart = False
         t_start = time.perf_counter()
-        stop = _GracefulStop()
+        stop = GracefulStop()
         try:
             with stop, progress_bar(progress, "scans", "rate") as bar:
                 task = bar.add_task("scans", total=total or None, rate="")
