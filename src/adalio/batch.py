@@ -549,9 +549,7 @@ def _gather(client: Any, todo: Sequence[BagJob], rows: dict[str, BagRow], n_tota
             ac = as_completed(list(futures))
             left = set(futures)
             no_worker_since = None
-            while left:
-                if stop.requested:
-                    raise KeyboardInterrupt
+            while left and not stop.requested:
                 done = ac.next_batch(block=False)
                 stranded: list[Any] = []
                 if not done:
@@ -586,7 +584,7 @@ def _gather(client: Any, todo: Sequence[BagJob], rows: dict[str, BagRow], n_tota
                                                                   if n_failed else ""))
                     if on_row is not None:
                         on_row(row)
-            if stop.requested:  # during the last bags: they are in, the batch was stopped
+            if stop.requested:  # also during the last bags: they are in, but it was stopped
                 raise KeyboardInterrupt
     except KeyboardInterrupt:
         import sys

@@ -1267,8 +1267,7 @@ class Odometry:
         acc = np.concatenate([c[2] for c in chunks])
         mirror = t_now + int(scans[0][1].min())
         rev = self._reversed_copy(mirror)
-        rev._rested_mirrored_ns = [(mirror - b, mirror - a) for a, b in self._rested_ns]
-        self._rested_ns = []
+        self._rested_ns = []  # handed over to the reversed pass
         k = int(np.argmin(np.abs(t_imu - t_now)))
         rev._prev_sample = (mirror - t_now, -gyro[k], acc[k].copy())
         before = t_imu < t_now
@@ -1379,6 +1378,8 @@ class Odometry:
         if self._P_blind is not None:
             rev._P_blind = self._P_blind * np.outer(flip, flip)
         rev._t_state_ns = mirror_ns - self._t_state_ns
+        rev._rested_ns = []
+        rev._rested_mirrored_ns = [(mirror_ns - b, mirror_ns - a) for a, b in self._rested_ns]
         rev._buf = _ImuBuffer(np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)))
         rev._rest_imu = rev._track_imu = rev._buf
         rev.noise_raises = []
