@@ -536,3 +536,50 @@ def test_would_store_is_what_add_points_stores() -> None:
     one_per_cell = np.zeros(len(batch), bool)
     one_per_cell[first_of_cell] = True
     np.testing.assert_array_equal(stored, allowed & one_per_cell)
+
+
+@pytest.mark.parametrize("cell_point", ["first", "uniform"])
+def test_returns_count_every_row_that_reached_a_cell(cell_point: str) -> None:
+    """Each row given to ``would_store`` or ``add_points`` is counted once as a return of its
+    map cell, stored or not: summed per 0.2 m cell, the counts equal a brute-force count of the
+    rows per cell, with batches at the 0.2 m and the 0.1 m cell edge mixed and rows passed
+    through ``would_store`` first (as the moving-things path does) or given to ``add_points``
+    whole."""
+    rng = np.random.default_rng(11)
+    ivox = IVox(0.5, 18, 10**6, 200, cell_m=0.2, cell_point=cell_point)  # no voxel fills
+    rows = []
+    for batch in range(24):
+        pts = rng.uniform(-1.5, 1.5, size=(1500, 3))
+        cell = 0.1 if batch % 3 == 0 else 0.2
+        if batch % 2:
+            ivox.add_points(pts[ivox.would_store(pts, cell)], cell)
+        else:
+            ivox.add_points(pts, cell)
+        rows.append(pts)
+    points, returns = ivox.points_with_returns(0.2)
+    cells, per_cell = np.unique(np.floor(np.vstack(rows) / 0.2), axis=0, return_counts=True)
+    expected = dict(zip(map(tuple, cells), per_cell))
+    np.testing.assert_array_equal(returns,
+                                  [expected[tuple(c)] for c in np.floor(points / 0.2)])
+    # each point's own count: 1 for itself, +1 per row skipped in its cell; all rows counted
+    _, own = ivox.points_with_returns(0.0)
+    assert own.min() >= 1 and own.sum() == sum(len(r) for r in rows)
+    np.testing.assert_array_equal(ivox.points_with_returns(0.2)[0], ivox.points())
+
+
+def test_a_removed_or_overwritten_point_takes_its_returns_with_it() -> None:
+    """A point seen through (``remove_points``) leaves its cell: a later row there is a new
+    point with one return. A voxel's oldest point overwritten by its cap leaves the same way."""
+    ivox = IVox(0.5, 18, 10**6, 2, cell_m=0.2)
+    a = np.array([[0.05, 0.05, 0.05]])
+    for _ in range(3):
+        ivox.add_points(a)
+    np.testing.assert_array_equal(ivox.points_with_returns(0.2)[1], [3])
+    assert ivox.remove_points(a).all()
+    ivox.add_points(a + 0.01)
+    np.testing.assert_array_equal(ivox.points_with_returns(0.2)[1], [1])
+    ivox.add_points(np.array([[-0.1, 0.05, 0.05]]))  # another cell of the same voxel
+    ivox.add_points(np.array([[0.05, -0.1, 0.05]]))  # a third: the cap (2) overwrites a + 0.01
+    points, returns = ivox.points_with_returns(0.2)
+    assert len(points) == 2 and not np.isclose(points, a + 0.01).all(axis=1).any()
+    np.testing.assert_array_equal(returns, [1, 1])

@@ -40,6 +40,13 @@ Deviations from upstream, documented in lio-design.md §7:
   insertion that first counted it and keeps the stamp while it keeps the cell, across recounts
   (a cell emptied by the per-voxel cap keeps its stamp; a recount drops emptied cells, and
   fixes the cells of a newly used cell edge).
+* Returns per point (an addition, for the map written out): each stored point counts the rows
+  that reached its cell, itself and the rows skipped there since (``would_store`` counts the rows
+  it finds taken, ``add_points`` the rows its batch skips or samples), as the returns of that
+  cell. A skipped row counts for the cell's last stored point, of whatever edge, so the rows of
+  a coarse cell are all counted among its stored points when the edges nest (0.2 m and 0.1 m do):
+  :meth:`IVox.points_with_returns` sums them per cell of ``map_leaf_m``. A point overwritten,
+  removed or evicted takes its count with it. Queries never read it.
 """
 
 from __future__ import annotations
@@ -211,6 +218,20 @@ def _occ_rebuild(okeys: np.ndarray, ocount: np.ndarray, ostate: np.ndarray,
 
 
 @kernel()
+def _count_return(h: int, okeys: np.ndarray, nv: int, cap: int, vtotal: np.ndarray,
+                  vblocks: np.ndarray, pool: np.ndarray, returns: np.ndarray) -> None:
+    """A row that reached the occupied cell in occupancy slot ``h`` counts as a return of the
+    cell's last stored point (``okeys[h, 4:6]``), unless that slot has been emptied."""
+    v = okeys[h, 4]
+    j = okeys[h, 5]
+    if 0 <= v < nv and 0 <= j < min(vtotal[v], cap):
+        b = vblocks[v, j >> _BLOCK_SHIFT]
+        s = j & (BLOCK_POINTS - 1)
+        if not np.isnan(pool[b, s, 0]):
+            returns[b, s] += 1
+
+
+@kernel()
 def _copy_stamps(old_keys: np.ndarray, old_count: np.ndarray, okeys: np.ndarray) -> None:
     """Each cell of the old occupancy table still counted in the new one keeps its stamp."""
     for h in range(old_keys.shape[0]):
@@ -328,6 +349,7 @@ def _insert_points(
     uniform: bool,
     sample_batches: int,
     stored: np.ndarray,
+    returns: np.ndarray,
 ) -> int:
     """Sequential, deterministic insertion of world points into their round(p/s) voxels (§7).
 
@@ -341,7 +363,9 @@ def _insert_points(
     a voxel, table slot or block the arrays do not have, and returns that row (``len(points)``
     when done) so the caller can grow them. ``state`` = [nv, n_points, n_blocks, n_free, seq]
     is updated in place. ``stored[row]`` is set for each row stored (a new point, or one that
-    took a point's slot in its cell).
+    took a point's slot in its cell). ``returns`` (blocks, BLOCK_POINTS) counts each stored
+    point's returns: 1 when stored, +1 for each later row skipped or sampled in its cell (a row
+    that takes a point's slot keeps that slot's count).
     """
     mask = table.shape[0] - 1
     nv = state[_S_NV]
@@ -365,6 +389,7 @@ def _insert_points(
             if ok:
                 h = _occ_slot(okeys, cell_index, cx, cy, cz, np.bool_(False))
                 if h >= 0 and ocount[h] > 0:
+                    _count_return(h, okeys, nv, cap, vtotal, vblocks, pool, returns)
                     if uniform and (sample_batches <= 0
                                     or ostate[1] - okeys[h, 6] < sample_batches):
                         v = _lookup(table, vkeys, kx, ky, kz)
@@ -415,6 +440,7 @@ def _insert_points(
         pool[b, j, 0] = points[row, 0]
         pool[b, j, 1] = points[row, 1]
         pool[b, j, 2] = points[row, 2]
+        returns[b, j] = 1
         vtotal[v] = t + 1
         vstamp[v] = seq
         seq += 1
@@ -561,9 +587,12 @@ def _knn_parallel(
 
 @kernel()
 def _gather_points(
-    nv: int, n_points: int, cap: int, vtotal: np.ndarray, vblocks: np.ndarray, pool: np.ndarray
-) -> np.ndarray:
+    nv: int, n_points: int, cap: int, vtotal: np.ndarray, vblocks: np.ndarray, pool: np.ndarray,
+    returns: np.ndarray,
+):
+    """(stored points (P,3), their returns (P,)) in voxel order."""
     out = np.empty((n_points, 3), np.float64)
+    counts = np.empty(n_points, np.int64)
     w = 0
     for v in range(nv):
         for j in range(min(vtotal[v], cap)):
@@ -572,20 +601,25 @@ def _gather_points(
                 continue
             for c in range(3):
                 out[w, c] = pool[blk, slot, c]
+            counts[w] = returns[blk, slot]
             w += 1
-    return out[:w]
+    return out[:w], counts[:w]
 
 
 @kernel()
 def _cells_taken(points: np.ndarray, cell_m: float, cell_index: int, okeys: np.ndarray,
-                 ocount: np.ndarray) -> np.ndarray:
-    """(N,) bool: the cell floor(p / cell_m) of each point holds a stored point."""
+                 ocount: np.ndarray, nv: int, cap: int, vtotal: np.ndarray,
+                 vblocks: np.ndarray, pool: np.ndarray, returns: np.ndarray) -> np.ndarray:
+    """(N,) bool: the cell floor(p / cell_m) of each point holds a stored point; each such row
+    counts as a return of the cell (:func:`_count_return`)."""
     out = np.zeros(points.shape[0], np.bool_)
     for i in range(points.shape[0]):
         ok, cx, cy, cz = _cell_of(points[i, 0], points[i, 1], points[i, 2], cell_m)
         if ok:
             h = _occ_slot(okeys, cell_index, cx, cy, cz, np.bool_(False))
             out[i] = h >= 0 and ocount[h] > 0
+            if out[i]:
+                _count_return(h, okeys, nv, cap, vtotal, vblocks, pool, returns)
     return out
 
 
@@ -682,6 +716,8 @@ class IVox:
         self._vtotal = np.empty(0, np.int64)
         self._vblocks = np.empty((0, blocks_per_voxel), np.int64)
         self._pool = np.empty((0, BLOCK_POINTS, 3), np.float64)
+        self._returns = np.empty((0, BLOCK_POINTS), np.int32)
+        """Each pool slot's returns (module docstring, *Returns per point*)."""
         self._free = np.empty(0, np.int64)
         self._state = np.zeros(5, np.int64)
         # one-point-per-cell: stored points counted per cell of every cell edge used so far
@@ -761,6 +797,7 @@ class IVox:
                 self.cell_point == "uniform",
                 self.sample_batches,
                 stored,
+                self._returns,
             )
         nv = self.num_voxels
         if nv > self.capacity_voxels:
@@ -816,6 +853,7 @@ class IVox:
         if self._state[_S_NFREE] == 0 and self._state[_S_NBLOCKS] >= self._pool.shape[0]:
             rows = max(_MIN_ROWS, 2 * self._pool.shape[0])
             self._pool = _grow(self._pool, rows)
+            self._returns = _grow(self._returns, rows)
             self._free = _grow(self._free, rows)
 
     def knn(
@@ -861,13 +899,17 @@ class IVox:
 
     def would_store(self, points_world: np.ndarray, cell_m: float | None = None) -> np.ndarray:
         """(N,) bool: rows :meth:`add_points` might store now, by their cells alone: with
-        ``cell_point`` "first", a row whose cell holds a point never is."""
+        ``cell_point`` "first", a row whose cell holds a point never is. Such a row is counted
+        as a return of its cell (module docstring, *Returns per point*): give each row once,
+        either here or to ``add_points``."""
         pts = _as_points(points_world, "points_world")
         cell = self.cell_m if cell_m is None else float(cell_m)
         if cell <= 0.0 or self.cell_point != "first" or cell not in self._cell_sizes:
             return np.ones(pts.shape[0], np.bool_)
         index = int(np.flatnonzero(self._cell_sizes == cell)[0])
-        return ~_cells_taken(pts, cell, index, self._okeys, self._ocount)
+        return ~_cells_taken(pts, cell, index, self._okeys, self._ocount, self.num_voxels,
+                             self.max_points_per_voxel, self._vtotal, self._vblocks, self._pool,
+                             self._returns)
 
     def remove_points(self, points_world: np.ndarray) -> np.ndarray:
         """Remove the stored points equal to rows of ``points_world`` (points seen to have
@@ -882,14 +924,27 @@ class IVox:
 
     def points(self) -> np.ndarray:
         """All stored points (P,3) float64, world frame, grouped by voxel in a deterministic order."""
-        return _gather_points(
+        return self.points_with_returns(0.0)[0]
+
+    def points_with_returns(self, cell_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """(points (P,3) as :meth:`points`, returns (P,) int64): how many rows reached each
+        point's cell floor(p / cell_m) (module docstring, *Returns per point*), summed over the
+        cell's stored points; with ``cell_m`` 0, each point's own count."""
+        pts, counts = _gather_points(
             self.num_voxels,
             self.num_points,
             self.max_points_per_voxel,
             self._vtotal,
             self._vblocks,
             self._pool,
+            self._returns,
         )
+        if cell_m > 0.0 and len(pts) > 1:
+            cells = np.floor(pts / cell_m)
+            _, inverse = np.unique(cells, axis=0, return_inverse=True)
+            inverse = inverse.reshape(-1)
+            counts = np.bincount(inverse, weights=counts).astype(np.int64)[inverse]
+        return pts, counts
 
 
 def _as_points(points: np.ndarray, name: str) -> np.ndarray:
