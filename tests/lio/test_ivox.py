@@ -538,18 +538,19 @@ def test_would_store_is_what_add_points_stores() -> None:
     np.testing.assert_array_equal(stored, allowed & one_per_cell)
 
 
-@pytest.mark.parametrize("cell_point", ["first", "uniform"])
-def test_returns_count_every_row_that_reached_a_cell(cell_point: str) -> None:
+@pytest.mark.parametrize(("cell_point", "origin_m"),
+                         [("first", 0.0), ("uniform", 0.0), ("first", 3.0e5)])
+def test_returns_count_every_row_that_reached_a_cell(cell_point: str, origin_m: float) -> None:
     """Each row given to ``would_store`` or ``add_points`` is counted once as a return of its
     map cell, stored or not: summed per 0.2 m cell, the counts equal a brute-force count of the
     rows per cell, with batches at the 0.2 m and the 0.1 m cell edge mixed and rows passed
     through ``would_store`` first (as the moving-things path does) or given to ``add_points``
-    whole."""
+    whole; 300 km from the origin the cells are told apart by rows, not packed in one int64."""
     rng = np.random.default_rng(11)
     ivox = IVox(0.5, 18, 10**6, 200, cell_m=0.2, cell_point=cell_point)  # no voxel fills
     rows = []
     for batch in range(24):
-        pts = rng.uniform(-1.5, 1.5, size=(1500, 3))
+        pts = rng.uniform(-1.5, 1.5, size=(1500, 3)) + origin_m
         cell = 0.1 if batch % 3 == 0 else 0.2
         if batch % 2:
             ivox.add_points(pts[ivox.would_store(pts, cell)], cell)

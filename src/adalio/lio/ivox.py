@@ -71,6 +71,8 @@ numba-parallel kNN was never faster below ~16k queries (thread wake-up and sched
 several ms); see benchmarks/bench_map_kernels.py."""
 
 _MAX_ABS_KEY = 4.0e15
+_PACK_HALF = 1 << 20
+"""Cells within ±_PACK_HALF of the origin pack into one int64 (21 bits per axis)."""
 _MIN_ROWS = 1024
 _S_NV, _S_NP, _S_NBLOCKS, _S_NFREE, _S_SEQ = range(5)
 
@@ -941,7 +943,12 @@ class IVox:
         )
         if cell_m > 0.0 and len(pts) > 1:
             cells = np.floor(pts / cell_m)
-            _, inverse = np.unique(cells, axis=0, return_inverse=True)
+            if np.abs(cells).max() < _PACK_HALF:  # one int64 per cell: a far faster unique
+                packed = cells.astype(np.int64) + _PACK_HALF
+                cells = (packed[:, 0] << 42) | (packed[:, 1] << 21) | packed[:, 2]
+                _, inverse = np.unique(cells, return_inverse=True)
+            else:
+                _, inverse = np.unique(cells, axis=0, return_inverse=True)
             inverse = inverse.reshape(-1)
             counts = np.bincount(inverse, weights=counts).astype(np.int64)[inverse]
         return pts, counts
