@@ -213,6 +213,9 @@ class Cell:
     """Share of the written map's points off the scene's surfaces, the map placed by the
     trajectory's SE(3) alignment to the GT: ghosts of people walking by, and a map that drifted
     (:func:`adalio.eval.scene_map.map_off_scene`)."""
+    map_left_out: float = float("nan")
+    """Share of the map's points left out of the written map (``output.map_min_returns``:
+    cells only one of the scans' points reached, on no plane of the map)."""
     scale_found_pct: float = float("nan")
     """The gyro scale correction ``run_bag`` restarted with, its largest entry in % (NaN: none)."""
     scale_passes: int = 0
@@ -406,6 +409,8 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     left = np.linalg.solve(S_used, S_true) - np.eye(3)
     cell.scale_error_pct = float(100 * np.abs(0.5 * (left + left.T)).max())
     cell.ate_m = float(ate(res.trajectory_path, sim.gt_path, align="se3")["rmse_m"])
+    left_out, n_map = getattr(res, "map_left_out", (0, 0))  # (0, 0): code before session 91
+    cell.map_left_out = left_out / n_map if n_map else float("nan")
     with contextlib.suppress(InputError):
         cell.map_off_scene = map_off_scene(res.map_path, res.trajectory_path, sim.gt_path,
                                            sim.meta_path)
@@ -693,7 +698,8 @@ def main(argv: list[str] | None = None) -> int:
           "ms/scan | within 3σ x / y / z | median abs(error) / σ | backfilled, worst error | "
           "IMU time offset found (passes), left | LiDAR-IMU rotation found (passes), left, "
           "final error | LiDAR-IMU translation, lever arm's error | gyro scale found (passes), "
-          "left, final error | map off the scene | stray returns, largest in a scan, scans "
+          "left, final error | map off the scene (left out of it) | stray returns, largest in "
+          "a scan, scans "
           "dropping them | error |\n"
           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
           flush=True)
@@ -729,7 +735,8 @@ def main(argv: list[str] | None = None) -> int:
                               f"{c.backfilled} ({cm(c.backfill_err_m)}) | "
                               f"{_offset_cell(c)} | {_rotation_cell(c)} | "
                               f"{_translation_cell(c)} | {_scale_cell(c)} | "
-                              f"{share_cell(c.map_off_scene)} | "
+                              f"{share_cell(c.map_off_scene)} "
+                              f"({share_cell(c.map_left_out)}) | "
                               f"{share_cell(c.stray_share)}, {share_cell(c.stray_scan_max)}, "
                               f"{share_cell(c.stray_dropped_scans)} | {c.error} |",
                               flush=True)
