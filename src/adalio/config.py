@@ -568,6 +568,10 @@ class OutputConfig:
     """'ply' (binary little-endian) or 'pcd' (binary)."""
     map_voxel_m: float = 0.05
     """Leaf of the voxel filter applied to the exported map (0 = no filter)."""
+    map_min_returns: int = 2
+    """The exported map keeps the points of the map cells (``map.map_leaf_m``) that at least
+    this many of the scans' points reached over the run: a stray return (dust, rain, a ghost)
+    is seen once where a surface is seen again by every sweep that looks at it (1 = keep all)."""
 
 
 @dataclass
@@ -799,6 +803,7 @@ RANGES: dict[str, Range] = {
     "adaptive.probe_step_m": POSITIVE,
     "adaptive.min_restoring_ratio": FRACTION,
     "output.map_voxel_m": NON_NEGATIVE,
+    "output.map_min_returns": AT_LEAST_ONE,
 }
 """Allowed range of every numeric field (a new numeric field needs one line here; the tests
 check that every int/float field has a rule)."""

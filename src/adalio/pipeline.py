@@ -212,6 +212,11 @@ class RunResult:
     """(start, end) seconds of consecutive scans that dropped their stray returns."""
     stray_drop_share: float = 1.0
     """preprocess.stray_drop_share of the run."""
+    map_left_out: tuple[int, int] = (0, 0)
+    """(map points left out of the map written, map points): those whose cell fewer than
+    ``output.map_min_returns`` of the scans' points reached (``Odometry.map_cloud``)."""
+    map_min_returns: int = 1
+    """output.map_min_returns of the run."""
     moving_body: bool = False
     """map.moving_body_m > 0: the points kept out include those on the same body as a point in
     free space or one seen through (``lio/moving.py``)."""
@@ -1100,9 +1105,10 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
                 with contextlib.suppress(Exception):  # never mask the error that stopped the run
                     sort_rows_by_time(paths["trajectory"], paths["scans"])
             try:
-                pts = odom.map_points()
+                pts, map_left_out = odom.map_cloud(cfg.output.map_min_returns)
             except Exception:  # noqa: BLE001  (never mask the error that stopped the run)
-                pts = np.zeros((0, 3))
+                pts, map_left_out = np.zeros((0, 3)), 0
+            map_counts = (map_left_out, len(pts) + map_left_out)
             leaf = cfg.output.map_voxel_m
             if leaf > 0 and len(pts):
                 from adalio.lio.voxel import voxel_downsample
@@ -1144,6 +1150,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         stray_points=(strays[0], strays[1]),
         stray_dropped=cfg.preprocess.drop_stray_returns,
         stray_drops=(strays[2], strays[3], strays[4]),
+        map_left_out=map_counts, map_min_returns=cfg.output.map_min_returns,
         stray_dropped_ranges_s=_flag_ranges(est_t, stray_drop),
         stray_drop_share=cfg.preprocess.stray_drop_share,
         moving_body=cfg.map.remove_moving and cfg.map.moving_body_m > 0.0,

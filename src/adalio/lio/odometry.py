@@ -103,6 +103,7 @@ from adalio.lio.measurement import (
 )
 from adalio.lio.motion_init import MovingInit, RestCheck, handover_covariance, lidar_rest_check
 from adalio.lio.moving import MovingPoints, SweepImage
+from adalio.lio.plane import fit_planes
 from adalio.lio.state import (
     BG,
     DIM,
@@ -730,13 +731,53 @@ class Odometry:
         m = self._movers
         return (0, 0) if m is None else (m.dropped, m.removed)
 
-    def map_points(self) -> np.ndarray:
+    def map_points(self, min_returns: int = 1) -> np.ndarray:
         """All map points (M,3) float64, world frame (the backfill's included; with
-        map.remove_moving, those still waiting to enter it too)."""
-        pts = self._ivox.points()
+        map.remove_moving, those still waiting to enter it too); with ``min_returns`` > 1 only
+        those of :meth:`map_cloud`."""
+        return self.map_cloud(min_returns)[0]
+
+    def map_cloud(self, min_returns: int = 1) -> tuple[np.ndarray, int]:
+        """(map points (M,3) float64, world frame; how many were left out).
+
+        With ``min_returns`` > 1 (``output.map_min_returns``), a point whose map cell
+        (``map.map_leaf_m``) fewer than ``min_returns`` of the scans' downsampled points reached
+        (:meth:`IVox.points_with_returns`) is kept only where it lies on a plane of the map
+        (:meth:`_on_map_plane`): a stray return (dust, a ghost) is seen once and lies in free
+        space, and a floor that a ring's circle sweeps over, cell after cell, is also seen once
+        per cell, but as a plane. The backfill's points and those waiting to enter the map are
+        all kept (no count)."""
+        pts, returns = self._ivox.points_with_returns(self._ivox.cell_m)
+        left_out = 0
+        if min_returns > 1 and self._ivox.cell_m > 0.0:
+            few = np.flatnonzero(returns < min_returns)
+            few = few[~self._on_map_plane(pts[few])]
+            keep = np.ones(pts.shape[0], np.bool_)
+            keep[few] = False
+            left_out = int(few.size)
+            pts = pts[keep]
         if self._movers is not None:
             pts = np.vstack([pts, *(held for held, _ in self._movers.waiting())])
-        return np.vstack([self._backfill_map, pts]) if self._backfill_map.shape[0] else pts
+        if self._backfill_map.shape[0]:
+            pts = np.vstack([self._backfill_map, pts])
+        return pts, left_out
+
+    def _on_map_plane(self, points_world: np.ndarray) -> np.ndarray:
+        """(N,) bool: each map point lies on the plane its ``filter.knn_k`` nearest other map
+        points fit, by the filter's own test of a plane (the general set's margin,
+        ``filter.min_neighbors``, ``filter.plane_min_extent_fraction``; lio-design.md §6.2), and
+        within that margin of it. The fit is PCA's whatever ``filter.plane_fit``: the least
+        squares' ``a^T x = -1`` tilts a plane through the world's origin (the floor under a
+        start)."""
+        if points_world.shape[0] == 0:
+            return np.zeros(0, np.bool_)
+        f, g = self.cfg.filter, self.cfg.adaptive.general
+        nbrs, counts, _ = self._ivox.knn(points_world, f.knn_k + 1, f.knn_max_range_m)
+        nbrs, counts = nbrs[:, 1:], np.maximum(counts - 1, 0)  # the point itself is the nearest
+        normals, d, valid = fit_planes(nbrs, counts, f.min_neighbors, g.plane_margin_m,
+                                       "pca", f.plane_min_extent_fraction * self._ivox.cell_m)
+        off = np.abs(np.einsum("ij,ij->i", np.nan_to_num(normals), points_world) + np.nan_to_num(d))
+        return valid & (off <= g.plane_margin_m)
 
     def take_backfill(self) -> list[Estimate]:
         """Poses of the scans read before the initialization, in time order (the backfill,
