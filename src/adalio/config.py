@@ -570,8 +570,9 @@ class OutputConfig:
     """Leaf of the voxel filter applied to the exported map (0 = no filter)."""
     map_min_returns: int = 2
     """The exported map keeps the points of the map cells (``map.map_leaf_m``) that at least
-    this many of the scans' points reached over the run: a stray return (dust, rain, a ghost)
-    is seen once where a surface is seen again by every sweep that looks at it (1 = keep all)."""
+    this many of the scans' points reached over the run, and the others that lie on a plane of
+    the map: a stray return (dust, rain, a ghost) is seen once where a surface is seen again by
+    every sweep that looks at it, or lies in a plane a ring swept over (1 = keep all)."""
 
 
 @dataclass

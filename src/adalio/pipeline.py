@@ -1104,10 +1104,13 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
             if late:
                 with contextlib.suppress(Exception):  # never mask the error that stopped the run
                     sort_rows_by_time(paths["trajectory"], paths["scans"])
-            try:
-                pts, map_left_out = odom.map_cloud(cfg.output.map_min_returns)
-            except Exception:  # noqa: BLE001  (never mask the error that stopped the run)
-                pts, map_left_out = np.zeros((0, 3)), 0
+            pts, map_left_out = np.zeros((0, 3)), 0
+            for k in dict.fromkeys((cfg.output.map_min_returns, 1)):  # all points if it fails
+                try:
+                    pts, map_left_out = odom.map_cloud(k)
+                    break
+                except Exception:  # noqa: BLE001, S112  (never mask the error that stopped the run)
+                    continue
             map_counts = (map_left_out, len(pts) + map_left_out)
             leaf = cfg.output.map_voxel_m
             if leaf > 0 and len(pts):

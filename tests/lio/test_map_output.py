@@ -82,3 +82,27 @@ def test_a_run_with_dust_and_ghosts_writes_a_map_with_fewer_points_off_the_scene
     n_out, n_map = left["stray", 2]
     assert (f"map: {n_out} of {n_map} points ({100.0 * n_out / n_map:.1f} %) left out of "
             f"map.ply") in said
+
+
+def test_a_map_test_that_fails_still_writes_every_point(tmp_path, monkeypatch) -> None:
+    """Nothing computed is lost: should the plane test fail at the end of a run, the map is
+    written with every point, as ``output.map_min_returns: 1`` writes it."""
+    from adalio.config import load_config
+    from adalio.eval.files import read_map_points
+    from adalio.pipeline import run_bag
+    from adalio.sim import cached_sequence
+
+    sim = cached_sequence("hall", seed=0, duration_s=3.0, columns=256)
+    cfg = load_config(config_file=sim.config_path)
+    every = run_bag(sim.bag_path, load_config(config_file=sim.config_path,
+                                              overrides={"output.map_min_returns": "1"}),
+                    tmp_path / "every", progress=False)
+
+    def broken(self, points_world):
+        raise MemoryError("no room for the plane test")
+
+    monkeypatch.setattr(Odometry, "_on_map_plane", broken)
+    res = run_bag(sim.bag_path, cfg, tmp_path / "broken", progress=False)
+    assert res.map_left_out[0] == 0 and res.map_left_out[1] > 1000
+    np.testing.assert_array_equal(read_map_points(res.map_path),
+                                  read_map_points(every.map_path))

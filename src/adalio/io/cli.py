@@ -676,8 +676,9 @@ def _summary(con: Console, res: Any, profile: bool, origin: str = "") -> None:
         k = getattr(res, "map_min_returns", 2)
         con.print(f"map: {left_out} of {n_map} points ({100.0 * left_out / n_map:.1f} %) left "
                   f"out of {res.map_path.name}, their cell reached by fewer than {k} of the "
-                  f"scans' points over the run (stray returns: dust, rain, ghosts; "
-                  f"output.map_min_returns, 1 keeps them)", highlight=False, soft_wrap=True)
+                  f"scans' points over the run and on no plane of the map (stray returns: "
+                  f"dust, rain, ghosts; output.map_min_returns, 1 keeps them)",
+                  highlight=False, soft_wrap=True)
     dropped, rows = getattr(res, "local_surface_rows", (0, 0))
     if rows:
         con.print(f"local-surface check: {dropped}/{rows} rows dropped "
