@@ -220,17 +220,17 @@ def _occ_rebuild(okeys: np.ndarray, ocount: np.ndarray, ostate: np.ndarray,
 
 
 @kernel()
-def _count_return(h: int, okeys: np.ndarray, nv: int, cap: int, vtotal: np.ndarray,
-                  vblocks: np.ndarray, pool: np.ndarray, returns: np.ndarray) -> None:
+def _count_return(h: int, okeys: np.ndarray, nv: int, cap: int, vblocks: np.ndarray,
+                  returns: np.ndarray) -> None:
     """A row that reached the occupied cell in occupancy slot ``h`` counts as a return of the
-    cell's last stored point (``okeys[h, 4:6]``), unless that slot has been emptied."""
+    cell's last stored point (``okeys[h, 4:6]``, recorded when it was stored and recounted
+    after an eviction). Where that point has left since (removed, or overwritten by the voxel's
+    cap) while another stays in the cell, the row counts for the slot: lost if it is empty (not
+    gathered; a point stored there starts at 1), for its new point otherwise."""
     v = okeys[h, 4]
     j = okeys[h, 5]
-    if 0 <= v < nv and 0 <= j < min(vtotal[v], cap):
-        b = vblocks[v, j >> _BLOCK_SHIFT]
-        s = j & (BLOCK_POINTS - 1)
-        if not np.isnan(pool[b, s, 0]):
-            returns[b, s] += 1
+    if 0 <= v < nv and 0 <= j < cap:
+        returns[vblocks[v, j >> _BLOCK_SHIFT], j & (BLOCK_POINTS - 1)] += 1
 
 
 @kernel()
@@ -391,7 +391,7 @@ def _insert_points(
             if ok:
                 h = _occ_slot(okeys, cell_index, cx, cy, cz, np.bool_(False))
                 if h >= 0 and ocount[h] > 0:
-                    _count_return(h, okeys, nv, cap, vtotal, vblocks, pool, returns)
+                    _count_return(h, okeys, nv, cap, vblocks, returns)
                     if uniform and (sample_batches <= 0
                                     or ostate[1] - okeys[h, 6] < sample_batches):
                         v = _lookup(table, vkeys, kx, ky, kz)
@@ -610,8 +610,8 @@ def _gather_points(
 
 @kernel()
 def _cells_taken(points: np.ndarray, cell_m: float, cell_index: int, okeys: np.ndarray,
-                 ocount: np.ndarray, nv: int, cap: int, vtotal: np.ndarray,
-                 vblocks: np.ndarray, pool: np.ndarray, returns: np.ndarray) -> np.ndarray:
+                 ocount: np.ndarray, nv: int, cap: int, vblocks: np.ndarray,
+                 returns: np.ndarray) -> np.ndarray:
     """(N,) bool: the cell floor(p / cell_m) of each point holds a stored point; each such row
     counts as a return of the cell (:func:`_count_return`)."""
     out = np.zeros(points.shape[0], np.bool_)
@@ -621,7 +621,7 @@ def _cells_taken(points: np.ndarray, cell_m: float, cell_index: int, okeys: np.n
             h = _occ_slot(okeys, cell_index, cx, cy, cz, np.bool_(False))
             out[i] = h >= 0 and ocount[h] > 0
             if out[i]:
-                _count_return(h, okeys, nv, cap, vtotal, vblocks, pool, returns)
+                _count_return(h, okeys, nv, cap, vblocks, returns)
     return out
 
 
@@ -910,8 +910,7 @@ class IVox:
             return np.ones(pts.shape[0], np.bool_)
         index = int(np.flatnonzero(self._cell_sizes == cell)[0])
         return ~_cells_taken(pts, cell, index, self._okeys, self._ocount, self.num_voxels,
-                             self.max_points_per_voxel, self._vtotal, self._vblocks, self._pool,
-                             self._returns)
+                             self.max_points_per_voxel, self._vblocks, self._returns)
 
     def remove_points(self, points_world: np.ndarray) -> np.ndarray:
         """Remove the stored points equal to rows of ``points_world`` (points seen to have
