@@ -17,6 +17,9 @@ def _grid(n: int, step_m: float) -> np.ndarray:
 
 
 def test_a_point_seen_once_is_left_out_unless_it_lies_on_a_plane_of_the_map() -> None:
+    """A floor whose cells one point each reached, a wall five scans reached, and 150 points
+    scattered in the free space above the floor, each reached once: the floor and the wall are
+    written, the scattered points are not, until a second scan's points reach them too."""
     rng = np.random.default_rng(3)
     odom = Odometry(Config())
     ivox = odom._ivox
@@ -34,15 +37,12 @@ def test_a_point_seen_once_is_left_out_unless_it_lies_on_a_plane_of_the_map() ->
     kept, left_out = odom.map_cloud(2)
     assert left_out == len(kept_all) - len(kept)
     kept_set = set(map(tuple, kept))
-    in_kept = np.array([[tuple(p) in kept_set for p in part] for part in (floor, stray)],
-                       dtype=object)
-    floor_kept, stray_kept = (np.mean(x) for x in in_kept)
+    floor_in = np.array([tuple(p) in kept_set for p in floor])
+    stray_in = np.array([tuple(p) in kept_set for p in stray])
     # where the floor meets the wall, a corner's nearest points take in the wall: no plane
-    away = floor[:, 0] < 4.05 - 2 * cell
-    assert np.asarray(in_kept[0], bool)[away].all()
-    wall_kept = np.mean([np.isclose(kept, w, atol=0.03).all(axis=1).any() for w in wall])
-    assert floor_kept >= 0.99 and wall_kept == 1.0
-    assert stray_kept < 0.05
+    assert floor_in[floor[:, 0] < 4.05 - 2 * cell].all() and floor_in.mean() >= 0.99
+    assert all(np.isclose(kept, w, atol=0.03).all(axis=1).any() for w in wall)
+    assert stray_in.mean() < 0.05  # measured 4.0 %
     # the same points reached again by a second scan's are kept
     ivox.add_points(stray)
     stored = set(map(tuple, stray)) & set(map(tuple, kept_all))  # two may share a cell
