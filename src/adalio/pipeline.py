@@ -942,7 +942,7 @@ def _calibration_pass(bag_path: str | Path, cfg: Config, n_scans: int,
                 if isinstance(item, ImuBatch):
                     odom.add_imu(item.t_ns, item.gyro_rad_s, item.accel_m_s2)
                     continue
-                odom.add_scan(item.points_lidar, item.t_ns, item.ring)
+                odom.add_scan(item.points_lidar, item.t_ns, item.ring, item.line)
                 n += 1
                 if n >= n_scans:
                     break
@@ -1062,7 +1062,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
                     if n_in == 0 and compiled and on_compile is not None:
                         on_compile()  # after the first cloud decoded: its input errors come first
                     t0 = time.perf_counter()
-                    est = odom.add_scan(item.points_lidar, item.t_ns, item.ring)
+                    est = odom.add_scan(item.points_lidar, item.t_ns, item.ring, item.line)
                     ms = (time.perf_counter() - t0) * 1e3
                     n_in += 1
                     for e in odom.take_backfill():

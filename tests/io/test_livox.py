@@ -91,7 +91,7 @@ def test_truncated_bytes_are_refused():
 def test_decoder_times_and_drops():
     """Absolute times are timebase + offset_time; NaN, (0, 0, 0) and third-or-later-return
     points (tag bits 4-5 = 2, 3) are dropped and counted, first and second returns kept; no
-    rings (a line is a laser of the pattern)."""
+    rings (a line is a laser of the pattern): the lines are kept as ``Scan.line``."""
     rng = np.random.default_rng(3)
     n = 400
     xyz = rng.uniform(-20, 20, (n, 3)).astype(np.float32)
@@ -109,7 +109,8 @@ def test_decoder_times_and_drops():
     assert len(scan) == keep.sum() and 0 < keep.sum() < n - 25
     np.testing.assert_array_equal(scan.t_ns, base + pts["offset_time"][keep].astype(np.int64))
     np.testing.assert_array_equal(scan.points_lidar, xyz[keep].astype(np.float64))
-    assert scan.ring is None
+    assert scan.ring is None  # each point's laser is kept apart, for the stray test
+    np.testing.assert_array_equal(scan.line, pts["line"][keep])
     st = dec.stats
     assert (st.nonfinite, st.zero, st.later_return, st.kept) == \
         (10, 15, int(((ret >= 2) & np.isfinite(xyz).all(axis=1) & xyz.any(axis=1)).sum()),
@@ -218,7 +219,7 @@ def test_info_reads_a_livox_bag(hall, tmp_path):
     assert res.exit_code == 0, res.output
     for text in ("livox_ros_driver/msg/CustomMsg", "would use: lidar /livox/lidar",
                  "Livox CustomMsg: offset_time", "after the message's timebase",
-                 "stray returns: not tested (the clouds carry no rings)"):
+                 "stray returns (5 sampled): mean"):  # read along each laser (Scan.line)
         assert text in res.output, res.output
 
 

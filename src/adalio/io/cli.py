@@ -350,9 +350,10 @@ def _stray_share(scan: Any, pre: Any) -> float | None:
     a run does not test either."""
     from adalio.lio.stray import ring_id_span, rings_testable, stray_returns
 
-    if not rings_testable(ring_id_span(scan.ring)):
+    ids = scan.ring if scan.ring is not None else getattr(scan, "line", None)  # Livox lasers
+    if not rings_testable(ring_id_span(ids)):
         return None
-    ring = np.asarray(scan.ring, np.int64)
+    ring = np.asarray(ids, np.int64)
     pts = np.asarray(scan.points_lidar, np.float64)
     ok = np.isfinite(pts).all(axis=1)
     if not ok.any():

@@ -245,7 +245,8 @@ class LivoxDecoder:
     (0, 0, 0) points dropped, ``reflectivity`` as the intensity. No rings: a Livox ``line`` is
     one of the lasers that draw the pattern, not a beam at a fixed elevation of a spinning head,
     so the options that need rings (``filter.local_surface_check``, ``filter.one_ring_max_deg``)
-    check nothing on it, as on any cloud without a ring field."""
+    check nothing on it, as on any cloud without a ring field. Each point's ``line`` is kept
+    (``Scan.line``) for the stray test, which reads a laser's points in firing order."""
 
     def __init__(self, sensor: SensorConfig | None = None, topic: str = "") -> None:
         self.sensor = sensor or SensorConfig()
@@ -284,7 +285,8 @@ class LivoxDecoder:
         self.stats.later_return += int(later.sum())
         t_ns = base + p["offset_time"][ok].astype(np.int64)
         return Scan(points_lidar=xyz[ok], t_ns=t_ns, stamp_ns=stamp_ns,
-                    intensity=p["reflectivity"][ok].astype(np.float32))
+                    intensity=p["reflectivity"][ok].astype(np.float32),
+                    line=p["line"][ok].astype(np.uint8))
 
 
 def lidar_decoder(msgtype: str, sensor: SensorConfig | None = None,

@@ -674,6 +674,9 @@ class Odometry:
         self._backfill_map = np.zeros((0, 3))
         """The backfill's map (world), part of ``map_points`` but not of the filter's map."""
         self._warned_no_ring: set[str] = set()
+        self._ring_is_line = False
+        """``add_scan`` was given Livox lines (``line``), not rings: only the stray test reads
+        them."""
         self.local_surface_rows = [0, 0]
         """filter.local_surface_check: [rows dropped, rows matched or dropped] over the run."""
 
@@ -791,7 +794,8 @@ class Odometry:
         return out
 
     def add_scan(self, points_lidar: np.ndarray, t_ns: np.ndarray,
-                 ring: np.ndarray | None = None) -> Estimate | None:
+                 ring: np.ndarray | None = None,
+                 line: np.ndarray | None = None) -> Estimate | None:
         """Process one sweep (§10) and return the IMU pose at the scan end.
 
         Give ``add_imu`` the samples up to the scan end and the first one after it first (as
@@ -800,8 +804,10 @@ class Odometry:
 
         Returns None while initializing, for a scan with no point left after preprocessing, and
         for a scan ending at or before the previous one (counted in ``n_skipped_scans``).
-        ``ring`` (N,) holds each point's ring id (``Scan.ring``), used only by
-        ``filter.local_surface_check``.
+        ``ring`` (N,) holds each point's ring id (``Scan.ring``), used by the stray test and
+        ``filter.local_surface_check``. ``line`` (N,), for a cloud without rings, each point's
+        Livox laser (``Scan.line``): the stray test reads a laser's points in firing order as
+        it reads a ring's; nothing else takes it for a ring.
         Raises InputError for malformed arrays or per-point times spanning > 1 s. Once the
         filter has tracked ``imu.backfill_after_s``, the scans read before the initialization
         get their poses (``take_backfill``). After a static start at the recording's start,
@@ -809,6 +815,8 @@ class Odometry:
         LiDAR has checked the rest (``imu.rest_lidar_check``), then handed out by
         ``take_backfill``.
         """
+        if ring is None and line is not None:  # the stray test's ids; local_surface: none
+            ring, self._ring_is_line = line, True
         # [points, t_ns, ring, the IMU chunks it merged, raised]: a trial's replay record
         entry = [points_lidar, t_ns, ring, [], False]
         self._input = entry
@@ -1086,7 +1094,7 @@ class Odometry:
         keep = rows[dec]
         full = None
         if local:
-            if ring is None:
+            if ring is None or self._ring_is_line:
                 self._warn_no_ring("filter.local_surface_check", "no row is checked")
             else:
                 full = (pts.take(rows, axis=0), t[rows],
