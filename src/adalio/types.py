@@ -43,9 +43,10 @@ class Scan:
     ring: np.ndarray | None = None
     """(N,) uint16 or None."""
     line: np.ndarray | None = None
-    """(N,) uint8 or None: a Livox cloud's laser of each point (``CustomMsg`` ``line``), one of
-    the lasers drawing its pattern, not a ring; the stray test reads each laser's points in
-    firing order where the cloud has no rings (``Odometry.add_scan``'s ``line``)."""
+    """(N,) uint8 or None: a Livox cloud's laser of each point (a ``CustomMsg``'s ``line``, or a
+    Livox driver's PointCloud2's), one of the lasers drawing its pattern, not a ring; the stray
+    test reads each laser's points in firing order where the cloud has no rings
+    (``Odometry.add_scan``'s ``line``)."""
 
     @property
     def t_start_ns(self) -> int:

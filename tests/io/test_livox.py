@@ -261,7 +261,8 @@ def livox_pc2(rng, n: int, base: int, with_time: bool):
 
 def test_livox_ros_driver2_pointcloud2_times():
     """livox_ros_driver2's PointCloud2: 'timestamp' detected as absolute ns, each point's time
-    within float64's resolution at 1.7e18 ns (256 ns) of the truth; 'line' not read as a ring."""
+    within float64's resolution at 1.7e18 ns (256 ns) of the truth; 'line' not read as a ring
+    but kept as each point's laser (``Scan.line``), for the stray test, as a CustomMsg's is."""
     base = 1_700_000_000_000_000_000
     msg, t = livox_pc2(np.random.default_rng(7), 20_000, base, with_time=True)
     dec = CloudDecoder(SensorConfig(), "/livox/lidar")
@@ -269,6 +270,7 @@ def test_livox_ros_driver2_pointcloud2_times():
     assert dec.time_spec.describe() == "'timestamp' in ns, absolute (detected)"
     assert np.abs(scan.t_ns - t).max() <= 256
     assert scan.ring is None
+    np.testing.assert_array_equal(scan.line, np.arange(20_000) % 6)
 
 
 def test_livox_ros_driver_pointcloud2_without_times_is_read_in_firing_order():

@@ -603,12 +603,16 @@ class CloudDecoder:
             t_ns = t_ns[ok]
         intensity = cols[extras["intensity"]][ok].astype(np.float32) if "intensity" in extras \
             else None
-        ring = None
-        if "ring" in extras and not livox:  # a Livox 'line' is a laser of its pattern, no ring
+        ring = line = None
+        if "ring" in extras:
             r = cols[extras["ring"]][ok]
-            ring = np.clip(r, 0, 65535).astype(np.uint16) if r.dtype.kind in "iu" else None
+            if r.dtype.kind in "iu" and not livox:
+                ring = np.clip(r, 0, 65535).astype(np.uint16)
+            elif r.dtype.kind in "iu" and extras["ring"] == "line":
+                # a Livox 'line' is a laser of its pattern, no ring: only the stray test reads it
+                line = np.clip(r, 0, 255).astype(np.uint8)
         return Scan(points_lidar=pts, t_ns=t_ns, stamp_ns=int(stamp_ns), intensity=intensity,
-                    ring=ring)
+                    ring=ring, line=line)
 
     def _settle_reference(self, spec: TimeSpec, stamp_ns: int) -> None:
         """Near the clock's zero each cloud is read with the reference detected on it
