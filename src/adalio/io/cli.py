@@ -350,7 +350,7 @@ def _stray_share(scan: Any, pre: Any) -> float | None:
     a run does not test either."""
     from adalio.lio.stray import ring_id_span, rings_testable, stray_returns
 
-    ids = scan.ring if scan.ring is not None else getattr(scan, "line", None)  # Livox lasers
+    ids = scan.ring if scan.ring is not None else scan.line  # a Livox cloud's lasers
     if not rings_testable(ring_id_span(ids)):
         return None
     ring = np.asarray(ids, np.int64)

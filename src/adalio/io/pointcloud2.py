@@ -604,11 +604,11 @@ class CloudDecoder:
         intensity = cols[extras["intensity"]][ok].astype(np.float32) if "intensity" in extras \
             else None
         ring = line = None
-        if "ring" in extras:
+        if "ring" in extras and cols[extras["ring"]].dtype.kind in "iu":
             r = cols[extras["ring"]][ok]
-            if r.dtype.kind in "iu" and not livox:
+            if not livox:
                 ring = np.clip(r, 0, 65535).astype(np.uint16)
-            elif r.dtype.kind in "iu" and extras["ring"] == "line":
+            elif extras["ring"] == "line":
                 # a Livox 'line' is a laser of its pattern, no ring: only the stray test reads it
                 line = np.clip(r, 0, 255).astype(np.uint8)
         return Scan(points_lidar=pts, t_ns=t_ns, stamp_ns=int(stamp_ns), intensity=intensity,
