@@ -199,3 +199,17 @@ def test_rings_that_do_not_match_the_points_are_refused() -> None:
     pts = np.ones((10, 3))
     with pytest.raises(InputError, match="ring must be"):
         odom._preprocess(pts, np.arange(10, dtype=np.int64), np.zeros(9, np.int64), ScanStats())
+
+
+def test_livox_lines_that_do_not_match_the_points_are_refused_by_their_own_name() -> None:
+    from adalio.errors import InputError
+    from adalio.lio.odometry import Odometry
+
+    odom = Odometry(Config())
+    pts = np.ones((10, 3))
+    t = np.arange(10, dtype=np.int64)
+    for bad in (np.zeros(9, np.int64), np.zeros(10)):  # short; not integers
+        with pytest.raises(InputError, match=r"add_scan: line must be \(N,\) integer Livox"):
+            odom.add_scan(pts, t, line=bad)
+    with pytest.raises(InputError, match="add_scan: ring must be"):
+        Odometry(Config()).add_scan(pts, t, ring=np.zeros(9, np.int64))

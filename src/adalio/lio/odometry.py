@@ -1052,8 +1052,9 @@ class Odometry:
         if ring is not None:
             ring = np.asarray(ring)
             if ring.shape != (pts.shape[0],) or not np.issubdtype(ring.dtype, np.integer):
-                raise InputError(f"add_scan: ring must be (N,) integer ring ids matching the "
-                                 f"{pts.shape[0]} points, got dtype {ring.dtype} shape "
+                ids = ("line", "Livox laser ids") if self._ring_is_line else ("ring", "ring ids")
+                raise InputError(f"add_scan: {ids[0]} must be (N,) integer {ids[1]} matching "
+                                 f"the {pts.shape[0]} points, got dtype {ring.dtype} shape "
                                  f"{ring.shape}")
         n_stray = n_dropped = 0
         span = ring_id_span(ring)
