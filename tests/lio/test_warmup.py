@@ -21,6 +21,7 @@ import json, sys
 from numba.core import event
 
 compiled = []
+shape_error = []  # numba's message for an array slice assignment of the wrong shape
 
 
 class Record(event.Listener):
@@ -29,6 +30,8 @@ class Record(event.Listener):
         if d.py_func.__module__.startswith("adalio."):
             compiled.append([d.py_func.__module__ + "." + d.py_func.__qualname__,
                              str(ev.data["args"])])
+        elif "raise_with_shape_context" in d.py_func.__qualname__:
+            shape_error.append(compiled[-1][0] if compiled else "")
 
     def on_end(self, ev):
         pass
@@ -42,7 +45,7 @@ from adalio.lio import warmup
 cold = warmup.cache_is_cold()
 warmup.compile_update_stage()
 print(json.dumps({"cold_before": cold, "cold_after": warmup.cache_is_cold(),
-                  "compiled": compiled}))
+                  "compiled": compiled, "shape_error": shape_error}))
 """
 
 _RUN = _RECORD + """
@@ -56,7 +59,8 @@ used = {d.__module__ + "." + d.__qualname__: sum(d.stats.cache_hits.values())
         for d in (associate._associate_parallel, measurement.point_to_plane,
                   measurement.residual_weights, map_uncertainty._map_covariance,
                   motion_init.preintegrate)}
-print(json.dumps({"compiled": compiled, "loaded": used, "poses": res.n_scans}))
+print(json.dumps({"compiled": compiled, "loaded": used, "poses": res.n_scans,
+                  "shape_error": shape_error}))
 """
 
 
@@ -98,6 +102,9 @@ def test_a_run_after_the_helper_compiles_none_of_the_helper_s_kernels_again(
     # literal type (adalio.jit): a fresh install would pay for it
     literal = [c for c in helper["compiled"] + run["compiled"] if "Literal[" in c[1]]
     assert literal == [], literal
+    # an array slice assignment (`a[0:3] = b`) compiles numba's shape-error message, string
+    # formatting and all: 4 of a cold start's 23 s when the IMU propagation had three
+    assert helper["shape_error"] + run["shape_error"] == []
 
 
 def test_the_helper_is_not_wanted_when_switched_off_or_when_the_cache_is_warm(

@@ -472,9 +472,11 @@ def propagate_covariance_fast(P, R, b_g, b_a, g, g_anchor, gyro_rad_s, accel_m_s
     # motion model's random acceleration reaches the velocity only (its position share, the
     # Δt³/4 of a held acceleration, took tests/lio/test_imu_gaps.py's 3 s gap from 2.9 to 7.0 cm)
     G_g = np.zeros((9, 3))
-    G_g[0:3] = D_vbg * (0.5 * dt)
-    G_g[3:6] = J_bg
-    G_g[6:9] = D_vbg
+    for i in range(3):  # element by element: an array slice assignment compiles numba's
+        for k in range(3):  # shape-error message (2.6 s of a cold start, tests/lio/test_warmup.py)
+            G_g[i, k] = D_vbg[i, k] * (0.5 * dt)
+            G_g[3 + i, k] = J_bg[i, k]
+            G_g[6 + i, k] = D_vbg[i, k]
     GQG = np.zeros((9, 9))
     for r in range(9):
         for s in range(9):
