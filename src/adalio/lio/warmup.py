@@ -56,8 +56,9 @@ def compile_update_stage() -> None:
     configuration, on a box room, in the order the run reaches them after its first stages: the
     scan downsampling (the run's first scan needs it), the parallel search (the largest,
     compiled for its argument types without searching, so without building a map first), the
-    filter update (on the room's exact planes), the map provenance, and the gyro-unit check's
-    preintegration."""
+    filter update (on the room's exact planes), the map provenance, the gyro-unit check's
+    preintegration, the moving things' tests and the map's upkeep, and the map written out at
+    the end of the run (its return counts and plane test)."""
     from adalio.config import Config
     from adalio.lio.associate import associate
     from adalio.lio.degeneracy import localizability
@@ -73,6 +74,7 @@ def compile_update_stage() -> None:
     from adalio.lio.motion_init import preintegrate
     from adalio.lio.moving import MovingPoints
     from adalio.lio.odometry import _Association, _group_ids
+    from adalio.lio.plane import fit_planes
     from adalio.lio.state import State, initial_covariance, pose_covariance_world
     from adalio.lio.voxel import voxel_downsample
 
@@ -129,6 +131,12 @@ def compile_update_stage() -> None:
         ivox.knn(pts[:8].copy(), 1, max(cfg.map.moving_margin_m, cell_m))  # the body's map test
         ivox.would_store(pts, cell_m)
         ivox.remove_points(pts[:10])
+    # the end of the run: the map written out (Odometry.map_cloud, its plane test)
+    ivox.add_points(pts, cell_m)
+    ivox.points_with_returns(cell_m)
+    nbrs, counts, _ = ivox.knn(pts[:64].copy(), f.knn_k + 1, f.knn_max_range_m)
+    fit_planes(nbrs[:, 1:], np.maximum(counts - 1, 0), f.min_neighbors, general.plane_margin_m,
+               "pca", f.plane_min_extent_fraction * cell_m)
 
 
 def _update_kernel():
