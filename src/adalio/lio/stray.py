@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from adalio.jit import kernel
+from adalio.lio.voxel import radix_argsort
 
 MAX_RING_SPAN = 65536
 """Ring ids spread over more values than this are no rings (a LiDAR has at most a few hundred;
@@ -54,10 +55,13 @@ its time and as many after (its column and the next on either side, for a spinni
 
 
 @kernel()
-def _ring_order(ring: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
+def _ring_order(ring: np.ndarray, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Indices sorting the points by ring, then by time (stable: equal times keep the message
-    order, as the two returns of one firing). The ring ids span at most ``MAX_RING_SPAN`` values
-    (a counting sort)."""
+    order, as the two returns of one firing), and where each ring id from the smallest on
+    starts in that order (``starts[k]``: ring ``min + k``; an id without points starts where
+    the next one does). The ring ids span at most ``MAX_RING_SPAN`` values (a counting sort);
+    within a ring the times sort by the map's stable radix sort (``voxel.radix_argsort``,
+    which a run compiles anyway: numba's merge sort took 1 s of a cold start)."""
     n = ring.shape[0]
     lo, hi = 0, 0
     if n:
@@ -86,10 +90,33 @@ def _ring_order(ring: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
                 break
         if not ordered:
             seg = order[a:b].copy()
-            idx = np.argsort(t_ns[seg], kind="mergesort")
+            t0 = t_ns[seg[0]]
+            for j in range(b - a):
+                t0 = min(t0, t_ns[seg[j]])
+            keys = np.empty(b - a, np.int64)
+            for j in range(b - a):
+                keys[j] = t_ns[seg[j]] - t0
+            n_bits = np.int64(0)  # not the literal 0: radix_argsort compiled once more for it
+            for j in range(b - a):
+                while (keys[j] >> n_bits) > 0:
+                    n_bits += 1
+            idx = radix_argsort(keys, n_bits)
             for j in range(b - a):
                 order[a + j] = seg[idx[j]]
-    return order
+    return order, starts
+
+
+@kernel()
+def _first_at_or_after(t_sorted: np.ndarray, a: int, b: int, t: int) -> int:
+    """The first index in ``[a, b)`` whose time is at or after ``t`` (``b`` if none): a binary
+    search of ``t_sorted``, sorted there (``np.searchsorted``'s left side)."""
+    while a < b:
+        mid = (a + b) // 2
+        if t_sorted[mid] < t:
+            a = mid + 1
+        else:
+            b = mid
+    return a
 
 
 CONTINUED = 0
@@ -112,7 +139,8 @@ def stray_codes(points: np.ndarray, t_ns: np.ndarray, ring: np.ndarray,
     ring's point lies at its range; ``CONTINUED`` otherwise, and for a point with fewer than two
     ring neighbours on both sides."""
     n = points.shape[0]
-    order = _ring_order(ring, t_ns)
+    order, starts = _ring_order(ring, t_ns)
+    lo = ring[order[0]] if n else 0
     r = np.empty(n)
     ring_sorted = np.empty(n, np.int64)
     t_sorted = np.empty(n, np.int64)
@@ -136,9 +164,12 @@ def stray_codes(points: np.ndarray, t_ns: np.ndarray, ring: np.ndarray,
             continue
         code[order[i]] = STRAY
         for step in (-1, 1):  # a thin thing that an adjacent ring sees too is no stray return
-            a = np.searchsorted(ring_sorted, ring_sorted[i] + step)
-            b = np.searchsorted(ring_sorted, ring_sorted[i] + step, side="right")
-            j = a + np.searchsorted(t_sorted[a:b], t_sorted[i])
+            k = ring_sorted[i] + step - lo
+            if k < 0 or k >= starts.shape[0]:
+                continue  # no such ring
+            a = starts[k]
+            b = starts[k + 1] if k + 1 < starts.shape[0] else n
+            j = _first_at_or_after(t_sorted, a, b, t_sorted[i])
             for c in range(max(a, j - SUPPORT_SIDE), min(b, j + SUPPORT_SIDE)):
                 if abs(r[c] - r[i]) <= tol:
                     code[order[i]] = SUPPORTED
