@@ -478,10 +478,11 @@ def test_embedded_workers_share_the_cores_between_their_numba_threads(monkeypatc
     own numba pools stay as numba made them (changing NUMBA_NUM_THREADS after numba launched its
     threads is an error)."""
     from adalio.batch import dask_client, use_bag_threads
+    from adalio.cpus import usable_cpus
 
     monkeypatch.delenv("NUMBA_NUM_THREADS", raising=False)
     with dask_client(workers=2) as client:
         got = [client.submit(use_bag_threads, pure=False, workers=[w]).result()
                for w in client.scheduler_info()["workers"]]
     assert len(got) == 2
-    assert got == [max(1, (os.cpu_count() or 1) // 2)] * 2
+    assert got == [max(1, usable_cpus() // 2)] * 2

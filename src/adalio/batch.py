@@ -32,6 +32,7 @@ from typing import Annotated, Any
 
 import typer
 
+from adalio.cpus import usable_cpus
 from adalio.errors import AdalioError, InputError
 
 SUMMARY_COLUMNS = ("bag", "status", "poses", "scans", "degenerate_pct", "ms_per_scan", "worker",
@@ -353,7 +354,9 @@ def check_scheduler_address(address: str) -> None:
 @contextlib.contextmanager
 def dask_client(workers: int | None = None, scheduler: str | None = None) -> Iterator[Any]:
     """A ``distributed.Client``: on an embedded LocalCluster of ``workers`` single-threaded
-    processes (default: the number of cores), or connected to ``scheduler``. Closed on exit."""
+    processes (default: the number of cores this process may run on, its affinity where the
+    platform gives one: a batch job's cpuset, ``taskset``; :func:`adalio.cpus.usable_cpus`),
+    or connected to ``scheduler``. Closed on exit."""
     import logging
 
     from distributed import Client, LocalCluster
@@ -375,7 +378,8 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
                                  f"{scheduler}'") from None
             yield client
         return
-    n = workers if workers is not None else (os.cpu_count() or 1)
+    cpus = usable_cpus()  # those this process may run on, as numba counts its threads
+    n = workers if workers is not None else cpus
     if n < 1:
         raise InputError(f"--workers must be >= 1 (got {n})")
     with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
@@ -384,7 +388,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
         client.run(_ignore_sigint)
         client.run(_read_without_thread)
         if not os.environ.get("NUMBA_NUM_THREADS"):
-            client.run(_share_cores, max(1, (os.cpu_count() or 1) // n))
+            client.run(_share_cores, max(1, cpus // n))
         yield client
 
 

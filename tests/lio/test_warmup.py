@@ -111,12 +111,12 @@ def test_a_run_after_the_helper_compiles_none_of_the_helper_s_kernels_again(
 def test_the_helper_is_not_wanted_when_switched_off_or_when_the_cache_is_warm(
         monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(warmup, "cache_is_cold", lambda: True)
-    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(warmup, "usable_cpus", lambda: 2)
     monkeypatch.setenv(warmup.ENV_SWITCH, "0")
     assert not warmup.wanted() and not warmup.start().started
     monkeypatch.setenv(warmup.ENV_SWITCH, "1")
     assert warmup.wanted()
-    monkeypatch.setattr(os, "cpu_count", lambda: 1)
+    monkeypatch.setattr(warmup, "usable_cpus", lambda: 1)
     assert not warmup.wanted()
     monkeypatch.setattr(os, "cpu_count", lambda: 2)
     monkeypatch.setattr(warmup, "cache_is_cold", lambda: False)
