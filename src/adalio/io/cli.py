@@ -311,8 +311,8 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
 
 
 COMPILE_NOTICE = ("[cyan]note:[/] first run after an install or an update of adalio: its "
-                  "kernels compile now (about 20 s on two cores, once; later runs load them "
-                  "from numba's cache)")
+                  "kernels compile now (about 20 s on two cores, 35-40 s on one; once: later "
+                  "runs load them from numba's cache)")
 
 
 def compile_notice(con: Console) -> None:
