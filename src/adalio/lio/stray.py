@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from adalio.jit import kernel
-from adalio.lio.voxel import radix_argsort
+from adalio.lio.voxel import _bit_width, radix_argsort
 
 MAX_RING_SPAN = 65536
 """Ring ids spread over more values than this are no rings (a LiDAR has at most a few hundred;
@@ -90,17 +90,14 @@ def _ring_order(ring: np.ndarray, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndar
                 break
         if not ordered:
             seg = order[a:b].copy()
-            t0 = t_ns[seg[0]]
+            t0 = t1 = t_ns[seg[0]]
             for j in range(b - a):
                 t0 = min(t0, t_ns[seg[j]])
+                t1 = max(t1, t_ns[seg[j]])
             keys = np.empty(b - a, np.int64)
             for j in range(b - a):
                 keys[j] = t_ns[seg[j]] - t0
-            n_bits = np.int64(0)  # not the literal 0: radix_argsort compiled once more for it
-            for j in range(b - a):
-                while (keys[j] >> n_bits) > 0:
-                    n_bits += 1
-            idx = radix_argsort(keys, n_bits)
+            idx = radix_argsort(keys, _bit_width(t1 - t0))
             for j in range(b - a):
                 order[a + j] = seg[idx[j]]
     return order, starts
