@@ -118,7 +118,8 @@ def test_the_helper_is_not_wanted_when_switched_off_or_when_the_cache_is_warm(
     assert warmup.wanted()
     monkeypatch.setattr(warmup, "usable_cpus", lambda: 1)
     assert not warmup.wanted()
-    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(warmup, "usable_cpus", lambda: 2)
+    assert warmup.wanted()  # two CPUs again: only the warm cache below stops it
     monkeypatch.setattr(warmup, "cache_is_cold", lambda: False)
     assert not warmup.wanted()
 
