@@ -19,14 +19,15 @@ def test_a_run_into_an_earlier_runs_folder_leaves_none_of_its_outputs(tmp_path: 
     run_bag(sim.bag_path, cfg, out, progress=False)
     make_report(out, gt=sim.gt_path)
     first = {p.name for p in out.iterdir()}
-    assert set(REPORT_FILES) <= first and "map.ply" in first
+    assert set(REPORT_FILES) <= first and {"map.ply", "map_dense.ply"} <= first
     (out / "notes.txt").write_text("mine")
 
     res = run_bag(sim.bag_path, cfg, out, progress=False, max_scans=30, map_format="pcd")
     second = {p.name for p in out.iterdir()}
-    assert not set(REPORT_FILES) & second and "map.ply" not in second
+    assert not set(REPORT_FILES) & second and not {"map.ply", "map_dense.ply"} & second
     # exactly what a run writes, whatever a report's file list says
-    assert second == {"map.pcd", "trajectory.tum", "scans.csv", "config.yaml", "notes.txt"}
+    assert second == {"map.pcd", "map_dense.pcd", "trajectory.tum", "scans.csv", "config.yaml",
+                      "notes.txt"}
     assert (out / "notes.txt").read_text() == "mine"
     assert res.map_path == out / "map.pcd"
     assert 0 < len((out / "trajectory.tum").read_text().splitlines()) <= 30

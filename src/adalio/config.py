@@ -573,6 +573,11 @@ class OutputConfig:
     this many of the scans' points reached over the run, and the others that lie on a plane of
     the map: a stray return (dust, rain, a ghost) is seen once where a surface is seen again by
     every sweep that looks at it, or lies in a plane a ring swept over (1 = keep all)."""
+    dense_map_voxel_m: float = 0.05
+    """``map_dense.ply`` (or ``.pcd``): every still point of every scan at its scan's updated
+    pose, one per voxel of this edge (m; at least 0.01), kept where the map written out holds
+    a point within one ``map.map_leaf_m`` (``adalio.lio.dense_map``); ``adalio run
+    --dense-map`` sets it. 0: not kept, not written."""
 
 
 @dataclass
@@ -805,6 +810,7 @@ RANGES: dict[str, Range] = {
     "adaptive.min_restoring_ratio": FRACTION,
     "output.map_voxel_m": NON_NEGATIVE,
     "output.map_min_returns": AT_LEAST_ONE,
+    "output.dense_map_voxel_m": NON_NEGATIVE,
 }
 """Allowed range of every numeric field (a new numeric field needs one line here; the tests
 check that every int/float field has a rule)."""
@@ -818,6 +824,15 @@ def _cross_checks(cfg: Config) -> None:
     if cfg.filter.min_neighbors > cfg.filter.knn_k:
         raise ConfigError(f"filter.min_neighbors must be <= filter.knn_k (got "
                           f"{cfg.filter.min_neighbors} > {cfg.filter.knn_k})")
+    dense = cfg.output.dense_map_voxel_m
+    if 0.0 < dense < DENSE_MAP_MIN_VOXEL_M:
+        raise ConfigError(f"output.dense_map_voxel_m must be 0 (no dense map) or at least "
+                          f"{DENSE_MAP_MIN_VOXEL_M:g} m (got {dense:g})")
+
+
+DENSE_MAP_MIN_VOXEL_M = 0.01
+"""The smallest voxel of the dense map (:mod:`adalio.lio.dense_map`): finer gains nothing over
+a spinning LiDAR's 1-3 cm of range noise and leaves its 21-bit voxel keys less than ±10 km."""
 
 
 MAX_LEVER_ARM_M = 10.0

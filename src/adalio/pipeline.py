@@ -217,6 +217,13 @@ class RunResult:
     ``output.map_min_returns`` of the scans' points reached (``Odometry.map_cloud``)."""
     map_min_returns: int = 1
     """output.map_min_returns of the run."""
+    dense_map_path: Path | None = None
+    """``map_dense.ply`` / ``.pcd`` (output.dense_map_voxel_m; None: not written)."""
+    dense_map_voxel_m: float = 0.0
+    """output.dense_map_voxel_m of the run."""
+    dense_map_points: tuple[int, int] = (0, 0)
+    """(dense map points written, points left out of it: none of the map written out within
+    map.map_leaf_m of them; ``Odometry.dense_map_cloud``)."""
     moving_body: bool = False
     """map.moving_body_m > 0: the points kept out include those on the same body as a point in
     free space or one seen through (``lio/moving.py``)."""
@@ -485,12 +492,14 @@ def _no_pose_reason(odom: Any, n_in: int, lidar_topic: str, imu_topic: str, out:
             f"(partial outputs in {out})")
 
 
-def remove_stale_outputs(out: Path, map_format: str) -> None:
+def remove_stale_outputs(out: Path, map_format: str, dense_map: bool = False) -> None:
     """Remove what an earlier run left in ``out`` that this one does not overwrite: the map in
-    the other format, and a report (``report.md``, ``metrics.json``, its figures), which would
-    otherwise describe the earlier run beside this one's files. Nothing else in the folder is
-    touched."""
-    for name in [f"map.{f}" for f in ("ply", "pcd") if f != map_format] + list(REPORT_FILES):
+    the other format, a dense map in the other format or, without ``dense_map``, in any, and a
+    report (``report.md``, ``metrics.json``, its figures), which would otherwise describe the
+    earlier run beside this one's files. Nothing else in the folder is touched."""
+    maps = [f"{stem}.{f}" for stem in ("map", "map_dense") for f in ("ply", "pcd")
+            if f != map_format or (stem == "map_dense" and not dense_map)]
+    for name in maps + list(REPORT_FILES):
         if (out / name).is_file():
             (out / name).unlink()
 
@@ -976,9 +985,11 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         n_clouds = next((t.count for t in bag.topics() if t.name == lidar_topic), 0)
         total = min(n_clouds, max_scans) if max_scans else n_clouds
         out.mkdir(parents=True, exist_ok=True)
-        remove_stale_outputs(out, cfg.output.map_format)
+        dense = cfg.output.dense_map_voxel_m > 0
+        remove_stale_outputs(out, cfg.output.map_format, dense)
         paths = {"trajectory": out / "trajectory.tum", "scans": out / "scans.csv",
-                     "map": out / f"map.{cfg.output.map_format}", "config": out / "config.yaml"}
+                     "map": out / f"map.{cfg.output.map_format}", "config": out / "config.yaml",
+                     "dense_map": out / f"map_dense.{cfg.output.map_format}" if dense else None}
         paths["config"].write_text(cfg.to_yaml())
         odom = Odometry(cfg)
         odom.warn_time_offset = warn_checks and not restart_on_offset
@@ -1112,6 +1123,13 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
                 except Exception:  # noqa: BLE001, S112  (never mask the error that stopped the run)
                     continue
             map_counts = (map_left_out, len(pts) + map_left_out)
+            dense_counts = (0, 0)
+            if paths["dense_map"] is not None:  # before the map's own voxel filter thins it
+                dense_pts, dense_left_out = np.zeros((0, 3)), 0
+                with contextlib.suppress(Exception):  # never mask the error that stopped the run
+                    dense_pts, dense_left_out = odom.dense_map_cloud(pts)
+                write_map(paths["dense_map"], dense_pts, cfg.output.map_format)
+                dense_counts = (len(dense_pts), dense_left_out)
             leaf = cfg.output.map_voxel_m
             if leaf > 0 and len(pts):
                 from adalio.lio.voxel import voxel_downsample
@@ -1154,6 +1172,8 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         stray_dropped=cfg.preprocess.drop_stray_returns,
         stray_drops=(strays[2], strays[3], strays[4]),
         map_left_out=map_counts, map_min_returns=cfg.output.map_min_returns,
+        dense_map_path=paths["dense_map"], dense_map_points=dense_counts,
+        dense_map_voxel_m=cfg.output.dense_map_voxel_m,
         stray_dropped_ranges_s=_flag_ranges(est_t, stray_drop),
         stray_drop_share=cfg.preprocess.stray_drop_share,
         moving_body=cfg.map.remove_moving and cfg.map.moving_body_m > 0.0,

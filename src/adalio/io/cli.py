@@ -54,22 +54,28 @@ def check_out_dir(out: Path, option: str = "--out") -> None:
         raise InputError(f"{option} {out}: {existing} is not writable; choose another folder")
 
 
+FLAG_NAMES = {"output.dense_map_voxel_m": "--dense-map"}
+"""The run's flags whose name is not their config key's last part."""
+
+
 def _build_config(preset: str | None, config_file: Path | None, lidar_topic: str | None,
                   imu_topic: str | None, extrinsic: str | None, mode: str | None,
-                  map_format: str | None, sets: list[str] | None = None) -> Any:
+                  map_format: str | None, sets: list[str] | None = None,
+                  dense_map: float | None = None) -> Any:
     """The run's config: preset < ``--config`` < ``--set KEY=VALUE`` < the named flags; a
     ``--set`` of a key a flag also gives, to another value, is a ConfigError."""
     from adalio.config import load_config, set_options, transform_from_xyz_quat
 
     flags: dict[str, Any] = {"sensor.lidar_topic": lidar_topic,
                              "sensor.imu_topic": imu_topic, "adaptive.mode": mode,
-                             "output.map_format": map_format}
+                             "output.map_format": map_format,
+                             "output.dense_map_voxel_m": dense_map}
     overrides: dict[str, Any] = set_options(sets)
     for key, value in flags.items():
         if value is None:
             continue
         if key in overrides and overrides[key] != str(value):
-            flag = "--" + key.rpartition(".")[2].replace("_", "-")
+            flag = FLAG_NAMES.get(key, "--" + key.rpartition(".")[2].replace("_", "-"))
             raise ConfigError(f"{flag} {value} and --set {key}={overrides[key]} disagree: give "
                               "one of them")
         overrides[key] = value
@@ -242,6 +248,11 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
             help="Output folder (default: runs/BAGNAME, or runs/BAGNAME_K with the first free K).")]
         = None,
         map_format: Annotated[str | None, typer.Option(help="ply | pcd")] = None,
+        dense_map: Annotated[float | None, typer.Option(
+            "--dense-map", help="map_dense.ply (or .pcd): every scan's still points at the "
+                                "scan's pose, one per voxel of this many metres (at least "
+                                "0.01; 0: not written; default output.dense_map_voxel_m, 0.05)."
+                                )] = None,
         gt: Annotated[Path | None, typer.Option(help="Ground-truth TUM file: write an "
                                                 "evaluation report too.")] = None,
         max_scans: Annotated[int | None, typer.Option(help="Stop after N scans.")] = None,
@@ -269,7 +280,7 @@ def run(bag: Annotated[Path, typer.Argument(help="ROS1 .bag (or folder of them),
     from adalio.pipeline import default_out_dir, run_bag
 
     cfg = _build_config(preset, config, lidar_topic, imu_topic, extrinsic, mode, map_format,
-                        set_)
+                        set_, dense_map)
     if gt is not None and not gt.is_file():
         raise InputError(f"ground truth {gt} does not exist: check --gt")
     out_dir = out if out is not None else default_out_dir(bag)
@@ -680,6 +691,13 @@ def _summary(con: Console, res: Any, profile: bool, origin: str = "") -> None:
                   f"scans' points over the run and on no plane of the map (stray returns: "
                   f"dust, rain, ghosts; output.map_min_returns, 1 keeps them)",
                   highlight=False, soft_wrap=True)
+    dense_path = getattr(res, "dense_map_path", None)
+    if dense_path is not None:
+        n_dense, dense_left_out = getattr(res, "dense_map_points", (0, 0))
+        con.print(f"dense map: {n_dense} points in {dense_path.name}, one per "
+                  f"{res.dense_map_voxel_m:g} m voxel; {dense_left_out} left out, no point of "
+                  f"{res.map_path.name} within a map cell of them (seen through later: moving "
+                  f"things; stray returns)", highlight=False, soft_wrap=True)
     dropped, rows = getattr(res, "local_surface_rows", (0, 0))
     if rows:
         con.print(f"local-surface check: {dropped}/{rows} rows dropped "

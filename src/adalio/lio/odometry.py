@@ -50,6 +50,7 @@ import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from adalio.config import Config, ImuConfig, imu_noise_is_generic
 from adalio.errors import ConfigError, InputError
@@ -64,6 +65,7 @@ from adalio.lio.degeneracy import (
     observable_projector,
     weak_directions,
 )
+from adalio.lio.dense_map import DenseMap
 from adalio.lio.extrinsic_check import (
     GROSS_MIN_SPAN_S,
     GROSS_SPAN_S,
@@ -492,6 +494,9 @@ class Odometry:
         self._ivox = IVox.from_config(config.map)
         self._movers = MovingPoints.from_config(config.map) if config.map.remove_moving else None
         """Where the sweeps saw through, to keep moving things out (map.remove_moving)."""
+        dense_m = config.output.dense_map_voxel_m
+        self._dense = DenseMap(dense_m) if dense_m > 0 else None
+        """Every still point of every scan at its updated pose (output.dense_map_voxel_m)."""
         self._detector = DegeneracyDetector(config.adaptive)
         self._q_diag = imu.process_noise(config.imu)
         self._noise_used = config.imu
@@ -765,6 +770,28 @@ class Odometry:
             pts = np.vstack([self._backfill_map, pts])
         return pts, left_out
 
+    def dense_map_cloud(self, map_points: np.ndarray) -> tuple[np.ndarray, int]:
+        """(dense map points (D,3) float64, world frame; how many were left out), with
+        ``output.dense_map_voxel_m`` (:mod:`adalio.lio.dense_map`; none without it).
+
+        A point is kept where ``map_points`` (:meth:`map_cloud`'s, the map written out) holds a
+        point within ``map.map_leaf_m``: the filter's map has meanwhile lost what later sweeps
+        saw through (people walking by) and left out the cells of stray returns, and the dense
+        map loses the points there with them. A surface any sweep registered fills the map's
+        cells, so nothing of it is lost; an evicted part of the map
+        (``map.capacity_voxels``) would be."""
+        if self._dense is None or not len(self._dense):
+            return np.zeros((0, 3)), 0
+        pts = self._dense.points()
+        ref = np.asarray(map_points, dtype=np.float64)
+        ref = ref[np.all(np.isfinite(ref), axis=1)]
+        if not ref.shape[0]:
+            return np.zeros((0, 3)), pts.shape[0]
+        d, _ = cKDTree(ref).query(pts, distance_upper_bound=self.cfg.map.map_leaf_m,
+                                  workers=-1)
+        near = np.isfinite(d)
+        return pts[near], int(pts.shape[0] - np.count_nonzero(near))
+
     def _on_map_plane(self, points_world: np.ndarray) -> np.ndarray:
         """(N,) bool: each map point lies on the plane its ``filter.knn_k`` nearest other map
         points fit, by the filter's own test of a plane (the general set's margin,
@@ -997,6 +1024,8 @@ class Odometry:
         if inserted:
             self._finest_cell_m = min(self._finest_cell_m, cell_m)
             self._last_cell_m = cell_m
+            if self._dense is not None:  # the scan's still points, not only the downsampled
+                self._dense.add(points_to_world(pts_e, s.R, s.p, s.R_LI, s.t_LI))
         if cfg.filter.map_uncertainty and loc is not None:
             self._W_map = self._provenance.map_covariance(s.p, assoc.nearest[assoc.selected])
         W_world = self._world_covariance(extrinsic=False)
@@ -1129,6 +1158,8 @@ class Odometry:
         self.lidar_view = lidar_view(pts_e, s.R @ s.R_LI, s.g)
         p_world = points_to_world(pts_e, s.R, s.p, s.R_LI, s.t_LI)
         stored = self._ivox.add_points(p_world)
+        if self._dense is not None:
+            self._dense.add(p_world)
         if self._movers is not None:  # the anchor's map is the world: no probation
             self._movers.add_sweep(self._movers.image(pts_e), *s.lidar_pose(), t_e)
             self._movers.stored(p_world[stored], t_e)
@@ -1333,6 +1364,9 @@ class Odometry:
                     anchored = True
                     rev._hold_to_anchor(self._anchor_state, mirror - self._t_first_map_ns,
                                         self._anchor_v_cov)
+                # the dense map takes the held scans' points at their backfilled poses, not
+                # those of the scans since the initialization again (the forward run's stand)
+                rev._dense = self._dense if int(t_pts.max()) < t_init else None
                 try:
                     est = rev.add_scan(pts, mirror - t_pts)
                 except InputError as exc:
