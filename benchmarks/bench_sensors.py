@@ -267,6 +267,8 @@ class Cell:
     """The final extrinsic's rotation (the run's config.yaml) against the simulated one."""
     gross_found_deg: float = float("nan")
     """The gross rotation error ``run_bag`` restarted with first (NaN: none)."""
+    gross_refused_deg: float = float("nan")
+    """A gross rotation the run refused (``RunResult.extrinsic_rotation_gross_refuted``)."""
     gross_checked_deg: float = float("nan")
     """Where the gross rotation check closed finding none: its last estimate's angle and
     largest standard deviation (NaN: no estimate, or it found one)."""
@@ -365,6 +367,9 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     gross = res.extrinsic_rotation_gross_found
     if gross is not None:
         cell.gross_found_deg = float(np.degrees(gross.angle_rad))
+    refused = getattr(res, "extrinsic_rotation_gross_refuted", None)
+    if refused is not None:
+        cell.gross_refused_deg = float(np.degrees(refused[0].angle_rad))
     checked = res.extrinsic_rotation_gross_checked
     if checked is not None:
         cell.gross_checked_deg = float(np.degrees(checked.angle_rad))
@@ -515,11 +520,14 @@ def _rotation_cell(c: Cell) -> str:
     """'1.02° (2), 0.03°, 0.08°': the rotation run_bag restarted with (passes), what the final
     run's check left ('unsettled 60 s (0.63° ±0.16)': it closed without a conclusion after 60 s
     of updates, at that estimate), and the final extrinsic's error ('–' where none); after a
-    gross error, 'gross 89.8° + ' before the rotation the fine check found then."""
+    gross error, 'gross 89.8° + ' before the rotation the fine check found then ('gross 13.5°
+    refused + ' where the run refused it and the fine check went on from the configured one)."""
     found = "–" if not np.isfinite(c.rotation_found_deg) else \
         f"{c.rotation_found_deg:.2f}° ({c.rotation_passes})"
     if np.isfinite(c.gross_found_deg):
         found = f"gross {c.gross_found_deg:.1f}° + {found}"
+    if np.isfinite(c.gross_refused_deg):
+        found = f"gross {c.gross_refused_deg:.1f}° refused + {found}"
     left = "–" if not np.isfinite(c.rotation_left_deg) else f"{c.rotation_left_deg:.2f}°"
     if np.isfinite(c.rotation_unsettled_s):
         left = f"unsettled {c.rotation_unsettled_s:.0f} s"

@@ -448,6 +448,13 @@ def _rotation_text(res: Any) -> str:
         text = (f"sensor.T_imu_lidar turned by {gross.text()}, a gross error found by a LiDAR "
                 f"registration without the gyro over the first {gross.span_s:.0f} s, the run "
                 "restarted with it; then ")
+    refuted = getattr(res, "extrinsic_rotation_gross_refuted", None)
+    if refuted is not None:
+        gross, left = refuted
+        text = (f"a gross error of {gross.text()} registered without the gyro over the first "
+                f"{gross.span_s:.0f} s refused, as corrected by it the filter's LiDAR-only "
+                f"rotation disagreed with the gyro more ({np.degrees(left.angle_rad):.2f} deg "
+                f"against {np.degrees(gross.fine_rad):.2f} deg); then ")
     if found is not None:
         weighed = ("" if found.found_rad is None else
                    f" ({np.degrees(np.linalg.norm(found.found_rad)):.2f} deg as found, weighed "
