@@ -18,7 +18,7 @@ from adalio.jit import kernel_sources_stamp, sources_stamp
 KERNEL_MODULES = [
     "adalio.io.pointcloud2", "adalio.lio.associate", "adalio.lio.imu", "adalio.lio.ivox",
     "adalio.lio.local_surface", "adalio.lio.map_uncertainty", "adalio.lio.measurement", "adalio.lio.motion_init",
-    "adalio.lio.moving", "adalio.lio.stray",
+    "adalio.lio.moving", "adalio.lio.stray", "adalio.lio.dense_map",
     "adalio.lio.odometry", "adalio.lio.plane", "adalio.lio.so3", "adalio.lio.voxel",
 ]
 

@@ -57,8 +57,8 @@ def compile_update_stage() -> None:
     """Compile the kernels of the update and map stages of :meth:`adalio.lio.Odometry.add_scan`
     (or load them from numba's cache) for the argument types a run passes, with the default
     configuration, on a box room, in the order the run reaches them after its first stages: the
-    scan downsampling (the run's first scan needs it), the dense map's voxel test (its first
-    scan's points go in), the parallel search (the largest,
+    scan downsampling (the run's first scan needs it), the dense map (its first scan's points go
+    in), the parallel search (the largest,
     compiled for its argument types without searching, so without building a map first), the
     filter update (on the room's exact planes), the map provenance, the gyro-unit check's
     preintegration, the moving things' tests and the map's upkeep, and the map written out at
@@ -66,9 +66,10 @@ def compile_update_stage() -> None:
     from adalio.config import Config
     from adalio.lio.associate import associate
     from adalio.lio.degeneracy import localizability
+    from adalio.lio.dense_map import DenseMap
     from adalio.lio.ieskf import iterated_update
     from adalio.lio.ivox import IVox
-    from adalio.lio.map_uncertainty import MapProvenance, _owners
+    from adalio.lio.map_uncertainty import MapProvenance
     from adalio.lio.measurement import (
         normal_noise_information,
         normal_noise_matrices,
@@ -89,10 +90,8 @@ def compile_update_stage() -> None:
     cell_m = cfg.map.map_leaf_m
     ivox = IVox.from_config(cfg.map)
     pts = voxel_downsample(_box_room(20000, rng), general.voxel_size_m)
-    # the dense map's voxel test (output.dense_map_voxel_m; its table's other kernels are the
-    # map provenance's, which the run's first scan compiles anyway)
-    table = np.full(16, -1, np.int64)
-    _owners(table, table.copy(), np.zeros(2, np.int64))
+    # the dense map (output.dense_map_voxel_m): the run's first scan lays its points down
+    DenseMap(cfg.output.dense_map_voxel_m or 0.05).add(pts)  # its blocks outgrow the first set
     associate(ivox, pts, f.knn_k, f.knn_max_range_m, f.min_neighbors, general.search_radius_m,
               general.plane_margin_m, f.plane_fit, f.plane_min_extent_fraction * cell_m,
               f.plane_within_support, keep_neighbours=True, compile_only=True)
