@@ -96,7 +96,7 @@ from scipy.spatial.transform import Rotation
 
 from adalio.config import load_config
 from adalio.errors import InputError
-from adalio.eval.files import read_scans_csv
+from adalio.eval.files import read_map_points, read_scans_csv
 from adalio.eval.metrics import ate, sigma_consistency
 from adalio.eval.scene_map import map_off_scene
 from adalio.pipeline import run_bag
@@ -216,6 +216,12 @@ class Cell:
     map_left_out: float = float("nan")
     """Share of the map's points left out of the written map (``output.map_min_returns``:
     cells only one of the scans' points reached, on no plane of the map)."""
+    map_points: int = 0
+    """Points of the written map (``map.ply``)."""
+    dense_points: int = 0
+    """Points of the dense map (``map_dense.ply``, output.dense_map_voxel_m; 0: none)."""
+    dense_off_scene: float = float("nan")
+    """:attr:`map_off_scene` of the dense map."""
     scale_found_pct: float = float("nan")
     """The gyro scale correction ``run_bag`` restarted with, its largest entry in % (NaN: none)."""
     scale_passes: int = 0
@@ -419,6 +425,13 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
     with contextlib.suppress(InputError):
         cell.map_off_scene = map_off_scene(res.map_path, res.trajectory_path, sim.gt_path,
                                            sim.meta_path)
+        cell.map_points = len(read_map_points(res.map_path))
+    dense_path = getattr(res, "dense_map_path", None)  # None: the code before session 93
+    if dense_path is not None:
+        with contextlib.suppress(InputError):
+            cell.dense_off_scene = map_off_scene(dense_path, res.trajectory_path, sim.gt_path,
+                                                 sim.meta_path)
+            cell.dense_points = len(read_map_points(dense_path))
     with contextlib.suppress(InputError):
         scans = read_scans_csv(out / "scans.csv")
         n_raw = np.maximum(scans["n_raw"], 1)
@@ -433,6 +446,15 @@ def run_cell(cell: Cell, duration_s: float | None, out_root: Path,
         cell.median_abs_z = [float(v) for v in cons.median_abs_z]
         cell.backfill_err_m = cons.backfill_max_error_m
     return cell
+
+
+def _dense_cell(c: Cell) -> str:
+    """'418303 (13.7x), 0.00 %': the dense map's points, their multiple of the written map's,
+    and its share off the scene ('–': none written)."""
+    if not c.dense_points:
+        return "–"
+    times = f" ({c.dense_points / c.map_points:.1f}x)" if c.map_points else ""
+    return f"{c.dense_points}{times}, {share_cell(c.dense_off_scene)}"
 
 
 def share_cell(share: float) -> str:
@@ -706,7 +728,8 @@ def main(argv: list[str] | None = None) -> int:
           "ms/scan | within 3σ x / y / z | median abs(error) / σ | backfilled, worst error | "
           "IMU time offset found (passes), left | LiDAR-IMU rotation found (passes), left, "
           "final error | LiDAR-IMU translation, lever arm's error | gyro scale found (passes), "
-          "left, final error | map off the scene (left out of it) | stray returns, largest in "
+          "left, final error | map off the scene (left out of it); dense map's points (x the "
+          "map's), off the scene | stray returns, largest in "
           "a scan, scans "
           "dropping them | error |\n"
           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
@@ -744,7 +767,7 @@ def main(argv: list[str] | None = None) -> int:
                               f"{_offset_cell(c)} | {_rotation_cell(c)} | "
                               f"{_translation_cell(c)} | {_scale_cell(c)} | "
                               f"{share_cell(c.map_off_scene)} "
-                              f"({share_cell(c.map_left_out)}) | "
+                              f"({share_cell(c.map_left_out)}); {_dense_cell(c)} | "
                               f"{share_cell(c.stray_share)}, {share_cell(c.stray_scan_max)}, "
                               f"{share_cell(c.stray_dropped_scans)} | {c.error} |",
                               flush=True)
