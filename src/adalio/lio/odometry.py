@@ -777,9 +777,9 @@ class Odometry:
         A point is kept where ``map_points`` (:meth:`map_cloud`'s, the map written out) holds a
         point within ``map.map_leaf_m``: the filter's map has meanwhile lost what later sweeps
         saw through (people walking by) and left out the cells of stray returns, and the dense
-        map loses the points there with them. A surface any sweep registered fills the map's
-        cells, so nothing of it is lost; an evicted part of the map
-        (``map.capacity_voxels``) would be."""
+        map loses the points there with them. A surface the sweeps registered fills the map's
+        cells, so little of it goes (8-288 points of 0.2-0.4 million on clean walks, session
+        93); an evicted part of the map (``map.capacity_voxels``) would go whole."""
         if self._dense is None or not len(self._dense):
             return np.zeros((0, 3)), 0
         pts = self._dense.points()
