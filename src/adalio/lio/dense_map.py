@@ -41,7 +41,7 @@ BLOCK_SHIFT = 4
 """A block is 2^4 = 16 voxels along each axis."""
 _BLOCK_MASK = (1 << BLOCK_SHIFT) - 1
 _BLOCK_WORDS = (1 << (3 * BLOCK_SHIFT)) // 64
-"""int64 words of a block's bitmap (32^3 bits)."""
+"""int64 words of a block's bitmap (16^3 bits)."""
 _MAX_VOXEL = float(_OFFSET)
 
 
