@@ -82,7 +82,7 @@ def test_local_cluster_runs_every_bag_and_a_garbage_bag_fails_alone(local_batch)
         assert int(row["poses"]) == len(traj) > 20
         assert int(row["scans"]) >= int(row["poses"])
         assert {p.name for p in (local_batch.out_dir / scene).iterdir()} == \
-            {"trajectory.tum", "scans.csv", "map.ply", "config.yaml"}
+            {"trajectory.tum", "scans.csv", "map.ply", "map_dense.ply", "config.yaml"}
     assert (local_batch.n_ok, local_batch.n_failed, local_batch.n_skipped) == (2, 1, 0)
     md = (local_batch.out_dir / "summary.md").read_text()
     assert md.startswith("| bag | status |") and md.count("\n") == 5

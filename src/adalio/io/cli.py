@@ -703,8 +703,8 @@ def _summary(con: Console, res: Any, profile: bool, origin: str = "") -> None:
         n_dense, dense_left_out = getattr(res, "dense_map_points", (0, 0))
         con.print(f"dense map: {n_dense} points in {dense_path.name}, one per "
                   f"{res.dense_map_voxel_m:g} m voxel; {dense_left_out} left out, no point of "
-                  f"{res.map_path.name} within a map cell of them (seen through later: moving "
-                  f"things; stray returns)", highlight=False, soft_wrap=True)
+                  f"{res.map_path.name} within a map cell of them (what later sweeps saw "
+                  f"through; stray returns)", highlight=False, soft_wrap=True)
     dropped, rows = getattr(res, "local_surface_rows", (0, 0))
     if rows:
         con.print(f"local-surface check: {dropped}/{rows} rows dropped "
