@@ -584,51 +584,44 @@ def run_bag(bag_path: str | Path, config: Config, out_dir: str | Path, *,
             first.interrupted = True
             return first
         if left is not None and not left.angle_rad < gross.fine_rad:
-            return _gross_refuted(bag_path, cfg, out_dir, first, gross, left, seen, t_start,
-                                  **kwargs)
+            # the gyro-free registration was biased, not the rotation grossly off (a Mid-360
+            # along a corridor: 12-15 deg whatever the error, session 93), and a small error
+            # made the fine check significant: its passes go on from the configured rotation
+            warnings.warn(f"a LiDAR registration that never used the gyro put the LiDAR-IMU "
+                          f"rotation {gross.text()} off, but with that correction the filter's "
+                          f"LiDAR-only rotation disagrees with the gyro more over the same first "
+                          f"{first.n_scans_in} scans ({np.degrees(left.angle_rad):.2f} deg "
+                          f"against {np.degrees(gross.fine_rad):.2f} deg): the correction was "
+                          "refused, and the configured sensor.T_imu_lidar's rotation is checked "
+                          "finely instead", stacklevel=2)
+            res = _run_without_gross(bag_path, cfg, out_dir, first, seen, t_start, **kwargs)
+            res.extrinsic_rotation_gross_refuted = (gross, left)
+            return res
     cfg = corrected
     warnings.warn(f"the LiDAR-IMU rotation is off by {gross.text()}: {gross.evidence()}; the "
                   "run restarted with the rotation found (then "
                   "checked finely; the corrected sensor.T_imu_lidar is in its config.yaml: "
                   "set it in your config, or check the axes' order in a quaternion: x y z w)",
                   stacklevel=2)
+    res = _run_without_gross(bag_path, cfg, out_dir, first, seen, t_start,
+                             configured_sigma_deg=configured_sigma_deg, **kwargs)
+    res.extrinsic_rotation_gross_found = gross
+    return res
+
+
+def _run_without_gross(bag_path: str | Path, cfg: Config, out_dir: str | Path,
+                       first: RunResult, seen: set[str], t_start: float, *,
+                       configured_sigma_deg: float | None = None, **kwargs: Any) -> RunResult:
+    """:func:`run_bag` after its first run ``first`` stopped on a gross rotation error: the run
+    again from ``cfg`` (the rotation found, or the configured one where the correction was
+    refused) without the gross check, then the fine checks' passes (:func:`_run_checked`)."""
     with _said_once(seen, again=True):
         second = _run_once(bag_path, cfg, Path(out_dir), parallel_compile=False,
                            on_compile=None, restart_on_offset=True, check_gross=False, **kwargs)
     res = second if second.interrupted else _run_checked(
         bag_path, cfg, out_dir, second, seen, t_start,
         configured_sigma_deg=configured_sigma_deg, **kwargs)
-    res.extrinsic_rotation_gross_found = gross
     res.calibration_wall_s = res.calibration_wall_s or (  # 0: the fine checks did not restart
-        time.perf_counter() - t_start - res.wall_s)
-    res.compiled = first.compiled
-    return res
-
-
-def _gross_refuted(bag_path: str | Path, cfg: Config, out_dir: str | Path, first: RunResult,
-                   gross: Any, left: Any, seen: set[str], t_start: float,
-                   **kwargs: Any) -> RunResult:
-    """:func:`run_bag` where the gross rotation check's correction made the fine check's
-    estimate no smaller over the same scans (``left``, against ``gross.fine_rad`` before it):
-    the gyro-free registration was biased, not the rotation grossly off (a Mid-360 along a
-    corridor: 12-15 deg whatever the error, session 93), and a small error made the fine check
-    significant. The run starts again from the configured rotation without the gross check,
-    and the fine check's passes go on from there."""
-    warnings.warn(f"a LiDAR registration that never used the gyro put the LiDAR-IMU rotation "
-                  f"{gross.text()} off, but with that correction the filter's LiDAR-only "
-                  f"rotation disagrees with the gyro more over the same first "
-                  f"{first.n_scans_in} scans ({np.degrees(left.angle_rad):.2f} deg against "
-                  f"{np.degrees(gross.fine_rad):.2f} deg): the correction was refused, and "
-                  "the configured sensor.T_imu_lidar's rotation is checked finely instead",
-                  stacklevel=3)
-    with _said_once(seen, again=True):
-        second = _run_once(bag_path, cfg, Path(out_dir), parallel_compile=False,
-                           on_compile=None, restart_on_offset=True, check_gross=False,
-                           **kwargs)
-    res = second if second.interrupted else _run_checked(bag_path, cfg, out_dir, second, seen,
-                                                         t_start, **kwargs)
-    res.extrinsic_rotation_gross_refuted = (gross, left)
-    res.calibration_wall_s = res.calibration_wall_s or (
         time.perf_counter() - t_start - res.wall_s)
     res.compiled = first.compiled
     return res
