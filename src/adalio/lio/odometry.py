@@ -678,12 +678,11 @@ class Odometry:
         self._backfilled: list[Estimate] = []
         self._backfill_map = np.zeros((0, 3))
         """The backfill's map (world), part of ``map_points`` but not of the filter's map:
-        the points the reversed pass's map gained over the forward one (:meth:`_map_gained`)."""
+        the points the reversed pass's map gained from the held scans (:meth:`_map_gained`)."""
         self._backfill_returns = np.zeros(0, np.int64)
         """Of each backfill map point, how many of the scans' points reached its cell in the
-        reversed pass's map (as ``IVox.points_with_returns``; the int64 maximum for a point
-        still waiting to enter that map, with map.remove_moving, kept as ``map_cloud`` keeps
-        the forward run's)."""
+        reversed pass's map (as ``IVox.points_with_returns``; for a point still waiting to
+        enter that map, 1, as ``map_cloud`` counts the forward run's)."""
         self._backfill_on_plane = np.zeros(0, np.bool_)
         """Each backfill map point lies on a plane of the reversed pass's map
         (:meth:`_on_map_plane`)."""
@@ -762,58 +761,63 @@ class Odometry:
         (:meth:`IVox.points_with_returns`) is kept only where it lies on a plane of the map
         (:meth:`_on_map_plane`): a stray return (dust, a ghost) is seen once and lies in free
         space, and a floor that a ring's circle sweeps over, cell after cell, is also seen once
-        per cell, but as a plane. The backfill's points (:meth:`_map_gained`) are judged by
-        the same rule on the reversed pass's map; those waiting to enter a map are all kept
-        (no count)."""
+        per cell, but as a plane. A point still waiting to enter the map (map.remove_moving)
+        counts as reached once: it never entered the map, and the ones left at the end of a
+        run were mostly stray returns (session 94). The backfill's points
+        (:meth:`_map_gained`) are judged by the same rule on the reversed pass's map."""
         pts, returns = self._ivox.points_with_returns(self._ivox.cell_m)
+        waiting = self._waiting_points()
+        judge = min_returns > 1 and self._ivox.cell_m > 0.0
         left_out = 0
-        if min_returns > 1 and self._ivox.cell_m > 0.0:
+        if judge:
             few = np.flatnonzero(returns < min_returns)
             few = few[~self._on_map_plane(pts[few])]
             keep = np.ones(pts.shape[0], np.bool_)
             keep[few] = False
-            left_out = int(few.size)
-            pts = pts[keep]
-        if self._movers is not None:
-            pts = np.vstack([pts, *(held for held, _ in self._movers.waiting())])
+            on_plane = self._on_map_plane(waiting, in_map=False)
+            left_out = int(few.size + on_plane.size - np.count_nonzero(on_plane))
+            pts, waiting = pts[keep], waiting[on_plane]
+        pts = np.vstack([pts, waiting])
         if self._backfill_map.shape[0]:
             held = self._backfill_map
-            if min_returns > 1:
+            if judge:
                 keep = (self._backfill_returns >= min_returns) | self._backfill_on_plane
                 left_out += int(keep.size - np.count_nonzero(keep))
                 held = held[keep]
             pts = np.vstack([held, pts])
         return pts, left_out
 
-    def _map_gained(self, before: IVox) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The reversed pass's map points that ``before`` (the forward map it was copied from)
-        lacks, with those still waiting to enter its map (map.remove_moving): (points (B,3)
-        world, the returns of each point's cell, each on a plane of this map), as
-        ``_backfill_map``, ``_backfill_returns`` and ``_backfill_on_plane``. These are the
-        held scans' points as the reversed pass's map took them (one per cell, moving things
-        kept out) with what its own count and plane test say of them, so that the map written
-        out judges them as it judges the forward run's (:meth:`map_cloud`). Before session 94
-        the backfill's map was every held scan's downsampled points, none left out: a moving
-        start that waited 30 s through dust on 5 % of the returns wrote a map 19 % off the
-        scene, where the still start's was 7 %."""
+    def _waiting_points(self) -> np.ndarray:
+        """(W,3) the points still waiting to enter the map (map.remove_moving; none without)."""
+        waiting = [] if self._movers is None else [h for h, _ in self._movers.waiting()]
+        return np.vstack([np.zeros((0, 3)), *waiting])
+
+    def _map_gained(self, before: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The reversed pass's map points that ``before`` (its map's points when it reached
+        the held scans, having re-registered those since the initialization) lacks, with
+        those still waiting to enter its map (map.remove_moving): (points (B,3) world, the
+        returns of each point's cell (1 for a waiting one, as :meth:`map_cloud` counts it),
+        each on a plane of this map), as ``_backfill_map``, ``_backfill_returns`` and
+        ``_backfill_on_plane``. These are the held scans' points as the reversed pass's map
+        took them (one per cell, moving things kept out) with what its own count and plane
+        test say of them, so that the map written out judges them as it judges the forward
+        run's (:meth:`map_cloud`). Before session 94 the backfill's map was every held scan's
+        downsampled points, none left out: a moving start that waited 30 s through dust on 5
+        % of the returns wrote a map 19 % off the scene, where the still start's was 7 %."""
         pts, returns = self._ivox.points_with_returns(self._ivox.cell_m)
         if pts.shape[0]:
-            old = before.points()
             row = np.dtype((np.void, 3 * pts.dtype.itemsize))
             gained = ~np.isin(np.ascontiguousarray(pts).view(row).ravel(),
-                              np.ascontiguousarray(old, dtype=pts.dtype).view(row).ravel())
+                              np.ascontiguousarray(before, dtype=pts.dtype).view(row).ravel())
             pts, returns = pts[gained], returns[gained]
+        waiting = self._waiting_points()
         try:
-            on_plane = self._on_map_plane(pts)
+            on_plane = np.concatenate([self._on_map_plane(pts),
+                                       self._on_map_plane(waiting, in_map=False)])
         except Exception:  # noqa: BLE001  (the map written out, not the run: keep them all)
-            on_plane = np.ones(pts.shape[0], np.bool_)
-        if self._movers is not None:
-            waiting = [held for held, _ in self._movers.waiting()]
-            n = sum(w.shape[0] for w in waiting)
-            pts = np.vstack([pts, *waiting])
-            returns = np.concatenate([returns, np.full(n, np.iinfo(np.int64).max)])
-            on_plane = np.concatenate([on_plane, np.ones(n, np.bool_)])
-        return pts, returns, on_plane
+            on_plane = np.ones(pts.shape[0] + waiting.shape[0], np.bool_)
+        returns = np.concatenate([returns, np.ones(waiting.shape[0], np.int64)])
+        return np.vstack([pts, waiting]), returns, on_plane
 
     def dense_map_cloud(self, map_points: np.ndarray) -> tuple[np.ndarray, int]:
         """(dense map points (D,3) float64, world frame; how many were left out), with
@@ -837,18 +841,19 @@ class Odometry:
         near = np.isfinite(d)
         return pts[near], int(pts.shape[0] - np.count_nonzero(near))
 
-    def _on_map_plane(self, points_world: np.ndarray) -> np.ndarray:
+    def _on_map_plane(self, points_world: np.ndarray, *, in_map: bool = True) -> np.ndarray:
         """(N,) bool: each map point lies on the plane its ``filter.knn_k`` nearest other map
         points fit, by the filter's own test of a plane (the general set's margin,
         ``filter.min_neighbors``, ``filter.plane_min_extent_fraction``; lio-design.md §6.2), and
         within that margin of it. The fit is PCA's whatever ``filter.plane_fit``: the least
         squares' ``a^T x = -1`` tilts a plane through the world's origin (the floor under a
-        start)."""
+        start). ``in_map`` False: points the map does not hold (its nearest are all others)."""
         if points_world.shape[0] == 0:
             return np.zeros(0, np.bool_)
         f, g = self.cfg.filter, self.cfg.adaptive.general
-        nbrs, counts, _ = self._ivox.knn(points_world, f.knn_k + 1, f.knn_max_range_m)
-        nbrs, counts = nbrs[:, 1:], np.maximum(counts - 1, 0)  # the point itself is the nearest
+        skip = int(in_map)  # a map point is its own nearest
+        nbrs, counts, _ = self._ivox.knn(points_world, f.knn_k + skip, f.knn_max_range_m)
+        nbrs, counts = nbrs[:, skip:], np.maximum(counts - skip, 0)
         normals, d, valid = fit_planes(nbrs, counts, f.min_neighbors, g.plane_margin_m,
                                        "pca", f.plane_min_extent_fraction * self._ivox.cell_m)
         off = np.abs(np.einsum("ij,ij->i", np.nan_to_num(normals), points_world) + np.nan_to_num(d))
@@ -1403,6 +1408,7 @@ class Odometry:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # an IMU gap's time would be a mirrored one
             anchored = False
+            tracked: np.ndarray | None = None
             for pts, t_pts, read in reversed(scans):
                 if (not anchored and self._anchor_state is not None
                         and int(t_pts.max()) <= self._t_first_map_ns):
@@ -1411,7 +1417,10 @@ class Odometry:
                                         self._anchor_v_cov)
                 # the dense map takes the held scans' points at their backfilled poses, not
                 # those of the scans since the initialization again (the forward run's stand)
-                rev._dense = self._dense if int(t_pts.max()) < t_init else None
+                held_scan = int(t_pts.max()) < t_init
+                rev._dense = self._dense if held_scan else None
+                if held_scan and tracked is None:  # what the map holds before the held scans
+                    tracked = rev._ivox.points()
                 try:
                     est = rev.add_scan(pts, mirror - t_pts)
                 except InputError as exc:
@@ -1433,9 +1442,9 @@ class Odometry:
         if stopped:
             warnings.warn(stopped, stacklevel=3)
         self._backfilled = sorted(self._backfilled + out[::-1], key=lambda e: int(e.t_ns))
-        if out:
+        if out and tracked is not None:
             self._backfill_map, self._backfill_returns, self._backfill_on_plane = (
-                rev._map_gained(self._ivox))
+                rev._map_gained(tracked))
         self._accumulate(rev.stage_ms_total)
         self.init_report.backfilled = len(out)
 
