@@ -153,8 +153,8 @@ def test_a_moving_start_s_backfilled_stretch_is_written_by_the_same_rule(tmp_pat
         assert backfilled.sum() >= 40, backfilled.sum()
         shares[k] = off[near_backfill].mean()
         trajectories[k] = traj
-    print(f"{backfilled.sum()} backfilled poses; their stretch's map off the scene: every point {100 * shares[1]:.2f} %, "
-          f"default {100 * shares[2]:.2f} %")
+    print(f"{backfilled.sum()} backfilled poses; their stretch's map off the scene: "
+          f"every point {100 * shares[1]:.2f} %, default {100 * shares[2]:.2f} %")
     assert shares[1] > 0.02  # measured 4.81 %
     assert shares[2] < 0.3 * shares[1]  # measured 0.15 % (before session 94: 3.04 % of 4.57 %)
     np.testing.assert_array_equal(trajectories[1], trajectories[2])

@@ -762,8 +762,9 @@ class Odometry:
         (:meth:`_on_map_plane`): a stray return (dust, a ghost) is seen once and lies in free
         space, and a floor that a ring's circle sweeps over, cell after cell, is also seen once
         per cell, but as a plane. A point still waiting to enter the map (map.remove_moving)
-        counts as reached once: it never entered the map, and the ones left at the end of a
-        run were mostly stray returns (session 94). The backfill's points
+        counts as reached once: it never entered the map (session 94: at the end of a dusty
+        corridor's backfill all 50 lay off the scene; of the forward runs' 20 on two walks,
+        11). The backfill's points
         (:meth:`_map_gained`) are judged by the same rule on the reversed pass's map."""
         pts, returns = self._ivox.points_with_returns(self._ivox.cell_m)
         waiting = self._waiting_points()
