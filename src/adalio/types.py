@@ -250,9 +250,10 @@ class InitReport:
         if self.lidar_rest:
             text += f"; {self.lidar_rest}"
         if self.scans_without_pose:
+            why = f"; {self.describe_wait()}" if self.refused_fits else ""
             text += (f"; first filter pose {self.wait_s:.1f} s after the first scan "
                      f"({self.scans_without_pose} scans read before it, {self.backfilled} of "
-                     "them given a pose by the backfill)")
+                     f"them given a pose by the backfill{why})")
         return text
 
     def to_dict(self) -> dict:
