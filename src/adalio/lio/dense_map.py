@@ -35,7 +35,7 @@ import numpy as np
 from adalio.config import DENSE_MAP_MIN_VOXEL_M
 from adalio.errors import ConfigError
 from adalio.jit import kernel
-from adalio.lio.map_uncertainty import _OFFSET, _slot
+from adalio.lio.map_uncertainty import _OFFSET, _insert, _slot
 
 BLOCK_SHIFT = 4
 """A block is 2^4 = 16 voxels along each axis."""
@@ -98,17 +98,6 @@ def _add_points(points: np.ndarray, start: int, voxel_m: float, bkeys: np.ndarra
     return points.shape[0]
 
 
-@kernel()
-def _rehash(old_keys: np.ndarray, old_index: np.ndarray, keys: np.ndarray,
-            index: np.ndarray) -> None:
-    """Enter every block of the set ``old_keys`` / ``old_index`` into the empty, larger set."""
-    for i in range(old_keys.shape[0]):
-        if old_keys[i] >= 0:
-            slot = _slot(keys, old_keys[i])
-            keys[slot] = old_keys[i]
-            index[slot] = old_index[i]
-
-
 class DenseMap:
     """Every point offered, one per voxel of ``voxel_m`` (the first to reach it)."""
 
@@ -160,8 +149,9 @@ class DenseMap:
             self._bits = bits
         if 2 * (nb + 1) > self._bkeys.shape[0]:
             size = 2 * self._bkeys.shape[0]
+            held = self._bkeys >= 0  # entered again, as the map provenance grows its table
             keys, index = np.full(size, -1, np.int64), np.full(size, -1, np.int64)
-            _rehash(self._bkeys, self._bindex, keys, index)
+            _insert(keys, index, self._bkeys[held], self._bindex[held])
             self._bkeys, self._bindex = keys, index
 
     def points(self) -> np.ndarray:
