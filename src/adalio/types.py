@@ -130,6 +130,12 @@ class ScanStats:
     """Of ``sigma_p_world_m``, the largest position standard deviation (m) the LiDAR-IMU
     extrinsic's own uncertainty alone gives (``sensor.extrinsic_rotation_sigma_deg``,
     ``sensor.extrinsic_translation_sigma_m``; :mod:`adalio.lio.extrinsic_sigma`)."""
+    var_extrinsic_world: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    """The extrinsic's share of the diagonal of the reported world covariance: variances of
+    the position x, y, z (m²) and of small rotations about the world x, y, z axes (rad²), from
+    the extrinsic checks' estimates at the scan (``run_bag`` widens ``scans.csv``'s sigmas to
+    the estimates at the run's end, :meth:`adalio.lio.odometry.Odometry.extrinsic_variance`;
+    not a column)."""
     backfill: bool = False
     """The pose comes from the backfill (the filter run backwards from the initialization over
     the scans read before it), stamped at the scan's start rather than its end."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import io
 
 import numpy as np
 import trimesh
@@ -15,6 +16,7 @@ from adalio.io.writers import (
     ns_to_s_str,
     read_pcd_points,
     read_tum,
+    rewrite_sigmas,
     sort_rows_by_time,
     write_pcd,
     write_ply,
@@ -119,3 +121,38 @@ def test_rows_written_late_are_sorted_into_time_order(tmp_path):
     assert [r["t_s"] for r in rows] == [ns_to_s_str(t) for t in sorted(stamps)]
     assert [int(r["n_raw"]) for r in rows] == [t % 1000 for t in sorted(stamps)]
     assert [int(r["backfill"]) for r in rows] == [int(t < 9_000_000_000) for t in sorted(stamps)]
+
+
+def test_sigmas_rewritten_in_the_rows_named_and_nowhere_else(tmp_path):
+    """rewrite_sigmas (the sigmas widened at a run's end) changes the six sigma columns of the
+    rows it is given, formatted as written, and no other byte; a file whose stamps are not the
+    ones given is left as it is."""
+    stamps = [5_000_000_000, 5_100_000_000, 5_200_000_000, 4_900_000_000]
+    with ScansCsvWriter(tmp_path / "s.csv") as c:
+        for k, t in enumerate(stamps):
+            c.write(ScanStats(t_ns=t, n_raw=100 + k, trigger="eigen,ratio" if k else "",
+                              sigma_p_world_m=np.full(3, 0.01 * (k + 1)),
+                              sigma_rot_world_deg=np.full(3, 0.1 * (k + 1))))
+    before = (tmp_path / "s.csv").read_bytes()
+    wide = np.array([[0.01, 0.01, 0.01, 0.1, 0.1, 0.1], [0.5, 0.25, 0.125, 3.0, 2.0, 1.0],
+                     [0.03, 0.03, 0.03, 0.3, 0.3, 0.3], [0.123456, 0.04, 0.04, 0.4, 0.4, 0.4]])
+    assert rewrite_sigmas(tmp_path / "s.csv", np.array(stamps), wide, np.array([1, 3])) == 2
+    rows = list(csv.DictReader((tmp_path / "s.csv").open(newline="")))
+    cols = ["sigma_x_m", "sigma_y_m", "sigma_z_m", "sigma_roll_deg", "sigma_pitch_deg",
+            "sigma_yaw_deg"]
+    assert [r["sigma_x_m"] for r in rows] == ["0.01", "0.5", "0.03", "0.1235"]
+    assert [float(rows[1][c]) for c in cols] == [0.5, 0.25, 0.125, 3.0, 2.0, 1.0]
+    old = list(csv.DictReader(io.StringIO(before.decode())))
+    for r, o in zip(rows, old, strict=True):  # every other field as written
+        assert {k: v for k, v in r.items() if k not in cols} == \
+            {k: v for k, v in o.items() if k not in cols}
+    assert rows[1]["trigger"] == "eigen,ratio"
+    lines, old_lines = (tmp_path / "s.csv").read_bytes().split(b"\r\n"), before.split(b"\r\n")
+    assert [i for i, (a, b) in enumerate(zip(lines, old_lines, strict=True)) if a != b] == [2, 4]
+    after = (tmp_path / "s.csv").read_bytes()
+    wrong = np.array(stamps) + np.array([0, 0, 0, 1])
+    assert rewrite_sigmas(tmp_path / "s.csv", wrong, wide * 2, np.array([0, 3])) == 0
+    assert rewrite_sigmas(tmp_path / "s.csv", np.array(stamps[:3]), wide * 2,
+                          np.array([0])) == 0
+    assert (tmp_path / "s.csv").read_bytes() == after
+

@@ -176,3 +176,29 @@ def test_the_posterior_mean_corrects_better_than_the_value_found():
         else:
             assert rms_post < 1.05 * rms_raw and np.mean(ratio) > 0.97, (rms_post, rms_raw)
         assert rms_post / np.sqrt(3.0) < np.radians(0.25)
+
+
+def test_the_run_end_variance_is_each_scans_own_at_the_final_estimates():
+    """Odometry.extrinsic_variance (the share run_bag widens scans.csv's rows to) is, pose by
+    pose, the diagonal of the G M G^T each scan's own sigmas add (``_extrinsic_covariance``,
+    built on the functions above) with the same estimates; zero at the anchor and before it."""
+    from adalio.config import Config
+    from adalio.lio import Odometry
+    from adalio.lio.state import State
+
+    rng = np.random.default_rng(11)
+    odom = Odometry(Config())
+    R_all, p_all = _poses(rng, 6)
+    assert np.all(odom.extrinsic_variance(np.eye(4)[None].repeat(2, axis=0)) == 0.0)
+    odom._anchor_state = State(p=p_all[0], R=R_all[0])
+    for attr, scale in (("_rotation_M", 1e-2), ("_gyro_axes_M", 3e-3), ("_translation_M", 2e-2)):
+        A = rng.normal(size=(3, 3)) * scale
+        setattr(odom, attr, A @ A.T)
+    T = np.stack([State(p=p, R=R).T_world_imu() for R, p in zip(R_all, p_all, strict=True)])
+    got = odom.extrinsic_variance(T)
+    assert np.all(got[0] == 0.0)
+    for k in range(1, len(T)):
+        odom._state = State(p=p_all[k], R=R_all[k])
+        want = np.diag(odom._extrinsic_covariance())
+        np.testing.assert_allclose(got[k], want, rtol=1e-12, atol=1e-18)
+        assert np.all(want > 0.0)

@@ -8,6 +8,7 @@ Maps are float32 x y z in the world frame (metres).
 from __future__ import annotations
 
 import csv
+import io
 from pathlib import Path
 from typing import IO, Self
 
@@ -134,6 +135,44 @@ class ScansCsvWriter(_RowFile):
         self._csv.writerow(row)
         self._fh.flush()
         self.rows += 1
+
+
+SIGMA_COLUMNS: tuple[str, ...] = ("sigma_x_m", "sigma_y_m", "sigma_z_m", "sigma_roll_deg",
+                                  "sigma_pitch_deg", "sigma_yaw_deg")
+"""The columns of ``scans.csv`` :func:`rewrite_sigmas` rewrites."""
+
+
+def rewrite_sigmas(path: str | Path, t_ns: np.ndarray, sigmas: np.ndarray,
+                   rows: np.ndarray) -> int:
+    """Rewrite the :data:`SIGMA_COLUMNS` of the data rows ``rows`` (indices in the file's
+    order) of a ``scans.csv`` written by :class:`ScansCsvWriter` with ``sigmas`` (N, 6: m, m,
+    m, deg, deg, deg; formatted as written). ``t_ns`` (N,) are the stamps of all its data
+    rows in the file's order: a file that does not hold them, row by row, is left as it is
+    (0 returned). Returns the rows rewritten."""
+    path = Path(path)
+    with open(path, newline="") as fh:
+        lines = fh.read().splitlines(keepends=True)
+    if not lines:
+        return 0
+    header = next(csv.reader([lines[0]]))
+    if not all(c in header for c in SIGMA_COLUMNS) or len(lines) - 1 != len(t_ns):
+        return 0
+    cols = [header.index(c) for c in SIGMA_COLUMNS]
+    out = list(lines)
+    for i in np.asarray(rows, dtype=np.int64):
+        fields = next(csv.reader([lines[i + 1]]))
+        if s_str_to_ns(fields[0]) != int(t_ns[i]):
+            return 0
+        for c, v in zip(cols, sigmas[i], strict=True):
+            fields[c] = f"{v:.4g}"
+        buf = io.StringIO()
+        csv.writer(buf).writerow(fields)  # as ScansCsvWriter writes it
+        out[i + 1] = buf.getvalue()
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", newline="") as fh:
+        fh.write("".join(out))
+    tmp.replace(path)
+    return len(rows)
 
 
 def sort_rows_by_time(*paths: str | Path) -> None:

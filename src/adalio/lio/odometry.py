@@ -1085,6 +1085,7 @@ class Odometry:
         W_ext = self._extrinsic_covariance()
         W_world = W_world + W_ext
         stats.sigma_extrinsic_m = float(np.sqrt(max(np.max(np.diag(W_ext)[:3]), 0.0)))
+        stats.var_extrinsic_world = np.clip(np.diag(W_ext), 0.0, None)
         t0 = _timer(stage_ms, "map", t0)
 
         stats.n_down, stats.n_down_general = int(down.shape[0]), int(down_general.shape[0])
@@ -2417,6 +2418,31 @@ class Odometry:
         return (extrinsic_rotation_covariance(self._rotation_M + self._gyro_axes_M, anchor.R,
                                               s.R, s.p - anchor.p)
                 + extrinsic_translation_covariance(self._translation_M, anchor.R, s.R))
+
+    def extrinsic_variance(self, T_world_imu: np.ndarray) -> np.ndarray:
+        """(N, 6) the diagonal of the world covariance an error of ``T_imu_lidar`` puts into
+        poses ``T_world_imu`` (N, 4, 4) against the first one, by the extrinsic checks'
+        estimates as they stand now (:meth:`_extrinsic_covariance`): position variances (m²),
+        then those of small rotations about the world axes (rad²). The error is the same for
+        every scan, so what the checks know at a run's end holds for the scans before it too:
+        ``run_bag`` widens each ``scans.csv`` row's sigmas by what this adds over the row's own
+        ``ScanStats.var_extrinsic_world``. Zeros before the first pose."""
+        T = np.asarray(T_world_imu, dtype=np.float64).reshape(-1, 4, 4)
+        anchor = self._anchor_state
+        if anchor is None or not len(T):
+            return np.zeros((len(T), 6))
+        d = T[:, :3, 3] - anchor.p
+        skew = np.zeros((len(T), 3, 3))
+        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -d[:, 2], d[:, 1], -d[:, 0]
+        skew -= skew.transpose(0, 2, 1)
+        turn = anchor.R[None] - T[:, :3, :3]
+        # G M Gᵀ per pose (extrinsic_rotation_covariance, extrinsic_translation_covariance):
+        # the rotation's G = [-[d]× R_anchor; R_anchor - R], the translation's [R_anchor - R; 0]
+        G_rot = np.concatenate([-skew @ anchor.R, turn], axis=1)
+        M_rot = self._rotation_M + self._gyro_axes_M
+        var = np.einsum("nij,jk,nik->ni", G_rot, M_rot, G_rot)
+        var[:, :3] += np.einsum("nij,jk,nik->ni", turn, self._translation_M, turn)
+        return np.clip(var, 0.0, None)
 
     def _emit(self, stats: ScanStats, stage_ms: dict[str, float], t_start: float,
               p_world: np.ndarray, W_world: np.ndarray | None = None) -> Estimate:
