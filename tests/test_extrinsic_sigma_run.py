@@ -90,6 +90,10 @@ def test_rows_written_before_the_check_knew_are_widened_to_what_it_knows_at_the_
     as_made = np.array([made[t] for t in t_ns])
     assert np.all(wide >= as_made * (1 - 1e-3)), "a row was narrowed"  # written to 4 digits
     assert np.mean(np.any(wide > 1.01 * as_made, axis=1)) > 0.5  # most rows widened
+    # the summary's at-risk stretches count the sigmas written, not those made
+    risky_written = int(np.sum(np.max(wide[:, :3], axis=1) > res.sigma_warn_m))
+    assert res.n_sigma_warn == risky_written != int(
+        np.sum(np.max(as_made[:, :3], axis=1) > res.sigma_warn_m)), res.n_sigma_warn
     truth = sigma_consistency(res.trajectory_path, robot.gt_path, written)
     scans = dict(written)
     for c, k in zip(cols, range(6), strict=True):

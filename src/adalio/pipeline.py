@@ -360,9 +360,9 @@ def _extrinsic_known_late(odom: Odometry, scans_csv: Path, t_ns: list[int],
     the start were written before the checks had seen much (a rotation 5° off, found 2.95° ±
     0.35 after 27 s, left 32-41 % of the scans within 3σ). Each row's variances gain what
     :meth:`Odometry.extrinsic_variance` at the end adds over the row's own share; never
-    narrowed (a row's sigmas, once written, are only widened). Returns the sigmas written
-    (N, 6), each row's extrinsic share of the position sigma (m, the larger of the two) and
-    the rows rewritten."""
+    narrowed (a row's sigmas, once written, are only widened). Returns the widened sigmas (N,
+    6), each row's extrinsic share of its widened position sigma (m, the larger of the two
+    variances) and the rows rewritten (0: the file is as written, the first two not used)."""
     sig = np.asarray(sigmas, dtype=np.float64).reshape(-1, 6)
     row_var = np.asarray(var_ext, dtype=np.float64).reshape(-1, 6)
     end_var = odom.extrinsic_variance(np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4))
@@ -373,8 +373,7 @@ def _extrinsic_known_late(odom: Odometry, scans_csv: Path, t_ns: list[int],
     grown = np.flatnonzero(np.any(wide > sig * (1.0 + 1e-4), axis=1))  # NaN stays NaN
     n = rewrite_sigmas(scans_csv, np.asarray(t_ns, dtype=np.int64), wide, grown) \
         if grown.size else 0
-    ext_m = np.sqrt(np.max(np.maximum(row_var, end_var)[:, :3], axis=1))
-    return (wide, ext_m, n) if n else (sig, np.sqrt(np.max(row_var[:, :3], axis=1)), 0)
+    return wide, np.sqrt(np.max(np.maximum(row_var, end_var)[:, :3], axis=1)), n
 
 
 def _flag_ranges(times_ns: list[int], flags: list[bool]) -> list[tuple[float, float]]:
@@ -1204,7 +1203,6 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
         finally:
             tum.close()
             csvw.close()
-            n_widened = 0
             with contextlib.suppress(Exception):  # never mask the error that stopped the run
                 wide, ext_m, n_widened = _extrinsic_known_late(odom, paths["scans"], est_t,
                                                                poses, sigmas, var_ext)
