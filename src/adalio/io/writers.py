@@ -21,13 +21,16 @@ REPORT_FILES = ("report.md", "metrics.json", "trajectory_top.png", "trajectory_s
 """What ``adalio report`` (``eval.report.make_report``) writes into a run folder; a run into the
 folder removes an earlier run's (``pipeline.remove_stale_outputs``)."""
 
+SIGMA_COLUMNS: tuple[str, ...] = ("sigma_x_m", "sigma_y_m", "sigma_z_m", "sigma_roll_deg",
+                                  "sigma_pitch_deg", "sigma_yaw_deg")
+"""The sigma columns of ``scans.csv`` (:func:`rewrite_sigmas` rewrites them at a run's end)."""
+
 SCANS_CSV_COLUMNS: tuple[str, ...] = (
     "t_s", "n_raw", "n_down", "n_down_general", "n_near", "degenerate", "trigger",
     "voxel_size_m", "search_radius_m", "plane_margin_m", "n_matched", "iterations", "wall_ms",
     "eig0", "eig1", "eig2", "eig3", "eig4", "eig5", "weak_rx", "weak_ry", "weak_rz", "weak_tx",
     "weak_ty", "weak_tz", "degeneracy_score", "held_dirs", "restoring_min", "imu_gap",
-    "sigma_x_m", "sigma_y_m", "sigma_z_m", "sigma_roll_deg", "sigma_pitch_deg", "sigma_yaw_deg",
-    "backfill", "rest", "height_blind", "lidar_gap", "n_moving", "n_seen_through", "n_stray",
+    *SIGMA_COLUMNS, "backfill", "rest", "height_blind", "lidar_gap", "n_moving", "n_seen_through", "n_stray",
     "n_stray_dropped",
 )
 
@@ -135,11 +138,6 @@ class ScansCsvWriter(_RowFile):
         self._csv.writerow(row)
         self._fh.flush()
         self.rows += 1
-
-
-SIGMA_COLUMNS: tuple[str, ...] = ("sigma_x_m", "sigma_y_m", "sigma_z_m", "sigma_roll_deg",
-                                  "sigma_pitch_deg", "sigma_yaw_deg")
-"""The columns of ``scans.csv`` :func:`rewrite_sigmas` rewrites."""
 
 
 def rewrite_sigmas(path: str | Path, t_ns: np.ndarray, sigmas: np.ndarray,

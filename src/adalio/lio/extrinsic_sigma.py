@@ -119,27 +119,35 @@ def error_second_moment(prior_sigma_rad: float, estimate_rad: np.ndarray | None 
     return 0.5 * (M + M.T)
 
 
+def _sandwich(G: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """``G M Gᵀ``, symmetrized, for ``G`` (..., 6, 3): one per pose."""
+    W = G @ np.asarray(M, dtype=np.float64) @ np.swapaxes(G, -1, -2)
+    return 0.5 * (W + np.swapaxes(W, -1, -2))
+
+
 def extrinsic_rotation_covariance(M_rad2: np.ndarray, R_anchor: np.ndarray, R: np.ndarray,
                                   d_m: np.ndarray) -> np.ndarray:
     """(6,6) world covariance (position, small world rotation) that a rotation error of second
     moment ``M_rad2`` (IMU frame) puts into a pose of attitude ``R`` at ``d_m`` from the first
     pose, whose attitude is ``R_anchor``: ``G M Gᵀ``, ``G = [-[d]× R_anchor; R_anchor - R]``
-    (module doc)."""
-    d = np.asarray(d_m, dtype=np.float64).reshape(3)
-    skew = np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])
-    G = np.vstack([-skew @ R_anchor, R_anchor - R])
-    W = G @ np.asarray(M_rad2, dtype=np.float64) @ G.T
-    return 0.5 * (W + W.T)
+    (module doc). ``R`` (..., 3, 3) and ``d_m`` (..., 3) may hold many poses (the same leading
+    dimensions): (..., 6, 6)."""
+    d = np.asarray(d_m, dtype=np.float64)
+    skew = np.zeros(d.shape + (3,))
+    skew[..., 0, 1], skew[..., 0, 2], skew[..., 1, 2] = -d[..., 2], d[..., 1], -d[..., 0]
+    skew -= np.swapaxes(skew, -1, -2)
+    turn = R_anchor - np.asarray(R, dtype=np.float64)
+    return _sandwich(np.concatenate([-skew @ R_anchor, turn], axis=-2), M_rad2)
 
 
 def extrinsic_translation_covariance(M_m2: np.ndarray, R_anchor: np.ndarray,
                                      R: np.ndarray) -> np.ndarray:
     """(6,6) world covariance (position, small world rotation) that a translation error of
     second moment ``M_m2`` (IMU frame) puts into a pose of attitude ``R``, the first pose's
-    being ``R_anchor``: ``G M Gᵀ``, ``G = [R_anchor - R; 0]`` (module doc)."""
-    G = np.vstack([R_anchor - R, np.zeros((3, 3))])
-    W = G @ np.asarray(M_m2, dtype=np.float64) @ G.T
-    return 0.5 * (W + W.T)
+    being ``R_anchor``: ``G M Gᵀ``, ``G = [R_anchor - R; 0]`` (module doc). ``R`` (..., 3, 3)
+    may hold many poses: (..., 6, 6)."""
+    turn = R_anchor - np.asarray(R, dtype=np.float64)
+    return _sandwich(np.concatenate([turn, np.zeros_like(turn)], axis=-2), M_m2)
 
 
 __all__ = ["error_second_moment", "extrinsic_rotation_covariance",

@@ -2411,13 +2411,17 @@ class Odometry:
         and the lever arm checks' latest estimates (the latter across the rig's vertical only);
         ``sensor.gyro_axes_sigma_deg`` added to the rotation's, never narrowed.
         Zero before the first pose and with both priors at 0."""
+        return self._extrinsic_covariance_at(self._state.R, self._state.p)
+
+    def _extrinsic_covariance_at(self, R: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """:meth:`_extrinsic_covariance` of poses of attitude ``R`` (..., 3, 3) at ``p``
+        (..., 3): (..., 6, 6), zeros before the first pose."""
         anchor = self._anchor_state
         if anchor is None:
-            return np.zeros((6, 6))
-        s = self._state
+            return np.zeros(np.shape(p)[:-1] + (6, 6))
         return (extrinsic_rotation_covariance(self._rotation_M + self._gyro_axes_M, anchor.R,
-                                              s.R, s.p - anchor.p)
-                + extrinsic_translation_covariance(self._translation_M, anchor.R, s.R))
+                                              R, p - anchor.p)
+                + extrinsic_translation_covariance(self._translation_M, anchor.R, R))
 
     def extrinsic_variance(self, T_world_imu: np.ndarray) -> np.ndarray:
         """(N, 6) the diagonal of the world covariance an error of ``T_imu_lidar`` puts into
@@ -2428,21 +2432,8 @@ class Odometry:
         ``run_bag`` widens each ``scans.csv`` row's sigmas by what this adds over the row's own
         ``ScanStats.var_extrinsic_world``. Zeros before the first pose."""
         T = np.asarray(T_world_imu, dtype=np.float64).reshape(-1, 4, 4)
-        anchor = self._anchor_state
-        if anchor is None or not len(T):
-            return np.zeros((len(T), 6))
-        d = T[:, :3, 3] - anchor.p
-        skew = np.zeros((len(T), 3, 3))
-        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -d[:, 2], d[:, 1], -d[:, 0]
-        skew -= skew.transpose(0, 2, 1)
-        turn = anchor.R[None] - T[:, :3, :3]
-        # G M Gᵀ per pose (extrinsic_rotation_covariance, extrinsic_translation_covariance):
-        # the rotation's G = [-[d]× R_anchor; R_anchor - R], the translation's [R_anchor - R; 0]
-        G_rot = np.concatenate([-skew @ anchor.R, turn], axis=1)
-        M_rot = self._rotation_M + self._gyro_axes_M
-        var = np.einsum("nij,jk,nik->ni", G_rot, M_rot, G_rot)
-        var[:, :3] += np.einsum("nij,jk,nik->ni", turn, self._translation_M, turn)
-        return np.clip(var, 0.0, None)
+        W = self._extrinsic_covariance_at(T[:, :3, :3], T[:, :3, 3])
+        return np.clip(np.diagonal(W, axis1=-2, axis2=-1), 0.0, None)
 
     def _emit(self, stats: ScanStats, stage_ms: dict[str, float], t_start: float,
               p_world: np.ndarray, W_world: np.ndarray | None = None) -> Estimate:
