@@ -276,3 +276,82 @@ def test_lidar_rest_check_leaves_out_a_slide_the_registrations_cannot_restore():
                                                                 [0.0, 0.0, 0.0], n=n), 0.2),
                                           cfg).refuted for _ in range(2000)])
         assert rest.mean() <= 0.005, (n, rest.mean())
+
+
+# --- the registration map's restart (motion_init step 3d) in a corridor without features ----
+
+def _corridor_walk(t_end_s: float, seed: int = 0):
+    """A MovingInit walked at 1 m/s along x, level and without turning, through a corridor
+    with nothing along its axis (walls at y = ±1 m, floor and ceiling at z = -1.2 and 1.3 m,
+    points 5 cm apart): scans of 4000 points at 10 Hz out to 8 m, each point seen from the pose
+    at its own time, 5 mm of noise; the IMU at 400 Hz. Returns the registrar and, per restart,
+    what the test checks there (the map's points, the last scan's, the next prediction's
+    velocity, the time the map restarted from)."""
+    from adalio.config import Config
+    from adalio.lio.motion_init import MovingInit
+
+    rng = np.random.default_rng(seed)
+    step = 0.05
+    xs = np.arange(-10.0, 20.0, step)
+    planes = []
+    for y in (-1.0, 1.0):
+        X, Z = np.meshgrid(xs, np.arange(-1.2, 1.3, step))
+        planes.append(np.column_stack([X.ravel(), np.full(X.size, y), Z.ravel()]))
+    for z in (-1.2, 1.3):
+        X, Y = np.meshgrid(xs, np.arange(-1.0, 1.0, step))
+        planes.append(np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, z)]))
+    world = np.vstack(planes)
+    mi = MovingInit(Config(), np.eye(3), np.zeros(3))
+    restarts = []
+    restart = MovingInit._restart_map
+
+    def record(self):
+        restart(self)
+        restarts.append((self.ivox.points(), self._last_down_world.copy(), self._velocity(),
+                         self.map_since_ns, self.scans[-1].t_ns))
+
+    mi._restart_map = record.__get__(mi)
+    t_imu = np.arange(0.0, t_end_s + 0.2, 1 / 400)
+    t_imu_ns = np.round(t_imu * 1e9).astype(np.int64)
+    accel = np.array([0.0, 0.0, 9.81]) + rng.normal(scale=0.01, size=(t_imu.size, 3))
+    gyro = rng.normal(scale=1e-3, size=(t_imu.size, 3))
+    fed = 0
+    for t_b in np.arange(0.0, t_end_s, 0.1):
+        upto = int(np.searchsorted(t_imu, t_b + 0.11))
+        mi.add_imu(t_imu_ns[fed:upto], gyro[fed:upto], accel[fed:upto])
+        fed = upto
+        t_pts = np.sort(rng.uniform(t_b, t_b + 0.1, 4000))
+        near = np.flatnonzero(np.abs(world[:, 0] - (t_b + 0.05)) < 8.0)
+        pts = world[rng.choice(near, t_pts.size)] - np.outer(t_pts, [1.0, 0.0, 0.0])
+        mi.add_scan(pts + rng.normal(scale=0.005, size=pts.shape),
+                    np.round(t_pts * 1e9).astype(np.int64))
+        if t_b >= 0.5:
+            assert mi.solve() is None
+            mi.refusals = [*getattr(mi, "refusals", []), mi.failure]
+            win = mi._window(2)
+            assert win[0].t_ns >= mi.map_since_ns  # fits use the new map's registrations only
+    return mi, restarts
+
+
+def test_a_map_the_registrations_cannot_vouch_for_restarts_from_the_last_scan():
+    """Step 3d, in a corridor with nothing along its axis (the registrations restore almost
+    none of what they claim along it): every full window of registrations is refused by the
+    restoring test, and each such refusal restarts the registration map from the last scan
+    alone: the map then holds exactly that scan's points (brute force, point by point), the
+    next scan is predicted at zero velocity, and the windows the fit uses start at the
+    restart. Between restarts a window must fill again: they are at least a window apart."""
+    from scipy.spatial import cKDTree
+
+    mi, restarts = _corridor_walk(4.0)
+    assert all("cannot vouch for the velocity" in r or "scans registered since" in r
+               for r in mi.refusals)
+    assert 2 <= len(restarts) <= 4 and mi.n_map_restarts == len(restarts)
+    for map_pts, last_pts, v_next, since_ns, last_ns in restarts:
+        assert since_ns == last_ns
+        # one point per map cell (the first): the map's points are the scan's, one per cell
+        assert np.all(cKDTree(last_pts).query(map_pts)[0] < 1e-9)
+        cells = {tuple(c) for c in np.floor(map_pts / mi.cell_m).astype(int)}
+        assert cells == {tuple(c) for c in np.floor(last_pts / mi.cell_m).astype(int)}
+        assert np.array_equal(v_next, np.zeros(3))
+    gaps_s = np.diff([r[3] for r in restarts]) * 1e-9
+    assert np.all(gaps_s >= 0.9), gaps_s

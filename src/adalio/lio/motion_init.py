@@ -40,6 +40,17 @@ of VINS-Mono:
    quadratic, and the fit takes it into gravity and velocity: the VLP-16's corridor walks were
    accepted with gravity 3-4° and velocity 0.4 m/s off at a 3 cm residual, and slid 0.7-0.9 m.
    Over two seconds the slide no longer fits, and the two fits disagree.
+3d. **A map the registrations could not vouch for is restarted**: when a full window of
+   registrations fails the restoring test, the registration map restarts from the window's last
+   scan alone (at its registered pose, so the world frame stays), the next scan is predicted at
+   zero velocity (the velocity along the weak direction was not measured), and the fits use
+   only the registrations made against the new map. A registration that cannot restore its
+   weak direction moves along it with its constant-velocity prediction, and the map it builds
+   is stretched or compressed there; once the geometry offers that direction again, the
+   registrations lock onto the misplaced copies, restore what they claim, and pass every test
+   with the velocity along the weak direction wrong (a Mid-360 walking a corridor at 1.05 m/s
+   slid 1.5 times too fast for 10 s, then locked at -0.06 m/s; the filter, handed that velocity
+   with a claimed deviation of 0.055 m/s, lost 17.7 m).
 4. **Hand-over covariance**: the filter starts from the fit's own uncertainty, not the static
    start's generic one. Position and attitude: the RMS residuals of the two fits (the hand-over
    pose anchors the new map, so it is known to the registration's scatter); velocity at the
@@ -349,6 +360,13 @@ class MovingInit:
         """End of the latest scan handed in (int64 ns)."""
         self.n_few_points = 0
         """Scans not registered for having fewer than ``MIN_POINTS`` once downsampled."""
+        self.map_since_ns = np.iinfo(np.int64).min
+        """End of the scan the registration map was last restarted from (step 3d); the fits use
+        only the registrations made against that map."""
+        self.n_map_restarts = 0
+        """Times the registration map was restarted (step 3d)."""
+        self._last_down_world: np.ndarray | None = None
+        """The last registered scan's downsampled points (world), to restart the map from."""
 
     @property
     def starved(self) -> bool:
@@ -419,7 +437,8 @@ class MovingInit:
             if self.use_gyro:  # the unit check never fits
                 restoring, weakest = _restoring_along_weakest_translation(
                     assoc, state, self.cfg.adaptive.probe_step_m)
-        self.ivox.add_points(points_to_world(down, state.R, state.p, self.R_LI, self.t_LI))
+        self._last_down_world = points_to_world(down, state.R, state.p, self.R_LI, self.t_LI)
+        self.ivox.add_points(self._last_down_world)
         self.scans.append(_Registered(t_e, state.R.copy(), state.p.copy(), restoring,
                                       weakest))
         self.last_points = pts_e
@@ -428,8 +447,8 @@ class MovingInit:
             del self.scans[:500]
 
     def _velocity(self) -> np.ndarray:
-        if len(self.scans) < 2:
-            return np.zeros(3)
+        if len(self.scans) < 2 or self.scans[-2].t_ns < self.map_since_ns:
+            return np.zeros(3)  # the first scan, or the map restarted (step 3d)
         a, b = self.scans[-2], self.scans[-1]
         return (b.p - a.p) / ((b.t_ns - a.t_ns) * 1e-9)
 
@@ -486,8 +505,11 @@ class MovingInit:
         accept the fit only if the fit over twice that window agrees with it (step 3c)."""
         cfg = self.cfg.imu
         self.waiting = False
-        if len(self.scans) < MIN_SCANS:
-            self.failure = (f"{len(self.scans)} scans registered, the fit needs {MIN_SCANS}")
+        n_fresh = len(self._fresh())
+        if n_fresh < MIN_SCANS:
+            self.failure = (f"{n_fresh} scans registered"
+                            + (" since the registration map restarted" if self.n_map_restarts
+                               else "") + f", the fit needs {MIN_SCANS}")
             return None
         short = self._fit(self._window(1))
         if isinstance(short, str):
@@ -498,6 +520,8 @@ class MovingInit:
         need = cfg.moving_init_min_restoring_ratio
         n = len(short.win)
         if not restoring >= need:
+            if short.span_s >= self._full_window_s(short):
+                self._restart_map()
             self.failure = (f"the LiDAR-only registrations of the {n} scans restore "
                             f"{restoring:.2f} (median) of the information they claim along "
                             "their weakest translation (limit "
@@ -520,12 +544,37 @@ class MovingInit:
             rotation_residual_rad=short.rot_rms, velocity_cov_m2_s2=short.v_cov,
             gravity_cov_m2_s4=short.g_cov)
 
+    def _fresh(self) -> list[_Registered]:
+        """The registrations made against the current map (step 3d): the scan it was
+        restarted from and those after it."""
+        return [s for s in self.scans if s.t_ns >= self.map_since_ns]
+
     def _window(self, multiple: int) -> list[_Registered]:
-        """The registered scans of the last ``multiple`` fit windows (at least MIN_SCANS)."""
-        t_last = self.scans[-1].t_ns
+        """The registered scans of the last ``multiple`` fit windows (at least MIN_SCANS),
+        among those made against the current map."""
+        fresh = self._fresh()
+        t_last = fresh[-1].t_ns
         span = round(multiple * self.cfg.imu.moving_init_window_s * 1e9)
-        win = [s for s in self.scans if s.t_ns >= t_last - span]
-        return win if len(win) >= MIN_SCANS else self.scans[-MIN_SCANS:]
+        win = [s for s in fresh if s.t_ns >= t_last - span]
+        return win if len(win) >= MIN_SCANS else fresh[-MIN_SCANS:]
+
+    def _full_window_s(self, fit: _Fit) -> float:
+        """The span a window of registrations needs to count as a full
+        ``imu.moving_init_window_s`` (the windows count scan ends: half a scan period of
+        slack)."""
+        period_s = fit.span_s / max(len(fit.win) - 1, 1)
+        return self.cfg.imu.moving_init_window_s - 0.5 * period_s
+
+    def _restart_map(self) -> None:
+        """Step 3d: restart the registration map from the last registered scan alone (at its
+        registered pose, so the world frame stays), and fit only the registrations made
+        against it from here on."""
+        assert self._last_down_world is not None
+        self.ivox = IVox.from_config(replace(self.cfg.map, map_leaf_m=self.cell_m,
+                                             cell_point="first"))
+        self.ivox.add_points(self._last_down_world)
+        self.map_since_ns = self.scans[-1].t_ns
+        self.n_map_restarts += 1
 
     def _nested_disagreement(self, short: _Fit) -> str:
         """Step 3c: the reason to refuse ``short``, or "" to accept it.
@@ -541,7 +590,7 @@ class MovingInit:
         covariance includes the accelerometer bias the fits do not model (:meth:`_fit`)."""
         cfg = self.cfg.imu
         wanted_s = 2.0 * cfg.moving_init_window_s
-        have_s = (short.win[-1].t_ns - self.scans[0].t_ns) * 1e-9
+        have_s = (short.win[-1].t_ns - self._fresh()[0].t_ns) * 1e-9
         # the windows count scan ends; allow half a scan period of slack in the span
         period_s = short.span_s / max(len(short.win) - 1, 1)
         if have_s < wanted_s - 0.5 * period_s:
