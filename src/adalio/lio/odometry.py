@@ -1495,7 +1495,13 @@ class Odometry:
 
     def _reversed_copy(self, mirror_ns: int) -> Odometry:
         """This filter (state, covariance, map) in mirrored time ``mirror_ns - t``, without IMU
-        data or held scans (``_backfill``)."""
+        data or held scans (``_backfill``). In mode ``adaptive`` the copy runs ``adaptive+``: its
+        degenerate scans' weak directions are re-searched and those the registration cannot
+        restore are left at the IMU's prediction. Run back through a stretch whose axis the
+        LiDAR cannot restore (a Mid-360 in the corridor, for 35 s before a moving start), the
+        pass took the information its registrations claimed along it and slowed from the walk's
+        1 m/s to a standstill, 10 m off with σ 15 cm; left to the IMU, it kept the velocity
+        (README, Initialization, *Backfill*). The forward run keeps the configured mode."""
         rev = copy.copy(self)
         for name in ("_ivox", "_detector", "_provenance"):  # what add_scan changes in place
             setattr(rev, name, copy.deepcopy(getattr(self, name)))
@@ -1504,8 +1510,10 @@ class Odometry:
             # shared, they would reach the forward run's next scans (its sweep at a mirrored
             # time taken for the one a lookback earlier, its points for the map's)
             rev._movers = MovingPoints.from_config(cfg.map)
+        mode = "adaptive+" if cfg.adaptive.mode == "adaptive" else cfg.adaptive.mode
         rev.cfg = replace(cfg, preprocess=replace(cfg.preprocess, point_filter_num=1),
-                          imu=replace(cfg.imu, backfill_s=0.0))
+                          imu=replace(cfg.imu, backfill_s=0.0),
+                          adaptive=replace(cfg.adaptive, mode=mode))
         x = self._state
         rev._state = State(p=x.p.copy(), R=x.R.copy(), R_LI=x.R_LI.copy(), t_LI=x.t_LI.copy(),
                            v=-x.v, b_g=-x.b_g, b_a=x.b_a.copy(), g=x.g.copy(),
