@@ -520,7 +520,7 @@ class MovingInit:
         need = cfg.moving_init_min_restoring_ratio
         n = len(short.win)
         if not restoring >= need:
-            if short.span_s >= self._full_window_s(short):
+            if short.span_s >= self._span_needed_s(short, 1):
                 self._restart_map()
             self.failure = (f"the LiDAR-only registrations of the {n} scans restore "
                             f"{restoring:.2f} (median) of the information they claim along "
@@ -558,12 +558,12 @@ class MovingInit:
         win = [s for s in fresh if s.t_ns >= t_last - span]
         return win if len(win) >= MIN_SCANS else fresh[-MIN_SCANS:]
 
-    def _full_window_s(self, fit: _Fit) -> float:
-        """The span a window of registrations needs to count as a full
-        ``imu.moving_init_window_s`` (the windows count scan ends: half a scan period of
-        slack)."""
+    def _span_needed_s(self, fit: _Fit, multiple: int) -> float:
+        """The span registrations need to count as ``multiple`` full
+        ``imu.moving_init_window_s``: the windows count scan ends, so half of ``fit``'s scan
+        period is slack."""
         period_s = fit.span_s / max(len(fit.win) - 1, 1)
-        return self.cfg.imu.moving_init_window_s - 0.5 * period_s
+        return multiple * self.cfg.imu.moving_init_window_s - 0.5 * period_s
 
     def _restart_map(self) -> None:
         """Step 3d: restart the registration map from the last registered scan alone (at its
@@ -591,9 +591,7 @@ class MovingInit:
         cfg = self.cfg.imu
         wanted_s = 2.0 * cfg.moving_init_window_s
         have_s = (short.win[-1].t_ns - self._fresh()[0].t_ns) * 1e-9
-        # the windows count scan ends; allow half a scan period of slack in the span
-        period_s = short.span_s / max(len(short.win) - 1, 1)
-        if have_s < wanted_s - 0.5 * period_s:
+        if have_s < self._span_needed_s(short, 2):
             self.waiting = True
             return (f"the registrations span {have_s:.1f} s; the fit is checked against one "
                     f"over {wanted_s:g} s (twice imu.moving_init_window_s)")
