@@ -34,6 +34,7 @@ from adalio.io.writers import (
     ScansCsvWriter,
     TumWriter,
     rewrite_sigmas,
+    scan_sigmas,
     sort_rows_by_time,
     write_map,
 )
@@ -1119,8 +1120,7 @@ def _run_once(bag_path: str | Path, cfg: Config, out: Path, *, progress: bool,
             held.append(stats.held_directions > 0)
             risky.append(bool(np.nanmax(stats.sigma_p_world_m) > sigma_warn_m))
             poses.append(np.asarray(e.T_world_imu, dtype=np.float64))
-            sigmas.append(np.r_[np.resize(np.asarray(stats.sigma_p_world_m, float), 3),
-                                np.resize(np.asarray(stats.sigma_rot_world_deg, float), 3)])
+            sigmas.append(scan_sigmas(stats))
             var_ext.append(np.resize(np.asarray(stats.var_extrinsic_world, float), 6))
             if risky[-1]:
                 risky_extrinsic_m = max(risky_extrinsic_m, float(stats.sigma_extrinsic_m))

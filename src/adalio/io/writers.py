@@ -25,6 +25,17 @@ SIGMA_COLUMNS: tuple[str, ...] = ("sigma_x_m", "sigma_y_m", "sigma_z_m", "sigma_
                                   "sigma_pitch_deg", "sigma_yaw_deg")
 """The sigma columns of ``scans.csv`` (:func:`rewrite_sigmas` rewrites them at a run's end)."""
 
+
+def scan_sigmas(stats: ScanStats) -> np.ndarray:
+    """(6,) the values of :data:`SIGMA_COLUMNS` for a scan: position (m), then rotation (deg)."""
+    return np.r_[np.resize(np.asarray(stats.sigma_p_world_m, float), 3),
+                 np.resize(np.asarray(stats.sigma_rot_world_deg, float), 3)]
+
+
+def _sigma_fields(sigmas: np.ndarray) -> list[str]:
+    """:data:`SIGMA_COLUMNS` as ``scans.csv`` writes them."""
+    return [f"{v:.4g}" for v in sigmas]
+
 SCANS_CSV_COLUMNS: tuple[str, ...] = (
     "t_s", "n_raw", "n_down", "n_down_general", "n_near", "degenerate", "trigger",
     "voxel_size_m", "search_radius_m", "plane_margin_m", "n_matched", "iterations", "wall_ms",
@@ -129,8 +140,7 @@ class ScansCsvWriter(_RowFile):
                *[f"{v:.6g}" for v in weak], f"{stats.degeneracy_score:.6g}",
                stats.held_directions, f"{stats.min_restoring:.4g}",
                f"{stats.imu_gap_s:.4g}",
-               *[f"{v:.4g}" for v in np.resize(np.asarray(stats.sigma_p_world_m, float), 3)],
-               *[f"{v:.4g}" for v in np.resize(np.asarray(stats.sigma_rot_world_deg, float), 3)],
+               *_sigma_fields(scan_sigmas(stats)),
                int(bool(stats.backfill)), int(bool(stats.rest_update)),
                int(bool(stats.height_blind)), f"{stats.lidar_gap_s:.4g}", stats.n_moving,
                stats.n_seen_through, stats.n_stray, stats.n_stray_dropped]
@@ -161,8 +171,8 @@ def rewrite_sigmas(path: str | Path, t_ns: np.ndarray, sigmas: np.ndarray,
         fields = next(csv.reader([lines[i + 1]]))
         if s_str_to_ns(fields[0]) != int(t_ns[i]):
             return 0
-        for c, v in zip(cols, sigmas[i], strict=True):
-            fields[c] = f"{v:.4g}"
+        for c, v in zip(cols, _sigma_fields(sigmas[i]), strict=True):
+            fields[c] = v
         buf = io.StringIO()
         csv.writer(buf).writerow(fields)  # as ScansCsvWriter writes it
         out[i + 1] = buf.getvalue()
