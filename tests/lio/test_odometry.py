@@ -749,26 +749,30 @@ def test_the_reversed_pass_is_held_to_the_anchor_as_a_constrained_least_squares_
             assert np.allclose(odom._state.v, -anchor.v, atol=1e-6)
 
 
-@pytest.mark.parametrize("mode, reversed_mode", [("adaptive", "adaptive+"),
-                                                  ("adaptive+", "adaptive+"), ("fixed", "fixed")])
-def test_the_reversed_pass_leaves_to_the_imu_what_its_registrations_cannot_restore(
-        mode, reversed_mode):
-    """The backfill's reversed pass of an ``adaptive`` run probes its degenerate scans'
-    weak directions and leaves those its registrations cannot restore at the IMU's prediction
-    (mode ``adaptive+``, with its robust kernel): a pass run back for 35 s along a corridor
-    whose axis a Mid-360 cannot restore kept the walk's velocity that way, where the claimed
-    information slowed it to a standstill (10 m; README, Initialization, *Backfill*). ``fixed``
-    stays the paper's baseline, and the forward filter's config is untouched."""
+@pytest.mark.parametrize("mode, kernel, reversed_kernel", [
+    ("adaptive", "auto", "none"), ("adaptive+", "auto", "none"), ("fixed", "auto", "huber"),
+    ("adaptive", "huber", "huber"), ("adaptive", "geman_mcclure", "geman_mcclure")])
+def test_the_reversed_pass_of_an_adaptive_run_leaves_its_rows_unweighted(
+        mode, kernel, reversed_kernel):
+    """The backfill's reversed pass of an ``adaptive`` run resolves ``filter.robust_kernel``
+    ``auto`` to ``none``: run back for 35 s along a corridor whose axis a Mid-360 cannot
+    restore, the Huber kernel's pass slowed to a standstill (10 m off), the unweighted one kept
+    the walk's velocity (README, Initialization, *Backfill*). It keeps its mode (session 96's
+    ``adaptive+`` held the stairwell's height and lost 5-30 cm there); ``fixed`` keeps the
+    Huber kernel, a kernel the config names is kept, and the forward filter's config is
+    untouched."""
     from adalio.lio.odometry import robust_kernel_name
 
     cfg = _config()
     cfg.adaptive.mode = mode
+    cfg.filter.robust_kernel = kernel
     odom = Odometry(cfg.validate())
     odom._state = State(R_LI=odom._R_LI.copy(), t_LI=odom._t_LI.copy())
     odom._P, odom._P_report, odom._t_state_ns = np.eye(DIM), None, 1_000_000_000
     rev = odom._reversed_copy(3_000_000_000)
-    assert rev.cfg.adaptive.mode == reversed_mode and odom.cfg.adaptive.mode == mode
-    assert robust_kernel_name(rev.cfg) == ("none" if reversed_mode == "adaptive+" else "huber")
+    assert rev.cfg.adaptive.mode == mode and odom.cfg.adaptive.mode == mode
+    assert robust_kernel_name(rev.cfg) == reversed_kernel
+    assert odom.cfg.filter.robust_kernel == kernel
     assert rev._t_state_ns == 2_000_000_000 and rev.cfg.imu.backfill_s == 0.0
 
 

@@ -1495,13 +1495,16 @@ class Odometry:
 
     def _reversed_copy(self, mirror_ns: int) -> Odometry:
         """This filter (state, covariance, map) in mirrored time ``mirror_ns - t``, without IMU
-        data or held scans (``_backfill``). In mode ``adaptive`` the copy runs ``adaptive+``: its
-        degenerate scans' weak directions are re-searched and those the registration cannot
-        restore are left at the IMU's prediction. Run back through a stretch whose axis the
-        LiDAR cannot restore (a Mid-360 in the corridor, for 35 s before a moving start), the
-        pass took the information its registrations claimed along it and slowed from the walk's
-        1 m/s to a standstill, 10 m off with σ 15 cm; left to the IMU, it kept the velocity
-        (README, Initialization, *Backfill*). The forward run keeps the configured mode."""
+        data or held scans (``_backfill``). In mode ``adaptive`` the copy leaves its rows
+        unweighted (``filter.robust_kernel`` ``auto`` resolves to ``none`` there, as in
+        ``adaptive+``). Run back through a stretch whose axis the LiDAR cannot restore (a
+        Mid-360 in the corridor, for 35 s before a moving start), the pass with the Huber kernel
+        slowed from the walk's 1 m/s to a standstill, 10 m off with σ 15 cm; without it, it kept
+        the velocity. Session 96 ran the copy in ``adaptive+`` instead, which drops the kernel
+        too but also holds the stairwell's height at the IMU's prediction: the XT-32's
+        stairwell starts lost 5-30 cm by it (README, Initialization, *Backfill*). ``fixed``
+        keeps its kernel: there the stairwell's reversed pass needs it (8.9 → 71 cm without).
+        The forward run keeps the configured kernel."""
         rev = copy.copy(self)
         for name in ("_ivox", "_detector", "_provenance"):  # what add_scan changes in place
             setattr(rev, name, copy.deepcopy(getattr(self, name)))
@@ -1510,10 +1513,12 @@ class Odometry:
             # shared, they would reach the forward run's next scans (its sweep at a mirrored
             # time taken for the one a lookback earlier, its points for the map's)
             rev._movers = MovingPoints.from_config(cfg.map)
-        mode = "adaptive+" if cfg.adaptive.mode == "adaptive" else cfg.adaptive.mode
+        kernel = cfg.filter.robust_kernel
+        if kernel == "auto" and cfg.adaptive.mode == "adaptive":
+            kernel = "none"
         rev.cfg = replace(cfg, preprocess=replace(cfg.preprocess, point_filter_num=1),
                           imu=replace(cfg.imu, backfill_s=0.0),
-                          adaptive=replace(cfg.adaptive, mode=mode))
+                          filter=replace(cfg.filter, robust_kernel=kernel))
         x = self._state
         rev._state = State(p=x.p.copy(), R=x.R.copy(), R_LI=x.R_LI.copy(), t_LI=x.t_LI.copy(),
                            v=-x.v, b_g=-x.b_g, b_a=x.b_a.copy(), g=x.g.copy(),
