@@ -407,7 +407,9 @@ class FilterConfig:
     along the row: a row that corrects an error the estimate admits is not an outlier. 'auto'
     (since session 31): 'huber' in modes fixed and adaptive (spiral shaft 12.1 -> 5.9 cm, and
     equal or better means and worsts on every scene, sensor and IMU of the matrix), 'none' in
-    adaptive+ (with a kernel its stairwell diverged). 'geman_mcclure' silences far rows (spiral
+    adaptive+ (with a kernel its stairwell diverged) and in the backfill's reversed pass of an
+    adaptive run (since session 97: with Huber it stalled along a Mid-360's corridor, README,
+    Initialization, "Backfill"). 'geman_mcclure' silences far rows (spiral
     4.8 cm) but let a corridor slip along its axis with a noisy IMU; 'none' is Faster-LIO's
     plain least squares (README, "Session 31")."""
     robust_scale: float = 0.0
