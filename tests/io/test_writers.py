@@ -110,9 +110,12 @@ def test_rows_written_late_are_sorted_into_time_order(tmp_path):
             poses[t] = T
             w.write(t, T)
             c.write(ScanStats(t_ns=t, n_raw=t % 1000, backfill=t < 9_000_000_000))
-    before_tum = sorted((tmp_path / "t.tum").read_text().splitlines())
+    before = {name: sorted((tmp_path / name).read_bytes().splitlines(keepends=True))
+              for name in ("t.tum", "s.csv")}
     sort_rows_by_time(tmp_path / "t.tum", tmp_path / "s.csv")
-    assert sorted((tmp_path / "t.tum").read_text().splitlines()) == before_tum
+    for name, lines in before.items():  # every line's bytes kept, its ending too (csv: \r\n)
+        assert sorted((tmp_path / name).read_bytes().splitlines(keepends=True)) == lines
+    assert (tmp_path / "s.csv").read_bytes().count(b"\r\n") == len(stamps) + 1
     t_ns, pose = read_tum(tmp_path / "t.tum")
     assert list(t_ns) == sorted(stamps)
     for t, row in zip(t_ns, pose, strict=True):

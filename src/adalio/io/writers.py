@@ -185,15 +185,19 @@ def rewrite_sigmas(path: str | Path, t_ns: np.ndarray, sigmas: np.ndarray,
 
 def sort_rows_by_time(*paths: str | Path) -> None:
     """Rewrite row files (``trajectory.tum``, ``scans.csv``) with their data rows in time order
-    (stable; header and comment lines first): the backfill's rows arrive after later ones."""
+    (stable; header and comment lines first): the backfill's rows arrive after later ones.
+    Every line keeps its bytes, line ending included (the csv module's ``\r\n`` in
+    ``scans.csv``, as :func:`rewrite_sigmas` keeps them)."""
     for path in paths:
         path = Path(path)
-        lines = path.read_text().splitlines(keepends=True)
+        with open(path, newline="") as fh:
+            lines = fh.read().splitlines(keepends=True)
         head = [ln for ln in lines if ln.startswith(("#", "t_s"))]
         rows = [ln for ln in lines if ln.strip() and not ln.startswith(("#", "t_s"))]
         rows.sort(key=lambda ln: s_str_to_ns(ln.split(",", 1)[0].split()[0]))  # stable
         tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text("".join(head + rows))
+        with open(tmp, "w", newline="") as fh:
+            fh.write("".join(head + rows))
         tmp.replace(path)
 
 
