@@ -758,7 +758,7 @@ def test_the_reversed_pass_of_an_adaptive_run_leaves_its_rows_unweighted(
     ``auto`` to ``none``: run back for 35 s along a corridor whose axis a Mid-360 cannot
     restore, the Huber kernel's pass slowed to a standstill (10 m off), the unweighted one kept
     the walk's velocity (README, Initialization, *Backfill*). It keeps its mode (session 96's
-    ``adaptive+`` held the stairwell's height and lost 5-30 cm there); ``fixed`` keeps the
+    ``adaptive+`` held the stairwell's height and lost 4-39 cm there); ``fixed`` keeps the
     Huber kernel, a kernel the config names is kept, and the forward filter's config is
     untouched."""
     from adalio.lio.odometry import robust_kernel_name

@@ -229,7 +229,9 @@ def _group_ids(points: np.ndarray) -> tuple[np.ndarray, int]:
 
 def robust_kernel_name(cfg: Config) -> str:
     """``filter.robust_kernel`` resolved: ``auto`` is ``huber``, except in mode ``adaptive+``,
-    whose held directions and probes diverged with it in the stairwell (README, Session 31)."""
+    whose held directions and probes diverged with it in the stairwell (README, Session 31).
+    The backfill's reversed pass of an ``adaptive`` run is given ``none`` outright
+    (:meth:`Odometry._reversed_copy`)."""
     name = cfg.filter.robust_kernel
     if name != "auto":
         return name
@@ -1502,8 +1504,9 @@ class Odometry:
         slowed from the walk's 1 m/s to a standstill, 10 m off with σ 15 cm; without it, it kept
         the velocity. Session 96 ran the copy in ``adaptive+`` instead, which drops the kernel
         too but also holds the stairwell's height at the IMU's prediction: the XT-32's
-        stairwell starts lost 5-30 cm by it (README, Initialization, *Backfill*). ``fixed``
-        keeps its kernel: there the stairwell's reversed pass needs it (8.9 → 71 cm without).
+        stairwell starts lost 4-39 cm by it (README, Initialization, *Backfill*). ``fixed``
+        keeps its kernel: there the stairwell's reversed pass needs it (a mean of 8.9 → 71 cm
+        without).
         The forward run keeps the configured kernel."""
         rev = copy.copy(self)
         for name in ("_ivox", "_detector", "_provenance"):  # what add_scan changes in place
