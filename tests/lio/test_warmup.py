@@ -49,11 +49,10 @@ print(json.dumps({"cold_before": cold, "cold_after": warmup.cache_is_cold(),
 """
 
 _RUN = _RECORD + """
-import tempfile
 from adalio.config import load_config
 from adalio.lio import associate, measurement, map_uncertainty, motion_init
 from adalio.pipeline import run_bag
-res = run_bag(sys.argv[1], load_config(config_file=sys.argv[2]), tempfile.mkdtemp(),
+res = run_bag(sys.argv[1], load_config(config_file=sys.argv[2]), sys.argv[3],
               progress=False, parallel_compile=False)
 used = {d.__module__ + "." + d.__qualname__: sum(d.stats.cache_hits.values())
         for d in (associate._associate_parallel, measurement.point_to_plane,
@@ -94,7 +93,7 @@ def test_a_run_after_the_helper_compiles_none_of_the_helper_s_kernels_again(
                  "adalio.lio.ivox._gather_points", "adalio.lio.plane._fit_planes_serial",
                  "adalio.lio.dense_map._add_points", "adalio.lio.map_uncertainty._insert"):
         assert name in by_helper
-    run = _json(_RUN, env, str(sim.bag_path), str(sim.config_path))
+    run = _json(_RUN, env, str(sim.bag_path), str(sim.config_path), str(tmp_path / "run"))
     assert run["poses"] > 10
     again = sorted({name for name, _ in run["compiled"]} & by_helper)
     assert again == [], [c for c in run["compiled"] if c[0] in again]
