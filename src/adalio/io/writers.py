@@ -36,6 +36,7 @@ def _sigma_fields(sigmas: np.ndarray) -> list[str]:
     """:data:`SIGMA_COLUMNS` as ``scans.csv`` writes them."""
     return [f"{v:.4g}" for v in sigmas]
 
+
 SCANS_CSV_COLUMNS: tuple[str, ...] = (
     "t_s", "n_raw", "n_down", "n_down_general", "n_near", "degenerate", "trigger",
     "voxel_size_m", "search_radius_m", "plane_margin_m", "n_matched", "iterations", "wall_ms",

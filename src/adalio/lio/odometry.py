@@ -1506,8 +1506,7 @@ class Odometry:
         too but also holds the stairwell's height at the IMU's prediction: the XT-32's
         stairwell starts lost 4-39 cm by it (README, Initialization, *Backfill*). ``fixed``
         keeps its kernel: there the stairwell's reversed pass needs it (a mean of 8.9 → 71 cm
-        without).
-        The forward run keeps the configured kernel."""
+        without). The forward run keeps the configured kernel."""
         rev = copy.copy(self)
         for name in ("_ivox", "_detector", "_provenance"):  # what add_scan changes in place
             setattr(rev, name, copy.deepcopy(getattr(self, name)))
