@@ -370,7 +370,8 @@ def _stray_share(scan: Any, pre: Any) -> float | None:
     if not ok.any():
         return None
     return float(stray_returns(pts[ok], np.asarray(scan.t_ns)[ok], ring[ok],
-                               pre.stray_tolerance_m, pre.stray_tolerance_rel).mean())
+                               pre.stray_tolerance_m, pre.stray_tolerance_rel,
+                               scan.ring is None).mean())
 
 
 def _ranges_text(ranges_s: list[tuple[float, float]], limit: int = 8) -> str:

@@ -1155,12 +1155,13 @@ class Odometry:
             if finite.all():
                 rows_f = None
                 code = stray_codes(pts, t, ring.astype(np.int64), pre.stray_tolerance_m,
-                                   pre.stray_tolerance_rel)
+                                   pre.stray_tolerance_rel, self._ring_is_line)
             else:
                 rows_f = np.flatnonzero(finite)
                 code = stray_codes(pts.take(rows_f, axis=0), t[rows_f],
                                    ring[rows_f].astype(np.int64),
-                                   pre.stray_tolerance_m, pre.stray_tolerance_rel)
+                                   pre.stray_tolerance_m, pre.stray_tolerance_rel,
+                                   self._ring_is_line)
             n_stray = int((code == STRAY).sum())
             if n_stray and (pre.drop_stray_returns
                             or n_stray > pre.stray_drop_share * code.size):
