@@ -138,9 +138,10 @@ class PreprocessConfig:
     """Keep every n-th point of the message (1 = all)."""
     drop_stray_returns: bool = False
     """Drop in every sweep the returns whose range neither the two points before them along
-    their ring nor the two after them continue (``adalio.lio.stray``): dust or rain in front of
-    a surface, multipath or cross-talk ghosts behind it, mixed pixels, and thin things. Needs a
-    ring per point; off by default (README, *Stray returns*): with it off, a sweep drops them
+    their ring nor the two after them continue (along a Livox laser: whose ray meets neither
+    side's straight line; ``adalio.lio.stray``): dust or rain in front of a surface, multipath
+    or cross-talk ghosts behind it, mixed pixels, and thin things. Needs a ring per point (or a
+    Livox laser); off by default (README, *Stray returns*): with it off, a sweep drops them
     where its stray returns are more than ``stray_drop_share`` of its points."""
     stray_drop_share: float = 0.02
     """A sweep whose stray returns (``adalio.lio.stray``) are more than this share of its
