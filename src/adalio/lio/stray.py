@@ -227,9 +227,9 @@ def stray_codes(points: np.ndarray, t_ns: np.ndarray, ring: np.ndarray,
             continue
         tol = tolerance_m + tolerance_rel * r[i]
         if lines:  # on a surface the trace crossed in two or three firings: between its
-            # neighbours, or next to one at its range that no side continues either (a return
-            # next to a continued one is that one's stray); dropped in a dirty sweep, as the
-            # points an adjacent ring supports
+            # neighbours, or next to one at its range that no side continues either (next to a
+            # continued one, as a ghost behind it, it stays stray); dropped in a dirty sweep, as
+            # the points an adjacent ring supports
             seen = between[i]
             for j in (i - 1, i + 1):
                 if (0 <= j < n and ring_sorted[j] == ring_sorted[i] and not fits[j]
